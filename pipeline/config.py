@@ -1,0 +1,403 @@
+"""Configuration: one profile per dataset (TOML files shipped in ``pipeline/profiles``), typed
+sections, overrides with ``--set section.key=value`` and environment variables.
+
+Environment overrides: ``PIPELINE__SECTION__KEY=value`` (double underscores), e.g.
+``PIPELINE__TRAIN__EPOCHS=3``. Precedence: defaults < profile < environment < --set.
+Every key is addressed as ``section.key``; ``Config.get("heatmap.sigma_px")`` returns its value and
+``Config.fingerprint(keys)`` hashes a set of keys for the cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import json
+import os
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from importlib import resources
+from typing import Any, get_type_hints
+
+from pipeline.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class DatasetSection:
+    """Which reader reads the raw files and how frames are named."""
+
+    reader: str = "vod"
+    """Reader module name in pipeline.readers: vod, astyx, astyx_demo, msc, kitti, synthetic."""
+    description: str = ""
+    """One line shown by `pipeline datasets`."""
+    data_root: str = ""
+    """Default data root ('' = must be given; the synthetic world generates into the cache)."""
+    world_frames: int = 240
+    """Synthetic world only: number of frames generated when no data root is given."""
+    world_seed: int = 0
+    """Synthetic world only: generator seed."""
+    world_resolution: tuple[int, int] = (640, 384)
+    """Synthetic world only: rendered image size (W, H) pixels."""
+    radar_mount_T_radar_lidar: tuple[float, ...] = (1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)
+    """KITTI only: row-major 4x4 transform from the lidar frame to the simulated radar {D}."""
+
+
+@dataclass(frozen=True)
+class RadarSection:
+    """The radar being learned / simulated (its profile)."""
+
+    name: str = "ZF FRGen21"
+    """Radar model, for reports."""
+    az_res_deg: float = 1.5
+    """Azimuth resolution delta_1, degrees."""
+    el_res_deg: float = 1.5
+    """Elevation resolution delta_2, degrees."""
+    fov_az_deg: float = 64.0
+    """Total horizontal field of view, degrees (symmetric about x)."""
+    fov_el_deg: float = 40.0
+    """Total vertical field of view, degrees (symmetric about the xy plane)."""
+    max_range_m: float = 50.0
+    """Radar points farther than this are dropped everywhere, metres."""
+    max_points: int = 1000
+    """Dis-Net count scale: n_hat = sigmoid(.) * max_points."""
+    store_max_points: int = 4096
+    """Capacity of the per-frame radar arrays in the cache; more points is a frame error."""
+    rss_min: float = -74.0
+    """Lower end of the RSS range (dataset units), normalises L_a."""
+    rss_max: float = 39.8
+    """Upper end of the RSS range (dataset units)."""
+    rss_unit: str = "dBsm"
+    """Unit of the RSS column, for reports."""
+    doppler_sign: int = 1
+    """Dataset Doppler = doppler_sign * range rate: +1 VoD (negative approaching), -1 Astyx."""
+    doppler_span_mps: float = 0.0
+    """Unambiguous Doppler span, m/s (0 = no aliasing; Astyx 6455: 10.39)."""
+
+
+@dataclass(frozen=True)
+class CameraSection:
+    """Working resolution: images are cropped (full-resolution rows) then resized."""
+
+    full_size: tuple[int, int] = (1936, 1216)
+    """Native image size (W, H), pixels."""
+    crop_rows: tuple[int, int] = (0, 1216)
+    """Rows [top, bottom) of the full-resolution image kept (rows the radar cannot see dropped)."""
+    working_size: tuple[int, int] = (320, 160)
+    """Image size (W, H) the networks see, pixels; multiples of 32."""
+
+
+@dataclass(frozen=True)
+class LidarSection:
+    """Lidar storage in the cache."""
+
+    store_max_points: int = 65536
+    """Capacity of the per-frame lidar arrays; lidar outside the camera view or beyond
+    max_range_m + margin is dropped before storing, then points are subsampled if still over."""
+    range_margin_m: float = 10.0
+    """Lidar kept up to radar.max_range_m + this margin, metres."""
+
+
+@dataclass(frozen=True)
+class SplitSection:
+    """Train / val / test assignment of frames."""
+
+    rule: str = "block"
+    """'sequence' (whole sequences), 'block' (blocks of consecutive frames), or 'random'
+    (the paper's within-sequence shuffle; leaks neighbouring frames)."""
+    fractions: tuple[float, float, float] = (0.6, 0.1, 0.3)
+    """Train, val, test shares."""
+    block_len: int = 15
+    """Frames per block for rule 'block'."""
+    seed: int = 0
+    """Seed of the assignment."""
+
+
+@dataclass(frozen=True)
+class HeatmapSection:
+    """Ground-truth heatmap (eqs. 5-7)."""
+
+    sigma_px: tuple[float, float] = (100.0, 100.0)
+    """Standard deviations (u, v) of the diagonal Sigma in full-resolution pixels."""
+
+
+@dataclass(frozen=True)
+class PatchesSection:
+    """RSS-Net training samples (eqs. 17-21)."""
+
+    points_per_frame: int = 50
+    """Radar points sampled per frame (VoD 50, Astyx/MSC 100)."""
+    r_c_px: float = 50.0
+    """Half side of the image patch in full-resolution pixels."""
+    r_l_m: float = 1.0
+    """Radius of the lidar neighbourhood for the local range image, metres."""
+    range_image_size: tuple[int, int] = (128, 32)
+    """Local range image (w, h), pixels."""
+    patch_size_px: int = 32
+    """Side of the stored image patch after resizing to the network input, pixels."""
+    seed: int = 0
+    """Seed of the point sampling (seeded once per run, not per frame)."""
+
+
+@dataclass(frozen=True)
+class DisNetSection:
+    """Dis-Net architecture."""
+
+    use_speed: bool = True
+    """Feed the ego speed to the number branch (Table II ablation)."""
+    backbone_weights: str = ""
+    """Path of a local torchvision ResNet-18 state dict ('' = random init)."""
+    width: int = 64
+    """Base width of the ResNet-18 (64 = standard)."""
+
+
+@dataclass(frozen=True)
+class RssNetSection:
+    """RSS-Net architecture and its inputs (Table III ablation)."""
+
+    use_camera: bool = True
+    """Use the image patch branch."""
+    use_lidar: bool = True
+    """Use the local range image branch."""
+    use_radar_point: bool = True
+    """Use the point vector [x, y, z, v]."""
+
+
+@dataclass(frozen=True)
+class TrainSection:
+    """Training of both networks."""
+
+    nets: str = "disnet,rssnet"
+    """Comma-separated nets to train."""
+    epochs: int = 20
+    """Epochs per net."""
+    lr: float = 1e-4
+    """Adam learning rate."""
+    batch_size: int = 4
+    """Dis-Net batch size (frames)."""
+    rss_batch_size: int = 256
+    """RSS-Net batch size (points)."""
+    alpha: float = 1.0
+    """Weight of L_n in L = L_KL + alpha L_n."""
+    seed: int = 0
+    """Seed of initialisation and shuffling."""
+    device: str = "auto"
+    """'auto' (CUDA when present), 'cpu' or 'cuda'."""
+    threads: int = 2
+    """torch CPU threads."""
+
+
+@dataclass(frozen=True)
+class SynthSection:
+    """4D signal generation."""
+
+    split: str = "test"
+    """Frames to synthesize: 'train', 'val', 'test' or 'all'."""
+    range_estimator: str = "nearest"
+    """'mean' (paper, eqs. 13-15), 'nearest' (angularly nearest lidar point), 'median' or
+    'min' over the angular window."""
+    no_support: str = "widen"
+    """Where no lidar point lies in the window: 'widen' (double the window up to 4 times, then
+    drop) or 'drop'."""
+    seed: int = 0
+    """Seed of the sampling."""
+    count: str = "predicted"
+    """'predicted' (n_hat) or 'oracle' (the real count, for evaluation)."""
+
+
+@dataclass(frozen=True)
+class ExportSection:
+    """Detector-ready output."""
+
+    noise_fraction: float = 0.0
+    """Share of uniform noise points added (paper Table IV: 0.05)."""
+    pcd: bool = True
+    """Also write PCD files."""
+    previews: bool = True
+    """Write a preview PNG per frame."""
+
+
+@dataclass(frozen=True)
+class EvalSection:
+    """Fidelity evaluation."""
+
+    split: str = "test"
+    """Split evaluated."""
+    figure_frames: int = 4
+    """Frames drawn in the Fig. 8-style figure."""
+    gate_m: float = 1.0
+    """Matched-F1 distance gate, metres."""
+    gate_rss: float = 8.0
+    """Matched-F1 RSS gate, dataset units."""
+    gate_doppler_mps: float = 2.5
+    """Matched-F1 Doppler gate, m/s."""
+
+
+@dataclass(frozen=True)
+class RunSection:
+    """Execution."""
+
+    workers: int = 2
+    """dask worker processes of the local cluster (1 = in-process serial loop)."""
+
+
+SECTIONS: dict[str, type] = {
+    "dataset": DatasetSection,
+    "radar": RadarSection,
+    "camera": CameraSection,
+    "lidar": LidarSection,
+    "split": SplitSection,
+    "heatmap": HeatmapSection,
+    "patches": PatchesSection,
+    "disnet": DisNetSection,
+    "rssnet": RssNetSection,
+    "train": TrainSection,
+    "synth": SynthSection,
+    "export": ExportSection,
+    "eval": EvalSection,
+    "run": RunSection,
+}
+
+
+@dataclass(frozen=True)
+class Config:
+    """A complete configuration: the profile name plus one frozen section per concern."""
+
+    profile: str
+    dataset: DatasetSection = field(default_factory=DatasetSection)
+    radar: RadarSection = field(default_factory=RadarSection)
+    camera: CameraSection = field(default_factory=CameraSection)
+    lidar: LidarSection = field(default_factory=LidarSection)
+    split: SplitSection = field(default_factory=SplitSection)
+    heatmap: HeatmapSection = field(default_factory=HeatmapSection)
+    patches: PatchesSection = field(default_factory=PatchesSection)
+    disnet: DisNetSection = field(default_factory=DisNetSection)
+    rssnet: RssNetSection = field(default_factory=RssNetSection)
+    train: TrainSection = field(default_factory=TrainSection)
+    synth: SynthSection = field(default_factory=SynthSection)
+    export: ExportSection = field(default_factory=ExportSection)
+    eval: EvalSection = field(default_factory=EvalSection)
+    run: RunSection = field(default_factory=RunSection)
+
+    def get(self, key: str) -> Any:
+        """Value of a dotted key such as 'heatmap.sigma_px'; ConfigError (with a suggestion) if unknown."""
+        section, name = _split_key(key)
+        return getattr(getattr(self, section), name)
+
+    def fingerprint(self, keys: tuple[str, ...] | list[str]) -> str:
+        """Stable hash (16 hex digits) of the values of ``keys``."""
+        payload = json.dumps({k: _jsonable(self.get(k)) for k in sorted(keys)}, sort_keys=True)
+        return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+    def with_overrides(self, overrides: dict[str, str]) -> "Config":
+        """A copy with ``{'section.key': 'text value'}`` applied (values parsed by the field type)."""
+        cfg = self
+        for key, text in overrides.items():
+            section, name = _split_key(key)
+            sec = getattr(cfg, section)
+            value = _parse_value(key, text, get_type_hints(type(sec))[name])
+            cfg = replace(cfg, **{section: replace(sec, **{name: value})})
+        return cfg
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """Plain nested dict (JSON-able)."""
+        return {s: {k: _jsonable(v) for k, v in dataclasses.asdict(getattr(self, s)).items()} for s in SECTIONS}
+
+
+def all_keys() -> list[str]:
+    """Every valid dotted key."""
+    return [f"{s}.{f.name}" for s, cls in SECTIONS.items() for f in fields(cls)]
+
+
+def _split_key(key: str) -> tuple[str, str]:
+    if "." in key:
+        section, name = key.split(".", 1)
+        if section in SECTIONS and name in {f.name for f in fields(SECTIONS[section])}:
+            return section, name
+    near = difflib.get_close_matches(key, all_keys(), n=1, cutoff=0.5)
+    hint = f"; did you mean '{near[0]}'?" if near else ""
+    raise ConfigError(f"unknown configuration key '{key}'{hint}")
+
+
+def _jsonable(value: Any) -> Any:
+    return list(value) if isinstance(value, tuple) else value
+
+
+def _parse_value(key: str, value: Any, typ: Any) -> Any:
+    """Coerce a TOML value or a command-line string to the field's type."""
+    text_type = str(typ)
+    try:
+        if typ is bool:
+            if isinstance(value, bool):
+                return value
+            low = str(value).strip().lower()
+            if low in ("1", "true", "yes", "on"):
+                return True
+            if low in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(value)
+        if typ is int:
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError(value)
+            return int(value)
+        if typ is float:
+            return float(value)
+        if typ is str:
+            return str(value)
+        if text_type.startswith("tuple"):
+            items = value if isinstance(value, (list, tuple)) else [v for v in str(value).replace("x", ",").split(",") if v.strip()]
+            inner = typ.__args__
+            if len(inner) == 2 and inner[1] is Ellipsis:
+                return tuple(_parse_value(key, v, inner[0]) for v in items)
+            if len(items) != len(inner):
+                raise ValueError(f"expected {len(inner)} values")
+            return tuple(_parse_value(key, v, t) for v, t in zip(items, inner))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"bad value {value!r} for '{key}' (expected {getattr(typ, '__name__', text_type)}): {exc}") from None
+    raise ConfigError(f"'{key}': unsupported field type {text_type}")
+
+
+def profile_names() -> list[str]:
+    """Names of the dataset profiles shipped in the package."""
+    files = resources.files("pipeline.profiles").iterdir()
+    return sorted(p.name[:-5] for p in files if p.name.endswith(".toml"))
+
+
+def load_config(profile: str, overrides: dict[str, str] | None = None,
+                environ: dict[str, str] | None = None) -> Config:
+    """Build the configuration of ``profile`` with environment and explicit overrides applied."""
+    names = profile_names()
+    if profile not in names:
+        near = difflib.get_close_matches(profile, names, n=1)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        raise ConfigError(f"unknown dataset profile '{profile}' (known: {', '.join(names)}){hint}")
+    text = resources.files("pipeline.profiles").joinpath(f"{profile}.toml").read_text()
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"profile {profile}.toml: {exc}") from None
+    cfg = Config(profile=profile)
+    flat: dict[str, Any] = {}
+    for section, values in data.items():
+        if not isinstance(values, dict):
+            raise ConfigError(f"profile {profile}.toml: top-level key '{section}' is not a [section]")
+        for name, value in values.items():
+            flat[f"{section}.{name}"] = value
+    env = os.environ if environ is None else environ
+    for var, value in env.items():
+        if var.startswith("PIPELINE__") and var.count("__") >= 2:
+            _, section, name = var.split("__", 2)
+            flat[f"{section.lower()}.{name.lower()}"] = value
+    flat.update(overrides or {})
+    return cfg.with_overrides(flat)
+
+
+def parse_set_options(items: tuple[str, ...] | list[str]) -> dict[str, str]:
+    """Parse ``key=value`` strings from --set; ConfigError on a malformed item."""
+    out: dict[str, str] = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"--set expects key=value, got '{item}'")
+        key, value = item.split("=", 1)
+        _split_key(key.strip())
+        out[key.strip()] = value.strip()
+    return out

@@ -1,0 +1,101 @@
+"""The typed frame record every reader returns, and the shape-check helper used at boundaries.
+
+Conventions (all readers convert to these):
+- Radar frame {D}: x forward, y left, z up, metres. Azimuth theta = atan2(y, x), positive to the
+  left; elevation phi = asin(z / r), positive up.
+- Camera frame {C}: x right, y down, z forward (OpenCV). Pixel (u, v): u to the right, v down,
+  integer values at pixel centres.
+- Internal Doppler convention: range rate in m/s, positive when the target recedes, negative when
+  it approaches (View-of-Delft's v_r). A radar that aliases reports values wrapped into its
+  unambiguous span; readers keep them wrapped (they convert the sign only).
+- Ego velocity ``ego_velocity_D``: velocity of the radar relative to the static world, expressed in
+  {D}, m/s. For a static point with unit direction u (in {D}) the range rate is -(u . v).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+RADAR_COLUMNS = ("x_m", "y_m", "z_m", "doppler_mps", "rss")
+"""Columns of ``FrameRecord.radar_D``: position in {D} (m), range rate (m/s), signal strength."""
+
+
+def check_shape(name: str, array: np.ndarray, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Raise ValueError unless ``array`` has ``shape`` (None matches any length).
+
+    Returns the array so that it can be used inline.
+    """
+    array = np.asarray(array)
+    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise ValueError(f"{name}: expected shape {want}, got {tuple(array.shape)}")
+    return array
+
+
+@dataclass
+class Object3D:
+    """One annotated object, expressed in the radar frame {D}.
+
+    ``center_D`` (3,) m: box centre. ``size_lwh_m`` (3,): length (along heading), width, height.
+    ``yaw_rad``: heading about the z axis of {D}, 0 = pointing along +x, positive to the left.
+    ``velocity_D`` (3,) m/s over ground in {D}; NaN where unknown.
+    ``track_id``: identity across frames, -1 where the dataset has none.
+    """
+
+    class_name: str
+    center_D: np.ndarray
+    size_lwh_m: np.ndarray
+    yaw_rad: float
+    track_id: int = -1
+    velocity_D: np.ndarray = field(default_factory=lambda: np.full(3, np.nan, np.float32))
+
+
+@dataclass
+class FrameRecord:
+    """Everything one frame of any dataset provides, in the conventions of this module.
+
+    image: (H, W, 3) uint8 RGB at the reader's native resolution, undistorted/rectified.
+    K: (3, 3) float64 camera intrinsics for ``image``.
+    lidar_D: (N, 3) float32 lidar points in {D}, metres.
+    lidar_intensity: (N,) float32 reflectance/intensity, sensor units.
+    radar_D: (M, 5) float32 radar points, columns RADAR_COLUMNS; (0, 5) for a dataset without
+        radar (KITTI camera + lidar).
+    T_radar_lidar: (4, 4) float64, maps lidar coordinates to {D}.
+    T_radar_cam: (4, 4) float64, maps camera coordinates {C} to {D}.
+    ego_velocity_D: (3,) float64 m/s, radar velocity relative to the static world in {D}.
+    has_radar: False for camera + lidar datasets.
+    labels: annotated objects in {D} (empty when the dataset has none).
+    extras: per-radar-point side information some datasets have (synthetic world: ``object_id``
+        (M,) int32, ``material`` (M,) int32; -1 for ghosts and clutter).
+    """
+
+    frame_id: str
+    sequence_id: str
+    timestamp_s: float
+    image: np.ndarray
+    K: np.ndarray
+    lidar_D: np.ndarray
+    lidar_intensity: np.ndarray
+    radar_D: np.ndarray
+    T_radar_lidar: np.ndarray
+    T_radar_cam: np.ndarray
+    ego_velocity_D: np.ndarray
+    has_radar: bool = True
+    labels: list[Object3D] = field(default_factory=list)
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def validate(self) -> "FrameRecord":
+        """Check shapes and dtypes; raise ValueError naming the field that is wrong."""
+        check_shape("image", self.image, (None, None, 3))
+        check_shape("K", self.K, (3, 3))
+        check_shape("lidar_D", self.lidar_D, (None, 3))
+        check_shape("lidar_intensity", self.lidar_intensity, (self.lidar_D.shape[0],))
+        check_shape("radar_D", self.radar_D, (None, 5))
+        check_shape("T_radar_lidar", self.T_radar_lidar, (4, 4))
+        check_shape("T_radar_cam", self.T_radar_cam, (4, 4))
+        check_shape("ego_velocity_D", self.ego_velocity_D, (3,))
+        if self.image.dtype != np.uint8:
+            raise ValueError(f"image: expected uint8, got {self.image.dtype}")
+        return self
