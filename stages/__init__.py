@@ -1,0 +1,11 @@
+"""The pipeline's stages, in execution order. Each module declares one stage (``STAGE``)."""
+
+from __future__ import annotations
+
+
+def all_stages() -> list:
+    """Every stage declaration, upstream first."""
+    from stages import calibrate, evaluate, export, heatmaps, patches, synthesize, train
+
+    return [calibrate.STAGE, heatmaps.STAGE, patches.STAGE, train.STAGE, synthesize.STAGE, export.STAGE,
+            evaluate.STAGE]

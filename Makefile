@@ -1,0 +1,50 @@
+# One target per stage; DATASET picks the profile (default: the built-in synthetic world).
+#   make heatmaps DATASET=msc DATA_ROOT=/data/msc-rad4r/URBAN_D0
+#   make evaluate DATASET=astyx DATA_ROOT=../shared/data/astyx_hires2019/dataset_astyx_hires2019
+DATASET ?= synthetic
+DATA_ROOT ?=
+CACHE ?= cache
+WORKERS ?= 2
+ARGS ?=
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+PIPELINE := $(BIN)/pipeline
+STAGES := calibrate heatmaps patches train synthesize export evaluate
+RUN_OPTS = --dataset $(DATASET) --cache $(CACHE) --workers $(WORKERS) $(if $(DATA_ROOT),--data-root $(DATA_ROOT)) $(ARGS)
+
+.PHONY: setup demo test bench soak status clean-cache $(STAGES)
+
+$(BIN)/.installed: pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $@
+
+setup: $(BIN)/.installed  ## create .venv and install the package with pinned dependencies
+
+demo: setup  ## run the whole pipeline on the built-in synthetic world
+	$(PIPELINE) run evaluate --dataset synthetic --cache $(CACHE) --workers $(WORKERS) $(ARGS)
+	$(PIPELINE) run export --dataset synthetic --cache $(CACHE) --workers $(WORKERS) $(ARGS)
+	@echo "report:  $(CACHE)/synthetic/evaluate/report.md"
+	@echo "figures: $(CACHE)/synthetic/evaluate/figures/"
+	@echo "export:  $(CACHE)/synthetic/export/"
+
+test: setup  ## the test suite (< 10 minutes on 2 cores)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider tests
+
+bench: setup  ## speed benchmarks: one line per benchmark ending in the measured ratio
+	@for f in tests/benchmarks/bench_*.py; do OMP_NUM_THREADS=1 $(BIN)/python $$f || exit 1; done
+
+soak: setup  ## long crash-resume soak: SIGKILL stages at random moments, compare with a clean run
+	$(BIN)/python -m tests.soak --kills 24
+
+status: setup
+	$(PIPELINE) status --dataset $(DATASET) --cache $(CACHE) $(if $(DATA_ROOT),--data-root $(DATA_ROOT))
+
+$(STAGES): setup
+	$(PIPELINE) run $@ $(RUN_OPTS)
+
+clean-cache:
+	rm -rf $(CACHE)/$(DATASET)

@@ -1,0 +1,233 @@
+"""The on-disk cache: one zarr group per frame stage, one folder per dataset stage.
+
+Layout under the cache root (a local folder or any fsspec URL)::
+
+    <root>/<dataset>/<stage>.zarr/       frame stage: declared arrays, one chunk per frame,
+                                         plus ``status`` (uint8 per frame) and ``reason`` (str)
+    <root>/<dataset>/<stage>/            dataset stage: files, and ``_stage.json`` written last
+    <root>/<dataset>/locks/<stage>.lock  one writer per stage output
+
+Frame status codes: PENDING 0, DONE 1, FAILED 2, EXCLUDED 3. A frame's arrays are written first,
+its status last, so a process killed at any instant leaves either a complete frame or a frame
+that will be redone.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import fsspec
+import numpy as np
+import zarr
+
+from pipeline.errors import CacheError
+from pipeline.stage import ArraySpec
+
+PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
+STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed", EXCLUDED: "excluded"}
+
+
+def join(root: str, *parts: str) -> str:
+    """Join URL or path parts with '/'."""
+    return "/".join([root.rstrip("/"), *[p.strip("/") for p in parts]])
+
+
+def cache_error(exc: OSError, what: str) -> CacheError:
+    """A CacheError explaining an OSError in words (read-only cache, disk full, ...)."""
+    if exc.errno == errno.ENOSPC:
+        return CacheError(f"{what}: the disk holding the cache is full ({exc})")
+    if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return CacheError(f"{what}: the cache is not writable ({exc}); choose another with --cache")
+    return CacheError(f"{what}: {exc}")
+
+
+@dataclass(frozen=True)
+class FrameStore:
+    """The zarr output of one frame stage of one dataset."""
+
+    url: str
+
+    def exists(self) -> bool:
+        """True when the group has been created."""
+        try:
+            return "fingerprint" in self._group("r").attrs
+        except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, ValueError):
+            return False
+
+    def _group(self, mode: str) -> zarr.Group:
+        return _open_group(self.url, mode)
+
+    def fingerprint(self) -> str | None:
+        """Fingerprint the output was created with (None if absent)."""
+        return self._group("r").attrs.get("fingerprint") if self.exists() else None
+
+    def create(self, fingerprint: str, frame_ids: list[str], specs: tuple[ArraySpec, ...],
+               shapes: dict[str, tuple[int, ...]], attrs: dict[str, Any]) -> None:
+        """(Re)create every output array up front; any previous content is erased."""
+        n = len(frame_ids)
+        try:
+            g = zarr.open_group(self.url, mode="w")
+            for spec in specs:
+                shape = shapes[spec.name]
+                g.create_array(spec.name, shape=(n, *shape), chunks=(1, *shape), dtype=spec.dtype,
+                               fill_value=spec.fill, attributes={"units": spec.units})
+                if spec.ragged:
+                    g.create_array(f"{spec.name}_count", shape=(n,), chunks=(1,), dtype="int32",
+                                   fill_value=0, attributes={"units": "rows"})
+            g.create_array("status", shape=(n,), chunks=(1,), dtype="uint8", fill_value=PENDING,
+                           attributes={"codes": STATUS_NAMES})
+            g.create_array("reason", shape=(n,), chunks=(1,), dtype=str, fill_value="")
+            g.attrs.update({**attrs, "frame_ids": list(frame_ids), "created": time.time()})
+            # The fingerprint goes last: a group without it counts as absent.
+            g.attrs["fingerprint"] = fingerprint
+        except OSError as exc:
+            raise cache_error(exc, f"creating {self.url}") from None
+
+    def frame_ids(self) -> list[str]:
+        """Frame ids, in frame-index order."""
+        return list(self._group("r").attrs["frame_ids"])
+
+    def status(self) -> np.ndarray:
+        """(F,) uint8 status codes."""
+        return np.asarray(self._group("r")["status"][:])
+
+    def reasons(self) -> dict[int, str]:
+        """Failure reason per failed frame index."""
+        status = self.status()
+        arr = self._group("r")["reason"]
+        return {int(i): str(arr[int(i)]) for i in np.flatnonzero(status == FAILED)}
+
+    def write_frame(self, index: int, arrays: dict[str, np.ndarray], specs: tuple[ArraySpec, ...]) -> None:
+        """Write one frame's arrays, then mark it done (the marker last)."""
+        g = self._group("r+")
+        try:
+            for spec in specs:
+                value = np.asarray(arrays[spec.name])
+                target = g[spec.name]
+                if spec.ragged:
+                    k = value.shape[0]
+                    padded = np.full(target.shape[1:], spec.fill, dtype=target.dtype)
+                    padded[:k] = value
+                    target[index] = padded
+                    g[f"{spec.name}_count"][index] = k
+                else:
+                    target[index] = value.astype(target.dtype, copy=False)
+            g["reason"][index] = ""
+            g["status"][index] = DONE
+        except OSError as exc:
+            raise cache_error(exc, f"writing frame {index} of {self.url}") from None
+
+    def mark(self, index: int, code: int, reason: str = "") -> None:
+        """Record a frame as failed or excluded, with the reason."""
+        g = self._group("r+")
+        try:
+            g["reason"][index] = reason[:2000]
+            g["status"][index] = code
+        except OSError as exc:
+            raise cache_error(exc, f"recording frame {index} of {self.url}") from None
+
+    def read(self, name: str, index: int) -> np.ndarray:
+        """One frame of an array; ragged arrays are trimmed to the frame's row count."""
+        g = self._group("r")
+        value = np.asarray(g[name][index])
+        if f"{name}_count" in g:
+            value = value[: int(g[f"{name}_count"][index])]
+        return value
+
+    def array(self, name: str) -> zarr.Array:
+        """The whole zarr array (lazy; index it)."""
+        return self._group("r")[name]
+
+    def attrs(self) -> dict[str, Any]:
+        """Group attributes."""
+        return dict(self._group("r").attrs)
+
+
+@dataclass(frozen=True)
+class DirStore:
+    """The folder output of one dataset stage."""
+
+    url: str
+
+    @property
+    def fs(self) -> fsspec.AbstractFileSystem:
+        return fsspec.core.url_to_fs(self.url)[0]
+
+    @property
+    def path(self) -> str:
+        """Path inside the filesystem (a local path for a local cache)."""
+        return fsspec.core.url_to_fs(self.url)[1]
+
+    def file(self, name: str) -> str:
+        """Path of a file of the output (in the filesystem's own terms)."""
+        return join(self.path, name)
+
+    def meta(self) -> dict[str, Any] | None:
+        """Content of ``_stage.json`` (None if the stage never finished)."""
+        try:
+            with self.fs.open(self.file("_stage.json"), "r") as fh:
+                return json.load(fh)
+        except (FileNotFoundError, json.JSONDecodeError):
+            return None
+
+    def fingerprint(self) -> str | None:
+        meta = self.meta()
+        return meta.get("fingerprint") if meta else None
+
+    def ensure(self) -> None:
+        """Create the folder."""
+        try:
+            self.fs.makedirs(self.path, exist_ok=True)
+        except OSError as exc:
+            raise cache_error(exc, f"creating {self.url}") from None
+
+    def write_text(self, name: str, text: str) -> None:
+        """Write a file atomically on local filesystems (temporary name, then rename)."""
+        self.write_bytes(name, text.encode())
+
+    def write_bytes(self, name: str, data: bytes) -> None:
+        fs, target = self.fs, self.file(name)
+        tmp = target + ".tmp"
+        try:
+            fs.makedirs(fs._parent(target), exist_ok=True)
+            with fs.open(tmp, "wb") as fh:
+                fh.write(data)
+            fs.mv(tmp, target)
+        except OSError as exc:
+            raise cache_error(exc, f"writing {target}") from None
+
+    def finish(self, fingerprint: str, summary: dict[str, Any]) -> None:
+        """Mark the stage complete (written last)."""
+        self.write_text("_stage.json", json.dumps({"fingerprint": fingerprint, "finished": time.time(),
+                                                   "summary": summary}, indent=2, default=str))
+
+    def invalidate(self) -> None:
+        """Forget completion (the files stay; the stage decides what to reuse)."""
+        try:
+            if self.fs.exists(self.file("_stage.json")):
+                self.fs.rm(self.file("_stage.json"))
+        except OSError as exc:
+            raise cache_error(exc, f"invalidating {self.url}") from None
+
+
+def _open_group(url: str, mode: str) -> zarr.Group:
+    try:
+        return zarr.open_group(url, mode=mode)
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise cache_error(exc, f"opening {url}") from None
+
+
+def frame_store(root: str, dataset: str, stage: str) -> FrameStore:
+    """The FrameStore of ``stage`` of ``dataset`` under cache ``root``."""
+    return FrameStore(join(root, dataset, f"{stage}.zarr"))
+
+
+def dir_store(root: str, dataset: str, stage: str) -> DirStore:
+    """The DirStore of ``stage`` of ``dataset`` under cache ``root``."""
+    return DirStore(join(root, dataset, stage))

@@ -1,0 +1,252 @@
+"""The `pipeline` command: one click group; shared options defined once; library errors become a
+one-line message and exit code 2."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import sys
+from pathlib import Path
+
+import click
+
+from pipeline.cache import frame_store, join
+from pipeline.config import load_config, parse_set_options, profile_names
+from pipeline.errors import ConfigError, PipelineError
+
+DEFAULT_CACHE = "cache"
+
+
+def _handle_errors(fn):
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except PipelineError as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            click.echo("interrupted: finished frames are kept; run the same command again to resume", err=True)
+            sys.exit(130)
+
+    return wrapper
+
+
+def dataset_options(fn):
+    """--dataset, --data-root, --cache, --set: shared by every command that touches a dataset."""
+    fn = click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+                      help="Override a configuration key, e.g. --set heatmap.sigma_px=50,50 (repeatable).")(fn)
+    fn = click.option("--cache", "cache_root", default=lambda: os.environ.get("PIPELINE_CACHE", DEFAULT_CACHE),
+                      show_default="cache (or $PIPELINE_CACHE)", metavar="PATH_OR_URL",
+                      help="Cache root: a folder or any fsspec URL (s3://..., gcs://...).")(fn)
+    fn = click.option("--data-root", default=lambda: os.environ.get("PIPELINE_DATA_ROOT", ""), metavar="PATH",
+                      help="Root of the raw dataset (default: the one recorded in the cache, or the "
+                           "built-in synthetic world).")(fn)
+    fn = click.option("--dataset", default=lambda: os.environ.get("PIPELINE_DATASET", "synthetic"),
+                      show_default="synthetic", metavar="NAME",
+                      help=f"Dataset profile: one of {', '.join(profile_names())}.")(fn)
+    return fn
+
+
+def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
+    from pipeline.executor import RunEnv
+    from pipeline.runner import default_data_root
+
+    cfg = load_config(dataset, parse_set_options(sets))
+    if not data_root:
+        calib = frame_store(cache_root, dataset, "calibrate")
+        data_root = calib.attrs().get("data_root", "") if calib.exists() else ""
+    if not data_root:
+        data_root = default_data_root(cfg, cache_root, dataset)
+    if not data_root and need_root:
+        raise ConfigError(f"dataset '{dataset}' needs --data-root PATH (the folder holding the raw files)")
+    return RunEnv(cfg=cfg, cache_root=cache_root, dataset=dataset, data_root=data_root)
+
+
+def _ensure_world(env, progress: bool) -> None:
+    """Generate the built-in synthetic world into the cache once (when it is the data root)."""
+    if env.cfg.dataset.reader != "synthetic" or (Path(env.data_root) / "world.json").exists():
+        return
+    from pipeline.lock import stage_lock
+    from pipeline.world import generate
+
+    with stage_lock(join(env.cache_root, env.dataset, "locks", "world.lock"), "the synthetic world", wait_s=3600):
+        if (Path(env.data_root) / "world.json").exists():
+            return
+        ds = env.cfg.dataset
+        click.echo(f"generating the synthetic world ({ds.world_frames} frames, seed {ds.world_seed}) "
+                   f"into {env.data_root} ...", err=True)
+        summary = generate(env.data_root, frames=ds.world_frames, seed=ds.world_seed,
+                           resolution_wh=tuple(ds.world_resolution), progress=progress)
+        click.echo(f"  done in {summary.get('seconds', 0):.1f} s", err=True)
+
+
+def _pipeline(env, workers: int, scheduler: str | None, progress: bool | None = None):
+    from pipeline.executor import Executor
+    from pipeline.runner import Pipeline
+    from stages import all_stages
+
+    return Pipeline(all_stages(), env, Executor(workers, scheduler, progress), progress)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(package_name="radarsim-pipeline")
+def main() -> None:
+    """Simulate a commercial 4D automotive radar from camera + lidar (Song et al., IROS 2025).
+
+    Stages: calibrate -> heatmaps, patches -> train -> synthesize -> export, evaluate. Outputs go to
+    CACHE/DATASET/STAGE.zarr; every run resumes where the last one stopped.
+    """
+
+
+@main.command()
+@click.argument("stage")
+@dataset_options
+@click.option("--workers", type=int, default=None, help="dask worker processes (1 = serial, in-process). [default: run.workers = 2]")
+@click.option("--scheduler", default=lambda: os.environ.get("DASK_SCHEDULER_ADDRESS", ""), metavar="ADDRESS",
+              help="Run per-frame work on an existing dask.distributed cluster (tcp://HOST:PORT; "
+                   "or $DASK_SCHEDULER_ADDRESS). Its workers need the package and access to the cache and data.")
+@click.option("--frames", "frames_spec", default="", metavar="SPEC",
+              help="Limit per-frame work to START:STOP[:STEP] frame indices or a comma list of frame ids.")
+@click.option("--strict", is_flag=True, help="Stop at the first failed frame with a non-zero exit code.")
+@click.option("--force", is_flag=True, help="Recompute STAGE even if its output is current.")
+@click.option("--retry-failed", is_flag=True, help="Also re-run frames recorded as failed.")
+@click.option("--wait", "wait_s", type=float, default=0.0, metavar="SECONDS",
+              help="If another run holds a stage's lock, wait up to this long instead of stopping.")
+@click.option("--dry-run", is_flag=True, help="Show per stage whether it is current and frames done / to do; compute nothing.")
+@_handle_errors
+def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_spec, strict, force,
+        retry_failed, wait_s, dry_run):
+    """Run STAGE and every upstream stage whose output is missing or stale (like make).
+
+    STAGE is one of calibrate, heatmaps, patches, train, synthesize, export, evaluate.
+    """
+    from pipeline.runner import parse_frames
+
+    env = _context(dataset, data_root, cache_root, sets)
+    workers = env.cfg.run.workers if workers is None else workers
+    pipe = _pipeline(env, workers, scheduler or None)
+    closure = pipe.upstream_closure(stage)
+    if dry_run:
+        rows = {r["stage"]: r for r in pipe.status()}
+        for name in closure:
+            _print_status_row(rows[name])
+        return
+    _ensure_world(env, pipe.progress)
+    frames = parse_frames(frames_spec, pipe.frame_ids())
+    try:
+        reports = pipe.run(stage, frames=frames, strict=strict, force=force, retry_failed=retry_failed,
+                           wait_s=wait_s)
+    finally:
+        pipe.executor.close()
+    failed = sum(r.failed for r in reports)
+    if failed:
+        click.echo(f"{failed} frame(s) failed across stages; `pipeline status --dataset {dataset}` lists why.", err=True)
+    for r in reports:
+        for key in ("report", "figures", "checkpoints", "output"):
+            if key in r.summary:
+                click.echo(f"{r.stage} {key}: {r.summary[key]}")
+
+
+def _print_status_row(row: dict) -> None:
+    current = {True: "current", False: "stale or missing", None: "unknown"}[row.get("current")]
+    if "done" in row:
+        click.echo(f"{row['stage']:<11} {current:<17} done {row['done']:>6}  failed {row['failed']:>5}  "
+                   f"pending {row['pending']:>6}  excluded {row['excluded']:>5}")
+    else:
+        state = "finished" if row.get("exists") else "not run"
+        click.echo(f"{row['stage']:<11} {current:<17} {state}")
+    if row.get("note"):
+        click.echo(f"{'':<11} note: {row['note']}")
+
+
+@main.command()
+@dataset_options
+@click.option("--reasons", type=int, default=5, show_default=True, help="Failure reasons shown per stage.")
+@click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON.")
+@_handle_errors
+def status(dataset, data_root, cache_root, sets, reasons, as_json):
+    """Per stage: frames done / failed / pending / excluded, and whether its fingerprint is current."""
+    env = _context(dataset, data_root, cache_root, sets, need_root=False)
+    pipe = _pipeline(env, 1, None, progress=False)
+    rows = pipe.status()
+    if as_json:
+        click.echo(json.dumps(rows, indent=2, default=str))
+        return
+    click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}  data {env.data_root or '(none)'}")
+    for row in rows:
+        _print_status_row(row)
+        for i, why in list(row.get("reasons", {}).items())[:reasons]:
+            click.echo(f"{'':<11} frame {i}: {why}")
+
+
+@main.command()
+def datasets():
+    """List the dataset profiles shipped with the package."""
+    for name in profile_names():
+        cfg = load_config(name, environ={})
+        click.echo(f"{name:<10} {cfg.radar.name:<24} working {cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}  "
+                   f"{cfg.dataset.description}")
+
+
+@main.command("generate-world")
+@click.option("--frames", type=int, default=240, show_default=True, help="Number of frames.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Generator seed (same seed, same bytes).")
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder (View-of-Delft layout).")
+@click.option("--scene-mix", default="residential,urban,highway", show_default=True, help="Comma list of scene types.")
+@click.option("--resolution", default="640x384", show_default=True, help="Image size WxH.")
+@_handle_errors
+def generate_world(frames, seed, out, scene_mix, resolution):
+    """Generate the built-in synthetic world (camera, lidar and a hidden radar model)."""
+    from pipeline.world import generate
+
+    try:
+        w, h = (int(v) for v in resolution.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--resolution: expected WxH, got '{resolution}'") from None
+    summary = generate(out, frames=frames, seed=seed, resolution_wh=(w, h),
+                       scene_mix=tuple(s.strip() for s in scene_mix.split(",") if s.strip()),
+                       progress=sys.stderr.isatty())
+    click.echo(json.dumps(summary, indent=2, default=str))
+
+
+@main.command("estimate-sigma")
+@dataset_options
+@click.option("--frames", "frames_spec", default="", metavar="SPEC", help="Frames to use (default: all).")
+@_handle_errors
+def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
+    """Estimate the heatmap Sigma (full-resolution pixels) from radar points on annotated objects."""
+    from pipeline.heatmap import sigma_from_frames
+    from pipeline.readers import get_reader
+    from pipeline.runner import parse_frames
+
+    env = _context(dataset, data_root, cache_root, sets)
+    reader = get_reader(env.cfg, env.data_root)
+    ids = reader.frame_ids()
+    chosen = parse_frames(frames_spec, ids) or range(len(ids))
+    records = [reader.read(ids[i]) for i in chosen]
+    sx, sy = sigma_from_frames(records)
+    click.echo(f"estimated Sigma std: {sx:.1f} px (u), {sy:.1f} px (v) at full resolution "
+               f"(profile uses {env.cfg.heatmap.sigma_px}); set it with --set heatmap.sigma_px={sx:.0f},{sy:.0f}")
+
+
+@main.command()
+@click.argument("stage")
+@dataset_options
+@_handle_errors
+def unlock(stage, dataset, data_root, cache_root, sets):
+    """Remove the lock of STAGE left by a run that died on another machine."""
+    import fsspec
+
+    url = join(cache_root, dataset, "locks", f"{stage}.lock")
+    fs, path = fsspec.core.url_to_fs(url)
+    if fs.exists(path):
+        fs.rm(path)
+        click.echo(f"removed {url}")
+    else:
+        click.echo(f"no lock at {url}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,205 @@
+"""Run a frame stage's per-frame function over frames: a serial loop (the reference) or dask.
+
+Workers need nothing but the cache URL, the data root and the configuration: everything a frame
+needs is read inside ``process_frame`` from the cache (or, for calibrate, from the raw files).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from pipeline.cache import DONE, FAILED, FrameStore, dir_store, frame_store
+from pipeline.config import Config
+from pipeline.errors import CacheError, FrameError, PipelineError
+from pipeline.stage import FrameStage
+
+
+@dataclass(frozen=True)
+class RunEnv:
+    """Where a run reads and writes: picklable, shipped to every worker."""
+
+    cfg: Config
+    cache_root: str
+    dataset: str
+    data_root: str
+
+    def store(self, stage: str) -> FrameStore:
+        return frame_store(self.cache_root, self.dataset, stage)
+
+    def dir(self, stage: str):
+        return dir_store(self.cache_root, self.dataset, stage)
+
+
+_READERS: dict[tuple, Any] = {}
+_MEMO: dict[tuple, Any] = {}
+
+
+def process_memo(key: tuple, build: Callable[[], Any]) -> Any:
+    """A per-process cache for expensive objects shared by frames (loaded models, readers)."""
+    if key not in _MEMO:
+        if len(_MEMO) > 16:
+            _MEMO.clear()
+        _MEMO[key] = build()
+    return _MEMO[key]
+
+
+@dataclass
+class FrameInputs:
+    """What a per-frame function may read: its frame's upstream arrays, the raw reader, seeds."""
+
+    env: RunEnv
+    index: int
+    frame_id: str
+    _cache: dict = field(default_factory=dict)
+
+    @property
+    def cfg(self) -> Config:
+        return self.env.cfg
+
+    def get(self, stage: str, name: str) -> np.ndarray:
+        """This frame's array ``name`` of ``stage`` (ragged arrays trimmed to their rows)."""
+        key = (stage, name)
+        if key not in self._cache:
+            self._cache[key] = self.env.store(stage).read(name, self.index)
+        return self._cache[key]
+
+    @property
+    def reader(self):
+        """The dataset reader (built once per process)."""
+        from pipeline.readers import get_reader
+
+        key = ("reader", self.env.cfg.dataset, self.env.cfg.camera, self.env.cfg.radar, self.env.data_root)
+        return process_memo(key, lambda: get_reader(self.env.cfg, self.env.data_root))
+
+    def rng(self, seed: int, salt: int = 0) -> np.random.Generator:
+        """A generator that depends only on (seed, salt, frame index): identical on any worker."""
+        return np.random.default_rng([seed, salt, self.index])
+
+
+def process_frame(stage: FrameStage, env: RunEnv, index: int, frame_id: str) -> tuple[int, int, str]:
+    """Compute and write one frame; returns (index, status code, reason).
+
+    Frame problems (bad input, a PipelineError, ValueError) are recorded as FAILED with the reason;
+    cache problems (disk full, read-only) abort the run.
+    """
+    store = env.store(stage.name)
+    specs = stage.outputs(env.cfg)
+    try:
+        out = stage.process(FrameInputs(env, index, frame_id), env.cfg)
+        _check_outputs(stage, env.cfg, specs, out)
+    except CacheError:
+        raise
+    except (PipelineError, ValueError, OSError, KeyError) as exc:
+        reason = str(exc) if isinstance(exc, PipelineError) else f"{type(exc).__name__}: {exc}"
+    except Exception as exc:  # a bug: record it with where it happened, keep the other frames going
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        reason = f"internal error {type(exc).__name__}: {exc} (at {where.filename}:{where.lineno})"
+    else:
+        store.write_frame(index, out, specs)
+        return index, DONE, ""
+    if not reason.startswith(f"stage {stage.name}"):
+        reason = f"stage {stage.name}, frame {frame_id}: {reason}"
+    store.mark(index, FAILED, reason)
+    return index, FAILED, reason
+
+
+def _check_outputs(stage: FrameStage, cfg: Config, specs, out: dict[str, np.ndarray]) -> None:
+    for spec in specs:
+        if spec.name not in out:
+            raise FrameError(stage.name, "?", f"frame function returned no '{spec.name}'")
+        value = np.asarray(out[spec.name])
+        shape = spec.frame_shape(cfg)
+        if spec.ragged:
+            ok = value.ndim == len(shape) and value.shape[1:] == shape[1:]
+            if ok and value.shape[0] > shape[0]:
+                raise ValueError(f"{spec.name}: {value.shape[0]} rows exceed the capacity {shape[0]} "
+                                 f"(raise the profile's store_max_points)")
+        else:
+            ok = value.shape == shape
+        if not ok:
+            raise ValueError(f"{spec.name}: expected per-frame shape {shape}, got {value.shape}")
+
+
+class Executor:
+    """Maps ``process_frame`` over frames, serially or on a dask.distributed cluster.
+
+    ``workers`` == 1 and no ``scheduler``: in-process serial loop. Otherwise a LocalCluster of
+    ``workers`` processes (started on first use, reused for every stage of the run) or the
+    existing cluster at ``scheduler``.
+    """
+
+    def __init__(self, workers: int = 2, scheduler: str | None = None, progress: bool | None = None) -> None:
+        self.workers = max(1, int(workers))
+        self.scheduler = scheduler
+        self.progress = sys.stderr.isatty() if progress is None else progress
+        self._client = None
+        self._cluster = None
+
+    @property
+    def distributed(self) -> bool:
+        return bool(self.scheduler) or self.workers > 1
+
+    def client(self):
+        if self._client is None:
+            from distributed import Client, LocalCluster
+
+            if self.scheduler:
+                self._client = Client(self.scheduler)
+            else:
+                self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                             dashboard_address=None, silence_logs=logging.ERROR)
+                self._client = Client(self._cluster)
+        return self._client
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+        self._client = self._cluster = None
+
+    def __enter__(self) -> "Executor":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def map(self, stage: FrameStage, env: RunEnv, todo: list[tuple[int, str]],
+            strict: bool = False) -> Iterator[tuple[int, int, str]]:
+        """Yield (index, status, reason) as frames finish; with ``strict`` stop at the first failure."""
+        bar = tqdm(total=len(todo), desc=stage.name, unit="frame", disable=not self.progress, file=sys.stderr)
+        try:
+            for result in self._results(stage, env, todo, strict):
+                bar.update(1)
+                yield result
+        finally:
+            bar.close()
+
+    def _results(self, stage, env, todo, strict):
+        if not self.distributed:
+            for index, frame_id in todo:
+                result = process_frame(stage, env, index, frame_id)
+                yield result
+                if strict and result[1] == FAILED:
+                    return
+            return
+        from distributed import as_completed
+
+        client = self.client()
+        futures = [client.submit(process_frame, stage, env, i, f, pure=False, key=f"{stage.name}-{i}-{id(self)}")
+                   for i, f in todo]
+        try:
+            for fut in as_completed(futures):
+                result = fut.result()
+                yield result
+                if strict and result[1] == FAILED:
+                    return
+        finally:
+            client.cancel([f for f in futures if not f.done()])

@@ -1,0 +1,311 @@
+"""Make-like orchestration: run a target stage and every upstream stage whose output is missing,
+stale (fingerprint changed) or incomplete.
+
+A stage's fingerprint hashes its name and version, the configuration keys it declares, the
+fingerprints of its upstream stages and, for the first stage, the dataset listing. A stage whose
+stored fingerprint differs is recomputed from scratch; one that matches only processes the frames
+still pending.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, join
+from pipeline.errors import ConfigError, FrameError, PipelineError
+from pipeline.executor import Executor, FrameInputs, RunEnv
+from pipeline.lock import stage_lock
+from pipeline.stage import DatasetStage, FrameStage, Stage
+
+FIRST_STAGE = "calibrate"
+
+
+@dataclass
+class DatasetInputs:
+    """Read access to finished stage outputs, for dataset stages and frame selection."""
+
+    env: RunEnv
+    frame_ids: list[str]
+    progress: bool = False
+
+    @property
+    def cfg(self):
+        return self.env.cfg
+
+    def store(self, stage: str):
+        return self.env.store(stage)
+
+    def dir(self, stage: str):
+        return self.env.dir(stage)
+
+    def frame(self, index: int) -> FrameInputs:
+        """Per-frame accessor (same API as in frame stages)."""
+        return FrameInputs(self.env, index, self.frame_ids[index])
+
+
+@dataclass
+class StageReport:
+    """What one stage did in a run."""
+
+    stage: str
+    action: str
+    done: int = 0
+    failed: int = 0
+    pending: int = 0
+    excluded: int = 0
+    processed: int = 0
+    seconds: float = 0.0
+    failures: list[str] = field(default_factory=list)
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    def line(self) -> str:
+        if self.action == "dataset":
+            return f"{self.stage:<11} {self.summary.get('message', 'done')} ({self.seconds:.1f} s)"
+        return (f"{self.stage:<11} processed {self.processed} frame(s) in {self.seconds:.1f} s; "
+                f"done {self.done}, failed {self.failed}, pending {self.pending}, excluded {self.excluded}")
+
+
+class Pipeline:
+    """Stages of one dataset under one cache root, and how to bring them up to date."""
+
+    def __init__(self, stages: list[Stage], env: RunEnv, executor: Executor | None = None,
+                 progress: bool | None = None, log: Callable[[str], None] | None = None,
+                 frame_lister: Callable[[], list[str]] | None = None) -> None:
+        self.stages = {s.name: s for s in stages}
+        self.order = [s.name for s in stages]
+        self.env = env
+        self.executor = executor or Executor(1)
+        self.progress = sys.stderr.isatty() if progress is None else progress
+        self.log = log or (lambda msg: print(msg, file=sys.stderr))
+        self._fp: dict[str, str] = {}
+        self._frame_ids: list[str] | None = None
+        self._frame_lister = frame_lister
+
+    # ---- planning -------------------------------------------------------------------------
+
+    def upstream_closure(self, target: str) -> list[str]:
+        """``target`` and everything it depends on, in execution order."""
+        if target not in self.stages:
+            raise ConfigError(f"unknown stage '{target}' (stages: {', '.join(self.order)})")
+        need: set[str] = set()
+        stack = [target]
+        while stack:
+            name = stack.pop()
+            if name not in need:
+                need.add(name)
+                stack.extend(self.stages[name].upstream)
+        return [n for n in self.order if n in need]
+
+    def frame_ids(self) -> list[str]:
+        """The dataset's frames, as the reader lists them."""
+        if self._frame_ids is None:
+            if self._frame_lister is not None:
+                ids = self._frame_lister()
+            else:
+                from pipeline.readers import get_reader
+
+                ids = get_reader(self.env.cfg, self.env.data_root).frame_ids()
+            if len(set(ids)) != len(ids):
+                raise PipelineError(f"dataset at {self.env.data_root}: the reader listed duplicate frame ids")
+            if not ids:
+                raise PipelineError(f"dataset at {self.env.data_root}: no frames found")
+            self._frame_ids = list(ids)
+        return self._frame_ids
+
+    def fingerprint(self, name: str) -> str:
+        """Current fingerprint of stage ``name`` (recursive over upstream stages)."""
+        if name not in self._fp:
+            stage = self.stages[name]
+            parts: dict[str, Any] = {
+                "stage": name, "version": stage.version,
+                "config": self.env.cfg.fingerprint(stage.config_keys),
+                "upstream": [self.fingerprint(u) for u in stage.upstream],
+            }
+            if name == FIRST_STAGE:
+                parts["data_root"] = os.path.abspath(self.env.data_root) if "://" not in self.env.data_root else self.env.data_root
+                parts["frames"] = hashlib.sha256("\n".join(self.frame_ids()).encode()).hexdigest()
+            if isinstance(stage, DatasetStage) and stage.extra_fingerprint:
+                parts["extra"] = stage.extra_fingerprint(self.env.cfg)
+            text = json.dumps(parts, sort_keys=True)
+            self._fp[name] = hashlib.sha256(text.encode()).hexdigest()[:16]
+        return self._fp[name]
+
+    def is_current(self, name: str) -> bool:
+        stage = self.stages[name]
+        store = self.env.store(name) if isinstance(stage, FrameStage) else self.env.dir(name)
+        return store.fingerprint() == self.fingerprint(name)
+
+    # ---- running --------------------------------------------------------------------------
+
+    def run(self, target: str, frames: list[int] | None = None, strict: bool = False, force: bool = False,
+            retry_failed: bool = False, wait_s: float = 0.0) -> list[StageReport]:
+        """Bring ``target`` and its upstream stages up to date; returns one report per stage.
+
+        ``frames``: restrict per-frame work to these frame indices. ``force``: recompute ``target``
+        even if current. With ``strict`` the first failed frame raises FrameError.
+        """
+        reports = []
+        for name in self.upstream_closure(target):
+            stage = self.stages[name]
+            lock_url = join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
+            with stage_lock(lock_url, f"stage '{name}' of dataset '{self.env.dataset}'", wait_s):
+                t0 = time.perf_counter()
+                if isinstance(stage, FrameStage):
+                    report = self._run_frames(stage, frames, strict, force and name == target, retry_failed)
+                else:
+                    report = self._run_dataset(stage, force and name == target)
+                report.seconds = time.perf_counter() - t0
+            reports.append(report)
+            self.log(report.line())
+            if strict and report.failed:
+                raise FrameError(name, "?", f"{report.failed} frame(s) failed; first: {report.failures[0]}")
+        return reports
+
+    def _ensure_created(self, stage: FrameStage, force: bool) -> bool:
+        store = self.env.store(stage.name)
+        fp = self.fingerprint(stage.name)
+        if not force and store.fingerprint() == fp:
+            return False
+        cfg = self.env.cfg
+        specs = stage.outputs(cfg)
+        attrs = {"stage": stage.name, "dataset": self.env.dataset, "profile": cfg.profile,
+                 "data_root": self.env.data_root, "config": {k: _jsonable(cfg.get(k)) for k in stage.config_keys},
+                 "upstream": {u: self.fingerprint(u) for u in stage.upstream}, "doc": stage.doc}
+        store.create(fp, self.frame_ids(), specs, {s.name: s.frame_shape(cfg) for s in specs}, attrs)
+        return True
+
+    def _run_frames(self, stage: FrameStage, frames: list[int] | None, strict: bool, force: bool,
+                    retry_failed: bool) -> StageReport:
+        created = self._ensure_created(stage, force)
+        store = self.env.store(stage.name)
+        ids = self.frame_ids()
+        status = store.status()
+        report = StageReport(stage.name, "recomputed" if created else "resumed")
+        todo_mask = status == PENDING
+        if retry_failed:
+            todo_mask |= status == FAILED
+        if frames is not None:
+            sel = np.zeros(len(ids), bool)
+            sel[[i for i in frames if 0 <= i < len(ids)]] = True
+            todo_mask &= sel
+        # Frames whose upstream failed or was excluded cannot be computed: record why.
+        for up in stage.upstream:
+            if not isinstance(self.stages[up], FrameStage):
+                continue
+            up_status = self.env.store(up).status()
+            for code, word in ((FAILED, "failed"), (EXCLUDED, "was excluded")):
+                blocked = todo_mask & (up_status == code)
+                for i in np.flatnonzero(blocked):
+                    store.mark(int(i), FAILED if code == FAILED else EXCLUDED, f"upstream stage {up} {word} for this frame")
+                todo_mask &= ~blocked
+            todo_mask &= up_status == DONE
+        if stage.select is not None and todo_mask.any():
+            chosen = np.asarray(stage.select(DatasetInputs(self.env, ids), self.env.cfg), bool)
+            for i in np.flatnonzero(todo_mask & ~chosen):
+                store.mark(int(i), EXCLUDED, "not selected by this stage's configuration")
+            todo_mask &= chosen
+        todo = [(int(i), ids[int(i)]) for i in np.flatnonzero(todo_mask)]
+        for index, code, reason in self.executor.map(stage, self.env, todo, strict):
+            report.processed += 1
+            if code == FAILED:
+                report.failures.append(reason)
+                self.log(f"  failed: {reason}")
+                if strict:
+                    break
+        final = store.status()
+        report.done = int((final == DONE).sum())
+        report.failed = int((final == FAILED).sum())
+        report.pending = int((final == PENDING).sum())
+        report.excluded = int((final == EXCLUDED).sum())
+        return report
+
+    def _run_dataset(self, stage: DatasetStage, force: bool) -> StageReport:
+        out = self.env.dir(stage.name)
+        fp = self.fingerprint(stage.name)
+        report = StageReport(stage.name, "dataset")
+        if not force and out.fingerprint() == fp:
+            report.summary = {**(out.meta() or {}).get("summary", {}), "message": "up to date"}
+            return report
+        out.ensure()
+        out.invalidate()
+        summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
+                            fingerprint=fp)
+        out.finish(fp, summary)
+        report.summary = summary
+        return report
+
+    # ---- status ---------------------------------------------------------------------------
+
+    def status(self) -> list[dict[str, Any]]:
+        """Per stage: done / failed / pending / excluded counts and whether it is current."""
+        rows = []
+        for name in self.order:
+            stage = self.stages[name]
+            row: dict[str, Any] = {"stage": name}
+            try:
+                current = self.is_current(name)
+            except PipelineError as exc:
+                current = None
+                row["note"] = str(exc)
+            if isinstance(stage, FrameStage):
+                store = self.env.store(name)
+                if store.exists():
+                    st = store.status()
+                    row.update({STATUS_NAMES[c]: int((st == c).sum()) for c in STATUS_NAMES})
+                    row["reasons"] = store.reasons()
+                    row["exists"] = True
+                else:
+                    row["exists"] = False
+            else:
+                meta = self.env.dir(name).meta()
+                row["exists"] = meta is not None
+                row["summary"] = (meta or {}).get("summary", {})
+            row["current"] = current if row["exists"] else False
+            rows.append(row)
+        return rows
+
+
+def parse_frames(spec: str | None, frame_ids: list[str]) -> list[int] | None:
+    """Frame selection: 'START:STOP[:STEP]' over indices, or a comma list of frame ids/indices."""
+    if not spec:
+        return None
+    spec = spec.strip()
+    if ":" in spec:
+        try:
+            parts = [int(p) if p else None for p in spec.split(":")]
+        except ValueError:
+            raise ConfigError(f"--frames: cannot parse '{spec}' (use START:STOP[:STEP] or a comma list)") from None
+        return list(range(len(frame_ids)))[slice(*parts)]
+    lookup = {f: i for i, f in enumerate(frame_ids)}
+    out = []
+    for item in spec.split(","):
+        item = item.strip()
+        if item in lookup:
+            out.append(lookup[item])
+        elif item.isdigit() and int(item) < len(frame_ids):
+            out.append(int(item))
+        else:
+            raise ConfigError(f"--frames: no frame '{item}' in this dataset ({len(frame_ids)} frames)")
+    return out
+
+
+def _jsonable(value: Any) -> Any:
+    return list(value) if isinstance(value, tuple) else value
+
+
+def default_data_root(cfg, cache_root: str, dataset: str) -> str:
+    """Data root when none is given: the profile's, or (synthetic world) a folder in the cache."""
+    if cfg.dataset.data_root:
+        return cfg.dataset.data_root
+    if cfg.dataset.reader == "synthetic":
+        return str(Path(cache_root) / dataset / "world")
+    return ""

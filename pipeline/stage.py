@@ -1,0 +1,80 @@
+"""Declarations of pipeline stages: what a stage reads, writes and which configuration it uses.
+
+A stage is data (in the spirit of rechunker / pangeo-forge recipes): the executor creates the
+declared output arrays before any compute, then calls the stage's pure per-frame function and
+writes the result into the frame's own chunks. Stage modules in ``stages/`` build these objects;
+this library never imports ``stages``.
+
+Two kinds:
+- ``FrameStage``: maps a pure function over frames; outputs are zarr arrays with one chunk per
+  frame under ``<cache>/<dataset>/<stage>.zarr``.
+- ``DatasetStage``: one function over the whole dataset (training, evaluation); writes files into
+  ``<cache>/<dataset>/<stage>/``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from pipeline.config import Config
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One per-frame output array.
+
+    ``shape`` is the per-frame shape (the frame axis is prepended), either a tuple or a function of
+    the configuration. ``ragged``: the first per-frame axis is a capacity; the frame function
+    returns fewer rows, the executor pads with ``fill`` and writes ``<name>_count`` (int32).
+    """
+
+    name: str
+    shape: tuple[int, ...] | Callable[["Config"], tuple[int, ...]]
+    dtype: str
+    units: str
+    fill: Any = 0
+    ragged: bool = False
+
+    def frame_shape(self, cfg: "Config") -> tuple[int, ...]:
+        """Per-frame shape under ``cfg``."""
+        return tuple(self.shape(cfg) if callable(self.shape) else self.shape)
+
+
+@dataclass(frozen=True)
+class FrameStage:
+    """A stage that maps ``process(inputs, cfg) -> {array name: per-frame array}`` over frames.
+
+    ``select(cfg, dataset_inputs) -> bool mask (F,)`` limits the frames the stage works on (for
+    example one split); unselected frames are reported as excluded.
+    ``needs_reader``: the frame function reads raw files through ``inputs.reader``.
+    """
+
+    name: str
+    upstream: tuple[str, ...]
+    config_keys: tuple[str, ...]
+    outputs: Callable[["Config"], tuple[ArraySpec, ...]]
+    process: Callable[..., dict[str, np.ndarray]]
+    version: int = 1
+    select: Callable[..., np.ndarray] | None = None
+    needs_reader: bool = False
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class DatasetStage:
+    """A stage run once over the whole dataset: ``run(inputs, cfg, out) -> summary dict``."""
+
+    name: str
+    upstream: tuple[str, ...]
+    config_keys: tuple[str, ...]
+    run: Callable[..., dict[str, Any]]
+    version: int = 1
+    doc: str = ""
+    extra_fingerprint: Callable[["Config"], str] | None = field(default=None)
+
+
+Stage = FrameStage | DatasetStage

@@ -1,0 +1,117 @@
+"""calibrate: raw dataset files -> one consistent frame record per frame at the working resolution.
+
+Reads: the raw dataset through its reader (pipeline.readers).
+Writes (calibrate.zarr, one chunk per frame):
+  image (h, w, 3) uint8 RGB at camera.working_size (rows camera.crop_rows kept, then resized);
+  K (3, 3) float64 intrinsics of that image; T_radar_cam, T_radar_lidar (4, 4) float64;
+  lidar (<= lidar.store_max_points, 3) float32 m in {D}: points in the camera view within
+  radar.max_range_m + lidar.range_margin_m; radar (<= radar.store_max_points, 5) float32
+  [x, y, z m in {D}, range rate m/s, RSS]: points in the common field of view within max range;
+  radar_object, radar_material (same rows, int32; -2 when the dataset has no such side data);
+  labels (<= 64, 11) float32 [centre xyz, l w h, yaw, velocity xyz, track id] in {D};
+  ego_velocity (3,) float64 m/s in {D}; timestamp float64 s; sequence str; split int8
+  (0 train, 1 val, 2 test); has_radar bool.
+Config: dataset.*, camera.*, radar fov/range/capacity, lidar.*, split.*.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.errors import FrameError
+from pipeline.executor import FrameInputs, process_memo
+from pipeline.geometry import invert_transform
+from pipeline.split import assign_split
+from pipeline.stage import ArraySpec, FrameStage
+from pipeline.working import common_fov_mask, crop_resize
+
+MAX_LABELS = 64
+LABEL_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw", "vx", "vy", "vz", "track_id")
+
+CONFIG_KEYS = (
+    "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution",
+    "dataset.radar_mount_T_radar_lidar",
+    "camera.full_size", "camera.crop_rows", "camera.working_size",
+    "radar.fov_az_deg", "radar.fov_el_deg", "radar.max_range_m", "radar.store_max_points",
+    "lidar.store_max_points", "lidar.range_margin_m",
+    "split.rule", "split.fractions", "split.block_len", "split.seed",
+)
+
+
+def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
+    w, h = cfg.camera.working_size
+    nr, nl = cfg.radar.store_max_points, cfg.lidar.store_max_points
+    return (
+        ArraySpec("image", (h, w, 3), "uint8", "RGB 0-255"),
+        ArraySpec("K", (3, 3), "float64", "pixels"),
+        ArraySpec("T_radar_cam", (4, 4), "float64", "rigid transform {C}->{D}, m"),
+        ArraySpec("T_radar_lidar", (4, 4), "float64", "rigid transform {L}->{D}, m"),
+        ArraySpec("lidar", (nl, 3), "float32", "m in {D}", fill=np.nan, ragged=True),
+        ArraySpec("radar", (nr, 5), "float32", "x,y,z m in {D}; range rate m/s; RSS", fill=np.nan, ragged=True),
+        ArraySpec("radar_object", (nr,), "int32", "object id (-1 ghost/clutter, -2 unknown)", fill=-2, ragged=True),
+        ArraySpec("radar_material", (nr,), "int32", "material id (-1 ghost/clutter, -2 unknown)", fill=-2, ragged=True),
+        ArraySpec("labels", (MAX_LABELS, len(LABEL_COLUMNS)), "float32", ",".join(LABEL_COLUMNS), fill=np.nan, ragged=True),
+        ArraySpec("ego_velocity", (3,), "float64", "m/s in {D}"),
+        ArraySpec("timestamp", (), "float64", "s"),
+        ArraySpec("sequence", (), "str", "sequence id", fill=""),
+        ArraySpec("split", (), "int8", "0 train, 1 val, 2 test", fill=-1),
+        ArraySpec("has_radar", (), "bool", "dataset records radar", fill=False),
+    )
+
+
+def _split_table(inputs: FrameInputs) -> dict[str, int]:
+    """Split of every frame of the dataset (computed once per process)."""
+    cfg = inputs.cfg
+
+    def build() -> dict[str, int]:
+        reader = inputs.reader
+        ids = reader.frame_ids()
+        seqs = [reader.sequence_of(f) for f in ids]
+        s = cfg.split
+        parts = assign_split(ids, seqs, s.rule, tuple(s.fractions), s.block_len, s.seed)
+        return dict(zip(ids, (int(p) for p in parts)))
+
+    return process_memo(("split", inputs.env.data_root, cfg.split, cfg.dataset), build)
+
+
+def _labels_array(labels) -> np.ndarray:
+    rows = [[*o.center_D, *o.size_lwh_m, o.yaw_rad, *o.velocity_D, o.track_id] for o in labels[:MAX_LABELS]]
+    return np.asarray(rows, np.float32).reshape(-1, len(LABEL_COLUMNS))
+
+
+def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
+    """Read one frame and bring it to the working resolution and the common field of view."""
+    rec = inputs.reader.read(inputs.frame_id)
+    full_w, full_h = cfg.camera.full_size
+    if rec.image.shape[:2] != (full_h, full_w):
+        raise FrameError("calibrate", inputs.frame_id,
+                         f"image is {rec.image.shape[1]}x{rec.image.shape[0]}, the profile expects {full_w}x{full_h}")
+    image_w, K_w = crop_resize(rec.image, rec.K, tuple(cfg.camera.crop_rows), tuple(cfg.camera.working_size))
+    T_cam_radar = invert_transform(rec.T_radar_cam)
+    fov = (cfg.radar.fov_az_deg, cfg.radar.fov_el_deg)
+    size = tuple(cfg.camera.working_size)
+    n = len(rec.radar_D)
+    kept = (common_fov_mask(rec.radar_D[:, :3], K_w, T_cam_radar, size, *fov, cfg.radar.max_range_m)
+            if n else np.zeros(0, bool))
+    radar = rec.radar_D[kept]
+    keep_lidar = common_fov_mask(rec.lidar_D, K_w, T_cam_radar, size, 360.0, 180.0,
+                                 cfg.radar.max_range_m + cfg.lidar.range_margin_m)
+    lidar = rec.lidar_D[keep_lidar]
+    cap = cfg.lidar.store_max_points
+    if len(lidar) > cap:
+        lidar = lidar[np.sort(inputs.rng(0, 7).choice(len(lidar), cap, replace=False))]
+    obj = rec.extras.get("object_id", np.full(n, -2, np.int32))[kept]
+    mat = rec.extras.get("material", np.full(n, -2, np.int32))[kept]
+    return {
+        "image": image_w, "K": K_w, "T_radar_cam": rec.T_radar_cam, "T_radar_lidar": rec.T_radar_lidar,
+        "lidar": lidar.astype(np.float32), "radar": radar.astype(np.float32),
+        "radar_object": obj.astype(np.int32), "radar_material": mat.astype(np.int32),
+        "labels": _labels_array(rec.labels), "ego_velocity": np.asarray(rec.ego_velocity_D, np.float64),
+        "timestamp": np.float64(rec.timestamp_s), "sequence": np.asarray(rec.sequence_id, dtype=object),
+        "split": np.int8(_split_table(inputs)[inputs.frame_id]), "has_radar": np.bool_(rec.has_radar),
+    }
+
+
+STAGE = FrameStage(name="calibrate", upstream=(), config_keys=CONFIG_KEYS, outputs=outputs, process=process,
+                   needs_reader=True, doc=__doc__)

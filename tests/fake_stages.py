@@ -1,0 +1,54 @@
+"""Tiny deterministic stages for testing the cache, runner and executors (importable by workers)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from pipeline.stage import ArraySpec, DatasetStage, FrameStage
+
+CALLS_FILE_ENV = "FAKE_STAGE_CALLS"
+
+
+def _count_call(stage: str, frame_id: str) -> None:
+    path = os.environ.get(CALLS_FILE_ENV)
+    if path:
+        with open(path, "a") as fh:
+            fh.write(f"{stage} {frame_id}\n")
+    stop_after = os.environ.get("FAKE_STAGE_STOP_AFTER")
+    if stop_after and path:
+        with open(path) as fh:
+            if sum(1 for _ in fh) > int(stop_after):
+                raise KeyboardInterrupt("simulated kill")
+
+
+def first(inputs, cfg):
+    _count_call("calibrate", inputs.frame_id)
+    if inputs.frame_id.startswith("bad"):
+        raise ValueError(f"file {inputs.frame_id}.bin is truncated")
+    rng = inputs.rng(1)
+    n = int(rng.integers(0, 6))
+    return {"points": rng.normal(size=(n, 3)).astype(np.float32), "value": np.float64(int(inputs.frame_id[-3:]))}
+
+
+def second(inputs, cfg):
+    _count_call("heatmaps", inputs.frame_id)
+    pts = inputs.get("calibrate", "points")
+    return {"total": np.float64(pts.sum() * cfg.heatmap.sigma_px[0] + inputs.get("calibrate", "value"))}
+
+
+def summarise(inputs, cfg, out, fingerprint):
+    total = sum(float(inputs.store("heatmaps").read("total", i)) for i in range(len(inputs.frame_ids)))
+    out.write_text("total.txt", f"{total:.6f}")
+    return {"message": f"total {total:.3f}"}
+
+
+STAGES = [
+    FrameStage("calibrate", (), ("split.seed",),
+               lambda cfg: (ArraySpec("points", (8, 3), "float32", "m", fill=np.nan, ragged=True),
+                            ArraySpec("value", (), "float64", "-")), first),
+    FrameStage("heatmaps", ("calibrate",), ("heatmap.sigma_px",),
+               lambda cfg: (ArraySpec("total", (), "float64", "-"),), second),
+    DatasetStage("train", ("heatmaps",), ("train.epochs",), summarise),
+]

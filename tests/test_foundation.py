@@ -1,0 +1,163 @@
+"""Cache, runner, executors, lock and CLI: resume, invalidation, distributed equality, locking."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from pipeline.cache import DONE, FAILED, PENDING, frame_store
+from pipeline.config import load_config
+from pipeline.errors import ConfigError, FrameError, LockError
+from pipeline.executor import Executor, RunEnv
+from pipeline.lock import stage_lock
+from pipeline.runner import Pipeline, parse_frames
+from tests import fake_stages
+
+IDS = [f"f{i:03d}" for i in range(12)]
+
+
+def make_pipeline(tmp_path: Path, ids=IDS, executor=None, **overrides) -> Pipeline:
+    cfg = load_config("synthetic", overrides, environ={})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
+    return Pipeline(fake_stages.STAGES, env, executor or Executor(1), progress=False, log=lambda m: None,
+                    frame_lister=lambda: list(ids))
+
+
+def read_all(pipe: Pipeline) -> dict[str, np.ndarray]:
+    out = {}
+    for stage in ("calibrate", "heatmaps"):
+        store = pipe.env.store(stage)
+        for name in ("points", "points_count", "value") if stage == "calibrate" else ("total",):
+            out[f"{stage}/{name}"] = np.asarray(store.array(name)[:])
+    return out
+
+
+def calls(path: Path) -> list[str]:
+    return path.read_text().splitlines() if path.exists() else []
+
+
+def test_resume_after_kill_redoes_only_remaining_frames(tmp_path, monkeypatch):
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    monkeypatch.setenv("FAKE_STAGE_STOP_AFTER", "5")
+    with pytest.raises(KeyboardInterrupt):
+        make_pipeline(tmp_path / "a").run("heatmaps")
+    status = frame_store(str(tmp_path / "a" / "cache"), "fake", "calibrate").status()
+    assert (status == DONE).sum() == 5 and (status == PENDING).sum() == 7
+    monkeypatch.delenv("FAKE_STAGE_STOP_AFTER")
+    log.unlink()
+    resumed = make_pipeline(tmp_path / "a")
+    resumed.run("heatmaps")
+    first_stage_calls = [c for c in calls(log) if c.startswith("calibrate")]
+    assert sorted(first_stage_calls) == sorted(f"calibrate {f}" for f in IDS[5:])
+    clean = make_pipeline(tmp_path / "b")
+    clean.run("heatmaps")
+    a, b = read_all(resumed), read_all(clean)
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_rerun_of_finished_stage_does_no_frame_work(tmp_path, monkeypatch):
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    make_pipeline(tmp_path).run("train")
+    log.unlink()
+    reports = make_pipeline(tmp_path).run("train")
+    assert calls(log) == []
+    assert [r.processed for r in reports[:2]] == [0, 0]
+    assert reports[2].summary["message"] == "up to date"
+
+
+def test_changing_sigma_recomputes_downstream_only(tmp_path, monkeypatch):
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    make_pipeline(tmp_path).run("train")
+    log.unlink()
+    pipe = make_pipeline(tmp_path, **{"heatmap.sigma_px": "50,50"})
+    reports = {r.stage: r for r in pipe.run("train")}
+    assert reports["calibrate"].processed == 0
+    assert reports["heatmaps"].processed == len(IDS)
+    assert reports["train"].summary["message"] != "up to date"
+    assert all(c.startswith("heatmaps") for c in calls(log))
+
+
+def test_real_stage_declarations_invalidate_as_declared():
+    """Sigma is a key of heatmaps: its fingerprint and every downstream one change, calibrate's not."""
+    from stages import all_stages
+
+    def fingerprints(**overrides):
+        cfg = load_config("synthetic", overrides, environ={})
+        pipe = Pipeline(all_stages(), RunEnv(cfg, "/nonexistent", "x", "/data"), frame_lister=lambda: IDS)
+        return {name: pipe.fingerprint(name) for name in pipe.order}
+
+    base, changed = fingerprints(), fingerprints(**{"heatmap.sigma_px": "50,50"})
+    same = {n for n in base if base[n] == changed[n]}
+    assert same == {"calibrate", "patches"}
+
+
+def test_failed_frame_recorded_and_others_continue(tmp_path):
+    ids = IDS[:4] + ["bad004"] + IDS[5:8]
+    pipe = make_pipeline(tmp_path, ids=ids)
+    reports = pipe.run("heatmaps")
+    assert reports[0].failed == 1 and reports[0].done == 7
+    store = pipe.env.store("calibrate")
+    assert "bad004.bin is truncated" in store.reasons()[4]
+    assert pipe.env.store("heatmaps").status()[4] == FAILED  # blocked by its upstream
+    with pytest.raises(FrameError, match="truncated"):
+        make_pipeline(tmp_path / "strict", ids=ids).run("heatmaps", strict=True)
+
+
+def test_frames_option_limits_work(tmp_path):
+    pipe = make_pipeline(tmp_path)
+    pipe.run("calibrate", frames=parse_frames("0:4", IDS))
+    assert (pipe.env.store("calibrate").status() == DONE).sum() == 4
+    assert parse_frames("f003,5", IDS) == [3, 5]
+    with pytest.raises(ConfigError):
+        parse_frames("nope", IDS)
+
+
+def test_dask_localcluster_over_tcp_equals_serial(tmp_path, monkeypatch):
+    distributed = pytest.importorskip("distributed")
+    root = str(Path(__file__).resolve().parents[1])
+    monkeypatch.setenv("PYTHONPATH", root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    serial = make_pipeline(tmp_path / "serial")
+    serial.run("heatmaps")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  protocol="tcp", dashboard_address=None) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1")
+        with Executor(scheduler=cluster.scheduler_address, progress=False) as ex:
+            dist = make_pipeline(tmp_path / "dist", executor=ex)
+            dist.run("heatmaps")
+    a, b = read_all(serial), read_all(dist)
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_second_writer_refused_and_stale_lock_recovered(tmp_path):
+    pipe = make_pipeline(tmp_path)
+    lock = Path(pipe.env.cache_root) / "fake" / "locks" / "calibrate.lock"
+    with stage_lock(str(lock), "stage 'calibrate' of dataset 'fake'"):
+        with pytest.raises(LockError, match="being written by another run"):
+            pipe.run("calibrate")
+    lock.write_text('{"pid": 999999999, "host": "%s", "started": 0}' % os.uname().nodename)
+    pipe.run("calibrate")  # the holder is dead: the lock is recovered
+    assert not lock.exists()
+
+
+def test_cli_help_and_errors():
+    from pipeline.cli import main
+
+    runner = CliRunner()
+    out = runner.invoke(main, ["run", "--help"]).output
+    for option in ("--dataset", "--data-root", "--cache", "--workers", "--scheduler", "--frames", "--set",
+                   "--strict", "--force"):
+        assert option in out
+    assert "synthetic" in runner.invoke(main, ["datasets"]).output
+    bad = runner.invoke(main, ["run", "heatmaps", "--set", "heatmap.sigma=3"])
+    assert bad.exit_code == 2 and "did you mean 'heatmap.sigma_px'" in bad.output
+    missing = runner.invoke(main, ["run", "heatmaps", "--dataset", "vod"])
+    assert missing.exit_code == 2 and "--data-root" in missing.output
