@@ -231,3 +231,34 @@ def frame_store(root: str, dataset: str, stage: str) -> FrameStore:
 def dir_store(root: str, dataset: str, stage: str) -> DirStore:
     """The DirStore of ``stage`` of ``dataset`` under cache ``root``."""
     return DirStore(join(root, dataset, stage))
+
+
+class RaggedRows:
+    """Flat row view of a ragged per-frame array: row k is ``array[frame[k], row[k]]``.
+
+    Lets training iterate over the sampled points of many frames without loading them all: it
+    offers ``len``, ``oindex[rows]`` and ``chunks`` (rows per frame chunk) like a zarr array.
+    """
+
+    def __init__(self, array: zarr.Array, counts: np.ndarray, frames: np.ndarray) -> None:
+        counts = np.asarray(counts, dtype=np.int64)
+        frames = np.asarray(frames, dtype=np.int64)
+        self.array = array
+        self.frame = np.repeat(frames, counts[frames])
+        self.row = np.concatenate([np.arange(counts[f]) for f in frames]) if len(frames) else np.zeros(0, np.int64)
+        self.shape = (len(self.frame), *array.shape[2:])
+        self.chunks = (max(1, int(array.shape[1])),)
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @property
+    def oindex(self) -> "RaggedRows":
+        return self
+
+    def __getitem__(self, rows) -> np.ndarray:
+        rows = np.asarray(rows, dtype=np.int64)
+        frames = self.frame[rows]
+        uniq, inverse = np.unique(frames, return_inverse=True)
+        block = np.asarray(self.array.oindex[uniq])  # (u, capacity, ...)
+        return block[inverse, self.row[rows]]

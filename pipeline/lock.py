@@ -1,14 +1,17 @@
-"""One writer per stage output: a lock file created exclusively, with stale-lock recovery.
+"""One writer per stage output: a lock file per stage, with stale-lock recovery.
 
-The lock file holds JSON {pid, host, started}. On a local filesystem creation is atomic
-(O_CREAT | O_EXCL). A lock whose process is gone (same host, pid not alive) is stale and is taken
-over. On remote (fsspec) caches creation is exists-then-write, which is best effort; a lock left by
-a dead process on another host is reported with its age and can be removed with
-``pipeline unlock``.
+The lock file holds JSON {pid, host, started} naming the holder (for messages). On a local
+filesystem the lock itself is an exclusive ``flock`` on that file: the kernel drops it when the
+holder exits or is killed, so a lock left by a SIGKILLed run is taken over by the next run, and
+two runs recovering the same stale lock cannot both win. The holder deletes the file before it
+lets go; a contender that locked a file deleted meanwhile notices (inode changed) and retries.
+On remote (fsspec) caches creation is exists-then-write, which is best effort; a lock left by a
+dead process on another host is reported with its age and can be removed with ``pipeline unlock``.
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import socket
@@ -19,6 +22,8 @@ from typing import Iterator
 import fsspec
 
 from pipeline.errors import LockError
+
+_RETRY = -1
 
 
 def _pid_alive(pid: int) -> bool:
@@ -45,15 +50,40 @@ def _is_stale(info: dict | None) -> bool:
     return info.get("host") == socket.gethostname() and not _pid_alive(int(info.get("pid", -1)))
 
 
-def _try_create(fs: fsspec.AbstractFileSystem, path: str, payload: str) -> bool:
-    if fs.protocol in ("file", ("file", "local")) or "file" in fs.protocol:
-        try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            return False
-        with os.fdopen(fd, "w") as fh:
-            fh.write(payload)
-        return True
+def _is_local(fs: fsspec.AbstractFileSystem) -> bool:
+    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
+    return "file" in protocol or "local" in protocol
+
+
+def _try_flock(path: str, payload: str) -> int | None:
+    """Local lock: the held file descriptor, None if another process holds it, _RETRY if the file
+    was replaced while we locked it."""
+    fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    except BaseException:
+        os.close(fd)
+        raise
+    try:
+        current = os.stat(path).st_ino
+    except FileNotFoundError:
+        current = None
+    if current != os.fstat(fd).st_ino:  # the previous holder deleted it between our open and flock
+        os.close(fd)
+        return _RETRY
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, payload.encode())
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _try_create_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str) -> bool:
     if fs.exists(path):
         return False
     with fs.open(path, "w") as fh:
@@ -61,32 +91,73 @@ def _try_create(fs: fsspec.AbstractFileSystem, path: str, payload: str) -> bool:
     return True
 
 
+def _refuse(what: str, info: dict | None) -> LockError:
+    info = info or {}
+    age = time.time() - float(info.get("started", time.time()))
+    return LockError(
+        f"{what} is being written by another run (pid {info.get('pid', '?')} on {info.get('host', '?')}, "
+        f"for {age:.0f} s); wait for it to finish (or pass --wait SECONDS). If that run is dead "
+        f"on another machine, remove the lock with `pipeline unlock`.")
+
+
 @contextmanager
 def stage_lock(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
     """Hold the lock file ``url`` while the body runs.
 
     ``what`` names the output in messages. With ``wait_s`` > 0, wait up to that long for another
-    run to finish; otherwise raise LockError at once naming the holder.
+    run to finish; otherwise raise LockError at once naming the holder. A cache that cannot be
+    written (read-only, disk full) raises CacheError.
     """
+    from pipeline.cache import cache_error
+
     fs, path = fsspec.core.url_to_fs(url)
-    fs.makedirs(fs._parent(path), exist_ok=True)
     payload = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()})
     deadline = time.monotonic() + wait_s
-    while not _try_create(fs, path, payload):
-        info = _read(fs, path)
-        if _is_stale(info):
-            fs.rm(path)  # the holder is gone: recover
-            continue
-        if time.monotonic() >= deadline:
-            age = time.time() - float(info.get("started", time.time()))
-            raise LockError(
-                f"{what} is being written by another run (pid {info.get('pid')} on {info.get('host')}, "
-                f"for {age:.0f} s); wait for it to finish (or pass --wait SECONDS). If that run is dead "
-                f"on another machine, remove the lock with `pipeline unlock`.")
-        time.sleep(0.5)
+    try:
+        fs.makedirs(fs._parent(path), exist_ok=True)
+        if _is_local(fs):
+            fd = _acquire_local(path, payload, what, deadline)
+        else:
+            fd = None
+            _acquire_remote(fs, path, payload, what, deadline)
+    except OSError as exc:
+        raise cache_error(exc, f"taking the lock {url}") from None
     try:
         yield
     finally:
+        if fd is not None:
+            try:
+                os.unlink(path)  # while still locked: a waiter that opened it will see the inode change
+            except FileNotFoundError:
+                pass  # removed by `pipeline unlock`
+            finally:
+                os.close(fd)
+        else:
+            info = _read(fs, path)
+            if info is not None and info.get("pid") == os.getpid() and info.get("host") == socket.gethostname():
+                fs.rm(path)
+
+
+def _acquire_local(path: str, payload: str, what: str, deadline: float) -> int:
+    while True:
+        fd = _try_flock(path, payload)
+        if fd is not None and fd != _RETRY:
+            return fd
+        if fd is None and time.monotonic() >= deadline:
+            raise _refuse(what, _read(fsspec.filesystem("file"), path))
+        if fd is None:
+            time.sleep(0.2)
+
+
+def _acquire_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str, what: str, deadline: float) -> None:
+    while not _try_create_remote(fs, path, payload):
         info = _read(fs, path)
-        if info is not None and info.get("pid") == os.getpid() and info.get("host") == socket.gethostname():
-            fs.rm(path)
+        if _is_stale(info):
+            try:
+                fs.rm(path)  # the holder is gone: recover
+            except FileNotFoundError:
+                pass  # another run recovered it first
+            continue
+        if time.monotonic() >= deadline:
+            raise _refuse(what, info)
+        time.sleep(0.5)

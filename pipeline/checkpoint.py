@@ -1,0 +1,146 @@
+"""Training checkpoints without pickle: tensors in safetensors, everything else in JSON.
+
+One checkpoint is ONE ``.safetensors`` file: model tensors (``model.<name>``), optimizer state
+tensors (``optim.<param id>.<key>``) and RNG states (``rng.torch``, ``rng.cuda.<i>`` as uint8), with
+the non-tensor state (epoch, fingerprint, curves, optimizer param groups, numpy bit-generator state)
+as JSON in the file's metadata under ``"meta"``. The file is written to a temporary name and
+renamed into place, so a kill at any instant leaves either the old or the new checkpoint, never a
+mix. A JSON sidecar (same stem, ``.json``) repeats the metadata for people and tools; loading
+reads only the safetensors file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors import safe_open
+from safetensors.torch import save_file
+from torch import Tensor, nn
+
+from pipeline.errors import CacheError
+
+FORMAT = "pipeline-checkpoint/1"
+
+
+def save_checkpoint(path: str | Path, tensors: dict[str, Tensor], meta: dict[str, Any]) -> None:
+    """Atomically write ``tensors`` + ``meta`` (JSON-able) to ``path``, then the JSON sidecar."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": FORMAT, **meta}
+    flat = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        save_file(flat, tmp, metadata={"meta": json.dumps(meta)})
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    write_json_atomic(path.with_suffix(".json"), meta)
+
+
+def load_checkpoint(path: str | Path, prefix: str = "") -> tuple[dict[str, Tensor], dict[str, Any]]:
+    """Read a checkpoint: (tensors whose key starts with ``prefix``, metadata dict)."""
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            meta = json.loads((f.metadata() or {}).get("meta", "{}"))
+            tensors = {k: f.get_tensor(k) for k in f.keys() if k.startswith(prefix)}
+    except FileNotFoundError:
+        raise CacheError(f"{path}: checkpoint not found") from None
+    except Exception as exc:  # safetensors raises its own error types for corrupt headers
+        raise CacheError(f"{path}: unreadable checkpoint ({exc})") from None
+    if meta.get("format") != FORMAT:
+        raise CacheError(f"{path}: not a pipeline checkpoint (format {meta.get('format')!r})")
+    return tensors, meta
+
+
+def read_meta(path: str | Path) -> dict[str, Any]:
+    """Metadata of a checkpoint without reading its tensors."""
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            return json.loads((f.metadata() or {}).get("meta", "{}"))
+    except Exception as exc:
+        raise CacheError(f"{path}: unreadable checkpoint ({exc})") from None
+
+
+def write_json_atomic(path: str | Path, obj: Any) -> None:
+    """Write JSON to a temporary file and rename it into place."""
+    path = Path(path)
+    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    os.replace(tmp, path)
+
+
+def model_tensors(model: nn.Module) -> dict[str, Tensor]:
+    """``model.state_dict()`` under the ``model.`` prefix."""
+    return {f"model.{k}": v for k, v in model.state_dict().items()}
+
+
+def strip_prefix(tensors: dict[str, Tensor], prefix: str) -> dict[str, Tensor]:
+    """Keys starting with ``prefix``, with the prefix removed."""
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+
+
+def flatten_optimizer(optimizer: torch.optim.Optimizer) -> tuple[dict[str, Tensor], dict[str, Any]]:
+    """Optimizer state dict -> (tensors ``optim.<pid>.<key>``, JSON part: param groups + scalars)."""
+    sd = optimizer.state_dict()
+    tensors: dict[str, Tensor] = {}
+    scalars: dict[str, dict[str, Any]] = {}
+    for pid, state in sd["state"].items():
+        for key, value in state.items():
+            if isinstance(value, Tensor):
+                tensors[f"optim.{pid}.{key}"] = value
+            else:
+                scalars.setdefault(str(pid), {})[key] = value
+    groups = [{k: (list(v) if isinstance(v, tuple) else v) for k, v in g.items()} for g in sd["param_groups"]]
+    return tensors, {"param_groups": groups, "scalars": scalars}
+
+
+def unflatten_optimizer(tensors: dict[str, Tensor], json_part: dict[str, Any]) -> dict[str, Any]:
+    """Inverse of :func:`flatten_optimizer`: an ``optimizer.load_state_dict`` argument."""
+    state: dict[int, dict[str, Any]] = {}
+    for key, value in strip_prefix(tensors, "optim.").items():
+        pid, name = key.split(".", 1)
+        state.setdefault(int(pid), {})[name] = value
+    for pid, values in json_part["scalars"].items():
+        state.setdefault(int(pid), {}).update(values)
+    groups = [{k: (tuple(v) if isinstance(v, list) and k != "params" else v) for k, v in g.items()}
+              for g in json_part["param_groups"]]
+    return {"state": state, "param_groups": groups}
+
+
+def rng_tensors() -> dict[str, Tensor]:
+    """torch CPU (and CUDA, when present) generator states as uint8 tensors."""
+    out = {"rng.torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        for i, s in enumerate(torch.cuda.get_rng_state_all()):
+            out[f"rng.cuda.{i}"] = s
+    return out
+
+
+def restore_rng(tensors: dict[str, Tensor]) -> None:
+    """Set the torch generators from :func:`rng_tensors` output (CUDA states only where present)."""
+    torch.set_rng_state(tensors["rng.torch"])
+    cuda = [tensors[k] for k in sorted(k for k in tensors if k.startswith("rng.cuda."))]
+    if cuda and torch.cuda.is_available() and len(cuda) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(cuda)
+
+
+def numpy_rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    """JSON-able state of a numpy Generator (Python ints keep 128-bit values exactly)."""
+    return rng.bit_generator.state
+
+
+def numpy_rng_from_state(state: dict[str, Any]) -> np.random.Generator:
+    """A numpy Generator in the saved state."""
+    bit_gen = getattr(np.random, state["bit_generator"])()
+    bit_gen.state = state
+    return np.random.Generator(bit_gen)

@@ -1,0 +1,307 @@
+"""Detector-ready output of synthesized radar frames: View-of-Delft radar .bin files in the KITTI
+layout that OpenPCDet's VoD configuration reads, optional uniform noise points (paper Table IV),
+PCD files and preview images.
+
+VoD layout (one folder per point-cloud kind, e.g. ``<root>/radar``)::
+
+    radar/ImageSets/{train,val,test}.txt       one frame id per line
+    radar/training/velodyne/NNNNN.bin          7 float32 per point (below)
+    radar/training/calib/NNNNN.txt             KITTI calib text (Tr_velo_to_cam = radar -> camera)
+    radar/training/label_2/NNNNN.txt           KITTI labels (camera frame)
+    radar/training/image_2/NNNNN.<ext>         optional image (OpenPCDet reads the image size)
+
+Radar .bin columns (float32 little-endian): x, y, z (m, radar frame {D}: x forward, y left, z up),
+RCS (dataset RSS units), v_r (range rate m/s, negative approaching), v_r_compensated
+(= v_r + u . v_ego, u the unit line of sight: the range rate the target would have if the radar
+stood still), time (0 = current scan). Every file is written to a temporary name in the target
+folder and renamed into place, so a killed run never leaves a half-written file.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+from pypcd4 import PointCloud
+
+from pipeline.errors import ReaderError
+from pipeline.frame import check_shape
+from pipeline.geometry import spherical_to_cartesian
+
+VOD_COLUMNS = ("x_m", "y_m", "z_m", "rcs", "v_r_mps", "v_r_compensated_mps", "time_s")
+"""Columns of a VoD radar .bin point (7 float32, 28 bytes)."""
+VOD_POINT_BYTES = 28
+PCD_FIELDS = ("x", "y", "z", "rss", "doppler")
+"""Fields of the PCD files, all float32."""
+
+
+# --------------------------------------------------------------------------- atomic writes
+
+
+def _write_atomic(path: Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` via a temporary file in the same folder and os.replace."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+# --------------------------------------------------------------------------- VoD .bin
+
+
+def vod_points(
+    points_D: np.ndarray, rss: np.ndarray, doppler_rangerate: np.ndarray, ego_velocity_D: np.ndarray
+) -> np.ndarray:
+    """(n, 7) float32 VoD rows from points (n, 3) m in {D}, RSS (n,), range rate (n,) m/s
+    (positive receding; convert an Astyx-convention Doppler with its sign first) and the radar's
+    ego velocity (3,) m/s in {D}. v_r_compensated = v_r + (u . v_ego); time = 0."""
+    points = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
+    n = points.shape[0]
+    rss = check_shape("rss", np.asarray(rss, dtype=np.float64), (n,))
+    v_r = check_shape("doppler_rangerate", np.asarray(doppler_rangerate, dtype=np.float64), (n,))
+    ego = check_shape("ego_velocity_D", np.asarray(ego_velocity_D, dtype=np.float64), (3,))
+    norm = np.linalg.norm(points, axis=1, keepdims=True)
+    unit = points / np.where(norm > 0, norm, 1.0)
+    v_comp = v_r + unit @ ego
+    return np.column_stack([points, rss, v_r, v_comp, np.zeros(n)]).astype(np.float32)
+
+
+def write_vod_bin(
+    path: str | os.PathLike, points_D: np.ndarray, rss: np.ndarray, doppler_rangerate: np.ndarray,
+    ego_velocity_D: np.ndarray,
+) -> Path:
+    """Write one VoD radar .bin (7 float32 per point, see ``vod_points``) atomically; returns the path."""
+    rows = vod_points(points_D, rss, doppler_rangerate, ego_velocity_D)
+    return write_vod_rows(path, rows)
+
+
+def write_vod_rows(path: str | os.PathLike, rows: np.ndarray) -> Path:
+    """Write ready (n, 7) VoD rows (e.g. with noise added) as little-endian float32, atomically."""
+    rows = check_shape("rows", np.asarray(rows), (None, 7))
+    return _write_atomic(Path(path), rows.astype("<f4").tobytes())
+
+
+def read_vod_bin(path: str | os.PathLike) -> np.ndarray:
+    """Read a VoD radar .bin into (n, 7) float32; ReaderError if missing or not 28-byte rows."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ReaderError(path, f"cannot read radar .bin: {exc.strerror or exc}") from exc
+    if len(data) % VOD_POINT_BYTES:
+        raise ReaderError(path, f"size {len(data)} bytes is not a multiple of {VOD_POINT_BYTES} (7 float32)")
+    return np.frombuffer(data, dtype="<f4").reshape(-1, 7).astype(np.float32)
+
+
+def add_uniform_noise(
+    points: np.ndarray, fraction: float, rng: np.random.Generator, *,
+    fov_az_deg: float, fov_el_deg: float, max_range_m: float,
+    rss_range: tuple[float, float], doppler_range_mps: tuple[float, float],
+    min_range_m: float = 0.5, ego_velocity_D: np.ndarray | None = None,
+) -> np.ndarray:
+    """Append round(fraction * n) uniform noise points to VoD rows (n, 7) (paper Table IV: 5%).
+
+    Noise is uniform in range [min_range_m, max_range_m], azimuth and elevation within the TOTAL
+    fields of view ``fov_*_deg`` (symmetric about x), RSS in ``rss_range`` and v_r (range rate) in
+    ``doppler_range_mps``; v_r_compensated follows from ``ego_velocity_D`` (0 when None); time 0.
+    Returns (n + round(fraction * n), 7) float32, the input rows first.
+    """
+    rows = check_shape("points", np.asarray(points, dtype=np.float32), (None, 7))
+    if not (np.isfinite(fraction) and fraction >= 0):
+        raise ValueError(f"noise fraction must be >= 0, got {fraction}")
+    if not 0 <= min_range_m < max_range_m:
+        raise ValueError(f"noise range limits must satisfy 0 <= min < max, got {min_range_m}, {max_range_m}")
+    k = int(round(fraction * rows.shape[0]))
+    half_az, half_el = np.deg2rad(fov_az_deg) / 2, np.deg2rad(fov_el_deg) / 2
+    rae = np.column_stack([
+        rng.uniform(min_range_m, max_range_m, k),
+        rng.uniform(-half_az, half_az, k),
+        rng.uniform(-half_el, half_el, k),
+    ])
+    noise = vod_points(
+        spherical_to_cartesian(rae), rng.uniform(*rss_range, k), rng.uniform(*doppler_range_mps, k),
+        np.zeros(3) if ego_velocity_D is None else ego_velocity_D,
+    )
+    return np.concatenate([rows, noise], axis=0)
+
+
+# --------------------------------------------------------------------------- PCD
+
+
+def write_pcd(path: str | os.PathLike, points_D: np.ndarray, rss: np.ndarray, doppler: np.ndarray) -> Path:
+    """Write a binary PCD with float32 fields x y z rss doppler (points (n, 3) m in {D}), atomically."""
+    points = check_shape("points_D", np.asarray(points_D, dtype=np.float32), (None, 3))
+    n = points.shape[0]
+    rss = check_shape("rss", np.asarray(rss, dtype=np.float32), (n,))
+    doppler = check_shape("doppler", np.asarray(doppler, dtype=np.float32), (n,))
+    cloud = PointCloud.from_points(
+        np.column_stack([points, rss, doppler]), PCD_FIELDS, [np.float32] * len(PCD_FIELDS)
+    )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            cloud.save(handle)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_pcd(path: str | os.PathLike) -> np.ndarray:
+    """Read a PCD written by ``write_pcd`` into (n, 5) float32 [x, y, z, rss, doppler]."""
+    path = Path(path)
+    try:
+        cloud = PointCloud.from_path(path)
+    except (OSError, ValueError) as exc:
+        raise ReaderError(path, f"cannot read PCD: {exc}") from exc
+    missing = [f for f in PCD_FIELDS if f not in cloud.fields]
+    if missing:
+        raise ReaderError(path, f"PCD lacks fields {missing}")
+    return np.asarray(cloud.numpy(PCD_FIELDS), dtype=np.float32).reshape(-1, len(PCD_FIELDS))
+
+
+# --------------------------------------------------------------------------- preview
+
+
+def preview_png(
+    path: str | os.PathLike, image: np.ndarray, uv: np.ndarray, range_m: np.ndarray, max_range_m: float
+) -> Path:
+    """Write a PNG of ``image`` (H, W, 3) uint8 RGB with the points ``uv`` (n, 2) (pixels of that
+    image, centres at integers) drawn as filled circles coloured by ``range_m`` (n,) on a fixed
+    0 .. ``max_range_m`` scale (turbo colormap, near = blue), plus a colour bar with its limits.
+    The output has the image's size."""
+    image = check_shape("image", np.asarray(image), (None, None, 3))
+    if image.dtype != np.uint8:
+        raise ValueError(f"image: expected uint8, got {image.dtype}")
+    uv = check_shape("uv", np.asarray(uv, dtype=np.float64), (None, 2))
+    range_m = check_shape("range_m", np.asarray(range_m, dtype=np.float64), (uv.shape[0],))
+    if not max_range_m > 0:
+        raise ValueError(f"max_range_m must be > 0, got {max_range_m}")
+    canvas = np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    h, w = canvas.shape[:2]
+    level = np.clip(np.nan_to_num(range_m / max_range_m) * 255, 0, 255).astype(np.uint8)
+    colours = cv2.applyColorMap(level.reshape(-1, 1), cv2.COLORMAP_TURBO).reshape(-1, 3)
+    radius = max(2, round(min(w, h) / 160))
+    finite = np.all(np.isfinite(uv), axis=1)
+    for (u, v), colour in zip(np.rint(uv[finite]).astype(int), colours[finite]):
+        cv2.circle(canvas, (int(u), int(v)), radius, tuple(int(c) for c in colour), -1, cv2.LINE_AA)
+    _draw_colour_bar(canvas, max_range_m)
+    ok, encoded = cv2.imencode(".png", canvas)
+    if not ok:
+        raise ValueError(f"{path}: PNG encoding failed")
+    return _write_atomic(Path(path), encoded.tobytes())
+
+
+def _draw_colour_bar(canvas: np.ndarray, max_range_m: float) -> None:
+    """Draw a horizontal range colour bar with '0 m' and 'max m' labels in the top-left corner."""
+    h, w = canvas.shape[:2]
+    bar_w, bar_h, x0, y0 = max(16, w // 4), max(4, h // 40), 4, 4
+    if bar_w + 2 * x0 > w or bar_h + 2 * y0 > h:
+        return
+    ramp = np.linspace(0, 255, bar_w).astype(np.uint8).reshape(1, -1)
+    bar = cv2.applyColorMap(np.repeat(ramp, bar_h, axis=0), cv2.COLORMAP_TURBO)
+    canvas[y0:y0 + bar_h, x0:x0 + bar_w] = bar
+    scale = max(0.3, min(w, h) / 800)
+    ty = y0 + bar_h + int(14 * scale) + 2
+    for text, x in (("0 m", x0), (f"{max_range_m:g} m", x0 + bar_w - int(40 * scale))):
+        cv2.putText(canvas, text, (x, ty), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(canvas, text, (x, ty), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+# --------------------------------------------------------------------------- KITTI / VoD layout
+
+
+def _check_frame_id(frame_id: str) -> str:
+    frame_id = str(frame_id)
+    if not frame_id or "/" in frame_id or "\\" in frame_id or frame_id.startswith("."):
+        raise ValueError(f"frame id {frame_id!r} is not a plain file stem")
+    return frame_id
+
+
+def _text_or_copy(dst: Path, source: str | os.PathLike) -> Path:
+    """Write ``source`` to ``dst``: a str is the file's text, a Path / PathLike is copied."""
+    if isinstance(source, str):
+        return _write_atomic(dst, source.encode())
+    src = Path(source)
+    if not src.is_file():
+        raise ReaderError(src, "source file for the export does not exist")
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=f".{dst.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return dst
+
+
+def write_kitti_layout(
+    out_root: str | os.PathLike, frame_id: str, rows: np.ndarray, *,
+    calib: str | os.PathLike | None = None, label: str | os.PathLike | None = None,
+    image: os.PathLike | None = None, subset: str = "training",
+) -> dict[str, Path]:
+    """Write one frame into the VoD/KITTI layout under ``out_root`` (e.g. ``.../radar``).
+
+    ``rows`` (n, 7) VoD rows -> ``<subset>/velodyne/<id>.bin``. ``calib`` / ``label``: a str is
+    the file's text, a Path is a file to copy (-> ``calib/<id>.txt``, ``label_2/<id>.txt``);
+    ``image``: a Path copied to ``image_2/<id><suffix>``. ``subset``: 'training' or 'testing'.
+    Returns the written paths by kind ('velodyne', 'calib', 'label_2', 'image_2').
+    """
+    frame_id = _check_frame_id(frame_id)
+    if subset not in ("training", "testing"):
+        raise ValueError(f"subset must be 'training' or 'testing', got {subset!r}")
+    base = Path(out_root) / subset
+    written = {"velodyne": write_vod_rows(base / "velodyne" / f"{frame_id}.bin", rows)}
+    if calib is not None:
+        written["calib"] = _text_or_copy(base / "calib" / f"{frame_id}.txt", calib)
+    if label is not None:
+        written["label_2"] = _text_or_copy(base / "label_2" / f"{frame_id}.txt", label)
+    if image is not None:
+        if isinstance(image, str):
+            raise ValueError("image must be a Path to copy, not text")
+        written["image_2"] = _text_or_copy(base / "image_2" / f"{frame_id}{Path(image).suffix}", image)
+    return written
+
+
+def kitti_calib_text(P2: np.ndarray, T_cam_radar: np.ndarray) -> str:
+    """KITTI calib text for a frame without a calib file (VoD radar convention: ``Tr_velo_to_cam``
+    maps radar {D} to the rectified camera). ``P2`` (3, 4) projection of the exported image;
+    P0..P3 all set to P2, R0_rect identity, Tr_imu_to_velo identity."""
+    P2 = check_shape("P2", np.asarray(P2, dtype=np.float64), (3, 4))
+    T = check_shape("T_cam_radar", np.asarray(T_cam_radar, dtype=np.float64), (4, 4))
+
+    def line(key: str, values: np.ndarray) -> str:
+        return key + ": " + " ".join(f"{v:.12e}" for v in np.ravel(values))
+
+    lines = [line(f"P{i}", P2) for i in range(4)]
+    lines += [line("R0_rect", np.eye(3)), line("Tr_velo_to_cam", T[:3]), line("Tr_imu_to_velo", np.eye(4)[:3])]
+    return "\n".join(lines) + "\n"
+
+
+def write_image_sets(out_root: str | os.PathLike, split: Mapping[str, Sequence[str]]) -> dict[str, Path]:
+    """Write ``ImageSets/<name>.txt`` (one frame id per line, in the given order) under ``out_root``
+    for each split name (train, val, test, ...); returns the paths by name."""
+    written = {}
+    for name, ids in split.items():
+        if not name or "/" in name:
+            raise ValueError(f"split name {name!r} is not a plain file stem")
+        text = "".join(f"{_check_frame_id(i)}\n" for i in ids)
+        written[name] = _write_atomic(Path(out_root) / "ImageSets" / f"{name}.txt", text.encode())
+    return written

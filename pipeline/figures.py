@@ -1,0 +1,149 @@
+"""Evaluation figures (matplotlib Agg canvas, imported inside the functions; pyplot is not used).
+
+Every figure has a fixed size in inches and a fixed dpi (no tight bounding box), so the PNG size
+is predictable: width = FIG_DPI * width_in pixels. Files are written atomically (temporary file +
+rename). Real points are red, synthesized points blue.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pipeline.frame import check_shape
+
+FIG_DPI = 100
+"""Dots per inch of every figure."""
+
+FIG8_WIDTH_IN = 12.0
+"""Width of the :func:`fig8` figure, inches (three panels per row)."""
+
+
+def fig8_size_in(image_hw: tuple[int, int], n_rows: int) -> tuple[float, float]:
+    """(width, height) in inches of :func:`fig8` for images of (H, W) pixels: each row is as tall
+    as one panel's image at its aspect ratio plus room for the titles."""
+    h, w = image_hw
+    row_in = max(1.5, (FIG8_WIDTH_IN / 3.0 - 0.1) * h / w + 0.5)
+    return FIG8_WIDTH_IN, round(row_in * n_rows, 2)
+
+
+def _save(fig: Any, out_png: str | Path) -> Path:
+    """Save ``fig`` to ``out_png`` atomically."""
+    path = Path(out_png)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=FIG_DPI, format="png")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _figure(width_in: float, height_in: float, nrows: int, ncols: int) -> tuple[Any, np.ndarray]:
+    """A pyplot-free Figure (Agg canvas: no global state, safe in worker processes) and its axes."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_in, height_in), dpi=FIG_DPI)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    return fig, axes
+
+
+def fig8(out_png: str | Path, frames: Sequence[Mapping[str, Any]]) -> Path:
+    """The paper's Fig. 8: one row per frame -- image, predicted map, real vs synthetic on the image.
+
+    Each frame: ``image`` (H, W, 3) uint8 RGB, ``prob_map`` (h, w) (stretched over the image when
+    its resolution differs), ``real_uv`` (N, 2) and ``syn_uv`` (M, 2) pixels of the image, ``title``.
+    Figure size :func:`fig8_size_in` of the first frame's image at :data:`FIG_DPI`.
+    """
+    if not frames:
+        raise ValueError("fig8: no frames to draw")
+    first = check_shape("image", np.asarray(frames[0]["image"]), (None, None, 3))
+    fig, axes = _figure(*fig8_size_in(first.shape[:2], len(frames)), len(frames), 3)
+    for row, fr in zip(axes, frames):
+        image = check_shape("image", np.asarray(fr["image"]), (None, None, 3))
+        h, w = image.shape[:2]
+        real_uv = check_shape("real_uv", np.asarray(fr["real_uv"], np.float64).reshape(-1, 2), (None, 2))
+        syn_uv = check_shape("syn_uv", np.asarray(fr["syn_uv"], np.float64).reshape(-1, 2), (None, 2))
+        extent = (-0.5, w - 0.5, h - 0.5, -0.5)
+        row[0].imshow(image)
+        row[0].set_title(f"{fr.get('title', '')} image", fontsize=8)
+        row[1].imshow(np.asarray(fr["prob_map"], np.float64), cmap="magma", extent=extent, aspect="equal",
+                      interpolation="nearest")
+        row[1].set_title("predicted map", fontsize=8)
+        row[2].imshow(image, extent=extent)
+        row[2].scatter(real_uv[:, 0], real_uv[:, 1], s=3, c="red", label=f"real ({len(real_uv)})")
+        row[2].scatter(syn_uv[:, 0], syn_uv[:, 1], s=3, c="blue", label=f"synthetic ({len(syn_uv)})")
+        row[2].set_xlim(-0.5, w - 0.5)
+        row[2].set_ylim(h - 0.5, -0.5)
+        row[2].legend(fontsize=6, loc="upper right")
+        row[2].set_title("real (red) vs synthetic (blue)", fontsize=8)
+        for ax in row:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.subplots_adjust(left=0.01, right=0.99, top=0.97, bottom=0.01, wspace=0.03, hspace=0.25)
+    return _save(fig, out_png)
+
+
+def bev(out_png: str | Path, frames: Sequence[Mapping[str, Any]], max_range_m: float = 50.0) -> Path:
+    """Bird's-eye view of real (red) and synthetic (blue) points, one panel per frame.
+
+    Each frame: ``real_points_D`` (N, 3+) and ``syn_points_D`` (M, 3+) in {D} (only x, y used),
+    ``title``. Drawn with x (forward) up and y (left) to the left, equal axes, x in [0, max_range_m].
+    Figure size (4 * panels) x 4 inches at :data:`FIG_DPI`.
+    """
+    if not frames:
+        raise ValueError("bev: no frames to draw")
+    fig, axes = _figure(4.0 * len(frames), 4.0, 1, len(frames))
+    for ax, fr in zip(axes[0], frames):
+        real = np.asarray(fr["real_points_D"], np.float64).reshape(-1, np.shape(fr["real_points_D"])[-1])
+        syn = np.asarray(fr["syn_points_D"], np.float64).reshape(-1, np.shape(fr["syn_points_D"])[-1])
+        ax.scatter(real[:, 1], real[:, 0], s=2, c="red", label=f"real ({len(real)})")
+        ax.scatter(syn[:, 1], syn[:, 0], s=2, c="blue", label=f"synthetic ({len(syn)})")
+        ax.set_xlim(max_range_m * 0.8, -max_range_m * 0.8)
+        ax.set_ylim(0.0, max_range_m)
+        ax.set_aspect("equal", adjustable="box")
+        ax.set_xlabel("y (m, left)", fontsize=7)
+        ax.set_ylabel("x (m, forward)", fontsize=7)
+        ax.set_title(str(fr.get("title", "")), fontsize=8)
+        ax.tick_params(labelsize=6)
+        ax.legend(fontsize=6, loc="upper right")
+    fig.subplots_adjust(left=0.14, right=0.97, top=0.92, bottom=0.1, wspace=0.35)
+    return _save(fig, out_png)
+
+
+def histograms(out_png: str | Path, real: np.ndarray, syn: np.ndarray,
+               names: Sequence[str] = ("range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss"),
+               bins: int = 50) -> Path:
+    """Histograms (densities) of each column of real (N, C) vs synthetic (M, C) points, C = len(names).
+
+    Typically spherical arrays [range_m, azimuth_rad, elevation_rad, doppler_mps, rss]
+    (pipeline.metrics.to_spherical). Shared bin edges per column over finite values of both sets.
+    Figure size (3 * C) x 3 inches at :data:`FIG_DPI`.
+    """
+    real = check_shape("real", np.asarray(real, np.float64), (None, len(names)))
+    syn = check_shape("syn", np.asarray(syn, np.float64), (None, len(names)))
+    fig, axes = _figure(3.0 * len(names), 3.0, 1, len(names))
+    for k, (ax, name) in enumerate(zip(axes[0], names)):
+        r, s = real[:, k][np.isfinite(real[:, k])], syn[:, k][np.isfinite(syn[:, k])]
+        both = np.concatenate([r, s])
+        if both.size:
+            lo, hi = float(both.min()), float(both.max())
+            edges = np.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1)
+            if r.size:
+                ax.hist(r, bins=edges, density=True, color="red", alpha=0.5, label=f"real ({r.size})")
+            if s.size:
+                ax.hist(s, bins=edges, density=True, color="blue", alpha=0.5, label=f"synthetic ({s.size})")
+            ax.legend(fontsize=6)
+        ax.set_title(name, fontsize=8)
+        ax.tick_params(labelsize=6)
+    fig.subplots_adjust(left=0.05, right=0.98, top=0.88, bottom=0.12, wspace=0.3)
+    return _save(fig, out_png)

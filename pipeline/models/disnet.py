@@ -1,0 +1,93 @@
+"""Dis-Net (paper Fig. 4): image (+ ego speed) -> radar point distribution over pixels and count.
+
+- Backbone: ResNet-18 trunk (``pipeline.models.resnet``) -> F (B, 8w, H/32, W/32), w = width.
+- Distribution branch: four stride-2 transpose convolutions 8w -> 4w -> 2w -> w -> 1 (BN + ReLU
+  after all but the last), bilinear resize to exactly ``out_hw``, log-softmax over all pixels:
+  a proper log-probability map (the paper's "sigmoid" is not a distribution).
+- Number branch: 1x1 conv 8w -> 1, adaptive average pool to a fixed 5 x 18 grid (90 values, the
+  authors' FC input size, so any image size works), FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s ->
+  FC 1 -> 12 + ReLU (dropped when ``use_speed`` is False); concat -> FC -> sigmoid * max_points.
+
+The input image is RGB float in [0, 1]; ImageNet mean/std normalisation happens inside.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from pipeline.models.resnet import ResNet18Backbone, resnet18_backbone
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+COUNT_GRID = (5, 18)
+"""Fixed grid the number branch pools the 1-channel feature map to (5 * 18 = 90 values)."""
+SPEED_SCALE_MPS = 10.0
+"""The ego speed enters the network divided by this, m/s."""
+
+
+class DisNet(nn.Module):
+    """Distribution + count network.
+
+    ``forward(image (B, 3, H, W) float [0, 1], speed_mps (B,))`` returns
+    ``(log_map (B, out_h, out_w), n_hat (B,))``: ``log_map.exp()`` sums to 1 per frame and
+    ``n_hat`` lies in (0, max_points).
+    """
+
+    def __init__(self, width: int = 64, use_speed: bool = True, max_points: int = 1000,
+                 out_hw: tuple[int, int] = (160, 320), backbone: ResNet18Backbone | None = None) -> None:
+        super().__init__()
+        if max_points < 1:
+            raise ValueError(f"max_points must be >= 1, got {max_points}")
+        self.use_speed = use_speed
+        self.max_points = int(max_points)
+        self.out_hw = (int(out_hw[0]), int(out_hw[1]))
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.backbone = backbone if backbone is not None else ResNet18Backbone(width)
+        c = self.backbone.out_channels
+        self.decoder = nn.Sequential(
+            _up(c, c // 2), _up(c // 2, c // 4), _up(c // 4, c // 8),
+            nn.ConvTranspose2d(c // 8, 1, 4, stride=2, padding=1))
+        self.count_conv = nn.Conv2d(c, 1, 1)
+        self.count_fc = nn.Linear(COUNT_GRID[0] * COUNT_GRID[1], 12)
+        self.speed_fc = nn.Linear(1, 12) if use_speed else None
+        self.count_head = nn.Linear(24 if use_speed else 12, 1)
+
+    def forward(self, image: Tensor, speed_mps: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        b = image.shape[0]
+        feat = self.backbone((image - self.mean) / self.std)            # (B, C, H/32, W/32)
+        logits = self.decoder(feat)                                     # (B, 1, H/2, W/2)
+        logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
+        log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
+        grid = F.adaptive_avg_pool2d(self.count_conv(feat), COUNT_GRID)  # (B, 1, 5, 18)
+        code = F.relu(self.count_fc(grid.reshape(b, -1)))               # (B, 12)
+        if self.speed_fc is not None:
+            if speed_mps is None:
+                raise ValueError("DisNet was built with use_speed=True: forward needs speed_mps (B,)")
+            s = speed_mps.reshape(b, 1).to(code.dtype) / SPEED_SCALE_MPS
+            code = torch.cat([code, F.relu(self.speed_fc(s))], dim=1)   # (B, 24)
+        n_hat = torch.sigmoid(self.count_head(code)).squeeze(1) * self.max_points  # (B,)
+        return log_map, n_hat
+
+
+def _up(in_ch: int, out_ch: int) -> nn.Sequential:
+    """Transpose conv doubling H and W exactly, then BN + ReLU."""
+    return nn.Sequential(nn.ConvTranspose2d(in_ch, out_ch, 4, stride=2, padding=1, bias=False),
+                         nn.BatchNorm2d(out_ch), nn.ReLU(inplace=True))
+
+
+def disnet_kwargs(cfg) -> dict:
+    """Constructor arguments of DisNet from a Config (disnet.*, radar.max_points, camera.working_size)."""
+    w, h = cfg.camera.working_size
+    return {"width": cfg.disnet.width, "use_speed": cfg.disnet.use_speed,
+            "max_points": cfg.radar.max_points, "out_hw": (h, w)}
+
+
+def build_disnet(cfg, load_backbone: bool = True) -> DisNet:
+    """DisNet from a Config; loads cfg.disnet.backbone_weights (torchvision ResNet-18) when set."""
+    kw = disnet_kwargs(cfg)
+    weights = cfg.disnet.backbone_weights if load_backbone else ""
+    backbone = resnet18_backbone(weights or None, width=kw["width"])
+    return DisNet(backbone=backbone, **kw)

@@ -1,0 +1,271 @@
+"""Astyx HiRes2019 reader and the Astyx demo set (radar + CAN bus only).
+
+HiRes2019 layout under the data root (``dataset_astyx_hires2019/``):
+
+- ``dataset.json``: ``data`` -> frame key -> {sensor uid: relative path}. Entries whose files are
+  absent are skipped and counted (``skipped_missing``); paths that leave the root, duplicate keys
+  and two keys for one frame are errors of that frame (ReaderError on read).
+- ``radar_6455/ID.txt``: a blank line, the header ``X Y Z V_r Mag``, then 5 numbers per point;
+  radar frame = {D}; ``V_r`` positive when approaching and aliased (wrapped into about
+  +/-5.2 m/s). The reader converts it to range rate with ``radar.doppler_sign`` (-1) and keeps it
+  wrapped; ``Mag`` is the RSS.
+- ``lidar_vlp16/ID.txt``: header ``X Y Z Reflectivity LaserID Timestamp``, then rows (Timestamp
+  in microseconds; the frame time is their median).
+- ``camera_front/ID.jpg``: 2048x618.
+- ``calibration/ID.json``: ``sensors[]`` with ``sensor_uid`` and ``calib_data.T_to_ref_COS``
+  (sensor -> reference = radar frame); the camera entry has ``K``. T_radar_cam = T_camera,
+  T_radar_lidar = T_lidar (each composed with the inverse of the radar's own entry).
+- ``groundtruth_obj3d/ID.json``: ``objects[]`` with ``center3d``, ``dimension3d`` (l, w, h),
+  ``orientation_quat`` (w, x, y, z), ``classname``, ``object_id``; in the radar frame.
+
+Ego velocity is not recorded: it is estimated from the scan's own (aliased) Doppler by
+:func:`pipeline.egomotion.estimate_ego_velocity`.
+
+The demo set (``dataset_astyx_demo/``: ``dataset_info.json``, ``radar_hires1``, ``canbus`` with
+``vehicle_speed`` km/h and bare NaN values, calibration uids radar_hires1 / lidar_os1 /
+camera_bfly) has no camera or lidar files: :class:`AstyxDemoReader` exposes the radar and the CAN
+speed for checking the ego-speed estimator, and its ``read`` raises ReaderError.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.egomotion import EgoFit, estimate_ego_velocity
+from pipeline.errors import ReaderError
+from pipeline.frame import FrameRecord, Object3D
+from pipeline.geometry import invert_transform
+from pipeline.readers.base import (Reader, check_finite, check_intrinsics, check_not_empty, check_rigid,
+                                   inside_root, read_image_rgb, require_file, split_sequences_at_gaps)
+
+KMH_TO_MPS = 1.0 / 3.6
+
+
+def load_json(path: Path, frame: str | None, what: str, pairs_hook=None) -> object:
+    """Parse a JSON file (bare NaN accepted); ReaderError if missing or malformed."""
+    require_file(path, frame, what)
+    try:
+        return json.loads(path.read_text(errors="replace"), object_pairs_hook=pairs_hook)
+    except json.JSONDecodeError as exc:
+        raise ReaderError(path, f"{what} is not valid JSON ({exc.msg} at line {exc.lineno})", frame=frame) from None
+
+
+def read_text_table(path: Path, n_cols: int, frame: str | None, what: str, header_start: str) -> np.ndarray:
+    """Rows of ``n_cols`` numbers after a header line starting with ``header_start`` -> (N, n_cols) float64."""
+    require_file(path, frame, what)
+    lines = path.read_text(errors="replace").splitlines()
+    header = next((i for i, line in enumerate(lines) if line.strip()), None)
+    if header is None or not lines[header].strip().startswith(header_start):
+        raise ReaderError(path, f"{what}: header line '{header_start} ...' not found", frame=frame)
+    rows = [line for line in lines[header + 1:] if line.strip()]
+    tokens = " ".join(rows).split()
+    if len(tokens) != n_cols * len(rows):
+        bad = next(i for i, row in enumerate(rows) if len(row.split()) != n_cols)
+        raise ReaderError(path, f"{what}: row {bad + 1} has {len(rows[bad].split())} values, expected {n_cols}",
+                          frame=frame)
+    try:
+        data = np.array(tokens, dtype=np.float64).reshape(len(rows), n_cols)
+    except ValueError as exc:
+        raise ReaderError(path, f"{what}: malformed number ({exc})", frame=frame) from None
+    check_finite(data, path, frame, what)
+    return data
+
+
+def _reject_duplicate_keys(pairs: list[tuple[str, object]]) -> dict:
+    counts = Counter(k for k, _ in pairs)
+    out = dict(pairs)
+    dup = [k for k, n in counts.items() if n > 1]
+    if dup:
+        out["__duplicate_keys__"] = dup
+    return out
+
+
+class _AstyxIndex(Reader):
+    """Index handling shared by the HiRes2019 and demo readers."""
+
+    index_name = "dataset.json"
+    radar_uid = "radar_6455"
+    required_uids: tuple[str, ...] = ()
+
+    @cached_property
+    def _index(self) -> tuple[dict[str, dict[str, Path]], dict[str, str]]:
+        """({frame id: {uid: path}} for present frames, {frame id: problem} for broken entries)."""
+        index_file = self.root / self.index_name
+        data = load_json(index_file, None, "dataset index", _reject_duplicate_keys)
+        entries = data.get("data") if isinstance(data, dict) else None
+        if not isinstance(entries, dict):
+            raise ReaderError(index_file, "index has no 'data' object")
+        problems: dict[str, str] = {f"{int(k):06d}" if k.isdigit() else k: f"duplicate index entry '{k}'"
+                                    for k in entries.pop("__duplicate_keys__", [])}
+        frames: dict[str, dict[str, Path]] = {}
+        seen_radar: dict[Path, str] = {}
+        seen_keys: dict[str, str] = {}
+        for key, entry in entries.items():
+            fid = f"{int(key):06d}" if key.isdigit() else key
+            if fid in seen_keys:
+                problems[fid] = f"duplicate index entries '{seen_keys[fid]}' and '{key}' for frame {fid}"
+                continue
+            seen_keys[fid] = key
+            try:
+                paths = self._entry_paths(entry, fid, index_file)
+            except ReaderError as exc:
+                problems[fid] = exc.problem
+                continue
+            if paths.get(self.radar_uid) in seen_radar:
+                other = seen_radar.get(paths[self.radar_uid], fid)
+                problems[fid] = problems[other] = f"duplicate index entries for frame {fid} ({other})"
+                continue
+            if not all(paths[uid].is_file() for uid in self.required_uids):
+                self._counts["skipped_missing"] += 1
+                continue
+            frames[fid] = paths
+            seen_radar[paths[self.radar_uid]] = fid
+        return frames, problems
+
+    def _entry_paths(self, entry: object, fid: str, index_file: Path) -> dict[str, Path]:
+        if not isinstance(entry, dict):
+            raise ReaderError(index_file, f"index entry of frame {fid} is not an object", frame=fid)
+        missing = [uid for uid in self.required_uids if uid not in entry]
+        if missing:
+            raise ReaderError(index_file, f"index entry lacks {', '.join(missing)}", frame=fid)
+        return {uid: inside_root(self.root, str(rel), fid, index_file) for uid, rel in entry.items()}
+
+    def frame_ids(self) -> list[str]:
+        frames, problems = self._index
+        return sorted(set(frames) | set(problems), key=lambda s: (len(s), s))
+
+    def sequence_of(self, frame_id: str) -> str:
+        ids = [f for f in self.frame_ids() if f.isdigit()]
+        if frame_id not in ids and frame_id not in self.frame_ids():
+            raise ReaderError(self.root / self.index_name, "unknown frame id", frame=frame_id)
+        if not frame_id.isdigit():
+            return frame_id
+        return split_sequences_at_gaps([int(f) for f in ids])[int(frame_id)]
+
+    def _paths(self, frame_id: str) -> dict[str, Path]:
+        frames, problems = self._index
+        if frame_id in problems:
+            raise ReaderError(self.root / self.index_name, problems[frame_id], frame=frame_id)
+        if frame_id not in frames:
+            raise ReaderError(self.root / self.index_name, "frame not in the index or its files are missing",
+                              frame=frame_id)
+        return frames[frame_id]
+
+    def _calibration(self, frame_id: str, uids: tuple[str, str, str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(T_radar_lidar, T_radar_cam, K) from the calibration JSON; uids = (radar, lidar, camera)."""
+        path = self._paths(frame_id)["calibration"]
+        data = load_json(path, frame_id, "calibration")
+        sensors = {s.get("sensor_uid"): s.get("calib_data", {}) for s in data.get("sensors", [])
+                   if isinstance(s, dict)} if isinstance(data, dict) else {}
+        T = {}
+        for uid in uids:
+            if uid not in sensors or "T_to_ref_COS" not in sensors[uid]:
+                raise ReaderError(path, f"calibration key 'T_to_ref_COS' of sensor '{uid}' is missing", frame=frame_id)
+            T[uid] = check_rigid(_matrix(sensors[uid]["T_to_ref_COS"], (4, 4), path, frame_id, uid),
+                                 path, frame_id, f"T_to_ref_COS of {uid}")
+        if "K" not in sensors[uids[2]]:
+            raise ReaderError(path, f"calibration key 'K' of sensor '{uids[2]}' is missing", frame=frame_id)
+        K = check_intrinsics(_matrix(sensors[uids[2]]["K"], (3, 3), path, frame_id, uids[2]), path, frame_id)
+        T_radar_ref = invert_transform(T[uids[0]])
+        return T_radar_ref @ T[uids[1]], T_radar_ref @ T[uids[2]], K
+
+    def read_radar(self, frame_id: str) -> np.ndarray:
+        """(M, 5) float32 radar points in {D}: x, y, z (m), range rate (m/s, wrapped), Mag."""
+        path = self._paths(frame_id)[self.radar_uid]
+        raw = read_text_table(path, 5, frame_id, "radar", "X")
+        check_not_empty(raw, path, frame_id, "radar")
+        out = raw.astype(np.float32)
+        out[:, 3] = raw[:, 3] * self.cfg.radar.doppler_sign
+        return out
+
+    def estimate_ego(self, frame_id: str) -> EgoFit:
+        """Ego velocity of the radar from the frame's own Doppler (alias-aware robust fit)."""
+        radar = self.read_radar(frame_id)
+        return estimate_ego_velocity(radar[:, :3], radar[:, 3], self.cfg.radar.doppler_span_mps)
+
+
+def _matrix(values: object, shape: tuple[int, int], path: Path, frame: str, uid: str) -> np.ndarray:
+    try:
+        out = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ReaderError(path, f"malformed calibration values of sensor '{uid}'", frame=frame) from None
+    if out.shape != shape or not np.all(np.isfinite(out)):
+        raise ReaderError(path, f"calibration matrix of sensor '{uid}' has shape {out.shape} or non-finite "
+                                f"values, expected finite {shape}", frame=frame)
+    return out
+
+
+class AstyxReader(_AstyxIndex):
+    """Astyx HiRes2019: radar 6455, VLP-16 lidar, front camera; see the module docstring."""
+
+    name = "astyx"
+    required_uids = ("radar_6455", "lidar_vlp16", "camera_front", "calibration")
+    calib_uids = ("radar_6455", "lidar_vlp16", "camera_front")
+
+    def read(self, frame_id: str) -> FrameRecord:
+        paths = self._paths(frame_id)
+        T_radar_lidar, T_radar_cam, K = self._calibration(frame_id, self.calib_uids)
+        radar = self.read_radar(frame_id)
+        lidar = read_text_table(paths["lidar_vlp16"], 6, frame_id, "lidar", "X")
+        check_not_empty(lidar, paths["lidar_vlp16"], frame_id, "lidar")
+        image = read_image_rgb(paths["camera_front"], frame_id, self.cfg.camera.full_size)
+        fit = estimate_ego_velocity(radar[:, :3], radar[:, 3], self.cfg.radar.doppler_span_mps)
+        if fit.n_used < 3:
+            raise ReaderError(paths[self.radar_uid], "cannot estimate ego velocity: fewer than 3 static "
+                                                     "points agree", frame=frame_id)
+        lidar_D = lidar[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
+        record = FrameRecord(
+            frame_id=frame_id, sequence_id=self.sequence_of(frame_id),
+            timestamp_s=float(np.median(lidar[:, 5])) * 1e-6, image=image, K=K,
+            lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar[:, 3].astype(np.float32),
+            radar_D=radar, T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam,
+            ego_velocity_D=fit.velocity_D, has_radar=True, labels=self._labels(frame_id))
+        return self.finish(record, paths[self.radar_uid])
+
+    def _labels(self, frame_id: str) -> list[Object3D]:
+        path = self._paths(frame_id).get("groundtruth_obj3d")
+        if path is None or not path.is_file():
+            return []
+        data = load_json(path, frame_id, "ground truth")
+        objects = []
+        for i, obj in enumerate(data.get("objects", []) if isinstance(data, dict) else []):
+            try:
+                centre = np.asarray(obj["center3d"], np.float64).reshape(3)
+                size = np.asarray(obj["dimension3d"], np.float64).reshape(3)
+                w, x, y, z = np.asarray(obj["orientation_quat"], np.float64).reshape(4)
+                name = str(obj["classname"])
+            except (KeyError, TypeError, ValueError):
+                raise ReaderError(path, f"object {i} lacks center3d/dimension3d/orientation_quat/classname "
+                                        "or has malformed values", frame=frame_id) from None
+            yaw = float(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
+            objects.append(Object3D(class_name=name, center_D=centre, size_lwh_m=size, yaw_rad=yaw,
+                                    track_id=int(obj.get("object_id", -1))))
+        return objects
+
+
+class AstyxDemoReader(_AstyxIndex):
+    """The Astyx demo set: radar_hires1 scans and CAN-bus speed, no camera or lidar files."""
+
+    name = "astyx_demo"
+    index_name = "dataset_info.json"
+    radar_uid = "radar_hires1"
+    required_uids = ("radar_hires1", "calibration", "canbus")
+
+    def read(self, frame_id: str) -> FrameRecord:
+        raise ReaderError(self.root / self.index_name, "the Astyx demo set has no camera or lidar files; "
+                                                      "use read_radar() and can_speed_mps()", frame=frame_id)
+
+    def can_speed_mps(self, frame_id: str) -> float:
+        """CAN-bus ``vehicle_speed`` of the frame converted from km/h to m/s."""
+        path = self._paths(frame_id)["canbus"]
+        data = load_json(path, frame_id, "CAN bus")
+        speed = data.get("vehicle_speed") if isinstance(data, dict) else None
+        if not isinstance(speed, (int, float)) or not np.isfinite(speed):
+            raise ReaderError(path, f"vehicle_speed missing or not a finite number: {speed!r}", frame=frame_id)
+        return float(speed) * KMH_TO_MPS

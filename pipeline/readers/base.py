@@ -1,0 +1,190 @@
+"""The Reader base class and the checks every reader applies to raw files.
+
+A reader turns one dataset layout into :class:`pipeline.frame.FrameRecord` s in the conventions of
+``pipeline/frame.py``. Everything wrong with an input file is a :class:`ReaderError` whose one-line
+message names the file, the frame and the problem; readers never return partial records silently.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.errors import ReaderError
+from pipeline.frame import FrameRecord
+from pipeline.geometry import cartesian_to_spherical, invert_transform
+
+MAX_EGO_SPEED_MPS = 70.0
+"""Ego speeds above this (252 km/h) are treated as a corrupt input, m/s."""
+
+
+class Reader:
+    """Base class of the dataset readers.
+
+    Subclasses implement :meth:`frame_ids`, :meth:`sequence_of` and :meth:`read`; they count what
+    they skip in ``self._counts`` (reported by :meth:`report`). Construction does no heavy work:
+    the index is built lazily on first use.
+    """
+
+    name = "base"
+
+    def __init__(self, cfg: Config, data_root: str | Path) -> None:
+        self.cfg = cfg
+        self.root = Path(data_root)
+        self._counts: Counter[str] = Counter()
+
+    def frame_ids(self) -> list[str]:
+        """Sorted ids of all frames whose files are present (absent ones are skipped and counted)."""
+        raise NotImplementedError
+
+    def sequence_of(self, frame_id: str) -> str:
+        """Name of the sequence (continuous recording) the frame belongs to."""
+        raise NotImplementedError
+
+    def read(self, frame_id: str) -> FrameRecord:
+        """The validated record of one frame; ReaderError for anything wrong with its files."""
+        raise NotImplementedError
+
+    def report(self) -> dict:
+        """Counters of what the reader skipped or dropped, e.g. ``{"skipped_missing": 3}``."""
+        return dict(self._counts)
+
+    # -- helpers shared by the subclasses -------------------------------------------------------
+
+    def finish(self, record: FrameRecord, path: Path) -> FrameRecord:
+        """Run the record's own validation and the physical plausibility checks; return it."""
+        try:
+            record.validate()
+        except ValueError as exc:
+            raise ReaderError(path, f"invalid frame record: {exc}", frame=record.frame_id) from None
+        check_ego_speed(record.ego_velocity_D, path, record.frame_id)
+        if record.has_radar:
+            check_radar_fov(record.radar_D[:, :3], self.cfg, path, record.frame_id)
+        return record
+
+
+def require_file(path: Path, frame: str | None, what: str) -> Path:
+    """Return ``path`` if it is a file, else raise ReaderError('missing <what>')."""
+    if not path.is_file():
+        raise ReaderError(path, f"missing {what} file", frame=frame)
+    return path
+
+
+def inside_root(root: Path, relative: str, frame: str | None, index_file: Path) -> Path:
+    """Resolve ``relative`` under ``root``; ReaderError if it is absolute or leaves the root."""
+    rel = Path(relative)
+    target = (root / rel).resolve()
+    if rel.is_absolute() or not target.is_relative_to(root.resolve()):
+        raise ReaderError(index_file, f"index entry '{relative}' points outside the dataset root {root}",
+                          frame=frame)
+    return root / rel
+
+
+def read_float32_records(path: Path, n_cols: int, frame: str | None, what: str) -> np.ndarray:
+    """Read a little-endian float32 .bin file of ``n_cols`` values per record -> (N, n_cols) float32.
+
+    Raises ReaderError if the file is missing, its size is not a multiple of the record size,
+    or it holds non-finite values.
+    """
+    require_file(path, frame, what)
+    size = path.stat().st_size
+    record = 4 * n_cols
+    if size % record:
+        raise ReaderError(path, f"{what}: file size {size} bytes is not a multiple of {record} "
+                                f"({n_cols} float32 per point): truncated or wrong record type", frame=frame)
+    data = np.fromfile(path, dtype="<f4").reshape(-1, n_cols)
+    check_finite(data, path, frame, what)
+    return data
+
+
+def check_finite(values: np.ndarray, path: Path, frame: str | None, what: str) -> None:
+    """ReaderError if ``values`` has NaN or inf entries (names how many rows)."""
+    bad = ~np.isfinite(np.asarray(values, dtype=np.float64))
+    if bad.any():
+        rows = int(bad.reshape(bad.shape[0], -1).any(axis=1).sum()) if bad.ndim > 1 else int(bad.sum())
+        raise ReaderError(path, f"{what}: {rows} point(s) with NaN or inf values", frame=frame)
+
+
+def check_not_empty(points: np.ndarray, path: Path, frame: str | None, what: str) -> None:
+    """ReaderError if ``points`` has no rows."""
+    if points.shape[0] == 0:
+        raise ReaderError(path, f"{what}: frame has no points", frame=frame)
+
+
+def check_rigid(T_dst_src: np.ndarray, path: Path, frame: str | None, what: str) -> np.ndarray:
+    """Return ``T_dst_src`` (4, 4) float64 if it is an invertible rigid transform, else ReaderError."""
+    T = np.asarray(T_dst_src, dtype=np.float64)
+    try:
+        invert_transform(T)
+    except ValueError as exc:
+        raise ReaderError(path, f"{what}: not an invertible rigid transform ({exc})", frame=frame) from None
+    return T
+
+
+def check_intrinsics(K: np.ndarray, path: Path, frame: str | None) -> np.ndarray:
+    """Return K (3, 3) float64 if it is a finite pinhole matrix with positive focal lengths."""
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 \
+            or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise ReaderError(path, f"camera intrinsics are not a valid pinhole matrix: {K.tolist()}", frame=frame)
+    return K
+
+
+def read_image_rgb(path: Path, frame: str | None, expected_wh: tuple[int, int] | None) -> np.ndarray:
+    """Decode an image file with OpenCV -> (H, W, 3) uint8 RGB.
+
+    ReaderError if the file is missing, cannot be decoded, or is not ``expected_wh`` (W, H) pixels.
+    """
+    require_file(path, frame, "image")
+    buffer = np.fromfile(path, dtype=np.uint8)
+    image = cv2.imdecode(buffer, cv2.IMREAD_COLOR) if buffer.size else None
+    if image is None:
+        raise ReaderError(path, "image cannot be decoded (corrupt or not an image)", frame=frame)
+    height, width = image.shape[:2]
+    if expected_wh is not None and (width, height) != tuple(expected_wh):
+        raise ReaderError(path, f"image is {width}x{height} pixels, expected {expected_wh[0]}x{expected_wh[1]} "
+                                "(camera.full_size)", frame=frame)
+    return np.ascontiguousarray(image[:, :, ::-1])
+
+
+def check_ego_speed(ego_velocity_D: np.ndarray, path: Path, frame: str | None) -> None:
+    """ReaderError if the ego velocity is non-finite or faster than MAX_EGO_SPEED_MPS."""
+    v = np.asarray(ego_velocity_D, dtype=np.float64)
+    if not np.all(np.isfinite(v)):
+        raise ReaderError(path, f"ego velocity is not finite: {v.tolist()}", frame=frame)
+    speed = float(np.linalg.norm(v))
+    if speed > MAX_EGO_SPEED_MPS:
+        raise ReaderError(path, f"absurd ego speed {speed:.1f} m/s (> {MAX_EGO_SPEED_MPS:.0f} m/s)", frame=frame)
+
+
+def fov_mask(points_D: np.ndarray, cfg: Config) -> np.ndarray:
+    """(N,) bool: points (N, 3) in {D} inside the radar profile's azimuth/elevation FOV and range."""
+    rae = cartesian_to_spherical(points_D)
+    return ((np.abs(np.degrees(rae[:, 1])) <= cfg.radar.fov_az_deg / 2.0)
+            & (np.abs(np.degrees(rae[:, 2])) <= cfg.radar.fov_el_deg / 2.0)
+            & (rae[:, 0] <= cfg.radar.max_range_m) & (rae[:, 0] > 0))
+
+
+def check_radar_fov(points_D: np.ndarray, cfg: Config, path: Path, frame: str | None) -> None:
+    """ReaderError if a non-empty radar frame has no point inside the profile's field of view."""
+    if points_D.shape[0] and not fov_mask(points_D, cfg).any():
+        raise ReaderError(path, f"all {points_D.shape[0]} radar points lie outside the field of view "
+                                f"(az +/-{cfg.radar.fov_az_deg / 2:g} deg, el +/-{cfg.radar.fov_el_deg / 2:g} deg, "
+                                f"range <= {cfg.radar.max_range_m:g} m): wrong axes or units?", frame=frame)
+
+
+def split_sequences_at_gaps(numbers: list[int]) -> dict[int, str]:
+    """Map sorted frame numbers to sequence names ``seq_<first>``, splitting where numbers jump."""
+    out: dict[int, str] = {}
+    name = ""
+    prev = None
+    for n in sorted(numbers):
+        if prev is None or n != prev + 1:
+            name = f"seq_{n:05d}"
+        out[n] = name
+        prev = n
+    return out

@@ -1,0 +1,125 @@
+"""KITTI text formats shared by the VoD, synthetic and KITTI readers: calibration and labels.
+
+Calibration files hold ``key: numbers`` lines (``P0..P3`` 3x4, ``R0_rect`` 3x3, ``Tr_velo_to_cam``
+3x4, possibly ``Tr_imu_to_velo:`` with no numbers). They are parsed by key, never by line number.
+Labels are KITTI object lines in the rectified camera frame: class, (track id | truncation),
+occlusion, alpha, 2D box (4), h w l (m), x y z of the box's bottom centre (m), rotation_y (rad)
+[, score].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import ReaderError
+from pipeline.frame import Object3D
+from pipeline.readers.base import check_intrinsics, check_rigid, require_file
+
+
+def parse_calib_file(path: Path, frame: str | None) -> dict[str, np.ndarray]:
+    """Parse a KITTI calibration text file -> {key: 1-D float64 array} (keys without numbers are kept empty)."""
+    require_file(path, frame, "calibration")
+    out: dict[str, np.ndarray] = {}
+    for line_no, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        if not line.strip():
+            continue
+        if ":" not in line:
+            raise ReaderError(path, f"line {line_no} is not 'key: values': {line.strip()[:40]!r}", frame=frame)
+        key, values = line.split(":", 1)
+        try:
+            out[key.strip()] = np.array([float(v) for v in values.split()], dtype=np.float64)
+        except ValueError:
+            raise ReaderError(path, f"malformed calibration values for key '{key.strip()}' "
+                                    f"(line {line_no})", frame=frame) from None
+    return out
+
+
+def calib_matrix(calib: dict[str, np.ndarray], key: str, shape: tuple[int, int], path: Path,
+                 frame: str | None) -> np.ndarray:
+    """The matrix of ``key`` reshaped to ``shape`` (row-major); ReaderError if missing or wrong length."""
+    if key not in calib:
+        raise ReaderError(path, f"calibration key '{key}' is missing", frame=frame)
+    values = calib[key]
+    if values.size != shape[0] * shape[1]:
+        raise ReaderError(path, f"calibration key '{key}' has {values.size} values, expected "
+                                f"{shape[0] * shape[1]}", frame=frame)
+    if not np.all(np.isfinite(values)):
+        raise ReaderError(path, f"calibration key '{key}' has non-finite values", frame=frame)
+    return values.reshape(shape)
+
+
+@dataclass(frozen=True)
+class CameraCalib:
+    """Intrinsics ``K`` (3, 3) and ``T_cam_sensor`` (4, 4): sensor -> rectified camera-2 frame."""
+
+    K: np.ndarray
+    T_cam_sensor: np.ndarray
+
+
+def camera_calib(path: Path, frame: str | None) -> CameraCalib:
+    """K and T_cam_sensor from P2, R0_rect and Tr_velo_to_cam of one KITTI calibration file.
+
+    P2 = K [I | K^-1 P2[:, 3]] (the 4th column is a translation of the rectified camera 2);
+    T_cam_sensor = [I | K^-1 P2[:, 3]] @ R0_rect @ Tr_velo_to_cam.
+    """
+    calib = parse_calib_file(path, frame)
+    P2 = calib_matrix(calib, "P2", (3, 4), path, frame)
+    K = check_intrinsics(P2[:, :3], path, frame)
+    R0 = np.eye(4)
+    R0[:3, :3] = calib_matrix(calib, "R0_rect", (3, 3), path, frame) if "R0_rect" in calib else np.eye(3)
+    Tr = np.eye(4)
+    Tr[:3, :] = calib_matrix(calib, "Tr_velo_to_cam", (3, 4), path, frame)
+    check_rigid(Tr, path, frame, "Tr_velo_to_cam")
+    check_rigid(R0, path, frame, "R0_rect")
+    offset = np.eye(4)
+    offset[:3, 3] = np.linalg.solve(K, P2[:, 3])
+    return CameraCalib(K=K, T_cam_sensor=offset @ R0 @ Tr)
+
+
+@dataclass(frozen=True)
+class KittiLabel:
+    """One KITTI label line in the camera frame (bottom-centre location, rotation_y about camera y)."""
+
+    class_name: str
+    column2: int
+    size_hwl_m: np.ndarray
+    location_cam: np.ndarray
+    rotation_y: float
+
+
+def parse_label_file(path: Path, frame: str | None) -> list[KittiLabel]:
+    """Parse a KITTI label file (15 or 16 columns per line); ReaderError on a malformed line."""
+    labels = []
+    for line_no, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(parts) not in (15, 16):
+            raise ReaderError(path, f"label line {line_no} has {len(parts)} columns, expected 15 or 16", frame=frame)
+        try:
+            values = np.array([float(v) for v in parts[1:15]], dtype=np.float64)
+        except ValueError:
+            raise ReaderError(path, f"label line {line_no} has non-numeric values", frame=frame) from None
+        if not np.all(np.isfinite(values)):
+            raise ReaderError(path, f"label line {line_no} has non-finite values", frame=frame)
+        labels.append(KittiLabel(parts[0], int(values[0]), values[7:10], values[10:13], float(values[13])))
+    return labels
+
+
+def label_to_object(label: KittiLabel, T_radar_cam: np.ndarray, track_id: int) -> Object3D:
+    """Convert a camera-frame KITTI label to an Object3D in {D}.
+
+    The box centre is the bottom centre raised by h/2 (camera y points down); the heading in the
+    camera frame is (cos ry, 0, -sin ry), rotated into {D} and measured about its z axis.
+    """
+    h, w, l = label.size_hwl_m
+    centre_cam = label.location_cam + np.array([0.0, -h / 2.0, 0.0])
+    heading_cam = np.array([np.cos(label.rotation_y), 0.0, -np.sin(label.rotation_y)])
+    centre_D = T_radar_cam[:3, :3] @ centre_cam + T_radar_cam[:3, 3]
+    heading_D = T_radar_cam[:3, :3] @ heading_cam
+    return Object3D(class_name=label.class_name, center_D=centre_D.astype(np.float64),
+                    size_lwh_m=np.array([l, w, h], dtype=np.float64),
+                    yaw_rad=float(np.arctan2(heading_D[1], heading_D[0])), track_id=track_id)

@@ -1,0 +1,342 @@
+"""View-of-Delft reader (KITTI layout with ``radar/`` and ``lidar/`` trees) and the synthetic world.
+
+Layout under the data root (frame ids are the file stems, e.g. ``00549``):
+
+- ``<radar_folder>/training/velodyne/ID.bin``: 7 float32 per point: x, y, z (m, radar frame =
+  {D}), RCS (dBsm), v_r (range rate, m/s), v_r_compensated, time (0 current scan; -1, -2 ... in
+  the accumulated ``radar_3frames`` / ``radar_5frames`` folders). ``radar_folder`` is a reader
+  option; the single-scan folder keeps only time == 0 points.
+- ``lidar/training/velodyne/ID.bin``: 4 float32 per point (x, y, z, reflectance), lidar frame.
+- ``{radar,lidar}/training/calib/ID.txt``: ``Tr_velo_to_cam`` is radar->camera in the radar tree
+  and lidar->camera in the lidar tree; intrinsics from P2.
+- ``{radar,lidar}/training/image_2/ID.jpg`` or ``.png`` (both present is a duplicate frame id).
+- ``{lidar,radar}/training/pose/ID.json`` (optional): JSON lines ``odomToCamera`` (camera->odom
+  world, row-major 4x4), ``mapToCamera``, ``UTMToCamera``; an optional ``{"timestamp": s}`` line
+  gives the frame time, else time = frame number / 10 Hz.
+- ``lidar/training/label_2/ID.txt`` (optional): KITTI labels; column 2 is the track id in the
+  tracking release (it is treated as a track id only where it is unique within the frame).
+- ``ImageSets/sequences.txt`` (optional): ``name first last`` per line (inclusive frame numbers);
+  without it sequences are split where frame numbers jump.
+- Synthetic world only: ``radar/training/meta/ID.bin``: int32 pairs (object_id, material_id) per
+  radar point -> ``FrameRecord.extras``.
+
+Ego velocity: least squares on ``v_r - v_r_compensated = -(u . v_D)`` over the current scan's
+points (exact on the real files); pose differencing (odometry, central difference) when the fit
+has fewer than 3 points or is ill-conditioned. Object velocities: the same track id in the
+neighbouring frames' labels and poses (central difference where both neighbours exist, one-sided
+where one does), else NaN.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.egomotion import fit_compensation_pair
+from pipeline.errors import ReaderError
+from pipeline.frame import FrameRecord, Object3D
+from pipeline.geometry import invert_transform
+from pipeline.readers.base import (Reader, check_not_empty, check_rigid, read_float32_records,
+                                   read_image_rgb, require_file, split_sequences_at_gaps)
+from pipeline.readers.kitti_format import KittiLabel, camera_calib, label_to_object, parse_label_file
+
+RADAR_FOLDERS = ("radar", "radar_3frames", "radar_5frames")
+FRAME_RATE_HZ = 10.0
+MAX_FIT_CONDITION = 1e3
+"""Compensation-pair fits with a worse condition number fall back to pose differencing."""
+
+
+class VodReader(Reader):
+    """View-of-Delft in its KITTI layout; see the module docstring for files and conventions."""
+
+    name = "vod"
+
+    def __init__(self, cfg: Config, data_root: str | Path, radar_folder: str = "radar",
+                 with_meta: bool = False) -> None:
+        super().__init__(cfg, data_root)
+        if radar_folder not in RADAR_FOLDERS:
+            raise ReaderError(self.root, f"radar_folder must be one of {RADAR_FOLDERS}, got '{radar_folder}'")
+        self.radar_folder = radar_folder
+        self.with_meta = with_meta
+
+    # -- paths ---------------------------------------------------------------------------------
+
+    def _radar_bin(self, fid: str) -> Path:
+        return self.root / self.radar_folder / "training" / "velodyne" / f"{fid}.bin"
+
+    def _lidar_bin(self, fid: str) -> Path:
+        return self.root / "lidar" / "training" / "velodyne" / f"{fid}.bin"
+
+    def _calib(self, tree: str, fid: str) -> Path:
+        path = self.root / tree / "training" / "calib" / f"{fid}.txt"
+        if tree != "lidar" and not path.is_file():
+            path = self.root / "radar" / "training" / "calib" / f"{fid}.txt"
+        return path
+
+    def _pose(self, fid: str) -> Path | None:
+        for tree in ("lidar", "radar"):
+            path = self.root / tree / "training" / "pose" / f"{fid}.json"
+            if path.is_file():
+                return path
+        return None
+
+    def _image_candidates(self, fid: str) -> list[Path]:
+        """Image files of the frame in the first image folder that has any."""
+        for tree in dict.fromkeys((self.radar_folder, "radar", "lidar")):
+            folder = self.root / tree / "training" / "image_2"
+            found = [folder / f"{fid}{ext}" for ext in (".jpg", ".png") if (folder / f"{fid}{ext}").is_file()]
+            if found:
+                return found
+        return []
+
+    def _required(self, fid: str) -> list[Path]:
+        return [self._radar_bin(fid), self._lidar_bin(fid), self._calib(self.radar_folder, fid),
+                self._calib("lidar", fid)]
+
+    # -- index ---------------------------------------------------------------------------------
+
+    @cached_property
+    def _index(self) -> tuple[list[str], dict[str, str]]:
+        """(sorted frame ids with all required files, {id: sequence name})."""
+        stems: set[str] = set()
+        for folder in (self._radar_bin("x").parent, self._lidar_bin("x").parent):
+            if folder.is_dir():
+                stems |= {p.stem for p in folder.glob("*.bin") if p.stem.isdigit()}
+        ids = []
+        for fid in sorted(stems, key=lambda s: (int(s), s)):
+            if all(p.is_file() for p in self._required(fid)) and self._image_candidates(fid):
+                ids.append(fid)
+            else:
+                self._counts["skipped_missing"] += 1
+        return ids, self._sequences(ids)
+
+    def _sequences(self, ids: list[str]) -> dict[str, str]:
+        listing = self.root / "ImageSets" / "sequences.txt"
+        if not listing.is_file():
+            by_number = split_sequences_at_gaps([int(f) for f in ids])
+            return {f: by_number[int(f)] for f in ids}
+        ranges = []
+        for line_no, line in enumerate(listing.read_text().splitlines(), 1):
+            parts = line.split()
+            if not parts:
+                continue
+            if len(parts) != 3 or not parts[1].isdigit() or not parts[2].isdigit():
+                raise ReaderError(listing, f"line {line_no} is not 'name first last'")
+            ranges.append((parts[0], int(parts[1]), int(parts[2])))
+        out = {}
+        for fid in ids:
+            names = [name for name, first, last in ranges if first <= int(fid) <= last]
+            out[fid] = names[0] if names else "unlisted"
+            self._counts["frames_without_sequence"] += not names
+        return out
+
+    def frame_ids(self) -> list[str]:
+        return list(self._index[0])
+
+    def sequence_of(self, frame_id: str) -> str:
+        seqs = self._index[1]
+        if frame_id not in seqs:
+            raise ReaderError(self._radar_bin(frame_id), "unknown frame id (not in the index)", frame=frame_id)
+        return seqs[frame_id]
+
+    def _neighbour(self, fid: str, step: int) -> str | None:
+        """Id of frame number + step if it is indexed and in the same sequence."""
+        other = f"{int(fid) + step:0{len(fid)}d}"
+        seqs = self._index[1]
+        return other if other in seqs and seqs[other] == seqs.get(fid) else None
+
+    # -- reading -------------------------------------------------------------------------------
+
+    def read(self, frame_id: str) -> FrameRecord:
+        for path in self._required(frame_id):
+            require_file(path, frame_id, "required")
+        images = self._image_candidates(frame_id)
+        if not images:
+            raise ReaderError(self.root / "lidar" / "training" / "image_2" / f"{frame_id}.jpg",
+                              "missing image file (.jpg or .png)", frame=frame_id)
+        if len(images) > 1:
+            raise ReaderError(images[0], f"duplicate frame id: also {images[1].name}", frame=frame_id)
+        radar_cal = camera_calib(self._calib(self.radar_folder, frame_id), frame_id)
+        lidar_cal = camera_calib(self._calib("lidar", frame_id), frame_id)
+        T_radar_cam = invert_transform(radar_cal.T_cam_sensor)
+        T_radar_lidar = check_rigid(T_radar_cam @ lidar_cal.T_cam_sensor, self._calib("lidar", frame_id),
+                                    frame_id, "T_radar_lidar")
+        radar, current, extras = self._read_radar(frame_id)
+        lidar = read_float32_records(self._lidar_bin(frame_id), 4, frame_id, "lidar")
+        check_not_empty(lidar, self._lidar_bin(frame_id), frame_id, "lidar")
+        image = read_image_rgb(images[0], frame_id, self.cfg.camera.full_size)
+        timestamp = self._checked_timestamp(frame_id)
+        ego = self._ego_velocity(frame_id, radar[current], radar_cal.T_cam_sensor)
+        labels = self._labels(frame_id, T_radar_cam, radar_cal.T_cam_sensor)
+        lidar_D = (lidar[:, :3].astype(np.float64) @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3])
+        record = FrameRecord(
+            frame_id=frame_id, sequence_id=self.sequence_of(frame_id), timestamp_s=timestamp,
+            image=image, K=radar_cal.K, lidar_D=lidar_D.astype(np.float32),
+            lidar_intensity=lidar[:, 3].copy(), radar_D=radar[:, [0, 1, 2, 4, 3]].copy(),
+            T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam, ego_velocity_D=ego,
+            has_radar=True, labels=labels, extras=extras)
+        return self.finish(record, self._radar_bin(frame_id))
+
+    def _read_radar(self, fid: str) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+        """(kept points (M, 7), (M,) bool current-scan mask, extras) with the time column checked."""
+        path = self._radar_bin(fid)
+        radar = read_float32_records(path, 7, fid, "radar")
+        time = radar[:, 6]
+        if np.any((time != np.round(time)) | (time > 0) | (time < -20)):
+            raise ReaderError(path, "radar time column holds values that are not scan offsets "
+                                    "(0, -1, -2, ...): wrong record type?", frame=fid)
+        keep = time == 0 if self.radar_folder == "radar" else np.ones(len(radar), bool)
+        self._counts["radar_points_dropped_time"] += int((~keep).sum())
+        extras = self._read_meta(fid, radar.shape[0]) if self.with_meta else {}
+        radar = radar[keep]
+        extras = {k: v[keep] for k, v in extras.items()}
+        check_not_empty(radar, path, fid, "radar")
+        return radar, radar[:, 6] == 0, extras
+
+    def _read_meta(self, fid: str, n_points: int) -> dict[str, np.ndarray]:
+        path = require_file(self.root / "radar" / "training" / "meta" / f"{fid}.bin", fid, "radar meta")
+        size = path.stat().st_size
+        if size != 8 * n_points:
+            raise ReaderError(path, f"radar meta file has {size} bytes, expected {8 * n_points} "
+                                    f"(2 int32 per radar point, {n_points} points)", frame=fid)
+        meta = np.fromfile(path, dtype="<i4").reshape(-1, 2)
+        return {"object_id": meta[:, 0].copy(), "material": meta[:, 1].copy()}
+
+    # -- poses and time ------------------------------------------------------------------------
+
+    def _pose_lines(self, fid: str) -> dict | None:
+        path = self._pose(fid)
+        if path is None:
+            return None
+        merged: dict = {}
+        try:
+            for line in path.read_text().splitlines():
+                if line.strip():
+                    merged.update(json.loads(line))
+        except (json.JSONDecodeError, AttributeError, TypeError, ValueError):
+            raise ReaderError(path, "pose file is not JSON lines of objects", frame=fid) from None
+        return merged
+
+    def _timestamp(self, fid: str) -> float:
+        pose = self._pose_lines(fid)
+        if pose is not None and "timestamp" in pose:
+            value = pose["timestamp"]
+            if not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise ReaderError(self._pose(fid), f"timestamp is not a finite number: {value!r}", frame=fid)
+            return float(value)
+        return int(fid) / FRAME_RATE_HZ
+
+    def _checked_timestamp(self, fid: str) -> float:
+        """The frame time; ReaderError if it is not after the previous frame of the sequence."""
+        t = self._timestamp(fid)
+        prev = self._neighbour(fid, -1)
+        if prev is not None:
+            t_prev = self._timestamp(prev)
+            if t_prev >= t:
+                raise ReaderError(self._pose(fid) or self._radar_bin(fid),
+                                  f"non-monotonic timestamps: {t:.6f} s is not after the previous "
+                                  f"frame {prev} ({t_prev:.6f} s)", frame=fid)
+        return t
+
+    def _T_world_cam(self, fid: str) -> np.ndarray | None:
+        pose = self._pose_lines(fid)
+        if pose is None or "odomToCamera" not in pose:
+            return None
+        values = np.asarray(pose["odomToCamera"], dtype=np.float64)
+        if values.size != 16:
+            raise ReaderError(self._pose(fid), f"odomToCamera has {values.size} values, expected 16", frame=fid)
+        return check_rigid(values.reshape(4, 4), self._pose(fid), fid, "odomToCamera")
+
+    # -- velocities ----------------------------------------------------------------------------
+
+    def _ego_velocity(self, fid: str, radar_now: np.ndarray, T_cam_radar: np.ndarray) -> np.ndarray:
+        fit = fit_compensation_pair(radar_now[:, :3], radar_now[:, 4], radar_now[:, 5])
+        if fit.n_used >= 3 and fit.condition <= MAX_FIT_CONDITION:
+            self._counts["ego_from_doppler_pair"] += 1
+            return fit.velocity_D
+        velocity = self._ego_from_poses(fid, T_cam_radar)
+        if velocity is None:
+            raise ReaderError(self._radar_bin(fid), f"cannot determine ego velocity: Doppler fit unusable "
+                                                    f"({fit.n_used} points) and no neighbouring poses", frame=fid)
+        self._counts["ego_from_poses"] += 1
+        return velocity
+
+    def _ego_from_poses(self, fid: str, T_cam_radar: np.ndarray) -> np.ndarray | None:
+        """Radar velocity in {D} by differencing the radar origin in the odometry frame."""
+        T_now = self._T_world_cam(fid)
+        if T_now is None:
+            return None
+        origin = {}
+        for step in (-1, 1):
+            other = self._neighbour(fid, step)
+            T = self._T_world_cam(other) if other else None
+            if T is not None:
+                origin[step] = ((T @ T_cam_radar)[:3, 3], self._timestamp(other))
+        if not origin:
+            return None
+        here = ((T_now @ T_cam_radar)[:3, 3], self._timestamp(fid))
+        (p0, t0), (p1, t1) = origin.get(-1, here), origin.get(1, here)
+        R_world_radar = (T_now @ T_cam_radar)[:3, :3]
+        return R_world_radar.T @ ((p1 - p0) / (t1 - t0))
+
+    def _labels(self, fid: str, T_radar_cam: np.ndarray, T_cam_radar: np.ndarray) -> list[Object3D]:
+        path = self.root / "lidar" / "training" / "label_2" / f"{fid}.txt"
+        if not path.is_file():
+            return []
+        labels = parse_label_file(path, fid)
+        tracked = self._has_track_ids(labels)
+        objects = [label_to_object(lab, T_radar_cam, lab.column2 if tracked else -1) for lab in labels]
+        if tracked:
+            self._object_velocities(fid, labels, objects, T_cam_radar)
+        else:
+            self._counts["frames_without_track_ids"] += bool(labels)
+        return objects
+
+    @staticmethod
+    def _has_track_ids(labels: list[KittiLabel]) -> bool:
+        ids = [lab.column2 for lab in labels]
+        return len(set(ids)) == len(ids) and all(i >= 0 for i in ids)
+
+    def _track_centres_world(self, fid: str | None) -> tuple[dict[int, np.ndarray], float] | None:
+        """{track id: box centre in the odometry world frame} and the time of a neighbouring frame."""
+        if fid is None:
+            return None
+        path = self.root / "lidar" / "training" / "label_2" / f"{fid}.txt"
+        T = self._T_world_cam(fid)
+        if T is None or not path.is_file():
+            return None
+        labels = parse_label_file(path, fid)
+        if not self._has_track_ids(labels):
+            return None
+        centres = {lab.column2: T[:3, :3] @ (lab.location_cam - [0, lab.size_hwl_m[0] / 2, 0]) + T[:3, 3]
+                   for lab in labels}
+        return centres, self._timestamp(fid)
+
+    def _object_velocities(self, fid: str, labels: list[KittiLabel], objects: list[Object3D],
+                           T_cam_radar: np.ndarray) -> None:
+        here = self._track_centres_world(fid)
+        if here is None:
+            return
+        before = self._track_centres_world(self._neighbour(fid, -1))
+        after = self._track_centres_world(self._neighbour(fid, 1))
+        R_radar_world = ((self._T_world_cam(fid) @ T_cam_radar)[:3, :3]).T
+        for lab, obj in zip(labels, objects):
+            ends = [side for side in (before, here, after) if side is not None and lab.column2 in side[0]]
+            first, last = ends[0], ends[-1]
+            if first is last:
+                continue
+            v_world = (last[0][lab.column2] - first[0][lab.column2]) / (last[1] - first[1])
+            obj.velocity_D = (R_radar_world @ v_world).astype(np.float32)
+
+
+class SyntheticReader(VodReader):
+    """The project's generated world: VoD layout with PNG images and per-point radar meta files."""
+
+    name = "synthetic"
+
+    def __init__(self, cfg: Config, data_root: str | Path, radar_folder: str = "radar") -> None:
+        super().__init__(cfg, data_root, radar_folder=radar_folder, with_meta=True)

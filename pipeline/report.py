@@ -1,0 +1,208 @@
+"""Aggregation of per-frame metrics and the evaluation report (report.json + report.md).
+
+The JSON holds every number (NaN written as null); the Markdown holds one table of per-frame
+metrics (mean and median over frames, model rows first), one table of distribution distances, the
+physics checks and a paragraph, computed from the numbers, naming the baselines the model does not
+beat on Chamfer, GOSPA and matched F1. Files are written atomically (temporary file + rename).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pipeline.metrics import FRAME_METRICS, SPHERICAL_COLUMNS
+
+TABLE_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("kl", "KL"), ("count_rel_err", "count rel. err"), ("count_sq_rel_err", "L_n"), ("rss_err", "L_a (RSS)"),
+    ("chamfer_m", "Chamfer (m)"), ("gospa", "GOSPA (m)"), ("gospa_localisation", "GOSPA loc (m^2)"),
+    ("gospa_missed", "GOSPA missed (m^2)"), ("gospa_false", "GOSPA false (m^2)"),
+    ("precision", "precision"), ("recall", "recall"), ("f1", "F1"),
+)
+"""(metric key, Markdown header) of the main table, in order."""
+
+COMPARED: tuple[tuple[str, bool], ...] = (("chamfer_m", False), ("gospa", False), ("f1", True))
+"""Metrics of the "where the model does not beat every baseline" paragraph: (key, higher is better)."""
+
+
+def aggregate(per_frame: Mapping[str, Sequence[Mapping[str, float]]]) -> dict[str, dict[str, dict[str, float]]]:
+    """Mean and median over frames of every metric of every method.
+
+    ``per_frame``: method -> list of per-frame metric dicts. Returns method -> metric ->
+    {mean, median, n (finite values used), n_nan (NaN/inf values ignored)}; mean and median are
+    NaN when no value is finite. Methods keep their input order.
+    """
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    for method, frames in per_frame.items():
+        keys = list(dict.fromkeys(k for f in frames for k in f))
+        row = {}
+        for key in keys:
+            values = np.array([float(f.get(key, math.nan)) for f in frames], dtype=np.float64)
+            ok = np.isfinite(values)
+            row[key] = {
+                "mean": float(values[ok].mean()) if ok.any() else math.nan,
+                "median": float(np.median(values[ok])) if ok.any() else math.nan,
+                "n": int(ok.sum()), "n_nan": int((~ok).sum()),
+            }
+        table[method] = row
+    return table
+
+
+def order_methods(methods: Sequence[str]) -> list[str]:
+    """Model rows first ('model', then other names starting with 'model'), then the rest in order."""
+    first = [m for m in methods if m == "model"] + [m for m in methods if m.startswith("model") and m != "model"]
+    return first + [m for m in methods if m not in first]
+
+
+def _fmt(x: Any) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    x = float(x)
+    return f"{x:.3g}" if abs(x) < 1e4 else f"{x:.3e}"
+
+
+def _jsonable(obj: Any) -> Any:
+    """Plain JSON values: NaN/inf -> None, numpy scalars/arrays -> Python numbers/lists."""
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(float(obj)) else None
+    return obj
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def metrics_table_md(table: Mapping[str, Mapping[str, Mapping[str, float]]]) -> str:
+    """Markdown table: one row per method (model first), 'mean / median' per metric column."""
+    header = "| method | " + " | ".join(h for _, h in TABLE_COLUMNS) + " |"
+    lines = [header, "|" + "---|" * (len(TABLE_COLUMNS) + 1)]
+    for method in order_methods(list(table)):
+        cells = []
+        for key, _ in TABLE_COLUMNS:
+            s = table[method].get(key)
+            cells.append("n/a" if s is None else f"{_fmt(s.get('mean'))} / {_fmt(s.get('median'))}")
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def distances_table_md(distances: Mapping[str, Mapping[str, float]]) -> str:
+    """Markdown table of 1-D Wasserstein distances (synthetic vs real), one row per method."""
+    lines = ["| method | " + " | ".join(SPHERICAL_COLUMNS) + " |", "|" + "---|" * (len(SPHERICAL_COLUMNS) + 1)]
+    for method in order_methods(list(distances)):
+        lines.append(f"| {method} | " + " | ".join(_fmt(distances[method].get(c)) for c in SPHERICAL_COLUMNS) + " |")
+    return "\n".join(lines)
+
+
+def physics_md(physics: Mapping[str, Any]) -> str:
+    """Bullet list of physics-check numbers (nested dicts flattened as 'check.key')."""
+    lines = []
+    for name, value in physics.items():
+        if isinstance(value, Mapping):
+            items = ", ".join(f"{k} = {_fmt(v)}" for k, v in value.items() if not isinstance(v, (np.ndarray, list)))
+            lines.append(f"- {name}: {items}")
+        else:
+            lines.append(f"- {name}: {_fmt(value)}")
+    return "\n".join(lines) if lines else "- (none)"
+
+
+def model_shortfalls(table: Mapping[str, Mapping[str, Mapping[str, float]]], model: str = "model",
+                     stat: str = "mean") -> dict[str, list[dict[str, Any]]]:
+    """Per compared metric, the non-model methods at least as good as ``model`` on ``stat``.
+
+    A method counts when its value is finite and not worse than the model's (ties count: the
+    model does not *beat* it). Methods whose name starts with 'model' are variants, not baselines.
+    Returns metric -> list of {method, value, model_value}; metric -> [] when the model wins, and
+    the metric is left out when the model has no finite value for it.
+    """
+    out: dict[str, list[dict[str, Any]]] = {}
+    if model not in table:
+        return out
+    for key, higher in COMPARED:
+        mv = table[model].get(key, {}).get(stat, math.nan)
+        if not math.isfinite(mv):
+            continue
+        out[key] = []
+        for method, row in table.items():
+            if method.startswith("model"):
+                continue
+            bv = row.get(key, {}).get(stat, math.nan)
+            if math.isfinite(bv) and (bv >= mv if higher else bv <= mv):
+                out[key].append({"method": method, "value": bv, "model_value": mv})
+    return out
+
+
+def shortfall_paragraph(table: Mapping[str, Mapping[str, Mapping[str, float]]]) -> str:
+    """The "where the model does not beat every baseline" text, from the means and medians."""
+    if "model" not in table:
+        return "No `model` row: nothing to compare."
+    names = {"chamfer_m": "Chamfer distance", "gospa": "GOSPA", "f1": "matched F1"}
+    sentences, oracle = [], False
+    for stat in ("mean", "median"):
+        for key, losers in model_shortfalls(table, stat=stat).items():
+            oracle |= any("oracle" in d["method"] for d in losers)
+            if losers:
+                who = ", ".join(f"`{d['method']}` ({_fmt(d['value'])})" for d in losers)
+                sentences.append(f"{names[key]} ({stat}): the model ({_fmt(losers[0]['model_value'])}) "
+                                 f"does not beat {who}.")
+    if not sentences:
+        return "The model beats every baseline on Chamfer distance, GOSPA and matched F1 (mean and median)."
+    note = " Oracle-count rows are given the true count, an advantage the model does not have." if oracle else ""
+    return " ".join(sentences) + note
+
+
+def write_report(out_dir: str | Path, dataset: str, split: str,
+                 table: Mapping[str, Mapping[str, Mapping[str, float]]],
+                 distances: Mapping[str, Mapping[str, float]], physics: Mapping[str, Any],
+                 meta: Mapping[str, Any]) -> tuple[Path, Path]:
+    """Write ``report.json`` and ``report.md`` into ``out_dir``; returns their paths.
+
+    ``table`` from :func:`aggregate`; ``distances`` method -> {range_m, azimuth_rad, ...}
+    (:func:`pipeline.metrics.distribution_distances`); ``physics`` check name -> dict of numbers
+    (arrays such as per-point residuals are kept in the JSON only); ``meta`` free-form run facts
+    (frames, config fingerprint, counts of skipped frames...).
+    """
+    out = Path(out_dir)
+    shortfalls = {stat: model_shortfalls(table, stat=stat) for stat in ("mean", "median")}
+    doc = {"dataset": dataset, "split": split, "metrics": table, "metric_keys": list(FRAME_METRICS),
+           "distribution_distances": distances, "physics_checks": physics,
+           "model_does_not_beat": shortfalls, "meta": meta}
+    json_path, md_path = out / "report.json", out / "report.md"
+    _atomic_write_text(json_path, json.dumps(_jsonable(doc), indent=2, allow_nan=False) + "\n")
+    meta_lines = "\n".join(f"- {k}: {v}" for k, v in meta.items())
+    md = (
+        f"# Fidelity report: {dataset} ({split})\n\n{meta_lines}\n\n"
+        "## Per-frame metrics (mean / median over frames)\n\n"
+        "Lower is better except precision, recall and F1. L_n is the mean of the squared relative "
+        "count error; GOSPA parts are squared-metre contributions summing to GOSPA^2.\n\n"
+        f"{metrics_table_md(table)}\n\n"
+        "## Distribution distances (1-D Wasserstein, all evaluated frames)\n\n"
+        f"{distances_table_md(distances)}\n\n"
+        f"## Physics checks (real frames)\n\n{physics_md(physics)}\n\n"
+        f"## Where the model does not beat every baseline\n\n{shortfall_paragraph(table)}\n"
+    )
+    _atomic_write_text(md_path, md)
+    return json_path, md_path

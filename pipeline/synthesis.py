@@ -1,0 +1,388 @@
+"""4D signal generation at inference (METHOD.md, Section IV-B): sample pixels from the predicted
+map, back-project them, estimate their range from lidar, place them on the camera ray and give
+them a Doppler value. RSS is not computed here (RSS-Net runs batched in the stage).
+
+Conventions: radar frame {D} x forward / y left / z up; azimuth atan2(y, x) positive left;
+elevation asin(z / r) positive up; pixels (u, v) with u right, v down, integer values at pixel
+centres. Doppler outputs follow the simulated radar's convention: ``doppler_sign`` times the range
+rate (range rate positive receding), wrapped into ``doppler_span_mps`` when that is > 0.
+Pure numpy / scipy.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.frame import Object3D, check_shape
+from pipeline.geometry import cartesian_to_spherical, pixel_rays_D, radial_velocity, wrap_doppler
+
+ESTIMATORS = ("mean", "nearest", "median", "min")
+"""Range estimators over the angular window: 'mean' is the paper's rule (eqs. 13-15)."""
+NO_SUPPORT_RULES = ("widen", "drop")
+"""What to do when no lidar point lies in the window."""
+MAX_WIDENINGS = 4
+"""'widen' doubles the window at most this many times (so up to 16x the resolution)."""
+SUPPORT_NONE, SUPPORT_DIRECT, SUPPORT_WIDENED = 0, 1, 2
+"""Values of the per-sample support flag returned by ``estimate_range``."""
+
+
+# --------------------------------------------------------------------------- pixel sampling
+
+
+def sample_pixels(prob_map: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Draw ``n`` continuous pixel positions from a (H, W) probability map (eq. 11).
+
+    Inverse-transform sampling with replacement (cumulative sum + searchsorted) over the map's
+    non-negative weights (need not sum to 1), then a uniform jitter in [-0.5, 0.5) around the
+    chosen pixel centre. Returns uv (n, 2) float64, u = column, v = row. Raises ValueError for a
+    map with negative or non-finite values or zero total mass (when n > 0).
+    """
+    weights = check_shape("prob_map", np.asarray(prob_map, dtype=np.float64), (None, None))
+    if n < 0:
+        raise ValueError(f"sample_pixels: n must be >= 0, got {n}")
+    if n == 0:
+        return np.zeros((0, 2), np.float64)
+    if not np.all(np.isfinite(weights)) or weights.min() < 0:
+        raise ValueError("prob_map: values must be finite and non-negative")
+    cdf = np.cumsum(weights.ravel())
+    if cdf[-1] <= 0:
+        raise ValueError("prob_map: total probability mass is zero")
+    flat = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
+    last_positive = int(np.flatnonzero(weights.ravel() > 0)[-1])
+    flat = np.minimum(flat, last_positive)  # guards the u * total == total rounding case
+    rows, cols = np.divmod(flat, weights.shape[1])
+    jitter = rng.random((n, 2)) - 0.5
+    return np.stack([cols, rows], axis=1).astype(np.float64) + jitter
+
+
+# --------------------------------------------------------------------------- range from lidar
+
+
+def _wrap_angle(angle_rad: np.ndarray) -> np.ndarray:
+    """Wrap angles into [-pi, pi)."""
+    return np.mod(angle_rad + np.pi, 2.0 * np.pi) - np.pi
+
+
+def _check_estimator(estimator: str, no_support: str) -> None:
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"range estimator {estimator!r} unknown; choose one of {ESTIMATORS}")
+    if no_support not in NO_SUPPORT_RULES:
+        raise ValueError(f"no_support rule {no_support!r} unknown; choose one of {NO_SUPPORT_RULES}")
+
+
+def _group_statistic(
+    sample_idx: np.ndarray, lidar_idx: np.ndarray, ang_dist2: np.ndarray | None, range_m: np.ndarray,
+    n: int, estimator: str,
+) -> np.ndarray:
+    """Per-sample statistic of the lidar ranges of (sample, lidar) pairs; NaN for empty samples.
+
+    ``sample_idx`` (P,) sample of each pair, in non-decreasing order (pairs grouped by sample);
+    ``lidar_idx`` (P,) its lidar point; ``ang_dist2`` (P,) squared angular distance (rad^2),
+    needed by 'nearest' only (ties: the lower lidar index). O(P) except 'median' (one sort).
+    """
+    out = np.full(n, np.nan)
+    if sample_idx.size == 0:
+        return out
+    r = range_m[lidar_idx]
+    starts = np.flatnonzero(np.r_[True, sample_idx[1:] != sample_idx[:-1]])
+    counts = np.diff(np.r_[starts, sample_idx.size])
+    owners = sample_idx[starts]
+    if estimator == "mean":
+        out[owners] = np.add.reduceat(r, starts) / counts
+    elif estimator == "min":
+        out[owners] = np.minimum.reduceat(r, starts)
+    elif estimator == "nearest":
+        group_min = np.repeat(np.minimum.reduceat(ang_dist2, starts), counts)
+        candidate = np.where(ang_dist2 == group_min, lidar_idx, np.iinfo(np.intp).max)
+        out[owners] = range_m[np.minimum.reduceat(candidate, starts)]
+    else:  # median: sort ranges within each group (one argsort on group offset + range)
+        span = float(r.max() - r.min()) + 1.0
+        r_sorted = r[np.argsort(sample_idx * span + (r - r.min()), kind="stable")]
+        out[owners] = 0.5 * (r_sorted[starts + (counts - 1) // 2] + r_sorted[starts + counts // 2])
+    return out
+
+
+class LidarAngularIndex:
+    """Lidar points of one frame indexed by angle for the range step (eqs. 13-15).
+
+    Built from ``lidar_D`` (M, 3) metres in {D}; points at the origin or non-finite are ignored.
+    The window of a sample at (theta, phi) holds the lidar points with |wrap(theta - theta_j)| <=
+    delta_az and |phi - phi_j| <= delta_el (azimuth wraps at +/- pi). A cKDTree on (azimuth,
+    elevation * delta_az / delta_el) makes the window a square of half side delta_az, queried with
+    ``query_ball_point(p=inf)``; one tree per aspect ratio, built on first use. Points near the
+    azimuth seam are indexed twice (shifted by -/+ 2 pi) so windows across it are complete.
+    """
+
+    def __init__(self, lidar_D: np.ndarray) -> None:
+        points = check_shape("lidar_D", np.asarray(lidar_D, dtype=np.float64), (None, 3))
+        rae = cartesian_to_spherical(points)
+        keep = np.all(np.isfinite(points), axis=1) & (rae[:, 0] > 0)
+        self.range_m: np.ndarray = rae[keep, 0]
+        """(M',) ranges of the kept lidar points, metres."""
+        self.azimuth_rad: np.ndarray = rae[keep, 1]
+        self.elevation_rad: np.ndarray = rae[keep, 2]
+        self._trees: dict[tuple[float, float], tuple[cKDTree, np.ndarray]] = {}
+
+    def __len__(self) -> int:
+        return int(self.range_m.size)
+
+    def _tree(self, el_scale: float, seam_margin_rad: float) -> tuple[cKDTree, np.ndarray]:
+        """Tree over (azimuth, elevation * el_scale) with seam copies, and the copies' lidar index."""
+        key = (el_scale, seam_margin_rad)
+        if key not in self._trees:
+            az, el = self.azimuth_rad, self.elevation_rad * el_scale
+            seam = np.flatnonzero(np.abs(az) >= np.pi - seam_margin_rad)
+            az_all = np.concatenate([az, np.where(az[seam] > 0, az[seam] - 2.0 * np.pi, az[seam] + 2.0 * np.pi)])
+            el_all = np.concatenate([el, el[seam]])
+            owner = np.concatenate([np.arange(az.size), seam])
+            self._trees[key] = (cKDTree(np.stack([az_all, el_all], axis=1)), owner)
+        return self._trees[key]
+
+    def _pairs(
+        self, az: np.ndarray, el: np.ndarray, half_az: float, half_el: float, max_half_az: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(sample, lidar) index pairs of every lidar point in each sample's window."""
+        el_scale = half_az / half_el
+        tree, owner = self._tree(el_scale, min(np.pi, max_half_az))
+        hits = tree.query_ball_point(
+            np.stack([az, el * el_scale], axis=1), r=half_az, p=np.inf, return_sorted=False
+        )
+        counts = np.fromiter((len(h) for h in hits), dtype=np.intp, count=len(hits))
+        flat = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.intp, count=int(counts.sum()))
+        sample_idx, lidar_idx = np.repeat(np.arange(az.size), counts), owner[flat]  # grouped by sample
+        if half_az >= np.pi and sample_idx.size:  # a point and its seam copy can both match
+            pairs = np.unique(np.stack([sample_idx, lidar_idx], axis=1), axis=0)
+            sample_idx, lidar_idx = pairs[:, 0], pairs[:, 1]
+        return sample_idx, lidar_idx
+
+    def estimate_range(
+        self, az_rad: np.ndarray, el_rad: np.ndarray, delta_az_rad: float, delta_el_rad: float,
+        estimator: str = "mean", no_support: str = "widen",
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Range of each sample direction from the lidar points in its angular window.
+
+        ``az_rad``, ``el_rad`` (n,): sample directions in {D}. ``delta_*_rad``: half sides of the
+        window (the radar's angular resolutions delta_1, delta_2). ``estimator``: 'mean' (the
+        paper), 'nearest' (range of the angularly nearest point, Euclidean in (az, el) radians),
+        'median' or 'min' over the window. ``no_support``: 'widen' doubles both half sides up to
+        MAX_WIDENINGS times for samples with an empty window; 'drop' gives up at once.
+        Returns ``range_m`` (n,) float64 (NaN without support) and ``support`` (n,) int8
+        (SUPPORT_NONE / SUPPORT_DIRECT / SUPPORT_WIDENED).
+        """
+        _check_estimator(estimator, no_support)
+        az, el = _check_directions(az_rad, el_rad)
+        _check_deltas(delta_az_rad, delta_el_rad)
+        n = az.size
+        range_m, support = np.full(n, np.nan), np.zeros(n, np.int8)
+        if n == 0 or len(self) == 0:
+            return range_m, support
+        passes = MAX_WIDENINGS + 1 if no_support == "widen" else 1
+        max_half_az = delta_az_rad * 2 ** (passes - 1)
+        todo = np.arange(n)
+        for k in range(passes):
+            half_az, half_el = delta_az_rad * 2**k, delta_el_rad * 2**k
+            s_idx, l_idx = self._pairs(az[todo], el[todo], half_az, half_el, max_half_az)
+            d2 = None
+            if estimator == "nearest":
+                d2 = (_wrap_angle(az[todo][s_idx] - self.azimuth_rad[l_idx]) ** 2
+                      + (el[todo][s_idx] - self.elevation_rad[l_idx]) ** 2)
+            values = _group_statistic(s_idx, l_idx, d2, self.range_m, todo.size, estimator)
+            found = np.isfinite(values)
+            range_m[todo[found]] = values[found]
+            support[todo[found]] = SUPPORT_DIRECT if k == 0 else SUPPORT_WIDENED
+            todo = todo[~found]
+            if todo.size == 0:
+                break
+        return range_m, support
+
+    def estimate_range_bruteforce(
+        self, az_rad: np.ndarray, el_rad: np.ndarray, delta_az_rad: float, delta_el_rad: float,
+        estimator: str = "mean", no_support: str = "widen", chunk: int = 64,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Reference for ``estimate_range``: an n x M scan in chunks of ``chunk`` samples (tests,
+        benchmark). Same arguments, same results."""
+        _check_estimator(estimator, no_support)
+        az, el = _check_directions(az_rad, el_rad)
+        _check_deltas(delta_az_rad, delta_el_rad)
+        n = az.size
+        range_m, support = np.full(n, np.nan), np.zeros(n, np.int8)
+        passes = MAX_WIDENINGS + 1 if no_support == "widen" else 1
+        for start in range(0, n, chunk):
+            sl = slice(start, min(n, start + chunk))
+            daz = np.abs(_wrap_angle(az[sl, None] - self.azimuth_rad[None, :]))      # (c, M)
+            dl = np.abs(el[sl, None] - self.elevation_rad[None, :])
+            for k in range(passes):
+                inside = (daz <= delta_az_rad * 2**k) & (dl <= delta_el_rad * 2**k)
+                rows = np.isnan(range_m[sl]) & inside.any(axis=1)
+                if not rows.any():
+                    continue
+                values = _window_values(self.range_m, daz[rows] ** 2 + dl[rows] ** 2, inside[rows], estimator)
+                range_m[start + np.flatnonzero(rows)] = values
+                support[start + np.flatnonzero(rows)] = SUPPORT_DIRECT if k == 0 else SUPPORT_WIDENED
+        return range_m, support
+
+
+def _window_values(range_m: np.ndarray, d2: np.ndarray, inside: np.ndarray, estimator: str) -> np.ndarray:
+    """Statistic of each row's window (brute-force reference); ``d2``, ``inside`` (c, M), every
+    row non-empty."""
+    r = np.broadcast_to(range_m, inside.shape)
+    if estimator == "mean":
+        return np.where(inside, r, 0.0).sum(axis=1) / inside.sum(axis=1)
+    if estimator == "min":
+        return np.where(inside, r, np.inf).min(axis=1)
+    if estimator == "median":
+        return np.nanmedian(np.where(inside, r, np.nan), axis=1)
+    return range_m[np.argmin(np.where(inside, d2, np.inf), axis=1)]  # first index wins ties
+
+
+def _check_directions(az_rad: np.ndarray, el_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    az = np.asarray(az_rad, dtype=np.float64).ravel()
+    el = check_shape("el_rad", np.asarray(el_rad, dtype=np.float64).ravel(), (az.size,))
+    if not (np.all(np.isfinite(az)) and np.all(np.isfinite(el))):
+        raise ValueError("estimate_range: sample angles must be finite")
+    return az, el
+
+
+def _check_deltas(delta_az_rad: float, delta_el_rad: float) -> None:
+    if not (delta_az_rad > 0 and delta_el_rad > 0):
+        raise ValueError(f"angular window half sides must be > 0, got {delta_az_rad}, {delta_el_rad}")
+
+
+# --------------------------------------------------------------------------- placement, Doppler
+
+
+def place_on_camera_ray(
+    uv: np.ndarray, range_m: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray
+) -> np.ndarray:
+    """Points (n, 3) in {D} on the camera rays of pixels ``uv`` (n, 2) at ``range_m`` (n,) from the
+    RADAR origin (the method's improvement over eq. 12, which ignores the camera-radar offset).
+
+    With c the camera centre in {D} and d the unit ray, solves |c + t d| = r for the larger root
+    t = -(c.d) + sqrt((c.d)^2 - |c|^2 + r^2). Fallback, where that root is not real or not
+    positive (only possible when r < |c|, i.e. closer to the radar than the camera is): t = r,
+    the point at distance r from the camera along the ray. NaN ranges give NaN points.
+    ``K`` (3, 3) intrinsics of the image ``uv`` refers to; ``T_radar_cam`` (4, 4).
+    """
+    uv = check_shape("uv", np.asarray(uv, dtype=np.float64), (None, 2))
+    r = check_shape("range_m", np.asarray(range_m, dtype=np.float64), (uv.shape[0],))
+    if uv.shape[0] == 0:
+        return np.zeros((0, 3), np.float64)
+    d = pixel_rays_D(uv, K, T_radar_cam)
+    c = np.asarray(T_radar_cam, dtype=np.float64)[:3, 3]
+    cd = d @ c
+    disc = cd**2 - c @ c + r**2
+    with np.errstate(invalid="ignore"):
+        t = -cd + np.sqrt(np.where(disc >= 0, disc, np.nan))
+    t = np.where(np.isfinite(t) & (t > 0), t, r)
+    return c[None, :] + t[:, None] * d
+
+
+def object_velocities_for_points(
+    points_D: np.ndarray, labels: Sequence[Object3D], margin_m: float = 0.3
+) -> np.ndarray:
+    """Velocity over ground (n, 3) m/s in {D} of the labelled object containing each point.
+
+    A point belongs to a box when it lies inside the oriented box (centre, yaw about z, size l/w/h)
+    grown by ``margin_m`` on every face; where boxes overlap, the one with the nearest centre wins.
+    Points in no box (the static world) get 0. Labels whose velocity is unknown (NaN) count as
+    static (0): a dataset without velocities gives a static-world Doppler for its objects.
+    """
+    points = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
+    out = np.zeros((points.shape[0], 3))
+    if points.shape[0] == 0 or len(labels) == 0:
+        return out
+    centres = np.stack([np.asarray(o.center_D, np.float64) for o in labels])            # (L, 3)
+    half = np.stack([np.asarray(o.size_lwh_m, np.float64) for o in labels]) / 2 + margin_m
+    yaw = np.array([o.yaw_rad for o in labels], np.float64)
+    vel = np.nan_to_num(np.stack([np.asarray(o.velocity_D, np.float64) for o in labels]), nan=0.0)
+    rel = points[None, :, :] - centres[:, None, :]                                        # (L, n, 3)
+    cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    local_x = cos * rel[..., 0] + sin * rel[..., 1]
+    local_y = -sin * rel[..., 0] + cos * rel[..., 1]
+    inside = ((np.abs(local_x) <= half[:, None, 0]) & (np.abs(local_y) <= half[:, None, 1])
+              & (np.abs(rel[..., 2]) <= half[:, None, 2]))                                # (L, n)
+    dist = np.where(inside, np.linalg.norm(rel, axis=2), np.inf)
+    hit = inside.any(axis=0)
+    out[hit] = vel[np.argmin(dist[:, hit], axis=0)]
+    return out
+
+
+def doppler_for_points(
+    points_D: np.ndarray, ego_velocity_D: np.ndarray, object_velocity_D: np.ndarray | None,
+    doppler_sign: int, span_mps: float,
+) -> np.ndarray:
+    """Doppler (n,) m/s of points (n, 3) in {D} in the simulated radar's convention (eq. 16).
+
+    Range rate ((v_O - v_D) . d) / |d| along the line of sight d from the radar origin, times
+    ``doppler_sign`` (+1: range rate as VoD; -1: positive approaching as Astyx), wrapped into
+    [-span/2, span/2) when ``span_mps`` > 0 (aliasing radar). ``object_velocity_D`` (n, 3) or None
+    for the static world.
+    """
+    if doppler_sign not in (1, -1):
+        raise ValueError(f"doppler_sign must be +1 or -1, got {doppler_sign}")
+    points = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
+    ego = check_shape("ego_velocity_D", np.asarray(ego_velocity_D, dtype=np.float64), (3,))
+    range_rate = radial_velocity(points, ego, object_velocity_D)
+    return wrap_doppler(doppler_sign * range_rate, span_mps)
+
+
+# --------------------------------------------------------------------------- one frame
+
+
+def synthesize_frame(
+    prob_map: np.ndarray, n_hat: float, K_w: np.ndarray, T_radar_cam: np.ndarray,
+    lidar_D: np.ndarray, ego_velocity_D: np.ndarray, labels: Sequence[Object3D], *,
+    az_res_deg: float, el_res_deg: float, fov_az_deg: float, fov_el_deg: float,
+    max_range_m: float, doppler_sign: int, doppler_span_mps: float,
+    estimator: str, no_support: str, rng: np.random.Generator,
+    index: LidarAngularIndex | None = None,
+) -> dict[str, np.ndarray | int]:
+    """Synthesize one frame's radar points except RSS (Section IV-B, steps 1-4).
+
+    ``prob_map`` (H, W) at working resolution with intrinsics ``K_w``; ``n_hat`` rounded to the
+    number of samples; ``lidar_D`` (M, 3) m in {D} (or a prebuilt ``index``); radar profile values
+    in degrees / metres; ``fov_*_deg`` are TOTAL fields of view, symmetric about x.
+    Steps: sample pixels -> camera rays -> their (az, el) -> lidar range in the window of those
+    angles -> point on the camera ray at that range from the radar origin -> r/az/el recomputed
+    from the radar origin -> drop samples without support, then outside the FOV, then beyond
+    ``max_range_m`` (each dropped sample counted under its first reason) -> Doppler.
+    Returns points_D (k, 3) float32, rae (k, 3) float32 [range_m, azimuth_rad, elevation_rad],
+    doppler (k,) float32, uv (k, 2) float32, support (k,) int8, and the int counts n_requested,
+    n_no_support, n_out_of_fov, n_beyond_range, n_widened (kept samples found by widening).
+    """
+    if not (np.isfinite(n_hat) and n_hat >= 0):
+        raise ValueError(f"n_hat must be finite and >= 0, got {n_hat}")
+    n = int(round(float(n_hat)))
+    uv = sample_pixels(prob_map, n, rng)
+    rays = pixel_rays_D(uv, K_w, T_radar_cam)
+    ray_rae = cartesian_to_spherical(rays)
+    index = LidarAngularIndex(lidar_D) if index is None else index
+    range_m, support = index.estimate_range(
+        ray_rae[:, 1], ray_rae[:, 2], np.deg2rad(az_res_deg), np.deg2rad(el_res_deg),
+        estimator=estimator, no_support=no_support,
+    )
+    points = place_on_camera_ray(uv, range_m, K_w, T_radar_cam)
+    rae = cartesian_to_spherical(np.nan_to_num(points))
+    has_support = support > 0
+    in_fov = (np.abs(rae[:, 1]) <= np.deg2rad(fov_az_deg) / 2) & (np.abs(rae[:, 2]) <= np.deg2rad(fov_el_deg) / 2)
+    in_range = (rae[:, 0] > 0) & (rae[:, 0] <= max_range_m)
+    keep = has_support & in_fov & in_range
+    points, rae, uv, support = points[keep], rae[keep], uv[keep], support[keep]
+    object_velocity = object_velocities_for_points(points, labels)
+    doppler = doppler_for_points(points, ego_velocity_D, object_velocity, doppler_sign, doppler_span_mps)
+    return {
+        "points_D": points.astype(np.float32),
+        "rae": rae.astype(np.float32),
+        "doppler": doppler.astype(np.float32),
+        "uv": uv.astype(np.float32),
+        "support": support,
+        "n_requested": n,
+        "n_no_support": int((~has_support).sum()),
+        "n_out_of_fov": int((has_support & ~in_fov).sum()),
+        "n_beyond_range": int((has_support & in_fov & ~in_range).sum()),
+        "n_widened": int((support == SUPPORT_WIDENED).sum()),
+    }

@@ -1,0 +1,611 @@
+"""Resumable training of Dis-Net and RSS-Net (torchvision-reference style: train_one_epoch,
+evaluate, run), inference helpers and the baselines the models must beat.
+
+Data are array-likes (numpy or zarr arrays) indexed by frame / point along axis 0; they are read
+one window of batches at a time (sorted reads, one chunk-group order per epoch), never all at once.
+
+Files in ``out_dir`` (one folder per net; a folder holding the other net's checkpoint is refused):
+``last.safetensors`` (+ ``last.json`` sidecar): weights, optimizer, RNG, epoch, curves - the
+resume point, written last in every epoch; ``best.safetensors`` (+ ``best.json``): weights of the
+epoch with the lowest validation loss; ``curves.csv`` / ``curves.json`` / ``curves.png``.
+Resuming is the default: a last checkpoint with the same fingerprint and architecture continues
+from its epoch and ends with exactly the weights of an uninterrupted run (same device and threads).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from pipeline import checkpoint as ckpt
+from pipeline.errors import ConfigError
+from pipeline.models.disnet import DisNet, build_disnet, disnet_kwargs
+from pipeline.models.losses import count_loss, kl_loss, rss_loss
+from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
+
+log = logging.getLogger(__name__)
+Batch = dict[str, np.ndarray]
+TermsFn = Callable[[nn.Module, Batch, torch.device], dict[str, Tensor]]
+WINDOW_BATCHES = 16
+"""Batches read from the arrays in one go (one sorted read per array)."""
+
+
+@dataclass
+class DisNetData:
+    """Dis-Net training data; arrays indexed by frame along axis 0.
+
+    images (F, H, W, 3) uint8 RGB; heatmaps (F, H, W) float32 summing to 1; counts (F,) radar
+    points per frame (> 0 for every listed frame); speeds (F,) ego speed |v_D| m/s;
+    train_idx / val_idx: frame indices (frames without radar points already excluded).
+    """
+
+    images: Any
+    heatmaps: Any
+    counts: Any
+    speeds: Any
+    train_idx: Sequence[int]
+    val_idx: Sequence[int]
+
+
+@dataclass
+class RssNetData:
+    """RSS-Net training data; arrays indexed by sampled radar point along axis 0.
+
+    patches (P, ps, ps, 3) uint8 RGB; range_images (P, h, w) float32 0..255 or empty (see
+    pipeline.models.rssnet); point_vectors (P, 4) [x, y, z m in {D}, doppler m/s]; rss (P,)
+    dataset units; train_idx / val_idx: point indices.
+    """
+
+    patches: Any
+    range_images: Any
+    point_vectors: Any
+    rss: Any
+    train_idx: Sequence[int]
+    val_idx: Sequence[int]
+
+
+@dataclass
+class TrainResult:
+    """Outcome of train_disnet / train_rssnet."""
+
+    net: str
+    last_path: Path
+    best_path: Path
+    epoch: int
+    """Last finished epoch."""
+    resumed_from: int
+    """Epoch the run continued from (0 = fresh start)."""
+    best_epoch: int
+    best_metric: float
+    curves: list[dict[str, float]] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------------------- data
+
+
+def select_device(name: str) -> torch.device:
+    """'auto' -> cuda when available else cpu; 'cpu' / 'cuda' as given (ConfigError if unusable)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"train.device = '{name}' but CUDA is not available (use 'auto' or 'cpu')")
+    if not (name == "cpu" or name.startswith("cuda")):
+        raise ConfigError(f"train.device must be 'auto', 'cpu' or 'cuda', got '{name}'")
+    return torch.device(name)
+
+
+def take_rows(array: Any, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` (any order, repeats allowed) of a numpy or zarr array, read with sorted indices."""
+    idx = np.asarray(idx, dtype=np.int64)
+    if isinstance(array, np.ndarray):
+        return array[idx]
+    uniq, inverse = np.unique(idx, return_inverse=True)
+    rows = array.oindex[uniq] if hasattr(array, "oindex") else array[uniq]
+    return np.asarray(rows)[inverse]
+
+
+def n_rows(array: Any) -> int:
+    """Length of axis 0 of a numpy / zarr array."""
+    return int(array.shape[0])
+
+
+def chunk_len(array: Any) -> int:
+    """Rows per storage chunk along axis 0 (1 for in-memory arrays)."""
+    chunks = getattr(array, "chunks", None)
+    if not chunks:
+        return 1
+    first = chunks[0]
+    return int(first[0] if isinstance(first, tuple) else first)
+
+
+def epoch_order(idx: Sequence[int], rows_per_chunk: int, window: int, rng: np.random.Generator) -> np.ndarray:
+    """Shuffled order of ``idx`` for one epoch: chunk groups in random order, then a full shuffle
+    inside each window of ``window`` rows (a plain permutation when rows_per_chunk == 1)."""
+    idx = np.asarray(idx, dtype=np.int64)
+    if rows_per_chunk <= 1:
+        return rng.permutation(idx)
+    _, group = np.unique(idx // rows_per_chunk, return_inverse=True)
+    rank = rng.permutation(group.max() + 1)
+    order = idx[np.argsort(rank[group], kind="stable")]
+    for start in range(0, len(order), window):
+        order[start:start + window] = rng.permutation(order[start:start + window])
+    return order
+
+
+def iter_batches(arrays: dict[str, Any], order: np.ndarray, batch_size: int) -> Iterator[Batch]:
+    """Yield ``{name: rows}`` batches in ``order``; windows of WINDOW_BATCHES batches are read in
+    one go per array, the next window in a background thread while the current one is consumed."""
+    window = batch_size * WINDOW_BATCHES
+    starts = list(range(0, len(order), window))
+    if not starts:
+        return
+
+    def read(start: int) -> Batch:
+        sel = order[start:start + window]
+        return {k: take_rows(a, sel) for k, a in arrays.items()}
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = pool.submit(read, starts[0])
+        for i in range(len(starts)):
+            block = pending.result()
+            if i + 1 < len(starts):
+                pending = pool.submit(read, starts[i + 1])
+            n = len(next(iter(block.values())))
+            for s in range(0, n, batch_size):
+                yield {k: v[s:s + batch_size] for k, v in block.items()}
+
+
+def _progress(iterable: Iterable, total: int, desc: str, enabled: bool):
+    from tqdm.auto import tqdm
+    return tqdm(iterable, total=total, desc=desc, leave=False,
+                disable=not (enabled and sys.stderr.isatty()))
+
+
+# ------------------------------------------------------------------------------- loop
+
+
+def _weighted_total(terms: dict[str, Tensor], weights: dict[str, float]) -> Tensor:
+    return sum(weights[k] * terms[k] for k in weights)
+
+
+def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches: Iterable[Batch],
+                    terms_fn: TermsFn, weights: dict[str, float], device: torch.device,
+                    n_batches: int = 0, desc: str = "train", progress: bool = True) -> dict[str, float]:
+    """One pass over ``batches``; loss = mean over the batch of sum_k weights[k] * term_k.
+
+    Returns per-sample means of every term and of the loss (key 'loss'). Raises FloatingPointError
+    on a non-finite loss (before any checkpoint of the epoch is written).
+    """
+    model.train()
+    sums: dict[str, float] = {}
+    count = 0
+    bar = _progress(batches, n_batches, desc, progress)
+    for step, batch in enumerate(bar):
+        terms = terms_fn(model, batch, device)
+        total = _weighted_total(terms, weights)                    # (B,)
+        loss = total.mean()
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"{desc}: non-finite loss at batch {step}")
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        count += _accumulate(sums, {**terms, "loss": total})
+        if step % 10 == 0 and hasattr(bar, "set_postfix"):
+            bar.set_postfix(loss=f"{loss.item():.4g}")
+    return {k: v / max(count, 1) for k, v in sums.items()}
+
+
+@torch.no_grad()
+def evaluate(model: nn.Module, batches: Iterable[Batch], terms_fn: TermsFn, weights: dict[str, float],
+             device: torch.device, n_batches: int = 0, desc: str = "val",
+             progress: bool = True) -> dict[str, float]:
+    """Per-sample (per-frame / per-point) means of every term and of the weighted loss, eval mode.
+    Empty input gives NaN for every key."""
+    model.eval()
+    sums: dict[str, float] = {}
+    count = 0
+    for batch in _progress(batches, n_batches, desc, progress):
+        terms = terms_fn(model, batch, device)
+        count += _accumulate(sums, {**terms, "loss": _weighted_total(terms, weights)})
+    keys = list(weights) + ["loss"]
+    return {k: (sums[k] / count if count else math.nan) for k in keys}
+
+
+def _accumulate(sums: dict[str, float], terms: dict[str, Tensor]) -> int:
+    for k, v in terms.items():
+        sums[k] = sums.get(k, 0.0) + float(v.detach().double().sum())
+    return int(next(iter(terms.values())).shape[0])
+
+
+@dataclass
+class _NetSpec:
+    """Everything run() needs to know about one net."""
+
+    name: str
+    model: nn.Module
+    arch: dict[str, Any]
+    arrays: dict[str, Any]
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+    batch_size: int
+    terms_fn: TermsFn
+    weights: dict[str, float]
+
+
+def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True) -> TrainResult:
+    """Train ``spec.model`` for cfg.train.epochs epochs, resuming from ``out_dir`` when possible."""
+    out_dir = Path(out_dir)
+    last, best = out_dir / "last.safetensors", out_dir / "best.safetensors"
+    device = select_device(cfg.train.device)
+    spec.model.to(device)
+    optimizer = torch.optim.Adam(spec.model.parameters(), lr=cfg.train.lr)
+    rng = np.random.default_rng(cfg.train.seed)
+    state = {"epoch": 0, "best_epoch": 0, "best_metric": math.inf, "curves": []}
+    resumed = _resume(last, best, spec, optimizer, fingerprint, device)
+    if resumed is not None:
+        state, rng = resumed
+    start = state["epoch"]
+    rows_per_chunk = chunk_len(next(iter(spec.arrays.values())))
+    n_train_batches = math.ceil(len(spec.train_idx) / spec.batch_size)
+    n_val_batches = math.ceil(len(spec.val_idx) / spec.batch_size)
+    for epoch in range(start + 1, cfg.train.epochs + 1):
+        t0 = time.perf_counter()
+        order = epoch_order(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
+        tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
+                             spec.terms_fn, spec.weights, device, n_train_batches,
+                             f"{spec.name} epoch {epoch}/{cfg.train.epochs}", progress)
+        va = evaluate(spec.model, iter_batches(spec.arrays, spec.val_idx, spec.batch_size), spec.terms_fn,
+                      spec.weights, device, n_val_batches, f"{spec.name} val", progress)
+        metric = va["loss"] if len(spec.val_idx) else tr["loss"]
+        state["curves"].append({"epoch": epoch, **{f"train_{k}": v for k, v in tr.items()},
+                                **{f"val_{k}": v for k, v in va.items()},
+                                "seconds": time.perf_counter() - t0})
+        state["epoch"] = epoch
+        if metric < state["best_metric"]:
+            state["best_epoch"], state["best_metric"] = epoch, metric
+            ckpt.save_checkpoint(best, ckpt.model_tensors(spec.model), _meta(spec, fingerprint, state))
+        _save_last(last, spec, optimizer, rng, fingerprint, state)  # the commit point of the epoch
+        write_curves(out_dir, spec.name, state["curves"], plot=False)
+    write_curves(out_dir, spec.name, state["curves"], plot=True)
+    return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
+                       state["best_metric"], state["curves"])
+
+
+def _meta(spec: _NetSpec, fingerprint: str, state: dict[str, Any]) -> dict[str, Any]:
+    return {"net": spec.name, "fingerprint": fingerprint, "arch": spec.arch,
+            "selection": "val" if len(spec.val_idx) else "train", **state}
+
+
+def _save_last(path: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, rng: np.random.Generator,
+               fingerprint: str, state: dict[str, Any]) -> None:
+    opt_tensors, opt_json = ckpt.flatten_optimizer(optimizer)
+    tensors = {**ckpt.model_tensors(spec.model), **opt_tensors, **ckpt.rng_tensors()}
+    meta = {**_meta(spec, fingerprint, state), "optimizer": opt_json,
+            "numpy_rng": ckpt.numpy_rng_state(rng)}
+    ckpt.save_checkpoint(path, tensors, meta)
+
+
+def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, fingerprint: str,
+            device: torch.device) -> tuple[dict[str, Any], np.random.Generator] | None:
+    """Restore model, optimizer and RNGs from ``last`` when it matches; else clear stale files."""
+    if not last.exists():
+        return None
+    meta = ckpt.read_meta(last)
+    if meta.get("net") != spec.name:
+        raise ValueError(f"{last} is a {meta.get('net')!r} checkpoint: train {spec.name} in its own folder")
+    if meta.get("fingerprint") != fingerprint or meta.get("arch") != spec.arch:
+        log.warning("%s: saved for other settings; training %s from scratch", last, spec.name)
+        for p in (last, best, last.with_suffix(".json"), best.with_suffix(".json")):
+            p.unlink(missing_ok=True)
+        return None
+    tensors, meta = ckpt.load_checkpoint(last)
+    spec.model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
+    spec.model.to(device)
+    optimizer.load_state_dict(ckpt.unflatten_optimizer(tensors, meta["optimizer"]))
+    ckpt.restore_rng(tensors)
+    state = {k: meta[k] for k in ("epoch", "best_epoch", "best_metric", "curves")}
+    return state, ckpt.numpy_rng_from_state(meta["numpy_rng"])
+
+
+def write_curves(out_dir: str | Path, net: str, curves: list[dict[str, float]], plot: bool = True) -> None:
+    """``curves.csv`` / ``.json`` and, with ``plot``, ``.png`` (train vs val per metric of ``net``,
+    matplotlib Agg; drawn once at the end of a run because drawing costs more than a tiny epoch)."""
+    out_dir = Path(out_dir)
+    ckpt.write_json_atomic(out_dir / "curves.json", curves)
+    if not curves:
+        return
+    keys = list(curves[0])
+    tmp = out_dir / "curves.csv.tmp"
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(curves)
+    tmp.replace(out_dir / "curves.csv")
+    if plot:
+        _plot_curves(out_dir / "curves.png", net, curves)
+
+
+def _plot_curves(path: Path, net: str, curves: list[dict[str, float]]) -> None:
+    from matplotlib.figure import Figure
+
+    terms = [k[len("train_"):] for k in curves[0] if k.startswith("train_")]
+    fig = Figure(figsize=(4 * len(terms), 3.2))
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.16, top=0.88, wspace=0.3)
+    epochs = [c["epoch"] for c in curves]
+    for i, term in enumerate(terms):
+        ax = fig.add_subplot(1, len(terms), i + 1)
+        for split in ("train", "val"):
+            ax.plot(epochs, [c[f"{split}_{term}"] for c in curves], marker="o", label=split)
+        ax.set_title(f"{net} {term}")
+        ax.set_xlabel("epoch")
+        ax.legend()
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    tmp.replace(path)
+
+
+# ------------------------------------------------------------------------------- Dis-Net
+
+
+def _disnet_inputs(batch: Batch, device: torch.device) -> tuple[Tensor, Tensor]:
+    """uint8 (B, H, W, 3) -> float (B, 3, H, W) in [0, 1] on device; speeds (B,) float32."""
+    img = torch.from_numpy(np.ascontiguousarray(batch["images"])).to(device)
+    img = img.permute(0, 3, 1, 2).float() / 255.0
+    speed = torch.from_numpy(np.asarray(batch["speeds"], np.float32)).to(device)
+    return img, speed
+
+
+def disnet_terms(model: nn.Module, batch: Batch, device: torch.device) -> dict[str, Tensor]:
+    """Per-frame L_KL ('kl') and L_n ('n') of one batch."""
+    img, speed = _disnet_inputs(batch, device)
+    log_map, n_hat = model(img, speed)
+    target = torch.from_numpy(np.asarray(batch["heatmaps"], np.float32)).to(device)
+    counts = torch.from_numpy(np.asarray(batch["counts"], np.float32)).to(device)
+    return {"kl": kl_loss(log_map, target), "n": count_loss(n_hat, counts)}
+
+
+def default_fingerprint(cfg, net: str) -> str:
+    """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
+    common = ["train.lr", "train.seed"]
+    if net == "disnet":
+        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "radar.max_points",
+                "camera.working_size", "train.batch_size", "train.alpha"]
+    else:
+        keys = ["rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
+                "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"]
+    return cfg.fingerprint(keys + common)
+
+
+def _jsonable_arch(kwargs: dict[str, Any]) -> dict[str, Any]:
+    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in kwargs.items()}
+
+
+def _setup(cfg) -> None:
+    torch.set_num_threads(max(1, int(cfg.train.threads)))
+    torch.manual_seed(cfg.train.seed)
+
+
+def _checked_idx(idx: Sequence[int], name: str, arrays: dict[str, Any], allow_empty: bool) -> np.ndarray:
+    """Indices as int64, checked against the arrays (which must all have the same length)."""
+    lengths = {k: n_rows(a) for k, a in arrays.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"training arrays differ in length along axis 0: {lengths}")
+    n = next(iter(lengths.values()))
+    arr = np.asarray(idx, dtype=np.int64).reshape(-1)
+    if not allow_empty and arr.size == 0:
+        raise ValueError(f"{name} is empty: nothing to train on")
+    if arr.size and (arr.min() < 0 or arr.max() >= n):
+        raise ValueError(f"{name} holds indices outside 0..{n - 1}: {arr.min()}..{arr.max()}")
+    return arr
+
+
+def _check_disnet_data(cfg, data: DisNetData, idx: np.ndarray) -> None:
+    """Shapes against camera.working_size and positive counts on every listed frame."""
+    w, h = cfg.camera.working_size
+    if tuple(data.heatmaps.shape[1:]) != (h, w) or tuple(data.images.shape[1:]) != (h, w, 3):
+        raise ValueError(f"Dis-Net data: images {tuple(data.images.shape)} / heatmaps "
+                         f"{tuple(data.heatmaps.shape)} do not match camera.working_size {w}x{h}")
+    counts = take_rows(data.counts, idx)
+    if (counts <= 0).any():
+        raise ValueError(f"Dis-Net data: frames {idx[counts <= 0][:10].tolist()} have no radar points "
+                         "(no heatmap target): leave them out of train_idx / val_idx")
+
+
+def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = True,
+                 fingerprint: str | None = None) -> TrainResult:
+    """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
+    _setup(cfg)
+    model = build_disnet(cfg)
+    arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
+    spec = _NetSpec(
+        name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
+        train_idx=_checked_idx(data.train_idx, "train_idx", arrays, False),
+        val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
+        batch_size=cfg.train.batch_size, terms_fn=disnet_terms,
+        weights={"kl": 1.0, "n": float(cfg.train.alpha)})
+    _check_disnet_data(cfg, data, np.concatenate([spec.train_idx, spec.val_idx]))
+    return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
+
+
+# ------------------------------------------------------------------------------- RSS-Net
+
+
+def _rssnet_inputs(model: RSSNet, batch: Batch, device: torch.device) -> tuple[Tensor | None, ...]:
+    patch = range_image = point = None
+    if model.use_camera:
+        patch = torch.from_numpy(np.ascontiguousarray(batch["patches"])).to(device)
+        patch = patch.permute(0, 3, 1, 2).float() / 255.0                 # (B, 3, ps, ps)
+    if model.use_lidar:
+        range_image = torch.from_numpy(np.asarray(batch["range_images"], np.float32)).to(device)
+    if model.use_radar_point:
+        point = torch.from_numpy(np.asarray(batch["point_vectors"], np.float32)).to(device)
+    return patch, range_image, point
+
+
+def rssnet_terms(model: nn.Module, batch: Batch, device: torch.device) -> dict[str, Tensor]:
+    """Per-point L_a ('a') of one batch, in normalised RSS units (eq. 22)."""
+    a_hat = model(*_rssnet_inputs(model, batch, device))
+    rss = torch.from_numpy(np.asarray(batch["rss"], np.float32)).to(device)
+    return {"a": rss_loss(a_hat, model.normalise_rss(rss))}
+
+
+def _rss_arrays(model: RSSNet, patches: Any, range_images: Any, point_vectors: Any) -> dict[str, Any]:
+    """The arrays the enabled branches read (dropped branches read nothing)."""
+    named = {"patches": (model.use_camera, patches), "range_images": (model.use_lidar, range_images),
+             "point_vectors": (model.use_radar_point, point_vectors)}
+    out = {}
+    for name, (used, array) in named.items():
+        if used:
+            if array is None:
+                raise ValueError(f"RSS-Net uses '{name}' (see rssnet.*) but no array was given")
+            out[name] = array
+    return out
+
+
+def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = True,
+                 fingerprint: str | None = None) -> TrainResult:
+    """Train RSS-Net with L_a (Adam, cfg.train.*, batch cfg.train.rss_batch_size); resumes."""
+    _setup(cfg)
+    model = build_rssnet(cfg)
+    arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
+    spec = _NetSpec(
+        name="rssnet", model=model, arch=_jsonable_arch(rssnet_kwargs(cfg)), arrays=arrays,
+        train_idx=_checked_idx(data.train_idx, "train_idx", arrays, False),
+        val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
+        batch_size=cfg.train.rss_batch_size, terms_fn=rssnet_terms, weights={"a": 1.0})
+    return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress)
+
+
+# ------------------------------------------------------------------------------- inference
+
+
+def _load_into(model: nn.Module, arch: dict[str, Any], path: str | Path, device: torch.device) -> nn.Module:
+    tensors, meta = ckpt.load_checkpoint(path, prefix="model.")
+    if meta.get("arch") != arch:
+        diff = {k: (meta.get("arch", {}).get(k), v) for k, v in arch.items()
+                if meta.get("arch", {}).get(k) != v}
+        raise ConfigError(f"{path}: checkpoint architecture differs from the configuration "
+                          f"(saved, configured): {diff}")
+    model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
+    return model.to(device).eval()
+
+
+def load_disnet(cfg, path: str | Path, device: str | None = None) -> DisNet:
+    """Dis-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``)."""
+    model = build_disnet(cfg, load_backbone=False)
+    arch = _jsonable_arch(disnet_kwargs(cfg))
+    return _load_into(model, arch, path, select_device(device or cfg.train.device))
+
+
+def load_rssnet(cfg, path: str | Path, device: str | None = None) -> RSSNet:
+    """RSS-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``)."""
+    model = build_rssnet(cfg)
+    return _load_into(model, _jsonable_arch(rssnet_kwargs(cfg)), path, select_device(device or cfg.train.device))
+
+
+def _device_of(model: nn.Module) -> torch.device:
+    return next(model.parameters()).device
+
+
+@torch.no_grad()
+def disnet_predict(model: DisNet, images: Any, speeds: Any, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """images (B, H, W, 3) uint8 RGB, speeds (B,) m/s -> (prob_map (B, h, w) float32 summing to 1
+    per frame at the model's out_hw, n_hat (B,) float32 expected point count)."""
+    model.eval()
+    device = _device_of(model)
+    n = n_rows(images)
+    maps = np.empty((n, *model.out_hw), np.float32)
+    counts = np.empty(n, np.float32)
+    arrays = {"images": images, "speeds": np.asarray(speeds, np.float32).reshape(-1)}
+    for s, b in zip(range(0, n, batch), iter_batches(arrays, np.arange(n), batch)):
+        log_map, n_hat = model(*_disnet_inputs(b, device))
+        maps[s:s + len(n_hat)] = log_map.exp().cpu().numpy()
+        counts[s:s + len(n_hat)] = n_hat.cpu().numpy()
+    return maps, counts
+
+
+@torch.no_grad()
+def rssnet_predict(model: RSSNet, patches: Any, range_images: Any, point_vectors: Any,
+                   batch: int = 256) -> np.ndarray:
+    """RSS (N,) float32 in dataset units for N points; inputs of dropped branches may be None."""
+    model.eval()
+    device = _device_of(model)
+    arrays = _rss_arrays(model, patches, range_images, point_vectors)
+    n = n_rows(next(iter(arrays.values())))
+    out = np.empty(n, np.float32)
+    for s, b in zip(range(0, n, batch), iter_batches(arrays, np.arange(n), batch)):
+        a_hat = model(*_rssnet_inputs(model, b, device))
+        out[s:s + len(a_hat)] = model.to_rss(a_hat).cpu().numpy()
+    return out
+
+
+def disnet_metrics(model: DisNet, data: DisNetData, idx: Sequence[int], alpha: float,
+                   batch: int = 8) -> dict[str, float]:
+    """Per-frame mean L_KL ('kl'), L_n ('n') and L_KL + alpha L_n ('loss') on frames ``idx``."""
+    arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
+    return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), disnet_terms,
+                    {"kl": 1.0, "n": alpha}, _device_of(model), progress=False)
+
+
+def rssnet_metrics(model: RSSNet, data: RssNetData, idx: Sequence[int], batch: int = 256) -> dict[str, float]:
+    """Per-point mean L_a ('a', = 'loss') on points ``idx``."""
+    arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
+    return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), rssnet_terms,
+                    {"a": 1.0}, _device_of(model), progress=False)
+
+
+# ------------------------------------------------------------------------------- baselines
+
+BASELINE_UNIFORM_MIX = 1e-6
+"""Share of a uniform map mixed into the mean map so that its KL stays finite where it is 0."""
+
+
+def mean_map_baseline(heatmaps: Any, train_idx: Sequence[int], batch: int = 64) -> np.ndarray:
+    """Average training heatmap (H, W) float64, summing to 1 (with a 1e-6 uniform share mixed in)."""
+    idx = np.asarray(train_idx, np.int64)
+    if idx.size == 0:
+        raise ValueError("mean_map_baseline: train_idx is empty")
+    total = None
+    for b in iter_batches({"h": heatmaps}, idx, batch):
+        part = b["h"].astype(np.float64).sum(axis=0)
+        total = part if total is None else total + part
+    mean = total / total.sum()
+    return (1 - BASELINE_UNIFORM_MIX) * mean + BASELINE_UNIFORM_MIX / mean.size
+
+
+def disnet_baseline(heatmaps: Any, counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
+                    batch: int = 64) -> dict[str, float]:
+    """Per-frame mean L_KL of the mean training map ('kl') and L_n of the mean training count ('n')
+    on frames ``eval_idx``."""
+    mean_map = mean_map_baseline(heatmaps, train_idx, batch)
+    n_bar = float(np.mean(take_rows(counts, np.asarray(train_idx, np.int64))))
+    log_q = np.log(mean_map)
+    kl_sum, n_sum, m = 0.0, 0.0, 0
+    for b in iter_batches({"h": heatmaps, "n": counts}, np.asarray(eval_idx, np.int64), batch):
+        p = b["h"].astype(np.float64)
+        kl = (np.where(p > 0, p * np.log(np.where(p > 0, p, 1.0)), 0.0) - p * log_q).sum(axis=(1, 2))
+        n = b["n"].astype(np.float64)
+        kl_sum += kl.sum()
+        n_sum += (((n_bar - n) / n) ** 2).sum()
+        m += len(n)
+    return {"kl": kl_sum / m if m else math.nan, "n": n_sum / m if m else math.nan, "n_bar": n_bar}
+
+
+def rssnet_baseline(rss: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
+                    rss_min: float, rss_max: float) -> dict[str, float]:
+    """L_a ('a') of predicting the training median RSS for every point of ``eval_idx``."""
+    median = float(np.median(take_rows(rss, np.asarray(train_idx, np.int64))))
+    a = take_rows(rss, np.asarray(eval_idx, np.int64)).astype(np.float64)
+    err = ((a - median) / (rss_max - rss_min)) ** 2
+    return {"a": float(err.mean()) if err.size else math.nan, "median": median}

@@ -1,0 +1,167 @@
+"""generate(): write a whole synthetic world (all sequences) in the VoD layout.
+
+Frames are numbered globally 00000.. in order; a sequence is ``sequence_len`` consecutive frames of
+one scene (scene types cycle through ``scene_mix``). Sequences are independent and seeded by
+(seed, sequence index), so they run in parallel (2 processes) and the same seed gives the same
+bytes. ``world.json`` is written last (atomically): a folder without it is an incomplete world.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import ConfigError
+from pipeline.world.materials import MATERIALS
+from pipeline.world.radar import RadarModel
+from pipeline.world.rig import LIDAR_PATTERNS, make_rig
+from pipeline.world.scene import LABELLED_CLASSES, SCENE_TYPES
+from pipeline.world.sim import make_sequence
+from pipeline.world.vod_writer import make_dirs, write_frame
+
+GENERATOR_VERSION = "1"
+WORLD_JSON = "world.json"
+MAX_WORKERS = 2
+
+
+def generate(out_dir: str | Path, frames: int, seed: int, resolution_wh: tuple[int, int] = (640, 384),
+             scene_mix: tuple[str, ...] = ("residential", "urban", "highway"), lidar_lines: int = 64,
+             sequence_len: int = 40, progress: bool = False) -> dict:
+    """Generate ``frames`` frames into ``out_dir``; returns a summary
+    {frames, sequences, seconds, mean_radar_points, out_dir}.
+
+    Raises ConfigError for invalid arguments. An existing world in ``out_dir`` is replaced.
+    """
+    _check_args(frames, resolution_wh, scene_mix, lidar_lines, sequence_len)
+    start = time.perf_counter()
+    root = Path(out_dir)
+    _clear(root)
+    make_dirs(root)
+    jobs = [(str(root), i, first, min(sequence_len, frames - first), int(seed), scene_mix[i % len(scene_mix)],
+             (int(resolution_wh[0]), int(resolution_wh[1])), int(lidar_lines))
+            for i, first in enumerate(range(0, frames, sequence_len))]
+    results = _run_jobs(jobs, frames, progress)
+    _write_index(root, results)
+    counts = [c for r in results for c in r["radar_points"]]
+    summary = {
+        "frames": frames, "sequences": len(results), "mean_radar_points": float(np.mean(counts)),
+    }
+    world = {
+        "generator": "pipeline.world", "version": GENERATOR_VERSION, "seed": int(seed), "frames": frames,
+        "resolution_wh": [int(resolution_wh[0]), int(resolution_wh[1])], "lidar_lines": int(lidar_lines),
+        "sequence_len": int(sequence_len), "scene_mix": list(scene_mix), "frame_rate_hz": 10.0,
+        "materials": [{"id": i, "name": m.name, "rcs_dbsm": m.rcs_dbsm, "texture": m.texture}
+                      for i, m in enumerate(MATERIALS)],
+        "classes": list(LABELLED_CLASSES), "radar": _radar_description(RadarModel()),
+        "mean_radar_points": summary["mean_radar_points"], "sequences": results,
+    }
+    tmp = root / (WORLD_JSON + ".tmp")
+    tmp.write_text(json.dumps(world, indent=1))
+    os.replace(tmp, root / WORLD_JSON)
+    summary["seconds"] = time.perf_counter() - start
+    summary["out_dir"] = str(root)
+    return summary
+
+
+def _check_args(frames: int, resolution_wh: tuple[int, int], scene_mix: tuple[str, ...], lidar_lines: int,
+                sequence_len: int) -> None:
+    if int(frames) < 1:
+        raise ConfigError(f"world frames must be >= 1, got {frames}")
+    if int(sequence_len) < 1:
+        raise ConfigError(f"world sequence_len must be >= 1, got {sequence_len}")
+    if len(resolution_wh) != 2 or min(resolution_wh) < 16:
+        raise ConfigError(f"world resolution must be (W, H) with both >= 16, got {resolution_wh}")
+    if not scene_mix or any(s not in SCENE_TYPES for s in scene_mix):
+        raise ConfigError(f"scene_mix {scene_mix!r}: each entry must be one of {SCENE_TYPES}")
+    if lidar_lines not in LIDAR_PATTERNS:
+        raise ConfigError(f"lidar_lines must be one of {sorted(LIDAR_PATTERNS)}, got {lidar_lines}")
+
+
+def _clear(root: Path) -> None:
+    """Remove a previous world's marker first, then its folders (only the ones this module writes)."""
+    marker = root / WORLD_JSON
+    if marker.exists():
+        marker.unlink()
+    for sub in ("lidar", "radar", "ImageSets"):
+        if (root / sub).exists():
+            shutil.rmtree(root / sub)
+
+
+def _run_jobs(jobs: list[tuple], frames: int, progress: bool) -> list[dict]:
+    """Run the sequence jobs (in 2 processes when there are several); results in sequence order."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=frames, unit="frame", disable=not progress, desc="generate-world")
+    workers = min(MAX_WORKERS, len(jobs), os.cpu_count() or 1)
+    results = []
+    if workers <= 1:
+        for job in jobs:
+            results.append(run_sequence(*job))
+            bar.update(results[-1]["last_frame"] - results[-1]["first_frame"] + 1)
+    else:
+        import multiprocessing
+
+        # fork: workers only use numpy and cv2 (single-threaded), and callers need no __main__ guard
+        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method)) as pool:
+            for res in pool.map(_run_job, jobs):
+                results.append(res)
+                bar.update(res["last_frame"] - res["first_frame"] + 1)
+    bar.close()
+    return results
+
+
+def _run_job(job: tuple) -> dict:
+    return run_sequence(*job)
+
+
+def run_sequence(root: str, seq_index: int, first_frame: int, n_frames: int, seed: int, scene_type: str,
+                 resolution_wh: tuple[int, int], lidar_lines: int) -> dict:
+    """Simulate and write one sequence; returns its entry for world.json."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    rig = make_rig(resolution_wh, lidar_lines)
+    sim = make_sequence(scene_type, n_frames, rig, seed, seq_index)
+    rng = np.random.default_rng([seed, seq_index, 99])
+    T_map_world = _planar_transform(rng.uniform(-2000, 2000, 2), rng.uniform(-np.pi, np.pi))
+    T_utm_map = _planar_transform(np.array([594000.0, 5762000.0]), np.radians(1.4))
+    speeds, counts, v_radar = [], [], []
+    for k in range(n_frames):
+        data = sim.frame(k)
+        write_frame(Path(root), f"{first_frame + k:05d}", data, rig, T_map_world, T_utm_map)
+        speeds.append(round(data.ego_speed_mps, 4))
+        counts.append(int(len(data.radar.points_D)))
+        v_radar.append([round(float(v), 6) for v in data.v_radar_D])
+    return {"name": f"seq{seq_index:03d}_{scene_type}", "scene": scene_type, "first_frame": first_frame,
+            "last_frame": first_frame + n_frames - 1, "curvature_1pm": float(sim.scene.layout.kappa_1pm),
+            "ego_speed_mps": speeds, "mean_ego_speed_mps": round(float(np.mean(speeds)), 4),
+            "radar_velocity_D": v_radar, "radar_points": counts}
+
+
+def _planar_transform(xy: np.ndarray, yaw: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    T[:2, 3] = xy
+    return T
+
+
+def _write_index(root: Path, results: list[dict]) -> None:
+    """ImageSets/full.txt (frame ids) and ImageSets/sequences.txt (name first last, inclusive)."""
+    ids = [f"{f:05d}" for r in results for f in range(r["first_frame"], r["last_frame"] + 1)]
+    (root / "ImageSets" / "full.txt").write_text("".join(i + "\n" for i in ids))
+    (root / "ImageSets" / "sequences.txt").write_text(
+        "".join(f"{r['name']} {r['first_frame']:05d} {r['last_frame']:05d}\n" for r in results))
+
+
+def _radar_description(model: RadarModel) -> dict:
+    """The radar's public characteristics (what a radar data sheet would say)."""
+    return {"fov_az_deg": model.fov_az_deg, "fov_el_deg": model.fov_el_deg, "max_range_m": model.max_range_m,
+            "az_res_deg": 1.5, "el_res_deg": 1.5, "doppler_convention": "range rate, negative approaching",
+            "rss_unit": "dB (with range fall-off)", "rss_range_db": [model.rss_min_db, model.rss_max_db]}

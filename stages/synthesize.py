@@ -1,0 +1,123 @@
+"""synthesize: generate the radar frame of a camera + lidar frame (Section IV-B).
+
+Reads: calibrate (image, K, T_radar_cam, lidar, labels, ego_velocity, split), heatmaps (count, for
+synth.count = oracle), train (best Dis-Net and RSS-Net checkpoints).
+Writes (synthesize.zarr) per frame of split synth.split:
+  points (<= capacity, 9) float32 in {D}: x, y, z (m), range (m), azimuth (rad), elevation (rad),
+  doppler (m/s, in the simulated radar's convention: radar.doppler_sign * range rate, wrapped into
+  radar.doppler_span_mps), rss (dataset units), range_rate (m/s, internal convention, wrapped);
+  pred_map (h, w) float32 Dis-Net's distribution; n_hat float32; counts (5,) int32 [requested,
+  no lidar support, outside the field of view, beyond max range, found by widening the window].
+Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.executor import FrameInputs, process_memo
+from pipeline.frame import Object3D
+from pipeline.geometry import wrap_doppler
+from pipeline.stage import ArraySpec, FrameStage
+from stages.patches import point_inputs
+
+POINT_COLUMNS = ("x_m", "y_m", "z_m", "range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss",
+                 "range_rate_mps")
+CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.count",
+               "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
+               "radar.max_range_m", "radar.doppler_sign", "radar.doppler_span_mps", "radar.max_points",
+               "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
+               "patches.patch_size_px")
+SPLITS = {"train": 0, "val": 1, "test": 2}
+
+
+def capacity(cfg: Config) -> int:
+    return max(cfg.radar.max_points, cfg.radar.store_max_points)
+
+
+def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
+    w, h = cfg.camera.working_size
+    return (ArraySpec("points", (capacity(cfg), len(POINT_COLUMNS)), "float32", ",".join(POINT_COLUMNS),
+                      fill=np.nan, ragged=True),
+            ArraySpec("pred_map", (h, w), "float32", "probability per pixel"),
+            ArraySpec("n_hat", (), "float32", "predicted point count"),
+            ArraySpec("counts", (5,), "int32", "requested, no support, out of fov, beyond range, widened"))
+
+
+def select(inputs, cfg: Config) -> np.ndarray:
+    split = np.asarray(inputs.store("calibrate").array("split")[:])
+    if cfg.synth.split == "all":
+        return np.ones(len(split), bool)
+    if cfg.synth.split not in SPLITS:
+        from pipeline.errors import ConfigError
+        raise ConfigError(f"synth.split must be one of train, val, test, all; got '{cfg.synth.split}'")
+    return split == SPLITS[cfg.synth.split]
+
+
+def models(inputs: FrameInputs, cfg: Config):
+    """Best Dis-Net and RSS-Net of the train stage, loaded once per process (CPU)."""
+    import torch
+
+    from pipeline.training import load_disnet, load_rssnet
+
+    out = inputs.env.dir("train")
+    key = ("models", out.url, out.fingerprint())
+
+    def build():
+        torch.set_num_threads(max(1, cfg.train.threads // max(1, cfg.run.workers)))
+        return (load_disnet(cfg, out.file("disnet/best.safetensors"), device="cpu"),
+                load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu"))
+
+    return process_memo(key, build)
+
+
+def labels_from_array(labels: np.ndarray) -> list[Object3D]:
+    """Object3D list from calibrate's label rows."""
+    return [Object3D("object", row[0:3].astype(np.float64), row[3:6].astype(np.float64), float(row[6]),
+                     int(row[10]) if np.isfinite(row[10]) else -1, row[7:10].astype(np.float64)) for row in labels]
+
+
+def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, rssnet, rng) -> dict:
+    """Points of one frame from a map and a count (shared with evaluate's baselines)."""
+    from pipeline.synthesis import synthesize_frame
+    from pipeline.training import rssnet_predict
+
+    r = cfg.radar
+    image, K = inputs.get("calibrate", "image"), inputs.get("calibrate", "K")
+    T_radar_cam, lidar = inputs.get("calibrate", "T_radar_cam"), inputs.get("calibrate", "lidar")
+    ego = inputs.get("calibrate", "ego_velocity")
+    syn = synthesize_frame(prob_map, float(n), K, T_radar_cam, lidar, ego,
+                           labels_from_array(inputs.get("calibrate", "labels")),
+                           az_res_deg=r.az_res_deg, el_res_deg=r.el_res_deg, fov_az_deg=r.fov_az_deg,
+                           fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m, doppler_sign=1,
+                           doppler_span_mps=r.doppler_span_mps, estimator=cfg.synth.range_estimator,
+                           no_support=cfg.synth.no_support, rng=rng)
+    pts = np.asarray(syn["points_D"], np.float64).reshape(-1, 3)
+    range_rate = np.asarray(syn["doppler"], np.float64)
+    if len(pts) and rssnet is not None:
+        patches, ranges = point_inputs(image, K, T_radar_cam, lidar, pts, cfg)
+        vectors = np.column_stack([pts, range_rate]).astype(np.float32)
+        rss = rssnet_predict(rssnet, patches, ranges, vectors)
+    else:
+        rss = np.zeros(len(pts), np.float32)
+    doppler = wrap_doppler(r.doppler_sign * range_rate, r.doppler_span_mps)
+    rows = np.column_stack([pts, np.asarray(syn["rae"], np.float64).reshape(-1, 3), doppler, rss, range_rate])
+    counts = np.array([syn["n_requested"], syn["n_no_support"], syn["n_out_of_fov"], syn["n_beyond_range"],
+                       syn["n_widened"]], np.int32)
+    return {"points": rows.astype(np.float32), "uv": np.asarray(syn["uv"]), "counts": counts}
+
+
+def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
+    from pipeline.training import disnet_predict
+
+    disnet, rssnet = models(inputs, cfg)
+    speed = np.float32(np.linalg.norm(inputs.get("calibrate", "ego_velocity")))
+    maps, n_hat = disnet_predict(disnet, inputs.get("calibrate", "image")[None], np.array([speed], np.float32))
+    n = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else float(n_hat[0])
+    out = generate(inputs, cfg, maps[0], min(n, capacity(cfg)), rssnet, inputs.rng(cfg.synth.seed, 21))
+    return {"points": out["points"], "pred_map": maps[0], "n_hat": np.float32(n_hat[0]), "counts": out["counts"]}
+
+
+STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,
+                   outputs=outputs, process=process, select=select, doc=__doc__)

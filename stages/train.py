@@ -1,0 +1,152 @@
+"""train: Dis-Net and RSS-Net on the train split, model selection on val, figures on test.
+
+Reads: calibrate (image, ego_velocity, split), heatmaps (heatmap, count), patches (patch,
+range_image, point, rss).
+Writes (train/): disnet/{last,best}.safetensors (+ .json sidecars), rssnet/..., training curves
+(CSV, JSON, PNG) per net, metrics.json: held-out test metrics of the best epochs next to the
+baselines (mean training map, training mean count, training median RSS).
+Config: disnet.*, rssnet.*, train.*, radar.max_points / rss_min / rss_max.
+Frames without a projected radar point have no defined heatmap target: they are left out of
+Dis-Net training and counted in the summary.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.cache import DONE, RaggedRows
+from pipeline.config import Config
+from pipeline.errors import PipelineError
+from pipeline.stage import DatasetStage
+
+CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "rssnet.use_camera",
+               "rssnet.use_lidar", "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr",
+               "train.batch_size", "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points",
+               "radar.rss_min", "radar.rss_max")
+
+
+def frame_table(inputs) -> dict[str, np.ndarray]:
+    """Per-frame split, count, speed and usability (all upstream stages done)."""
+    calib, heat, patches = inputs.store("calibrate"), inputs.store("heatmaps"), inputs.store("patches")
+    ok = (calib.status() == DONE) & (heat.status() == DONE) & (patches.status() == DONE)
+    split = np.asarray(calib.array("split")[:])
+    counts = np.asarray(heat.array("count")[:])
+    speeds = np.linalg.norm(np.asarray(calib.array("ego_velocity")[:]), axis=1).astype(np.float32)
+    return {"ok": ok, "split": split, "count": counts, "speed": speeds}
+
+
+def disnet_data(inputs, table):
+    from pipeline.training import DisNetData
+
+    usable = table["ok"] & (table["count"] > 0)
+    idx = {p: np.flatnonzero(usable & (table["split"] == code)) for p, code in (("train", 0), ("val", 1), ("test", 2))}
+    data = DisNetData(images=inputs.store("calibrate").array("image"), heatmaps=inputs.store("heatmaps").array("heatmap"),
+                      counts=table["count"], speeds=table["speed"], train_idx=idx["train"], val_idx=idx["val"])
+    return data, idx
+
+
+def rssnet_data(inputs, table, part: int, val_part: int = 1):
+    """RSS-Net data over the sampled points of frames in split ``part`` (train) and ``val_part``."""
+    from pipeline.training import RssNetData
+
+    store = inputs.store("patches")
+    counts = np.asarray(store.array("patch_count")[:])
+    frames = {p: np.flatnonzero(table["ok"] & (table["split"] == p)) for p in (part, val_part)}
+    allf = np.concatenate([frames[part], frames[val_part]]) if part != val_part else frames[part]
+    rows = {name: RaggedRows(store.array(name), counts, allf) for name in ("patch", "range_image", "point", "rss")}
+    n_train = int(counts[frames[part]].sum())
+    n_all = len(rows["rss"])
+    return RssNetData(patches=rows["patch"], range_images=rows["range_image"], point_vectors=rows["point"],
+                      rss=rows["rss"], train_idx=np.arange(n_train),
+                      val_idx=np.arange(n_train, n_all) if part != val_part else np.arange(0))
+
+
+def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
+    """Held-out test losses of the trivial predictors the networks must beat."""
+    from pipeline.training import disnet_baseline, mean_map_baseline, rssnet_baseline
+
+    heat = inputs.store("heatmaps").array("heatmap")
+    out: dict[str, float] = {}
+    if len(idx["test"]):
+        d = disnet_baseline(heat, table["count"], idx["train"], idx["test"])
+        out.update(mean_map_kl=d["kl"], mean_count_L_n=d["n"])
+    out["train_mean_count"] = float(table["count"][idx["train"]].mean())
+    train_rss, test_rss = rssnet_data(inputs, table, 0, 0).rss, rssnet_data(inputs, table, 2, 2).rss
+    if len(train_rss) and len(test_rss):
+        # one flat array: the training points first, then the test points
+        rss = np.concatenate([train_rss[np.arange(len(train_rss))], test_rss[np.arange(len(test_rss))]])
+        r = rssnet_baseline(rss, np.arange(len(train_rss)), np.arange(len(train_rss), len(rss)),
+                            cfg.radar.rss_min, cfg.radar.rss_max)
+        out.update(median_rss_L_a=r["a"], train_rss_median=r["median"])
+    mean_map = mean_map_baseline(heat, idx["train"]).astype(np.float32)
+    np.save(Path(inputs.dir("train").path) / "mean_heatmap.npy", mean_map, allow_pickle=False)
+    return out
+
+
+def training_fingerprint(inputs, cfg: Config, net: str) -> str:
+    """What a net's checkpoints depend on: its config keys (not epochs) and the training data.
+
+    Raising train.epochs re-runs the stage but continues from the last finished epoch.
+    """
+    from pipeline.training import default_fingerprint
+
+    data = [inputs.store(s).fingerprint() for s in ("calibrate", "heatmaps", "patches")]
+    return f"{default_fingerprint(cfg, net)}-" + "-".join(str(d) for d in data)
+
+
+def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
+    """Train the configured nets; returns the summary (test metrics next to baselines)."""
+    from pipeline.training import (disnet_metrics, load_disnet, load_rssnet, rssnet_metrics, train_disnet,
+                                   train_rssnet)
+
+    nets = {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
+    unknown = nets - {"disnet", "rssnet"}
+    if unknown:
+        raise PipelineError(f"train.nets: unknown net(s) {sorted(unknown)} (use disnet, rssnet)")
+    table = frame_table(inputs)
+    d_data, idx = disnet_data(inputs, table)
+    if len(idx["train"]) == 0:
+        raise PipelineError("train: no usable training frame (all failed, or no radar point in the train split)")
+    root = Path(out.path)
+    summary: dict = {"frames": {k: int(len(v)) for k, v in idx.items()},
+                     "frames_without_radar_points": int((table["ok"] & (table["count"] == 0)).sum()),
+                     "checkpoints": str(root)}
+    summary["baselines_test"] = _baselines(inputs, table, idx, cfg)
+    if "disnet" in nets:
+        res = train_disnet(cfg, d_data, root / "disnet", progress=inputs.progress,
+                           fingerprint=training_fingerprint(inputs, cfg, "disnet"))
+        model = load_disnet(cfg, res.best_path, device="cpu")
+        summary["disnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from,
+                             "val": res.best_metric,
+                             "test": disnet_metrics(model, d_data, idx["test"], cfg.train.alpha) if len(idx["test"]) else {}}
+    if "rssnet" in nets:
+        r_data = rssnet_data(inputs, table, 0, 1)
+        res = train_rssnet(cfg, r_data, root / "rssnet", progress=inputs.progress,
+                           fingerprint=training_fingerprint(inputs, cfg, "rssnet"))
+        model = load_rssnet(cfg, res.best_path, device="cpu")
+        test = rssnet_data(inputs, table, 2, 2)
+        summary["rssnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
+                             "test": rssnet_metrics(model, test, np.arange(len(test.rss))) if len(test.rss) else {}}
+    (root / "metrics.json").write_text(json.dumps(summary, indent=2, default=float))
+    summary["message"] = _headline(summary)
+    return summary
+
+
+def _headline(s: dict) -> str:
+    b = s["baselines_test"]
+    nan = float("nan")
+    parts = []
+    if "disnet" in s and s["disnet"]["test"]:
+        t = s["disnet"]["test"]
+        parts.append(f"Dis-Net test L_KL {t['kl']:.4f} (mean map {b.get('mean_map_kl', nan):.4f}), "
+                     f"L_n {t['n']:.4f} (mean count {b.get('mean_count_L_n', nan):.4f})")
+    if "rssnet" in s and s["rssnet"]["test"]:
+        parts.append(f"RSS-Net test L_a {s['rssnet']['test']['a']:.2e} (median {b.get('median_rss_L_a', float('nan')):.2e})")
+    return "; ".join(parts) or "trained"
+
+
+STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS,
+                     run=run, doc=__doc__)

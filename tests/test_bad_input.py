@@ -1,0 +1,227 @@
+"""Reader-level bad input: each case raises ReaderError whose one-line message names file and problem."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.config import load_config
+from pipeline.errors import ReaderError
+from pipeline.readers import get_reader
+from pipeline.readers.testing import T_CAM_RADAR, make_astyx_dataset, make_vod_dataset, rigid, write_image, write_pose
+
+FID = "00011"
+
+
+@pytest.fixture()
+def vod(tmp_path):
+    make_vod_dataset(tmp_path, n_frames=3, first=10)
+    return tmp_path
+
+
+@pytest.fixture()
+def astyx(tmp_path):
+    make_astyx_dataset(tmp_path, n_frames=2, n_radar=200)
+    return tmp_path
+
+
+def _vod_reader(root: Path):
+    return get_reader(load_config("vod").with_overrides({"camera.full_size": "64,48"}), root)
+
+
+def _astyx_reader(root: Path):
+    return get_reader(load_config("astyx").with_overrides({"camera.full_size": "64,48"}), root)
+
+
+def _expect(reader, fid: str, path: Path, problem: str) -> ReaderError:
+    with pytest.raises(ReaderError) as info:
+        reader.read(fid)
+    message = str(info.value)
+    assert "\n" not in message
+    assert str(path) in message, message
+    assert problem in message, message
+    assert info.value.frame == fid
+    return info.value
+
+
+def _radar(root: Path, fid: str = FID) -> Path:
+    return root / "radar/training/velodyne" / f"{fid}.bin"
+
+
+def _lidar(root: Path, fid: str = FID) -> Path:
+    return root / "lidar/training/velodyne" / f"{fid}.bin"
+
+
+def _calib(root: Path, fid: str = FID) -> Path:
+    return root / "radar/training/calib" / f"{fid}.txt"
+
+
+def _image(root: Path, fid: str = FID) -> Path:
+    return root / "lidar/training/image_2" / f"{fid}.jpg"
+
+
+def test_truncated_radar_bin(vod):
+    with open(_radar(vod), "ab") as f:
+        f.write(b"\x00\x01\x02")
+    _expect(_vod_reader(vod), FID, _radar(vod), "not a multiple of 28")
+
+
+def test_radar_records_saved_as_lidar_have_wrong_length(vod):
+    np.zeros((3, 7), "<f4").tofile(_lidar(vod))  # 84 bytes: not 4-float records
+    _expect(_vod_reader(vod), FID, _lidar(vod), "not a multiple of 16")
+
+
+def test_lidar_records_saved_as_radar_are_rejected_by_time_column(vod):
+    lidar = np.random.default_rng(0).uniform(1, 30, (14, 4)).astype("<f4")  # 224 bytes = 8 x 28
+    lidar.tofile(_radar(vod))
+    _expect(_vod_reader(vod), FID, _radar(vod), "wrong record type")
+
+
+def test_nan_radar_points(vod):
+    radar = np.fromfile(_radar(vod), "<f4").reshape(-1, 7)
+    radar[3, 1] = np.nan
+    radar.tofile(_radar(vod))
+    _expect(_vod_reader(vod), FID, _radar(vod), "NaN or inf")
+
+
+def test_inf_lidar_points_astyx(astyx):
+    path = astyx / "lidar_vlp16/000001.txt"
+    lines = path.read_text().splitlines()
+    lines[5] = "inf 0.0 0.0 5 0 1000"
+    path.write_text("\n".join(lines) + "\n")
+    _expect(_astyx_reader(astyx), "000001", path, "NaN or inf")
+
+
+def test_empty_radar_frame(vod):
+    _radar(vod).write_bytes(b"")
+    _expect(_vod_reader(vod), FID, _radar(vod), "no points")
+
+
+def test_empty_lidar_frame(vod):
+    _lidar(vod).write_bytes(b"")
+    _expect(_vod_reader(vod), FID, _lidar(vod), "no points")
+
+
+def test_missing_calibration_key(vod):
+    text = "\n".join(l for l in _calib(vod).read_text().splitlines() if not l.startswith("P2"))
+    _calib(vod).write_text(text)
+    _expect(_vod_reader(vod), FID, _calib(vod), "'P2' is missing")
+
+
+def test_malformed_calibration_values(vod):
+    text = _calib(vod).read_text().replace("R0_rect: 1 0 0", "R0_rect: 1 zero 0")
+    _calib(vod).write_text(text)
+    _expect(_vod_reader(vod), FID, _calib(vod), "malformed calibration values for key 'R0_rect'")
+
+
+def test_non_invertible_transform(vod):
+    lines = [("Tr_velo_to_cam: " + " ".join(["0"] * 12)) if l.startswith("Tr_velo_to_cam") else l
+             for l in _calib(vod).read_text().splitlines()]
+    _calib(vod).write_text("\n".join(lines))
+    _expect(_vod_reader(vod), FID, _calib(vod), "not an invertible rigid transform")
+
+
+def test_astyx_missing_intrinsics_and_scaled_transform(astyx):
+    path = astyx / "calibration/000001.json"
+    calib = json.loads(path.read_text())
+    del calib["sensors"][2]["calib_data"]["K"]
+    path.write_text(json.dumps(calib))
+    _expect(_astyx_reader(astyx), "000001", path, "'K' of sensor 'camera_front' is missing")
+    calib["sensors"][1]["calib_data"]["T_to_ref_COS"] = (2 * np.eye(4)).tolist()
+    path.write_text(json.dumps(calib))
+    _expect(_astyx_reader(astyx), "000001", path, "not an invertible rigid transform")
+
+
+def test_corrupt_image(vod):
+    _image(vod).write_bytes(b"\xff\xd8 this is not a jpeg")
+    _expect(_vod_reader(vod), FID, _image(vod), "cannot be decoded")
+
+
+def test_image_of_wrong_size(vod):
+    write_image(_image(vod), (80, 48))
+    _expect(_vod_reader(vod), FID, _image(vod), "image is 80x48 pixels, expected 64x48")
+
+
+def test_index_entry_outside_dataset_root(astyx):
+    index = json.loads((astyx / "dataset.json").read_text())
+    index["data"]["1"]["radar_6455"] = "../../outside/000001.txt"
+    (astyx / "dataset.json").write_text(json.dumps(index))
+    reader = _astyx_reader(astyx)
+    assert "000001" in reader.frame_ids()
+    _expect(reader, "000001", astyx / "dataset.json", "points outside the dataset root")
+
+
+def test_missing_files_are_skipped_counted_and_raise_on_read(vod):
+    _lidar(vod).unlink()
+    reader = _vod_reader(vod)
+    assert reader.frame_ids() == ["00010", "00012"]
+    assert reader.report()["skipped_missing"] == 1
+    _expect(reader, FID, _lidar(vod), "missing")
+
+
+def test_astyx_missing_files_are_skipped_and_counted(astyx):
+    (astyx / "camera_front/000000.jpg").unlink()
+    reader = _astyx_reader(astyx)
+    assert reader.frame_ids() == ["000001"] and reader.report()["skipped_missing"] == 1
+    _expect(reader, "000000", astyx / "dataset.json", "missing")
+
+
+def test_duplicate_frame_id_jpg_and_png(vod):
+    write_image(_image(vod).with_suffix(".png"), (64, 48))
+    _expect(_vod_reader(vod), FID, _image(vod), "duplicate frame id")
+
+
+def test_duplicate_index_entries(astyx):
+    text = (astyx / "dataset.json").read_text()
+    entry = json.dumps(json.loads(text)["data"]["1"])
+    (astyx / "dataset.json").write_text(text.replace('"data": {', f'"data": {{"01": {entry}, ', 1))
+    _expect(_astyx_reader(astyx), "000001", astyx / "dataset.json", "duplicate index entries '01' and '1'")
+    # the same key twice (json would silently keep the last one)
+    (astyx / "dataset.json").write_text(text.replace('"data": {', f'"data": {{"0": {entry}, ', 1))
+    _expect(_astyx_reader(astyx), "000000", astyx / "dataset.json", "duplicate index entr")
+
+
+def test_non_monotonic_timestamps(vod):
+    for fid, t in (("00010", 5.0), ("00011", 4.9)):
+        write_pose(vod / "lidar/training/pose" / f"{fid}.json", np.linalg.inv(T_CAM_RADAR), t)
+    _expect(_vod_reader(vod), FID, vod / "lidar/training/pose" / f"{FID}.json", "non-monotonic timestamps")
+
+
+def test_absurd_ego_speed(vod):
+    radar = np.fromfile(_radar(vod), "<f4").reshape(-1, 7)
+    u = radar[:, :3] / np.linalg.norm(radar[:, :3], axis=1, keepdims=True)
+    radar[:, 4] = -(u @ np.array([100.0, 0, 0]))
+    radar[:, 5] = 0.0
+    radar.tofile(_radar(vod))
+    _expect(_vod_reader(vod), FID, _radar(vod), "absurd ego speed 100.0 m/s")
+
+
+def test_radar_points_all_outside_field_of_view(vod):
+    radar = np.fromfile(_radar(vod), "<f4").reshape(-1, 7)
+    radar[:, 0] *= -1  # behind the sensor: wrong axis convention
+    radar.tofile(_radar(vod))
+    _expect(_vod_reader(vod), FID, _radar(vod), "outside the field of view")
+
+
+def test_astyx_radar_row_with_missing_value(astyx):
+    path = astyx / "radar_6455/000001.txt"
+    lines = path.read_text().splitlines()
+    lines[4] = "1.0 2.0 0.5 48"
+    path.write_text("\n".join(lines) + "\n")
+    _expect(_astyx_reader(astyx), "000001", path, "has 4 values, expected 5")
+
+
+def test_malformed_pose_file(vod):
+    path = vod / "lidar/training/pose" / f"{FID}.json"
+    path.write_text('{"odomToCamera": [1, 2,')
+    _expect(_vod_reader(vod), FID, path, "not JSON lines")
+
+
+def test_pose_that_is_not_rigid(vod):
+    write_pose(vod / "lidar/training/pose" / f"{FID}.json", rigid(3 * np.eye(3), np.zeros(3)))
+    radar = np.fromfile(_radar(vod), "<f4").reshape(-1, 7)[:2]  # too few points: poses are needed
+    radar.tofile(_radar(vod))
+    _expect(_vod_reader(vod), FID, vod / "lidar/training/pose" / f"{FID}.json", "odomToCamera")

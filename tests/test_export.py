@@ -1,0 +1,151 @@
+"""Tests of pipeline.export: VoD .bin round trip and its v_r_compensated definition, noise points,
+PCD round trip, preview images and the KITTI/VoD folder layout."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.errors import ReaderError
+from pipeline.export import (
+    add_uniform_noise, kitti_calib_text, preview_png, read_pcd, read_vod_bin, vod_points,
+    write_image_sets, write_kitti_layout, write_pcd, write_vod_bin,
+)
+from pipeline.geometry import cartesian_to_spherical
+from pipeline.synthesis import doppler_for_points
+
+
+def random_points(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    points = rng.uniform([1, -20, -2], [50, 20, 5], (n, 3))
+    return points, rng.uniform(-70, 40, n), rng.uniform(-10, 10, n)
+
+
+def test_vod_bin_round_trip(tmp_path: Path):
+    points, rss, v_r = random_points(50)
+    ego = np.array([4.0, 0.5, -0.1])
+    path = write_vod_bin(tmp_path / "radar" / "00001.bin", points, rss, v_r, ego)
+    assert path.stat().st_size == 50 * 28
+    rows = read_vod_bin(path)
+    assert rows.shape == (50, 7) and rows.dtype == np.float32
+    np.testing.assert_array_equal(rows[:, :3], points.astype(np.float32))
+    np.testing.assert_array_equal(rows[:, 3], rss.astype(np.float32))
+    np.testing.assert_array_equal(rows[:, 4], v_r.astype(np.float32))
+    np.testing.assert_array_equal(rows[:, 6], 0.0)
+    # VoD: v_r - v_r_compensated = -(u . v_ego)
+    unit = points / np.linalg.norm(points, axis=1, keepdims=True)
+    np.testing.assert_allclose(rows[:, 4] - rows[:, 5], -(unit @ ego), atol=1e-5)
+    assert [p.name for p in path.parent.iterdir()] == ["00001.bin"]  # no temporary files left
+
+
+def test_static_world_compensates_to_zero():
+    points, rss, _ = random_points(20, seed=1)
+    ego = np.array([7.0, -0.3, 0.05])
+    v_r = doppler_for_points(points, ego, None, +1, 0.0)  # range rate of static targets
+    rows = vod_points(points, rss, v_r, ego)
+    np.testing.assert_allclose(rows[:, 5], 0.0, atol=1e-5)
+
+
+def test_vod_bin_empty_and_bad_files(tmp_path: Path):
+    path = write_vod_bin(tmp_path / "e.bin", np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(3))
+    assert read_vod_bin(path).shape == (0, 7)
+    bad = tmp_path / "bad.bin"
+    bad.write_bytes(b"\0" * 30)
+    with pytest.raises(ReaderError, match="multiple of 28"):
+        read_vod_bin(bad)
+    with pytest.raises(ReaderError):
+        read_vod_bin(tmp_path / "missing.bin")
+    with pytest.raises(ValueError):
+        write_vod_bin(tmp_path / "x.bin", np.zeros((3, 3)), np.zeros(2), np.zeros(3), np.zeros(3))
+
+
+def test_uniform_noise_count_and_bounds():
+    points, rss, v_r = random_points(200)
+    ego = np.array([3.0, 0.0, 0.0])
+    rows = vod_points(points, rss, v_r, ego)
+    out = add_uniform_noise(rows, 0.05, np.random.default_rng(0), fov_az_deg=64.0, fov_el_deg=40.0,
+                            max_range_m=50.0, rss_range=(-74.0, 39.8), doppler_range_mps=(-20.0, 20.0),
+                            ego_velocity_D=ego)
+    assert out.shape == (210, 7) and out.dtype == np.float32
+    np.testing.assert_array_equal(out[:200], rows)
+    noise = out[200:].astype(np.float64)
+    rae = cartesian_to_spherical(noise[:, :3])
+    assert np.all((rae[:, 0] >= 0.5 - 1e-4) & (rae[:, 0] <= 50.0 + 1e-4))
+    assert np.all(np.abs(np.rad2deg(rae[:, 1])) <= 32.0 + 1e-3)
+    assert np.all(np.abs(np.rad2deg(rae[:, 2])) <= 20.0 + 1e-3)
+    assert np.all((noise[:, 3] >= -74.0) & (noise[:, 3] <= 39.8))
+    assert np.all((noise[:, 4] >= -20.0) & (noise[:, 4] <= 20.0))
+    unit = noise[:, :3] / rae[:, :1]
+    np.testing.assert_allclose(noise[:, 4] - noise[:, 5], -(unit @ ego), atol=1e-4)
+    assert add_uniform_noise(rows, 0.0, np.random.default_rng(0), fov_az_deg=64, fov_el_deg=40,
+                             max_range_m=50, rss_range=(0, 1), doppler_range_mps=(0, 1)).shape == (200, 7)
+    with pytest.raises(ValueError):
+        add_uniform_noise(rows, -0.1, np.random.default_rng(0), fov_az_deg=64, fov_el_deg=40,
+                          max_range_m=50, rss_range=(0, 1), doppler_range_mps=(0, 1))
+
+
+def test_pcd_round_trip(tmp_path: Path):
+    points, rss, doppler = random_points(30)
+    path = write_pcd(tmp_path / "pcd" / "00001.pcd", points, rss, doppler)
+    back = read_pcd(path)
+    assert back.shape == (30, 5)
+    np.testing.assert_array_equal(back, np.column_stack([points, rss, doppler]).astype(np.float32))
+    empty = write_pcd(tmp_path / "empty.pcd", np.zeros((0, 3)), np.zeros(0), np.zeros(0))
+    assert read_pcd(empty).shape == (0, 5)
+
+
+def test_preview_png(tmp_path: Path):
+    h, w = 120, 200
+    image = np.zeros((h, w, 3), np.uint8)
+    image[..., 0] = 200  # red in RGB
+    uv = np.array([[150.0, 90.0], [60.0, 100.0]])
+    path = preview_png(tmp_path / "prev" / "00001.png", image, uv, np.array([10.0, 45.0]), 50.0)
+    out = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert out.shape == (h, w, 3)
+    np.testing.assert_array_equal(out[110, 10], [0, 0, 200])  # untouched pixel, BGR order
+    expected = cv2.applyColorMap(np.array([[int(10 / 50 * 255)]], np.uint8), cv2.COLORMAP_TURBO)[0, 0]
+    np.testing.assert_array_equal(out[90, 150], expected)  # point centre coloured by its range
+    assert not np.array_equal(out[100, 60], out[90, 150])  # farther point, other colour
+
+
+def test_kitti_layout_and_image_sets(tmp_path: Path):
+    root = tmp_path / "radar"
+    calib_src = tmp_path / "src_calib.txt"
+    calib_src.write_text("P2: 1 0 0 0 0 1 0 0 0 0 1 0\nTr_imu_to_velo:\n")
+    image_src = tmp_path / "img.jpg"
+    image_src.write_bytes(b"jpegbytes")
+    points, rss, v_r = random_points(5)
+    rows = vod_points(points, rss, v_r, np.zeros(3))
+    label = "Car 0 0 0 0 0 10 10 1.5 1.8 4.0 1 1.6 10 0\n"
+    written = write_kitti_layout(root, "00042", rows, calib=calib_src, label=label, image=image_src)
+    assert written["velodyne"] == root / "training" / "velodyne" / "00042.bin"
+    np.testing.assert_array_equal(read_vod_bin(written["velodyne"]), rows)
+    assert (root / "training" / "calib" / "00042.txt").read_text() == calib_src.read_text()
+    assert (root / "training" / "label_2" / "00042.txt").read_text() == label
+    assert (root / "training" / "image_2" / "00042.jpg").read_bytes() == b"jpegbytes"
+    sets = write_image_sets(root, {"train": ["00001", "00002"], "val": [], "test": ["00042"]})
+    assert (root / "ImageSets" / "train.txt").read_text() == "00001\n00002\n"
+    assert sets["val"].read_text() == ""
+    assert (root / "ImageSets" / "test.txt").read_text() == "00042\n"
+    with pytest.raises(ValueError):
+        write_kitti_layout(root, "../evil", rows)
+    with pytest.raises(ReaderError):
+        write_kitti_layout(root, "00043", rows, calib=tmp_path / "missing.txt")
+
+
+def test_kitti_calib_text_parses_back():
+    P2 = np.array([[500.0, 0, 320, 1.5], [0, 500, 240, 0], [0, 0, 1, 0]])
+    T = np.eye(4)
+    T[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
+    T[:3, 3] = [0.1, -0.2, 0.3]
+    parsed = {}
+    for line in kitti_calib_text(P2, T).splitlines():
+        key, _, values = line.partition(":")
+        parsed[key] = np.array(values.split(), dtype=np.float64)
+    assert set(parsed) == {"P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam", "Tr_imu_to_velo"}
+    np.testing.assert_allclose(parsed["P2"].reshape(3, 4), P2)
+    np.testing.assert_allclose(parsed["Tr_velo_to_cam"].reshape(3, 4), T[:3])
+    np.testing.assert_allclose(parsed["R0_rect"].reshape(3, 3), np.eye(3))

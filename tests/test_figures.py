@@ -1,0 +1,86 @@
+"""Figures are real PNG files of the documented size with non-trivial content."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline import figures as F
+
+
+def _check_png(path, width_in, height_in, min_kb=5):
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert img is not None
+    assert img.shape == (round(height_in * F.FIG_DPI), round(width_in * F.FIG_DPI), 3)
+    assert path.stat().st_size > min_kb * 1024
+    return img
+
+
+def _has_color(img_bgr, bgr):
+    """Some pixels close to a pure colour (red real points, blue synthetic points)."""
+    return bool(np.any(np.all(np.abs(img_bgr.astype(int) - np.array(bgr)) < 40, axis=2)))
+
+
+def test_fig8(tmp_path):
+    rng = np.random.default_rng(0)
+    frames = []
+    for k in range(2):
+        image = np.full((96, 320, 3), 128, np.uint8)  # grey: no red or blue of its own
+        image[:, ::7] = 200
+        prob = rng.uniform(0, 1, (24, 80))
+        frames.append({"image": image, "prob_map": prob / prob.sum(),
+                       "real_uv": rng.uniform([0, 0], [319, 95], (80, 2)),
+                       "syn_uv": rng.uniform([0, 0], [319, 95], (60, 2)), "title": f"frame {k}"})
+    path = F.fig8(tmp_path / "figs" / "fig8.png", frames)
+    img = _check_png(path, *F.fig8_size_in((96, 320), 2))
+    assert _has_color(img, (0, 0, 255)) and _has_color(img, (255, 0, 0))
+    with pytest.raises(ValueError):
+        F.fig8(tmp_path / "x.png", [])
+
+
+def test_bev(tmp_path):
+    rng = np.random.default_rng(1)
+    real5 = np.column_stack([rng.uniform([0, -20, -1], [50, 20, 2], (200, 3)), rng.normal(0, 1, (200, 2))])
+    frames = [{"real_points_D": real5,
+               "syn_points_D": rng.uniform([0, -20, -1], [50, 20, 2], (150, 3)), "title": "bev"},
+              {"real_points_D": np.zeros((0, 3)), "syn_points_D": np.zeros((0, 3)), "title": "empty"}]
+    path = F.bev(tmp_path / "bev.png", frames)
+    img = _check_png(path, 8.0, 4.0)
+    assert _has_color(img, (0, 0, 255)) and _has_color(img, (255, 0, 0))
+
+
+def _red_quadrants(path):
+    """Red pixel counts in the lower-left, lower-right quadrants and the lower half (the legend,
+    with its own red marker, sits in the upper right)."""
+    img = cv2.imread(str(path))
+    red = np.all(np.abs(img.astype(int) - [0, 0, 255]) < 60, axis=2)
+    h, w = red.shape
+    return red[h // 2:, : w // 2].sum(), red[h // 2:, w // 2:].sum(), red[h // 2:].sum()
+
+
+def _one_point_bev(tmp_path, name, xyz):
+    frame = {"real_points_D": np.array([xyz], float), "syn_points_D": np.zeros((0, 3)), "title": ""}
+    return _red_quadrants(F.bev(tmp_path / name, [frame]))
+
+
+def test_bev_orientation(tmp_path):
+    """y (left) is drawn to the left, x (forward) upwards."""
+    ll, lr, _ = _one_point_bev(tmp_path, "left.png", (10.0, 30.0, 0.0))
+    assert ll > 0 and lr == 0
+    ll, lr, _ = _one_point_bev(tmp_path, "right.png", (10.0, -30.0, 0.0))
+    assert ll == 0 and lr > 0
+    assert _one_point_bev(tmp_path, "near.png", (5.0, 0.0, 0.0))[2] > 0
+    assert _one_point_bev(tmp_path, "far.png", (45.0, 0.0, 0.0))[2] == 0
+
+
+def test_histograms(tmp_path):
+    rng = np.random.default_rng(2)
+    real = rng.normal(0, 1, (500, 5))
+    syn = rng.normal(0.5, 1, (400, 5))
+    path = F.histograms(tmp_path / "hist.png", real, syn)
+    _check_png(path, 15.0, 3.0)
+    path = F.histograms(tmp_path / "hist_empty.png", real, np.zeros((0, 5)))
+    _check_png(path, 15.0, 3.0)
+    with pytest.raises(ValueError):
+        F.histograms(tmp_path / "bad.png", real, syn[:, :3])

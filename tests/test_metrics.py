@@ -1,0 +1,297 @@
+"""Metrics against hand computations and brute-force oracles."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.distance import cdist
+
+from pipeline.geometry import wrap_doppler
+from pipeline import metrics as M
+
+
+# ---------------------------------------------------------------- brute-force oracles
+
+def brute_gospa(syn: np.ndarray, real: np.ndarray, c: float, p: float) -> float:
+    """GOSPA (alpha = 2) by enumerating every partial assignment of pairs with d < c."""
+    n, m = len(syn), len(real)
+    best = c ** p / 2 * (n + m)
+    d = cdist(syn, real) if n and m else np.zeros((n, m))
+    for k in range(1, min(n, m) + 1):
+        for rows in itertools.combinations(range(n), k):
+            for cols in itertools.permutations(range(m), k):
+                dd = d[list(rows), list(cols)]
+                if np.all(dd < c):
+                    best = min(best, float(np.sum(dd ** p)) + c ** p / 2 * (n + m - 2 * k))
+    return best ** (1 / p)
+
+
+def brute_max_matches(syn: np.ndarray, real: np.ndarray, gates: tuple[float, float, float]) -> int:
+    """Maximum number of admissible one-to-one pairs, by enumerating injections."""
+    g_m, g_rss, g_dop = gates
+    n, m = len(syn), len(real)
+    ok = ((cdist(syn[:, :3], real[:, :3]) <= g_m)
+          & (np.abs(syn[:, None, 4] - real[None, :, 4]) <= g_rss)
+          & (np.abs(syn[:, None, 3] - real[None, :, 3]) <= g_dop))
+    if n > m:
+        ok, n, m = ok.T, m, n
+    best = 0
+    for cols in itertools.permutations(range(m), n):
+        best = max(best, int(sum(ok[i, j] for i, j in enumerate(cols))))
+    return best
+
+
+def small_points(max_n: int, scale: float, cols: int):
+    return st.integers(0, max_n).flatmap(
+        lambda n: st.lists(st.lists(st.floats(-scale, scale, allow_nan=False), min_size=cols, max_size=cols),
+                           min_size=n, max_size=n)).map(lambda x: np.array(x, dtype=np.float64).reshape(-1, cols))
+
+
+# ---------------------------------------------------------------- KL and counts
+
+def test_kl_hand_value_and_zero_terms():
+    P = np.array([[0.5, 0.5, 0.0]])
+    Q = np.array([[0.25, 0.25, 0.5]])
+    assert M.kl_divergence(P, Q) == pytest.approx(math.log(2.0))
+    assert M.kl_divergence(P, P) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_kl_normalises_and_clips():
+    P = np.array([[2.0, 2.0]])  # unnormalised target
+    assert M.kl_divergence(P, np.array([[1.0, 1.0]])) == pytest.approx(0.0, abs=1e-12)
+    v = M.kl_divergence(np.array([[1.0, 0.0]]), np.array([[0.0, 1.0]]))
+    assert np.isfinite(v) and v == pytest.approx(-math.log(M.KL_EPS))
+    assert math.isnan(M.kl_divergence(np.zeros((2, 2)), np.ones((2, 2))))
+    with pytest.raises(ValueError):
+        M.kl_divergence(np.ones((2, 2)), -np.ones((2, 2)))
+    with pytest.raises(ValueError):
+        M.kl_divergence(np.ones((2, 2)), np.ones((2, 3)))
+
+
+def test_count_errors():
+    assert M.count_errors(15, 10) == pytest.approx((0.5, 0.25))
+    assert M.count_errors(5, 10) == pytest.approx((0.5, 0.25))
+    assert all(math.isnan(x) for x in M.count_errors(3, 0))
+
+
+# ---------------------------------------------------------------- Chamfer
+
+def test_chamfer_hand_value():
+    a = np.array([[0.0, 0, 0], [1, 0, 0]])
+    b = np.array([[0.0, 0, 2]])
+    # a->b: 2 and sqrt(5); b->a: 2
+    assert M.chamfer_m(a, b) == pytest.approx(0.5 * ((2 + math.sqrt(5)) / 2 + 2))
+    assert M.chamfer_m(a, a) == 0.0
+    assert math.isnan(M.chamfer_m(a, np.zeros((0, 3))))
+
+
+@settings(max_examples=40, deadline=None)
+@given(small_points(8, 10.0, 3), small_points(8, 10.0, 3))
+def test_chamfer_matches_brute_force(a, b):
+    if len(a) == 0 or len(b) == 0:
+        assert math.isnan(M.chamfer_m(a, b))
+        return
+    d = cdist(a, b)
+    assert M.chamfer_m(a, b) == pytest.approx(0.5 * (d.min(1).mean() + d.min(0).mean()), abs=1e-9)
+
+
+# ---------------------------------------------------------------- GOSPA
+
+def test_gospa_hand_values():
+    real = np.array([[0.0, 0, 0], [10, 0, 0]])
+    syn = np.array([[1.0, 0, 0]])
+    g = M.gospa(syn, real)  # c = 2, p = 2: one pair at d = 1, one missed point
+    assert g["localisation"] == pytest.approx(1.0)
+    assert g["missed"] == pytest.approx(2.0) and g["false"] == 0.0
+    assert g["total"] == pytest.approx(math.sqrt(3.0))
+    assert (g["n_assigned"], g["n_missed"], g["n_false"]) == (1, 1, 0)
+    far = M.gospa(np.array([[0.0, 0, 5]]), np.array([[0.0, 0, 0]]))  # beyond c: missed + false
+    assert far["localisation"] == 0.0 and far["missed"] == far["false"] == pytest.approx(2.0)
+    assert far["total"] == pytest.approx(2.0)
+    assert M.gospa(real, real)["total"] == 0.0
+    assert M.gospa(np.zeros((0, 3)), np.zeros((0, 3)))["total"] == 0.0
+    assert M.gospa(np.zeros((0, 3)), real)["total"] == pytest.approx(math.sqrt(4.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(small_points(4, 3.0, 3), small_points(4, 3.0, 3), st.sampled_from([1.0, 2.0]), st.sampled_from([1.0, 2.0]))
+def test_gospa_matches_enumeration(syn, real, c, p):
+    expected = brute_gospa(syn, real, c, p)
+    for density in (0.0, 2.0):  # dense Hungarian, then the sparse formulation
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(M, "DENSE_MATCHING_MIN_DENSITY", density)
+            g = M.gospa(syn, real, c=c, p=p)
+        assert g["total"] == pytest.approx(expected, rel=1e-9, abs=1e-9)
+        assert g["localisation"] + g["missed"] + g["false"] == pytest.approx(g["total"] ** p, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("box", [3.0, 60.0])  # dense graph (dense solver) and sparse graph
+def test_gospa_large_matches_dense_hungarian(box):
+    rng = np.random.default_rng(1)
+    real = rng.uniform(0, box, (400, 3))
+    syn = rng.uniform(0, box, (450, 3))
+    C = np.minimum(cdist(syn, real), 2.0) ** 2
+    r, c = linear_sum_assignment(C)
+    ref = math.sqrt(C[r, c].sum() + 2.0 * (len(syn) - len(real)))
+    assert M.gospa(syn, real)["total"] == pytest.approx(ref, rel=1e-9)
+
+
+def test_gospa_sparse_and_dense_solvers_agree(monkeypatch):
+    rng = np.random.default_rng(2)
+    real, syn = rng.uniform(0, 8, (200, 3)), rng.uniform(0, 8, (230, 3))
+    dense = M.gospa(syn, real)
+    monkeypatch.setattr(M, "DENSE_MATCHING_MIN_DENSITY", 2.0)  # force the sparse formulation
+    sparse = M.gospa(syn, real)
+    assert sparse["total"] == pytest.approx(dense["total"], rel=1e-9)
+    assert sparse["n_assigned"] == dense["n_assigned"]
+
+
+def test_gospa_rejects_other_alpha():
+    with pytest.raises(ValueError):
+        M.gospa(np.zeros((1, 3)), np.zeros((1, 3)), alpha=1.0)
+
+
+# ---------------------------------------------------------------- matched F1
+
+def test_f1_identical_and_disjoint():
+    rng = np.random.default_rng(0)
+    real = np.column_stack([rng.uniform(0, 30, (50, 3)), rng.normal(0, 3, 50), rng.normal(0, 10, 50)])
+    f = M.matched_f1(real, real)
+    assert (f["precision"], f["recall"], f["f1"], f["matches"]) == (1.0, 1.0, 1.0, 50)
+    moved = real.copy()
+    moved[:, 0] += 100.0  # beyond the distance gate
+    assert M.matched_f1(moved, real)["f1"] == 0.0
+    louder = real.copy()
+    louder[:, 4] += 8.5  # beyond the RSS gate only
+    assert M.matched_f1(louder, real)["matches"] == 0
+    faster = real.copy()
+    faster[:, 3] += 2.6  # beyond the Doppler gate only
+    assert M.matched_f1(faster, real)["matches"] == 0
+
+
+def test_f1_hand_value_and_empty():
+    real = np.array([[0.0, 0, 0, 0, 0], [5, 0, 0, 0, 0]])
+    syn = np.array([[0.5, 0, 0, 1, 3], [20, 0, 0, 0, 0], [21, 0, 0, 0, 0]])
+    f = M.matched_f1(syn, real)
+    assert f["matches"] == 1
+    assert f["precision"] == pytest.approx(1 / 3) and f["recall"] == pytest.approx(0.5)
+    assert f["f1"] == pytest.approx(2 * (1 / 3) * 0.5 / (1 / 3 + 0.5))
+    e = M.matched_f1(np.zeros((0, 5)), real)
+    assert math.isnan(e["precision"]) and e["recall"] == 0.0 and e["f1"] == 0.0
+    assert math.isnan(M.matched_f1(np.zeros((0, 5)), np.zeros((0, 5)))["f1"])
+
+
+def test_f1_wrapped_doppler():
+    real = np.array([[0.0, 0, 0, 5.0, 0]])
+    syn = np.array([[0.0, 0, 0, -5.0, 0]])  # 10 m/s apart, 0.39 m/s apart on a 10.39 m/s circle
+    assert M.matched_f1(syn, real)["matches"] == 0
+    assert M.matched_f1(syn, real, doppler_span_mps=10.39)["matches"] == 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(small_points(5, 0.7, 5), small_points(5, 0.7, 5))
+def test_f1_matches_brute_force_maximum(syn, real):
+    gates = (1.0, 1.0, 1.0)  # comparable to the spread: typically 1-4 admissible matches, many borderline pairs
+    expected = brute_max_matches(syn, real, gates) if len(syn) and len(real) else 0
+    for density in (0.0, 2.0):  # dense Hungarian, then the sparse formulation
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(M, "DENSE_MATCHING_MIN_DENSITY", density)
+            assert M.matched_f1(syn, real, *gates)["matches"] == expected
+
+
+# ---------------------------------------------------------------- distributions, region, physics
+
+def test_distribution_distances():
+    rng = np.random.default_rng(3)
+    real = rng.normal(0, 1, (300, 5))
+    shifted = real + np.array([1.0, 0, 0, 0, -2.0])
+    d = M.distribution_distances(shifted, real)
+    assert set(d) == set(M.SPHERICAL_COLUMNS)
+    assert d["range_m"] == pytest.approx(1.0) and d["rss"] == pytest.approx(2.0)
+    assert d["azimuth_rad"] == pytest.approx(0.0, abs=1e-12)
+    assert all(math.isnan(v) for v in M.distribution_distances(np.zeros((0, 5)), real).values())
+
+
+def test_to_spherical():
+    s = M.to_spherical(np.array([[0.0, 2.0, 0.0, -1.5, 7.0]]))
+    assert s[0] == pytest.approx([2.0, math.pi / 2, 0.0, -1.5, 7.0])
+
+
+def _camera():
+    K = np.array([[100.0, 0, 100], [0, 100.0, 50], [0, 0, 1]])
+    T_cam_radar = np.array([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]])
+    return K, T_cam_radar, (200, 100)
+
+
+def test_region_mask():
+    K, T, size = _camera()
+    pts = np.array([[10.0, 0, 0], [60.0, 0, 0], [10.0, 9, 0], [-10.0, 0, 0], [10.0, 3, 0], [10.0, 0, 4.5],
+                    [10.0, 0, -6.0]])
+    mask = M.region_mask(pts, fov_az_deg=40.0, fov_el_deg=40.0, max_range_m=50.0, K=K, T_cam_radar=T,
+                         image_size_wh=size)
+    # in; beyond 50 m; az 42 deg > 20 deg (u = 10, in the image); behind the camera;
+    # az 16.7 deg (u = 70) in; el 24 deg > 20 deg (v = 5, in the image); v = 110 below the image
+    # although el = -31 deg is also out; the FOV here is narrower than the image except vertically
+    assert mask.tolist() == [True, False, False, False, True, False, False]
+    wide = M.region_mask(pts, 179.0, 179.0, 100.0, K, T, size)
+    # only the image limits the wide-FOV case: [10,9,0] u = 10 in; [60,0,0] in; [10,0,-6] v = 110 out
+    assert wide.tolist() == [True, True, True, False, True, True, False]
+
+
+def test_range_check_with_known_estimator():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform([5, -5, -1], [40, 5, 2], (100, 3))
+    r = np.linalg.norm(pts, axis=1)
+    offsets = np.linspace(-2, 2, 100)
+
+    def estimator(az, el):
+        est = r + offsets
+        est[:10] = np.nan  # no support
+        return est
+
+    out = M.range_check(pts, np.ones((5, 3)), estimator)
+    assert out["no_support_share"] == pytest.approx(0.1)
+    ref = np.abs(offsets[10:])
+    assert out["median_abs_dr"] == pytest.approx(np.median(ref))
+    assert out["p90_abs_dr"] == pytest.approx(np.percentile(ref, 90))
+    tup = M.range_check(pts, np.ones((5, 3)), lambda az, el: (r.copy(), np.arange(100) >= 50))
+    assert tup["median_abs_dr"] == pytest.approx(0.0, abs=1e-9) and tup["no_support_share"] == 0.5
+    none = M.range_check(pts, np.zeros((0, 3)), estimator)
+    assert none["no_support_share"] == 1.0 and math.isnan(none["median_abs_dr"])
+
+
+def test_doppler_check_static_world_and_wrap():
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([5, -10, -1], [40, 10, 2], (50, 3))
+    ego = np.array([8.0, 0.5, 0.0])
+    u = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    true_rr = -(u @ ego)
+    static = np.ones(50, bool)
+    static[:5] = False
+    measured = true_rr.copy()
+    measured[:5] += 30.0  # moving objects, excluded by the mask
+    out = M.doppler_check(pts, measured, ego, static)
+    assert out["median_abs_dv"] == pytest.approx(0.0, abs=1e-9) and out["n_static"] == 45
+    span = 10.3936
+    wrapped = wrap_doppler(true_rr + 0.2, span)
+    w = M.doppler_check(pts, wrapped, ego, static, span_mps=span)
+    assert w["median_abs_dv"] == pytest.approx(0.2, abs=1e-9)
+    assert math.isnan(M.doppler_check(pts, measured, ego, np.zeros(50, bool))["median_abs_dv"])
+
+
+def test_rss_loss_and_frame_metrics():
+    assert M.rss_loss([0.0, 10.0], [5.0, 10.0], 0.0, 10.0) == pytest.approx(0.125)
+    rng = np.random.default_rng(6)
+    real = np.column_stack([rng.uniform(0, 30, (40, 3)), rng.normal(0, 3, 40), rng.normal(0, 10, 40)])
+    tmap = rng.uniform(0, 1, (8, 12))
+    fm = M.frame_metrics(real, real, n_hat=40, target_map=tmap, pred_map=tmap, rss_err=0.01)
+    assert set(fm) == set(M.FRAME_METRICS)
+    assert fm["kl"] == pytest.approx(0.0, abs=1e-12)
+    assert fm["chamfer_m"] == 0.0 and fm["gospa"] == 0.0 and fm["f1"] == 1.0 and fm["count_rel_err"] == 0.0
+    assert math.isnan(M.frame_metrics(real[:3], real)["kl"])

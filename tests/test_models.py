@@ -1,0 +1,216 @@
+"""Networks and losses: shapes, switches, torchvision key compatibility, losses against numpy."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError
+from pipeline.models.disnet import DisNet, build_disnet
+from pipeline.models.losses import count_loss, kl_loss, rss_loss
+from pipeline.models.resnet import ResNet18Backbone, load_state_dict_file, resnet18_backbone
+from pipeline.models.rssnet import RANGE_IMAGE_EMPTY, RSSNet, normalise_range_image
+
+torch.set_num_threads(1)
+
+
+def torchvision_resnet18_keys() -> list[str]:
+    """The state-dict keys of torchvision.models.resnet18(), written out from its architecture:
+    stem conv1/bn1, four layers of two BasicBlocks (conv1, bn1, conv2, bn2; the first block of
+    layers 2-4 has downsample.0 conv + downsample.1 BN), classifier fc."""
+    def bn(prefix: str) -> list[str]:
+        return [f"{prefix}.{k}" for k in ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")]
+
+    keys = ["conv1.weight", *bn("bn1")]
+    for layer, block in itertools.product(range(1, 5), range(2)):
+        p = f"layer{layer}.{block}"
+        keys += [f"{p}.conv1.weight", *bn(f"{p}.bn1"), f"{p}.conv2.weight", *bn(f"{p}.bn2")]
+        if layer > 1 and block == 0:
+            keys += [f"{p}.downsample.0.weight", *bn(f"{p}.downsample.1")]
+    return keys + ["fc.weight", "fc.bias"]
+
+
+def test_resnet_state_dict_has_torchvision_keys_and_shapes():
+    keys = torchvision_resnet18_keys()
+    assert len(keys) == 122
+    sd = ResNet18Backbone(64).state_dict()
+    assert set(sd) == set(keys) - {"fc.weight", "fc.bias"}
+    assert sd["conv1.weight"].shape == (64, 3, 7, 7)
+    assert sd["layer2.0.downsample.0.weight"].shape == (128, 64, 1, 1)
+    assert sd["layer4.1.conv2.weight"].shape == (512, 512, 3, 3)
+    assert sd["layer3.0.bn1.running_var"].shape == (256,)
+
+
+@pytest.mark.parametrize("suffix", [".safetensors", ".pth"])
+def test_resnet_weights_round_trip_with_fc(tmp_path, suffix):
+    torch.manual_seed(1)
+    state = {k: v.clone() for k, v in ResNet18Backbone(64).state_dict().items()}
+    state = {k: (torch.randn_like(v) if v.is_floating_point() else v + 7) for k, v in state.items()}
+    state["fc.weight"], state["fc.bias"] = torch.randn(1000, 512), torch.randn(1000)
+    path = tmp_path / f"resnet18{suffix}"
+    save_file(state, str(path)) if suffix == ".safetensors" else torch.save(state, path)
+    loaded = resnet18_backbone(path).state_dict()
+    assert set(loaded) == set(state) - {"fc.weight", "fc.bias"}
+    assert all(torch.equal(loaded[k], state[k]) for k in loaded)
+
+
+class _NotATensor:
+    """An arbitrary pickled object: torch.load(weights_only=True) must refuse it."""
+
+
+def test_resnet_weights_errors(tmp_path):
+    good = ResNet18Backbone(8).state_dict()
+    bad = dict(good)
+    del bad["layer1.0.conv1.weight"]
+    save_file(bad, str(tmp_path / "missing.safetensors"))
+    with pytest.raises(ConfigError, match="missing"):
+        resnet18_backbone(tmp_path / "missing.safetensors", width=8)
+    save_file(good, str(tmp_path / "narrow.safetensors"))
+    with pytest.raises(ConfigError, match="shape mismatch"):
+        resnet18_backbone(tmp_path / "narrow.safetensors", width=16)
+    (tmp_path / "w.bin").write_bytes(b"x")
+    with pytest.raises(ConfigError, match="unsupported"):
+        load_state_dict_file(tmp_path / "w.bin")
+    with pytest.raises(ConfigError, match="not found"):
+        load_state_dict_file(tmp_path / "absent.pth")
+    torch.save({"conv1.weight": torch.zeros(1), "obj": _NotATensor()}, tmp_path / "evil.pth")
+    with pytest.raises(ConfigError, match="refused"):
+        load_state_dict_file(tmp_path / "evil.pth")
+
+
+def test_resnet_feature_map_stride_32():
+    out = ResNet18Backbone(8)(torch.rand(2, 3, 64, 96))
+    assert out.shape == (2, 64, 2, 3)
+
+
+@pytest.mark.parametrize("in_hw,out_hw", [((32, 64), (32, 64)), ((40, 72), (37, 70))])
+def test_disnet_shapes_and_distribution(in_hw, out_hw):
+    torch.manual_seed(0)
+    model = DisNet(width=8, use_speed=True, max_points=50, out_hw=out_hw).eval()
+    log_map, n_hat = model(torch.rand(3, 3, *in_hw), torch.tensor([0.0, 5.0, 20.0]))
+    assert log_map.shape == (3, *out_hw) and n_hat.shape == (3,)
+    assert torch.allclose(log_map.exp().sum(dim=(1, 2)), torch.ones(3), atol=1e-5)
+    assert bool(((n_hat > 0) & (n_hat < 50)).all())
+
+
+def test_disnet_speed_switch():
+    torch.manual_seed(0)
+    img = torch.rand(2, 3, 32, 64)
+    with_speed = DisNet(width=8, use_speed=True, out_hw=(32, 64)).eval()
+    with pytest.raises(ValueError, match="speed"):
+        with_speed(img, None)
+    torch.nn.init.normal_(with_speed.speed_fc.weight)
+    _, n1 = with_speed(img, torch.tensor([0.0, 0.0]))
+    _, n2 = with_speed(img, torch.tensor([30.0, 30.0]))
+    assert not torch.equal(n1, n2)
+    no_speed = DisNet(width=8, use_speed=False, out_hw=(32, 64)).eval()
+    assert no_speed.speed_fc is None and no_speed.count_head.in_features == 12
+    assert torch.equal(no_speed(img, torch.tensor([0.0, 1.0]))[1], no_speed(img, None)[1])
+
+
+def test_build_disnet_loads_backbone_weights(tmp_path):
+    torch.manual_seed(3)
+    state = ResNet18Backbone(64).state_dict()
+    save_file(state, str(tmp_path / "r18.safetensors"))
+    cfg = load_config("synthetic", {"disnet.width": "64", "disnet.backbone_weights": str(tmp_path / "r18.safetensors")})
+    torch.manual_seed(4)
+    model = build_disnet(cfg)
+    got = model.backbone.state_dict()
+    assert all(torch.equal(got[k], state[k]) for k in state)
+    assert model.out_hw == (cfg.camera.working_size[1], cfg.camera.working_size[0])
+
+
+SWITCHES = [c for c in itertools.product([True, False], repeat=3) if any(c)]
+
+
+@pytest.mark.parametrize("cam,li,rp", SWITCHES)
+def test_rssnet_switches(cam, li, rp):
+    torch.manual_seed(0)
+    model = RSSNet(cam, li, rp, patch_size=16, range_image_size=(128, 32), rss_min=-30, rss_max=40).eval()
+    b = 5
+    patch = torch.rand(b, 3, 16, 16) if cam else None
+    rimg = torch.full((b, 32, 128), RANGE_IMAGE_EMPTY) if li else None
+    point = torch.randn(b, 4) * 10 if rp else None
+    out = model(patch, rimg, point)
+    assert out.shape == (b,) and bool(torch.isfinite(out).all())
+    assert (model.patch_branch is not None) == cam and (model.range_branch is not None) == li
+    assert (model.point_fc is not None) == rp
+    assert model.head[0].in_features == 128 * (int(cam or li) + int(rp))
+    if cam:
+        with pytest.raises(ValueError, match="patch"):
+            model(None, rimg, point)
+        with pytest.raises(ValueError, match="expected shape"):
+            model(torch.rand(b, 3, 8, 8), rimg, point)
+
+
+def test_rssnet_needs_an_input_and_range():
+    with pytest.raises(ValueError, match="at least one"):
+        RSSNet(False, False, False, rss_min=0, rss_max=1)
+    with pytest.raises(ValueError, match="rss_max"):
+        RSSNet(rss_min=1, rss_max=1)
+
+
+def test_rssnet_units_round_trip():
+    model = RSSNet(rss_min=-74.0, rss_max=39.8)
+    rss = torch.tensor([-74.0, 0.0, 39.8, 12.5])
+    assert torch.allclose(model.normalise_rss(rss), (rss + 74.0) / 113.8)
+    assert torch.allclose(model.to_rss(model.normalise_rss(rss)), rss, atol=1e-5)
+
+
+def test_range_image_normalisation():
+    raw = torch.tensor([[[0.0, 255.0, 127.5, RANGE_IMAGE_EMPTY, float("nan"), 300.0]]])
+    out = normalise_range_image(raw)
+    assert out.shape == (1, 2, 1, 6)
+    assert torch.allclose(out[0, 0, 0], torch.tensor([-1.0, 1.0, 0.0, 0.0, 0.0, 0.0]))
+    assert torch.equal(out[0, 1, 0], torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]))
+
+
+def _random_maps(rng, b=4, h=6, w=7, zero_share=0.3):
+    p = rng.random((b, h, w)) * (rng.random((b, h, w)) > zero_share)
+    p /= p.sum(axis=(1, 2), keepdims=True)
+    q = rng.random((b, h, w)) + 1e-3
+    q /= q.sum(axis=(1, 2), keepdims=True)
+    return p, q
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_kl_loss_against_numpy(seed):
+    rng = np.random.default_rng(seed)
+    p, q = _random_maps(rng)
+    log_q = torch.tensor(np.log(q), requires_grad=True)
+    got = kl_loss(log_q, torch.tensor(p))
+    mask = p > 0
+    want = np.array([np.sum(p[i][mask[i]] * np.log(p[i][mask[i]] / q[i][mask[i]])) for i in range(len(p))])
+    assert got.shape == (len(p),)
+    np.testing.assert_allclose(got.detach().numpy(), want, rtol=1e-10)
+    assert bool((got >= 0).all())
+    got.sum().backward()
+    assert bool(torch.isfinite(log_q.grad).all())
+
+
+def test_kl_loss_zero_for_identical_maps_and_shape_error():
+    rng = np.random.default_rng(0)
+    p, _ = _random_maps(rng)
+    p_t = torch.tensor(p, dtype=torch.float32)
+    log_p = torch.log_softmax(torch.log(p_t.clamp_min(1e-30)).flatten(1), 1).view_as(p_t)
+    assert torch.allclose(kl_loss(log_p, p_t), torch.zeros(len(p)), atol=1e-5)
+    with pytest.raises(ValueError):
+        kl_loss(log_p, p_t[:, :3])
+
+
+def test_count_and_rss_losses_against_numpy():
+    n_hat = np.array([10.0, 250.5, 3.0])
+    n = np.array([12.0, 200.0, 3.0])
+    got = count_loss(torch.tensor(n_hat), torch.tensor(n)).numpy()
+    np.testing.assert_allclose(got, [(-2 / 12) ** 2, (50.5 / 200) ** 2, 0.0])
+    with pytest.raises(ValueError, match="> 0"):
+        count_loss(torch.tensor([1.0]), torch.tensor([0.0]))
+    a_hat, a = np.array([0.1, 0.5, 1.2]), np.array([0.3, 0.5, 1.0])
+    np.testing.assert_allclose(rss_loss(torch.tensor(a_hat), torch.tensor(a)).numpy(), (a_hat - a) ** 2)
+    with pytest.raises(ValueError):
+        rss_loss(torch.zeros(3), torch.zeros(2))

@@ -1,0 +1,146 @@
+"""Astyx HiRes2019 and demo readers, and the alias-aware ego-velocity estimator."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.config import load_config
+from pipeline.egomotion import estimate_ego_velocity, fit_compensation_pair
+from pipeline.errors import ReaderError
+from pipeline.geometry import invert_transform, project_to_image, wrap_doppler
+from pipeline.readers import get_reader
+from pipeline.readers.testing import ASTYX_SPAN_MPS, make_astyx_dataset
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+HIRES = DATA / "astyx_hires2019" / "dataset_astyx_hires2019"
+DEMO = DATA / "astyx_demo" / "dataset_astyx_demo"
+
+
+def _need(path: Path) -> None:
+    if not path.is_dir():
+        pytest.skip(f"{path} not present")
+
+
+def _demo_cfg():
+    cfg = load_config("astyx")
+    return replace(cfg, dataset=replace(cfg.dataset, reader="astyx_demo"))
+
+
+# -- estimator on generated scans ----------------------------------------------------------------
+
+@pytest.mark.parametrize("v_true", [(0.0, 0.0, 0.0), (3.0, 0.2, 0.0), (7.8, -0.4, 0.1), (15.3, 0.3, 0.3),
+                                    (24.0, 1.0, 0.0)])
+def test_estimator_resolves_aliasing_with_outliers(v_true):
+    rng = np.random.default_rng(3)
+    n = 800
+    az, el, r = rng.uniform(-0.9, 0.9, n), rng.uniform(-0.3, 0.3, n), rng.uniform(3, 80, n)
+    pts = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], 1)
+    rate = -(pts / r[:, None]) @ np.asarray(v_true)
+    rate[:200] += rng.uniform(-8, 8, 200)  # 25% moving targets
+    measured = np.round(wrap_doppler(rate, ASTYX_SPAN_MPS) / 0.0812) * 0.0812  # quantised like the 6455
+    fit = estimate_ego_velocity(pts, measured, ASTYX_SPAN_MPS)
+    np.testing.assert_allclose(fit.velocity_D[:2], v_true[:2], atol=0.1)
+    assert fit.n_used >= 550
+
+
+def test_compensation_pair_is_exact_and_handles_too_few_points():
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(50, 3)) + [10, 0, 0]
+    v = np.array([4.0, -0.5, 0.2])
+    u = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    fit = fit_compensation_pair(pts, -(u @ v) + 1.0, np.full(50, 1.0))
+    np.testing.assert_allclose(fit.velocity_D, v, atol=1e-9)
+    assert np.isnan(fit_compensation_pair(pts[:2], np.zeros(2), np.zeros(2)).velocity_D).all()
+
+
+# -- fixture in the exact layout -------------------------------------------------------------------
+
+def test_fixture_reads_aliased_doppler_and_labels(tmp_path):
+    ego = make_astyx_dataset(tmp_path, n_frames=2, speed_mps=8.0)
+    reader = get_reader(load_config("astyx").with_overrides({"camera.full_size": "64,48"}), tmp_path)
+    assert reader.frame_ids() == ["000000", "000001"]
+    rec = reader.read("000001")
+    np.testing.assert_allclose(rec.ego_velocity_D, ego, atol=0.05)
+    raw = np.loadtxt(tmp_path / "radar_6455/000001.txt", skiprows=2)
+    np.testing.assert_allclose(rec.radar_D[:, 3], -raw[:, 3], atol=1e-6)  # sign flipped, still wrapped
+    assert np.abs(rec.radar_D[:, 3]).max() <= ASTYX_SPAN_MPS / 2 + 1e-6
+    assert rec.labels[0].yaw_rad == pytest.approx(0.5)
+    assert rec.lidar_D.shape == (300, 3) and rec.image.shape == (48, 64, 3)
+
+
+# -- real files --------------------------------------------------------------------------------
+
+@pytest.mark.realdata
+def test_demo_ego_speed_matches_can_bus(capsys):
+    _need(DEMO)
+    reader = get_reader(_demo_cfg(), DEMO)
+    assert reader.frame_ids() == [f"{i:06d}" for i in range(5)]
+    errors = {}
+    for fid in reader.frame_ids():
+        speed = float(np.linalg.norm(reader.estimate_ego(fid).velocity_D))
+        errors[fid] = speed - reader.can_speed_mps(fid)
+        print(f"astyx demo {fid}: CAN {reader.can_speed_mps(fid):6.2f} m/s, radar {speed:6.2f} m/s, "
+              f"error {errors[fid]:+.2f} m/s")
+    assert max(abs(e) for e in errors.values()) < 1.0
+    with pytest.raises(ReaderError, match="no camera or lidar"):
+        reader.read("000000")
+
+
+@pytest.fixture(scope="module")
+def hires():
+    _need(HIRES)
+    return get_reader(load_config("astyx"), HIRES)
+
+
+@pytest.mark.realdata
+def test_hires_index_counts(hires):
+    assert len(hires.frame_ids()) == 141
+    assert hires.report()["skipped_missing"] == 546 - 141
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_hires_every_present_frame_reads(hires):
+    speeds = {fid: float(np.linalg.norm(hires.read(fid).ego_velocity_D)) for fid in hires.frame_ids()}
+    assert len(speeds) == 141 and max(speeds.values()) < 25.0
+
+
+@pytest.mark.realdata
+def test_hires_calibration_sets_and_geometry(hires):
+    """Both calibration sets (frames < 470 and >= 470) differ; labelled cars within 20 m hold lidar
+    points, more with the (w, x, y, z) quaternion yaw than with the yaw turned by 90 deg; label
+    centres within +/-25 deg of the camera axis project into the image."""
+    recs = {f: hires.read(f) for f in ("000000", "000300", "000480", "000545")}
+    assert not np.allclose(recs["000000"].T_radar_cam, recs["000480"].T_radar_cam)
+    np.testing.assert_allclose(recs["000000"].T_radar_cam, recs["000300"].T_radar_cam)
+    ours = turned = 0
+    for rec in recs.values():
+        for obj in rec.labels:
+            if np.linalg.norm(obj.center_D) > 20:
+                continue
+            ours += _lidar_in_box(rec.lidar_D, obj, obj.yaw_rad)
+            turned += _lidar_in_box(rec.lidar_D, obj, obj.yaw_rad + np.pi / 2)
+        centres = np.array([o.center_D for o in rec.labels])
+        ahead = np.abs(np.arctan2(centres[:, 1], centres[:, 0])) < np.radians(25)
+        _, _, valid = project_to_image(centres[ahead], rec.K, invert_transform(rec.T_radar_cam), (2048, 618))
+        assert valid.all()
+    assert ours > 2 * turned
+
+
+@pytest.mark.realdata
+def test_hires_frame_speeds(hires):
+    """Frame 000363 (the shared subset has no 000025) and a standstill frame."""
+    assert np.linalg.norm(hires.read("000363").ego_velocity_D) == pytest.approx(6.9, abs=0.3)
+    assert np.linalg.norm(hires.read("000482").ego_velocity_D) < 0.2
+
+
+def _lidar_in_box(lidar_D: np.ndarray, obj, yaw: float) -> int:
+    d = lidar_D - obj.center_D
+    c, s = np.cos(yaw), np.sin(yaw)
+    return int(((np.abs(d[:, 0] * c + d[:, 1] * s) <= obj.size_lwh_m[0] / 2)
+                & (np.abs(-d[:, 0] * s + d[:, 1] * c) <= obj.size_lwh_m[1] / 2)
+                & (np.abs(d[:, 2]) <= obj.size_lwh_m[2] / 2)).sum())

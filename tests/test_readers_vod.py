@@ -1,0 +1,179 @@
+"""VoD and synthetic-layout readers: real example frames (skipped without ../shared/data) and fixtures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError
+from pipeline.geometry import invert_transform, project_to_image
+from pipeline.readers import get_reader
+from pipeline.readers.kitti_format import label_to_object, parse_label_file
+from pipeline.readers.testing import T_CAM_RADAR, make_vod_dataset, rigid, write_pose
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+VOD = DATA / "vod_example"
+
+
+def _fixture_cfg(profile: str = "vod"):
+    return load_config(profile).with_overrides({"camera.full_size": "64,48"})
+
+
+@pytest.fixture(scope="module")
+def vod_real():
+    if not VOD.is_dir():
+        pytest.skip("../shared/data/vod_example not present")
+    reader = get_reader(load_config("vod"), VOD)
+    return reader, {f: reader.read(f) for f in reader.frame_ids()}
+
+
+@pytest.mark.realdata
+def test_real_index(vod_real):
+    reader, records = vod_real
+    assert reader.frame_ids() == ["00549", "01047"]
+    assert reader.report().get("skipped_missing", 0) == 0
+    for rec in records.values():
+        assert rec.image.shape == (1216, 1936, 3) and rec.radar_D.dtype == np.float32
+        assert rec.lidar_D.shape[0] > 150_000
+
+
+@pytest.mark.realdata
+def test_real_labels_project_into_their_2d_boxes(vod_real):
+    """Every label's 3D centre, converted to {D} and projected with K and T_cam_radar, lies in the
+    label's own 2D box (+5 px): checks the label conversion, intrinsics and radar calibration."""
+    _, records = vod_real
+    for fid, rec in records.items():
+        boxes = np.array([[float(v) for v in line.split()[4:8]]
+                          for line in (VOD / "lidar/training/label_2" / f"{fid}.txt").read_text().splitlines()])
+        centres = np.array([o.center_D for o in rec.labels])
+        uv, _, valid = project_to_image(centres, rec.K, invert_transform(rec.T_radar_cam), (1936, 1216))
+        inside = ((uv[:, 0] >= boxes[:, 0] - 5) & (uv[:, 0] <= boxes[:, 2] + 5)
+                  & (uv[:, 1] >= boxes[:, 1] - 5) & (uv[:, 1] <= boxes[:, 3] + 5))
+        assert valid.all() and inside.all(), fid
+
+
+@pytest.mark.realdata
+def test_real_lidar_fills_labelled_boxes_and_radar_hits_image(vod_real):
+    """Lidar (through T_radar_lidar) has points inside every labelled box closer than 30 m; more than
+    80% of the radar points project inside the image."""
+    _, records = vod_real
+    for fid, rec in records.items():
+        for obj in rec.labels:
+            if np.linalg.norm(obj.center_D) > 30:
+                continue
+            d = rec.lidar_D - obj.center_D
+            c, s = np.cos(obj.yaw_rad), np.sin(obj.yaw_rad)
+            inside = ((np.abs(d[:, 0] * c + d[:, 1] * s) <= obj.size_lwh_m[0] / 2)
+                      & (np.abs(-d[:, 0] * s + d[:, 1] * c) <= obj.size_lwh_m[1] / 2)
+                      & (np.abs(d[:, 2]) <= obj.size_lwh_m[2] / 2))
+            assert inside.sum() >= 5, (fid, obj.class_name)
+        _, _, valid = project_to_image(rec.radar_D[:, :3], rec.K, invert_transform(rec.T_radar_cam), (1936, 1216))
+        assert valid.mean() > 0.8, fid
+
+
+@pytest.mark.realdata
+def test_real_ego_velocity_fit_and_static_doppler(vod_real):
+    _, records = vod_real
+    np.testing.assert_allclose(records["00549"].ego_velocity_D, [1.92, 0.03, -0.02], atol=0.02)
+    for fid, rec in records.items():
+        raw = np.fromfile(VOD / "radar/training/velodyne" / f"{fid}.bin", dtype="<f4").reshape(-1, 7)
+        u = raw[:, :3] / np.linalg.norm(raw[:, :3], axis=1, keepdims=True)
+        residual = -(u @ rec.ego_velocity_D) - (raw[:, 4] - raw[:, 5])
+        assert np.sqrt(np.mean(residual**2)) < 0.15, fid
+        static = np.abs(raw[:, 5]) < 0.1
+        assert static.sum() > 100
+        # doppler column is the range rate; static targets: -(u . v_ego)
+        np.testing.assert_allclose(rec.radar_D[static, 3], -(u[static] @ rec.ego_velocity_D), atol=0.15)
+
+
+def test_fixture_ego_object_velocity_and_time(tmp_path):
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    assert reader.frame_ids() == truth.frame_ids
+    for fid in truth.frame_ids:
+        rec = reader.read(fid)
+        np.testing.assert_allclose(rec.ego_velocity_D, truth.ego_velocity_D, atol=1e-4)
+        # central difference for the middle frame, one-sided at the ends; constant motion -> exact
+        np.testing.assert_allclose(rec.labels[0].velocity_D, truth.object_velocity_D, atol=1e-4)
+        assert rec.labels[0].track_id == 7
+        assert rec.timestamp_s == pytest.approx(truth.timestamps_s[fid])
+        assert rec.sequence_id == "seq_00010"
+    assert reader.report()["ego_from_doppler_pair"] == 3
+
+
+def test_fixture_pose_fallback_with_too_few_radar_points(tmp_path):
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=7.0, n_radar=2)
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    np.testing.assert_allclose(reader.read("00011").ego_velocity_D, truth.ego_velocity_D, atol=1e-6)
+    assert reader.report()["ego_from_poses"] == 1
+
+
+def test_label_round_trip_matches_kitti_definition(tmp_path):
+    """A KITTI line built from a {D} box converts back to that box (centre, size, yaw)."""
+    from pipeline.readers.testing import kitti_label_line
+    rng = np.random.default_rng(1)
+    lines, truth = [], []
+    for k in range(20):
+        centre = rng.uniform([3, -10, -1], [40, 10, 1])
+        lwh, yaw = rng.uniform(0.5, 5, 3), rng.uniform(-np.pi, np.pi)
+        lines.append(kitti_label_line("Car", k, centre, lwh, yaw, T_CAM_RADAR))
+        truth.append((centre, lwh, yaw))
+    (tmp_path / "l.txt").write_text("\n".join(lines))
+    for lab, (centre, lwh, yaw) in zip(parse_label_file(tmp_path / "l.txt", "x"), truth):
+        obj = label_to_object(lab, invert_transform(T_CAM_RADAR), lab.column2)
+        np.testing.assert_allclose(obj.center_D, centre, atol=1e-6)
+        np.testing.assert_allclose(obj.size_lwh_m, lwh, atol=1e-6)
+        assert np.cos(obj.yaw_rad - yaw) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_sequences_file_and_gap_split(tmp_path):
+    make_vod_dataset(tmp_path / "a", n_frames=2, first=10)
+    make_vod_dataset(tmp_path / "a", n_frames=2, first=20)
+    reader = get_reader(_fixture_cfg(), tmp_path / "a")
+    assert [reader.sequence_of(f) for f in reader.frame_ids()] == ["seq_00010"] * 2 + ["seq_00020"] * 2
+    (tmp_path / "a/ImageSets").mkdir()
+    (tmp_path / "a/ImageSets/sequences.txt").write_text("delft_1 0 10\ndelft_2 11 30\n")
+    reader = get_reader(_fixture_cfg(), tmp_path / "a")
+    assert [reader.sequence_of(f) for f in reader.frame_ids()] == ["delft_1", "delft_2", "delft_2", "delft_2"]
+
+
+def test_accumulated_radar_folder_and_single_scan_time_filter(tmp_path):
+    make_vod_dataset(tmp_path, n_frames=1, n_radar=10)
+    single = np.fromfile(tmp_path / "radar/training/velodyne/00010.bin", dtype="<f4").reshape(-1, 7)
+    older = single.copy()
+    older[:, 6] = -1
+    both = np.concatenate([single, older])
+    both.tofile(tmp_path / "radar/training/velodyne/00010.bin")
+    (tmp_path / "radar_3frames/training/velodyne").mkdir(parents=True)
+    both.tofile(tmp_path / "radar_3frames/training/velodyne/00010.bin")
+    assert get_reader(_fixture_cfg(), tmp_path).read("00010").radar_D.shape == (10, 5)
+    acc = get_reader(_fixture_cfg(), tmp_path, radar_folder="radar_3frames").read("00010")
+    assert acc.radar_D.shape == (20, 5)
+
+
+def test_png_images_timestamps_from_pose_and_synthetic_meta(tmp_path):
+    truth = make_vod_dataset(tmp_path, n_frames=2, image_ext=".png", n_radar=12)
+    for k, fid in enumerate(truth.frame_ids):
+        write_pose(tmp_path / "lidar/training/pose" / f"{fid}.json",
+                   rigid(np.eye(3), np.array([0.5 * k, 0, 0])) @ np.linalg.inv(T_CAM_RADAR), 100.0 + 0.1 * k)
+        meta = np.stack([np.arange(12), np.full(12, 3)], axis=1).astype("<i4")
+        meta.tofile(_mkdir(tmp_path / "radar/training/meta") / f"{fid}.bin")
+    reader = get_reader(_fixture_cfg("synthetic").with_overrides({"camera.full_size": "64,48"}), tmp_path)
+    rec = reader.read(truth.frame_ids[1])
+    assert rec.timestamp_s == pytest.approx(100.1)
+    np.testing.assert_array_equal(rec.extras["object_id"], np.arange(12))
+    np.testing.assert_array_equal(rec.extras["material"], np.full(12, 3))
+
+
+def test_unknown_reader_name_is_a_config_error(tmp_path):
+    cfg = load_config("vod").with_overrides({"dataset.reader": "nuscenes"})
+    with pytest.raises(ConfigError, match="nuscenes"):
+        get_reader(cfg, tmp_path)
+
+
+def _mkdir(path: Path) -> Path:
+    path.mkdir(parents=True, exist_ok=True)
+    return path

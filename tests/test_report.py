@@ -1,0 +1,85 @@
+"""Aggregation and report files."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from pipeline import report as R
+from pipeline.metrics import SPHERICAL_COLUMNS
+
+
+def _frames(rng, n, chamfer, gospa, f1):
+    out = []
+    for _ in range(n):
+        out.append({"kl": float(rng.uniform(0, 1)), "count_rel_err": 0.1, "count_sq_rel_err": 0.01,
+                    "rss_err": math.nan, "chamfer_m": chamfer, "gospa": gospa, "gospa_localisation": 1.0,
+                    "gospa_missed": 2.0, "gospa_false": 3.0, "precision": f1, "recall": f1, "f1": f1})
+    return out
+
+
+def test_aggregate_mean_median_and_nans():
+    t = R.aggregate({"m": [{"a": 1.0, "b": math.nan}, {"a": 2.0, "b": 4.0}, {"a": 6.0}]})
+    assert t["m"]["a"] == {"mean": 3.0, "median": 2.0, "n": 3, "n_nan": 0}
+    assert t["m"]["b"]["mean"] == 4.0 and t["m"]["b"]["n"] == 1 and t["m"]["b"]["n_nan"] == 2
+    empty = R.aggregate({"m": [{"a": math.nan}]})
+    assert math.isnan(empty["m"]["a"]["mean"]) and empty["m"]["a"]["n_nan"] == 1
+
+
+def test_order_methods():
+    assert R.order_methods(["uniform", "model-oracle-count", "mean-map", "model"]) == [
+        "model", "model-oracle-count", "uniform", "mean-map"]
+
+
+def test_shortfalls():
+    rng = np.random.default_rng(0)
+    table = R.aggregate({
+        "uniform": _frames(rng, 3, chamfer=5.0, gospa=20.0, f1=0.1),
+        "model": _frames(rng, 3, chamfer=2.0, gospa=10.0, f1=0.3),
+        "lidar-subsample": _frames(rng, 3, chamfer=1.5, gospa=12.0, f1=0.3),
+        "model-oracle-count": _frames(rng, 3, chamfer=0.1, gospa=1.0, f1=0.9),
+    })
+    s = R.model_shortfalls(table)
+    assert [d["method"] for d in s["chamfer_m"]] == ["lidar-subsample"]
+    assert s["gospa"] == []
+    assert [d["method"] for d in s["f1"]] == ["lidar-subsample"]  # a tie is not a win
+    text = R.shortfall_paragraph(table)
+    assert "lidar-subsample" in text and "uniform" not in text and "GOSPA" not in text
+    winner = R.aggregate({"model": _frames(rng, 2, 1.0, 1.0, 0.9), "uniform": _frames(rng, 2, 5.0, 5.0, 0.1)})
+    assert "beats every baseline" in R.shortfall_paragraph(winner)
+
+
+def test_write_report_files(tmp_path):
+    rng = np.random.default_rng(1)
+    per_frame = {"uniform": _frames(rng, 4, 5.0, 20.0, 0.1), "model": _frames(rng, 4, 2.0, 10.0, 0.3),
+                 "mean-map": _frames(rng, 4, 3.0, 9.0, 0.2)}
+    table = R.aggregate(per_frame)
+    distances = {m: {c: float(i) for i, c in enumerate(SPHERICAL_COLUMNS)} for m in per_frame}
+    distances["model"]["rss"] = math.nan
+    physics = {"range": {"median_abs_dr": 3.8, "p90_abs_dr": 20.0, "no_support_share": 0.046,
+                         "abs_dr": np.arange(3.0)},
+               "doppler": {"median_abs_dv": 0.1, "n_static": 10}}
+    out = tmp_path / "eval" / "vod"
+    jp, mp = R.write_report(out, "vod", "test", table, distances, physics, {"frames": 4, "fingerprint": "abc"})
+    assert jp.exists() and mp.exists()
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
+    doc = json.loads(jp.read_text())  # strict JSON: NaN became null
+    assert doc["dataset"] == "vod" and doc["split"] == "test"
+    assert doc["metrics"]["model"]["chamfer_m"]["mean"] == 2.0
+    assert doc["metrics"]["model"]["rss_err"]["mean"] is None
+    assert doc["distribution_distances"]["model"]["rss"] is None
+    assert doc["physics_checks"]["range"]["abs_dr"] == [0.0, 1.0, 2.0]
+    assert [d["method"] for d in doc["model_does_not_beat"]["mean"]["gospa"]] == ["mean-map"]
+    md = mp.read_text()
+    rows = [line for line in md.splitlines() if line.startswith("| ") and not line.startswith("| method")]
+    metric_rows = rows[:3]
+    assert [r.split("|")[1].strip() for r in metric_rows] == ["model", "uniform", "mean-map"]
+    header = next(line for line in md.splitlines() if line.startswith("| method | KL"))
+    assert len(header.split("|")) - 2 == 1 + len(R.TABLE_COLUMNS)
+    assert "2 / 2" in metric_rows[0]  # chamfer mean / median of the model
+    assert "median_abs_dr = 3.8" in md and "mean-map" in md.split("does not beat every baseline")[-1]
+    # rewriting replaces the files atomically
+    R.write_report(out, "vod", "test", table, distances, {}, {})
+    assert json.loads(jp.read_text())["physics_checks"] == {}

@@ -1,0 +1,313 @@
+"""Tests of pipeline.synthesis: pixel sampling, lidar range estimation (against a brute-force
+oracle), placement on the camera ray, Doppler conventions and one synthetic frame end to end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import chisquare
+
+from pipeline.frame import Object3D
+from pipeline.geometry import (
+    cartesian_to_spherical, invert_transform, pixel_rays_D, project_to_image, spherical_to_cartesian,
+)
+from pipeline.synthesis import (
+    ESTIMATORS, NO_SUPPORT_RULES, SUPPORT_DIRECT, SUPPORT_NONE, SUPPORT_WIDENED, LidarAngularIndex,
+    doppler_for_points, object_velocities_for_points, place_on_camera_ray, sample_pixels,
+    synthesize_frame,
+)
+
+# Radar {D}: x fwd, y left, z up. Camera: x right, y down, z fwd. Columns = camera axes in {D}.
+R_RADAR_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def make_T_radar_cam(centre_D=(0.3, 0.4, 0.5)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R_RADAR_CAM
+    T[:3, 3] = centre_D
+    return T
+
+
+K_SMALL = np.array([[100.0, 0.0, 79.5], [0.0, 100.0, 39.5], [0.0, 0.0, 1.0]])  # 160 x 80 image
+
+
+# --------------------------------------------------------------------------- sample_pixels
+
+
+def test_sample_pixels_matches_map_distribution():
+    rng = np.random.default_rng(1)
+    prob = rng.random((4, 5))
+    prob[1, 2] = 0.0
+    prob /= prob.sum()
+    n = 200_000
+    uv = sample_pixels(prob, n, np.random.default_rng(7))
+    assert uv.shape == (n, 2) and uv.dtype == np.float64
+    cols, rows = np.floor(uv[:, 0] + 0.5).astype(int), np.floor(uv[:, 1] + 0.5).astype(int)
+    counts = np.zeros_like(prob)
+    np.add.at(counts, (rows, cols), 1)
+    assert counts[1, 2] == 0  # zero-probability pixel never drawn
+    mask = prob > 0
+    _, p_value = chisquare(counts[mask], n * prob[mask])
+    assert p_value > 1e-4
+    # jitter uniform in [-0.5, 0.5) around integer pixel centres
+    frac = uv - np.stack([cols, rows], axis=1)
+    assert frac.min() >= -0.5 and frac.max() < 0.5
+    assert np.histogram(frac[:, 0], bins=4, range=(-0.5, 0.5))[0].min() > 0.23 * n
+
+
+def test_sample_pixels_reproducible_and_empty():
+    prob = np.random.default_rng(0).random((6, 7))
+    a = sample_pixels(prob, 50, np.random.default_rng(3))
+    b = sample_pixels(prob, 50, np.random.default_rng(3))
+    np.testing.assert_array_equal(a, b)
+    assert sample_pixels(prob, 0, np.random.default_rng(3)).shape == (0, 2)
+
+
+def test_sample_pixels_single_pixel_map():
+    prob = np.zeros((3, 4))
+    prob[2, 1] = 5.0
+    uv = sample_pixels(prob, 100, np.random.default_rng(0))
+    assert np.all(np.abs(uv - [1.0, 2.0]) <= 0.5)
+
+
+@pytest.mark.parametrize("bad", [np.full((2, 2), -1.0), np.zeros((2, 2)), np.full((2, 2), np.nan)])
+def test_sample_pixels_rejects_bad_maps(bad):
+    with pytest.raises(ValueError):
+        sample_pixels(bad, 3, np.random.default_rng(0))
+
+
+# --------------------------------------------------------------------------- range estimation
+
+
+def lidar_at(rae: list[tuple[float, float, float]]) -> np.ndarray:
+    return spherical_to_cartesian(np.array(rae, dtype=np.float64))
+
+
+def test_mean_rule_on_hand_made_points():
+    lidar = lidar_at([(10.0, 0.0, 0.0), (20.0, 0.01, 0.005), (100.0, 0.05, 0.0), (40.0, 0.0, 0.03)])
+    index = LidarAngularIndex(lidar)
+    az, el = np.array([0.0]), np.array([0.0])
+    expected = {"mean": 15.0, "nearest": 10.0, "min": 10.0, "median": 15.0}
+    for estimator, want in expected.items():
+        r, flag = index.estimate_range(az, el, 0.02, 0.02, estimator)
+        assert r[0] == pytest.approx(want) and flag[0] == SUPPORT_DIRECT
+    # elevation window is separate: 0.03 rad is inside a 0.04 window
+    r, _ = index.estimate_range(az, el, 0.02, 0.04, "mean")
+    assert r[0] == pytest.approx((10 + 20 + 40) / 3)
+
+
+def test_nearest_ties_take_the_first_lidar_point():
+    # exactly equal angles (points on the x axis), plus a farther-off point
+    index = LidarAngularIndex(np.array([[30.0, 0.0, 0.0], [12.0, 0.0, 0.0], [5.0, 0.0, 0.05]]))
+    for method in (index.estimate_range, index.estimate_range_bruteforce):
+        r, _ = method(np.array([0.001]), np.array([0.002]), 0.02, 0.02, "nearest", "drop")
+        assert r[0] == pytest.approx(30.0)
+
+
+def test_widening_and_drop():
+    index = LidarAngularIndex(lidar_at([(100.0, 0.05, 0.0)]))
+    az, el = np.array([0.12, 1.5]), np.array([0.0, 0.0])
+    r, flag = index.estimate_range(az, el, 0.02, 0.02, "mean", "widen")
+    assert r[0] == pytest.approx(100.0) and flag[0] == SUPPORT_WIDENED  # found at 4x
+    assert np.isnan(r[1]) and flag[1] == SUPPORT_NONE  # 16x window (0.32 rad) still empty
+    r, flag = index.estimate_range(az, el, 0.02, 0.02, "mean", "drop")
+    assert np.all(np.isnan(r)) and np.all(flag == SUPPORT_NONE)
+
+
+def test_window_across_azimuth_seam():
+    index = LidarAngularIndex(lidar_at([(7.0, np.pi - 0.005, 0.0)]))
+    r, flag = index.estimate_range(np.array([-np.pi + 0.005]), np.array([0.0]), 0.02, 0.02, "mean", "drop")
+    assert r[0] == pytest.approx(7.0) and flag[0] == SUPPORT_DIRECT
+
+
+def test_wide_windows_count_each_lidar_point_once():
+    # 16x a 0.25 rad window exceeds pi: every point is indexed twice; windows must not double count
+    index = LidarAngularIndex(np.array([[10.0, 0.0, 0.0], [20.0 * np.cos(0.1), 20.0 * np.sin(0.1), 0.0]]))
+    for az in (0.7, 3.0):
+        r, flag = index.estimate_range(np.array([az]), np.array([0.0]), 0.25, 0.25, "mean", "widen")
+        assert r[0] == pytest.approx(15.0) and flag[0] == SUPPORT_WIDENED
+
+
+def test_range_empty_inputs_and_errors():
+    index = LidarAngularIndex(np.zeros((0, 3)))
+    r, flag = index.estimate_range(np.zeros(3), np.zeros(3), 0.02, 0.02)
+    assert np.all(np.isnan(r)) and np.all(flag == 0)
+    full = LidarAngularIndex(lidar_at([(5.0, 0.0, 0.0)]))
+    r, flag = full.estimate_range(np.zeros(0), np.zeros(0), 0.02, 0.02)
+    assert r.shape == (0,) and flag.dtype == np.int8
+    with pytest.raises(ValueError, match="estimator"):
+        full.estimate_range(np.zeros(1), np.zeros(1), 0.02, 0.02, "mode")
+    with pytest.raises(ValueError, match="no_support"):
+        full.estimate_range(np.zeros(1), np.zeros(1), 0.02, 0.02, "mean", "skip")
+    with pytest.raises(ValueError):
+        full.estimate_range(np.zeros(1), np.zeros(1), 0.0, 0.02)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    m=st.integers(0, 300),
+    n=st.integers(0, 40),
+    delta_az=st.floats(0.005, 0.2),
+    delta_el=st.floats(0.005, 0.2),
+    estimator=st.sampled_from(ESTIMATORS),
+    no_support=st.sampled_from(NO_SUPPORT_RULES),
+)
+def test_estimators_match_bruteforce(seed, m, n, delta_az, delta_el, estimator, no_support):
+    rng = np.random.default_rng(seed)
+    rae = np.column_stack([rng.uniform(1, 60, m), rng.uniform(-np.pi, np.pi, m), rng.uniform(-0.6, 0.6, m)])
+    index = LidarAngularIndex(spherical_to_cartesian(rae))
+    az, el = rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.7, 0.7, n)
+    got = index.estimate_range(az, el, delta_az, delta_el, estimator, no_support)
+    want = index.estimate_range_bruteforce(az, el, delta_az, delta_el, estimator, no_support)
+    np.testing.assert_allclose(got[0], want[0], rtol=1e-12, equal_nan=True)
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+# --------------------------------------------------------------------------- placement
+
+
+def test_place_on_camera_ray_distance_and_ray():
+    rng = np.random.default_rng(0)
+    T = make_T_radar_cam((-0.8, 0.35, 0.6))
+    uv = rng.uniform([0, 0], [159, 79], (200, 2))
+    range_m = rng.uniform(2.0, 60.0, 200)
+    points = place_on_camera_ray(uv, range_m, K_SMALL, T)
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), range_m, rtol=1e-12)
+    c, d = T[:3, 3], pixel_rays_D(uv, K_SMALL, T)
+    offset = points - c
+    np.testing.assert_allclose(np.cross(offset, d), 0.0, atol=1e-9)  # on the ray's line
+    assert np.all(np.einsum("ij,ij->i", offset, d) > 0)  # in front of the camera
+    # recomputed angles differ from the camera ray's angles (the camera-radar offset matters)
+    rae = cartesian_to_spherical(points)
+    assert np.abs(rae[:, 1] - cartesian_to_spherical(d)[:, 1]).max() > 1e-3
+
+
+def test_place_on_camera_ray_fallback_and_nan():
+    T = make_T_radar_cam((0.0, 1.0, 0.0))  # camera 1 m to the left of the radar
+    uv = np.array([[79.5, 39.5], [79.5, 39.5]])  # principal point: ray along +x of {D}
+    points = place_on_camera_ray(uv, np.array([0.5, np.nan]), K_SMALL, T)
+    # |c + t x| >= 1 > 0.5 for every t: no solution, fall back to t = r
+    np.testing.assert_allclose(points[0], [0.5, 1.0, 0.0], atol=1e-12)
+    assert np.all(np.isnan(points[1]))
+    assert place_on_camera_ray(np.zeros((0, 2)), np.zeros(0), K_SMALL, T).shape == (0, 3)
+
+
+# --------------------------------------------------------------------------- Doppler
+
+
+def test_doppler_conventions_hand_computed():
+    points = np.array([[20.0, 0.0, 0.0], [0.0, 5.0, 0.0], [3.0, 3.0, 0.0]])
+    ego = np.array([10.0, 0.0, 0.0])
+    vod = doppler_for_points(points, ego, None, +1, 0.0)
+    np.testing.assert_allclose(vod, [-10.0, 0.0, -10.0 / np.sqrt(2)], atol=1e-12)  # approaching < 0
+    astyx = doppler_for_points(points, ego, None, -1, 10.39)
+    # +10 (positive approaching) wraps into [-5.195, 5.195): 10 - 10.39; 7.071 - 10.39
+    np.testing.assert_allclose(astyx, [10.0 - 10.39, 0.0, 10.0 / np.sqrt(2) - 10.39], atol=1e-9)
+    slow = doppler_for_points(points[:1], np.array([3.0, 0.0, 0.0]), None, -1, 10.39)
+    np.testing.assert_allclose(slow, [3.0])
+    # an object moving with the ego vehicle has zero range rate
+    same = doppler_for_points(points[:1], ego, np.array([[10.0, 0.0, 0.0]]), +1, 0.0)
+    np.testing.assert_allclose(same, [0.0], atol=1e-12)
+    with pytest.raises(ValueError):
+        doppler_for_points(points, ego, None, 2, 0.0)
+
+
+def test_object_velocities_oriented_boxes():
+    car = Object3D("Car", np.array([10.0, 0.0, 0.0]), np.array([4.0, 2.0, 1.5]), np.pi / 2,
+                   velocity_D=np.array([0.0, 3.0, 0.0]))
+    unknown = Object3D("Car", np.array([30.0, 0.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0)
+    points = np.array([
+        [10.0, 1.9, 0.0],    # along the (rotated) length: inside
+        [11.2, 0.0, 0.0],    # 1.2 m across: inside the 1.0 + 0.3 m grown half width
+        [11.5, 0.0, 0.0],    # 1.5 m across: outside
+        [10.0, 0.0, 1.0],    # 1.0 m up: inside the 0.75 + 0.3 half height
+        [30.0, 0.0, 0.0],    # in the box with unknown (NaN) velocity: static
+    ])
+    vel = object_velocities_for_points(points, [car, unknown])
+    np.testing.assert_allclose(vel, [[0, 3, 0], [0, 3, 0], [0, 0, 0], [0, 3, 0], [0, 0, 0]])
+    assert object_velocities_for_points(points, []).shape == (5, 3)
+
+
+# --------------------------------------------------------------------------- one frame
+
+
+def wall_scene(x_wall: float = 15.0) -> np.ndarray:
+    """A dense lidar wall x = x_wall, y in [-15, 15], z in [-2, 2] (5 cm grid)."""
+    y, z = np.meshgrid(np.arange(-15, 15, 0.05), np.arange(-2, 2, 0.05))
+    return np.column_stack([np.full(y.size, x_wall), y.ravel(), z.ravel()])
+
+
+RADAR = dict(az_res_deg=1.5, el_res_deg=1.5, fov_az_deg=100.0, fov_el_deg=40.0, max_range_m=50.0,
+             doppler_sign=1, doppler_span_mps=0.0)
+
+
+def assert_range_within_window(out: dict, T: np.ndarray) -> None:
+    """Each output range lies between the smallest and largest wall range in the radar-resolution
+    window around its camera ray's angles (the first-pass window the range is drawn from)."""
+    ray = cartesian_to_spherical(pixel_rays_D(out["uv"].astype(np.float64), K_SMALL, T))
+    wall, delta = cartesian_to_spherical(wall_scene()), np.deg2rad(1.5)
+    inside = ((np.abs(ray[:, None, 1] - wall[None, :, 1]) <= delta)
+              & (np.abs(ray[:, None, 2] - wall[None, :, 2]) <= delta))
+    ranges = np.broadcast_to(wall[:, 0], inside.shape)
+    low = np.where(inside, ranges, np.inf).min(axis=1)
+    high = np.where(inside, ranges, -np.inf).max(axis=1)
+    assert np.all(out["rae"][:, 0] >= low - 1e-4) and np.all(out["rae"][:, 0] <= high + 1e-4)
+
+
+def test_synthesize_frame_on_a_wall():
+    T = make_T_radar_cam((0.3, 0.4, 0.5))
+    prob = np.zeros((80, 160))
+    prob[30:50, 60:100] = 1.0     # wall region
+    prob[0:5, 60:100] = 1.0       # above z = 2 m at 15 m: sky, no lidar support
+    ego = np.array([5.0, 0.0, 0.0])
+    out = synthesize_frame(prob, 300.4, K_SMALL, T, wall_scene(), ego, [], estimator="nearest",
+                           no_support="drop", rng=np.random.default_rng(0), **RADAR)
+    k = out["points_D"].shape[0]
+    assert out["n_requested"] == 300
+    assert out["n_no_support"] > 0 and k > 200
+    assert k + out["n_no_support"] + out["n_out_of_fov"] + out["n_beyond_range"] == 300
+    points = out["points_D"].astype(np.float64)
+    assert_range_within_window(out, T)
+    # on the wall up to the angular window error (window 1.5 deg, camera-radar offset ~0.6 m)
+    assert np.abs(points[:, 0] - 15.0).max() < 0.3
+    # r, az, el recomputed from the radar origin
+    np.testing.assert_allclose(out["rae"], cartesian_to_spherical(points), atol=1e-5)
+    # the points lie on the sampled pixels' camera rays: they project back onto their pixels
+    uv, _, valid = project_to_image(points, K_SMALL, invert_transform(T), (160, 80))
+    assert valid.all()
+    np.testing.assert_allclose(uv, out["uv"], atol=1e-3)
+    # static world: VoD Doppler = -(unit . ego)
+    unit = points / np.linalg.norm(points, axis=1, keepdims=True)
+    np.testing.assert_allclose(out["doppler"], -(unit @ ego), atol=1e-5)
+    assert np.all(out["support"] == SUPPORT_DIRECT)
+    # the paper's mean rule is less exact but still on the wall within the window's spread
+    mean = synthesize_frame(prob, 300, K_SMALL, T, wall_scene(), ego, [], estimator="mean",
+                            no_support="drop", rng=np.random.default_rng(0), **RADAR)
+    assert_range_within_window(mean, T)
+    assert np.abs(mean["points_D"][:, 0] - 15.0).max() < 0.5
+
+
+def test_synthesize_frame_drop_reasons_and_reproducibility():
+    T = make_T_radar_cam()
+    prob = np.ones((80, 160))
+    args = (prob, 100, K_SMALL, T, wall_scene(), np.zeros(3), [])
+    a = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5), **RADAR)
+    b = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5), **RADAR)
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+    narrow = dict(RADAR, fov_az_deg=10.0)
+    c = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5), **narrow)
+    assert c["n_out_of_fov"] > 0 and np.all(np.abs(np.rad2deg(c["rae"][:, 1])) <= 5.0 + 1e-4)
+    near = dict(RADAR, max_range_m=14.0)
+    d = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5), **near)
+    assert d["points_D"].shape[0] == 0 and d["n_beyond_range"] == 100 - d["n_no_support"] - d["n_out_of_fov"]
+    e = synthesize_frame(np.ones((80, 160)), 0, K_SMALL, T, wall_scene(), np.zeros(3), [],
+                         estimator="mean", no_support="drop", rng=np.random.default_rng(0), **RADAR)
+    assert e["points_D"].shape == (0, 3) and e["doppler"].shape == (0,) and e["n_requested"] == 0
+    for bad in (np.nan, -3.0):
+        with pytest.raises(ValueError, match="n_hat"):
+            synthesize_frame(np.ones((80, 160)), bad, K_SMALL, T, wall_scene(), np.zeros(3), [],
+                             estimator="mean", no_support="drop", rng=np.random.default_rng(0), **RADAR)

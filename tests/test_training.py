@@ -1,0 +1,259 @@
+"""Training loop: learning on tiny synthetic problems, kill-and-resume equality, checkpoint format,
+data reading helpers, baselines against brute-force oracles."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import zarr
+from safetensors import safe_open
+from scipy.special import rel_entr
+
+from pipeline import checkpoint as ckpt
+from pipeline import training as T
+from pipeline.config import load_config
+from pipeline.errors import ConfigError
+
+torch.set_num_threads(1)
+
+
+def tiny_cfg(**overrides: str):
+    base = {"disnet.width": "8", "camera.working_size": "64,32", "radar.max_points": "64",
+            "train.batch_size": "8", "train.lr": "3e-3", "train.threads": "1", "train.device": "cpu",
+            "patches.patch_size_px": "16", "train.rss_batch_size": "64", "train.epochs": "3"}
+    return load_config("synthetic", {**base, **overrides})
+
+
+def make_disnet_data(n: int = 48, h: int = 32, w: int = 64, seed: int = 0, sq: int = 8,
+                     sigma_px: float = 4.0) -> T.DisNetData:
+    """Noisy dark images with one bright square; the target heatmap is a Gaussian on the square and
+    the count grows with the square's column."""
+    rng = np.random.default_rng(seed)
+    images = rng.integers(0, 40, (n, h, w, 3)).astype(np.uint8)
+    cx, cy = rng.uniform(sq / 2, w - sq / 2, n), rng.uniform(sq / 2, h - sq / 2, n)
+    x0, y0 = (cx - sq / 2).astype(int), (cy - sq / 2).astype(int)
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    inside = ((xx[None] >= x0[:, None, None]) & (xx[None] < x0[:, None, None] + sq)
+              & (yy[None] >= y0[:, None, None]) & (yy[None] < y0[:, None, None] + sq))
+    images[inside] = 255
+    g = np.exp(-0.5 * (((xx[None] - cx[:, None, None]) ** 2 + (yy[None] - cy[:, None, None]) ** 2) / sigma_px**2))
+    heat = (g / g.sum(axis=(1, 2), keepdims=True)).astype(np.float32)
+    counts = np.round(10 + 20 * cx / w).astype(np.int64)
+    speeds = rng.uniform(0, 15, n).astype(np.float32)
+    split = int(0.75 * n)
+    return T.DisNetData(images, heat, counts, speeds, list(range(split)), list(range(split, n)))
+
+
+def make_rss_data(p: int = 600, ps: int = 16, seed: int = 0, as_zarr: bool = False) -> T.RssNetData:
+    """RSS depends on the point's x (metres) and the patch brightness; range images mostly empty."""
+    rng = np.random.default_rng(seed)
+    patches = np.broadcast_to(rng.integers(0, 256, (p, 1, 1, 1)), (p, ps, ps, 3)).astype(np.uint8)
+    ranges = np.full((p, 32, 128), -1.0, np.float32)
+    ranges[:, 10:20, 50:70] = rng.uniform(0, 255, (p, 1, 1))
+    points = np.column_stack([rng.uniform(0, 50, p), rng.uniform(-10, 10, p), rng.uniform(-1, 2, p),
+                              rng.uniform(-5, 5, p)]).astype(np.float32)
+    rss = (-30 + 70 * (0.1 + 0.5 * points[:, 0] / 50 + 0.3 * patches[:, 0, 0, 0] / 255)).astype(np.float32)
+    arrays = [patches, ranges, points, rss]
+    if as_zarr:
+        arrays = [_to_zarr(a, chunk=50) for a in arrays]
+    split = int(0.75 * p)
+    return T.RssNetData(*arrays, list(range(split)), list(range(split, p)))
+
+
+def _to_zarr(a: np.ndarray, chunk: int):
+    z = zarr.create_array(store={}, shape=a.shape, chunks=(chunk, *a.shape[1:]), dtype=a.dtype)
+    z[:] = a
+    return z
+
+
+def test_disnet_learns_and_beats_mean_map(tmp_path):
+    data = make_disnet_data()
+    cfg = tiny_cfg(**{"train.epochs": "8"})
+    res = T.train_disnet(cfg, data, tmp_path, progress=False)
+    base = T.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
+    best = res.curves[res.best_epoch - 1]
+    assert best["val_kl"] < 0.6 * base["kl"]
+    assert res.curves[-1]["train_loss"] < 0.5 * res.curves[0]["train_loss"]
+    for name in ("last.safetensors", "best.safetensors", "last.json", "best.json",
+                 "curves.csv", "curves.json", "curves.png"):
+        assert (tmp_path / name).is_file(), name
+    # the best checkpoint reproduces the validation metrics recorded for its epoch
+    model = T.load_disnet(cfg, res.best_path)
+    m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
+    assert m["kl"] == pytest.approx(best["val_kl"], rel=1e-4)
+    assert m["n"] == pytest.approx(best["val_n"], rel=1e-4)
+    maps, n_hat = T.disnet_predict(model, data.images[:5], data.speeds[:5], batch=2)
+    assert maps.shape == (5, 32, 64) and maps.dtype == np.float32 and n_hat.shape == (5,)
+    np.testing.assert_allclose(maps.sum(axis=(1, 2)), 1.0, atol=1e-4)
+
+
+class KilledAfter:
+    """Array wrapper whose reads raise after ``reads`` successful ones (a simulated kill)."""
+
+    def __init__(self, array: np.ndarray, reads: int) -> None:
+        self.array, self.left = array, reads
+        self.shape, self.dtype = array.shape, array.dtype
+
+    def __len__(self) -> int:
+        return len(self.array)
+
+    def __getitem__(self, idx):
+        if self.left <= 0:
+            raise KeyboardInterrupt("simulated kill")
+        self.left -= 1
+        return self.array[idx]
+
+
+def _all_tensors(path):
+    with safe_open(str(path), framework="pt") as f:
+        return {k: f.get_tensor(k) for k in f.keys()}
+
+
+def test_disnet_data_errors(tmp_path):
+    data = make_disnet_data(n=8)
+    counts = data.counts.copy()
+    counts[6] = 0
+    with pytest.raises(ValueError, match=r"frames \[6\]"):
+        T.train_disnet(tiny_cfg(), T.DisNetData(**{**data.__dict__, "counts": counts}), tmp_path)
+    with pytest.raises(ValueError, match="working_size"):
+        T.train_disnet(tiny_cfg(**{"camera.working_size": "96,32"}), data, tmp_path)
+    with pytest.raises(ValueError, match="outside"):
+        T.train_disnet(tiny_cfg(), T.DisNetData(**{**data.__dict__, "val_idx": [8]}), tmp_path)
+    with pytest.raises(ValueError, match="empty"):
+        T.train_disnet(tiny_cfg(), T.DisNetData(**{**data.__dict__, "train_idx": []}), tmp_path)
+
+
+def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch):
+    monkeypatch.setattr(T, "WINDOW_BATCHES", 1)          # one read per batch: kill mid-epoch
+    data = make_disnet_data(n=20)                        # 15 train frames = 4 batches, 5 val = 2: 6 reads per epoch
+    cfg = tiny_cfg(**{"train.batch_size": "4"})
+    ref = T.train_disnet(cfg, data, tmp_path / "a", progress=False, fingerprint="fp")
+    killed = T.DisNetData(**{**data.__dict__, "images": KilledAfter(data.images, 2 * 6 + 2)})
+    with pytest.raises(KeyboardInterrupt):               # dies after 2 optimizer steps of epoch 3
+        T.train_disnet(cfg, killed, tmp_path / "b", progress=False, fingerprint="fp")
+    assert ckpt.read_meta(tmp_path / "b" / "last.safetensors")["epoch"] == 2
+    res = T.train_disnet(cfg, data, tmp_path / "b", progress=False, fingerprint="fp")
+    assert res.resumed_from == 2 and res.epoch == 3
+    a, b = _all_tensors(ref.last_path), _all_tensors(res.last_path)
+    assert set(a) == set(b) and any(k.startswith("optim.") for k in a)
+    for k in a:
+        if not k.startswith("rng."):
+            assert torch.equal(a[k], b[k]), k
+    strip = [{k: v for k, v in c.items() if k != "seconds"} for c in ref.curves]
+    assert strip == [{k: v for k, v in c.items() if k != "seconds"} for c in res.curves]
+    # a finished run does no more work; other settings start from scratch
+    assert T.train_disnet(cfg, data, tmp_path / "b", progress=False, fingerprint="fp").resumed_from == 3
+    fresh = T.train_disnet(tiny_cfg(**{"train.epochs": "1"}), data, tmp_path / "b", progress=False,
+                           fingerprint="other")
+    assert fresh.resumed_from == 0 and fresh.epoch == 1
+
+
+def test_checkpoints_are_safetensors_with_json_meta(tmp_path):
+    data = make_rss_data(p=120)
+    res = T.train_rssnet(tiny_cfg(**{"train.epochs": "1"}), data, tmp_path, progress=False)
+    for path in (res.last_path, res.best_path):
+        raw = path.read_bytes()
+        header_len = int.from_bytes(raw[:8], "little")
+        header = json.loads(raw[8:8 + header_len])          # plain JSON header, then raw tensor bytes
+        meta = json.loads(header["__metadata__"]["meta"])
+        assert meta["net"] == "rssnet" and meta["epoch"] == 1
+        assert all(v["dtype"] in {"F32", "I64", "U8"} for k, v in header.items() if k != "__metadata__")
+    sidecar = json.loads(res.last_path.with_suffix(".json").read_text())
+    assert sidecar["epoch"] == 1 and "numpy_rng" in sidecar and "optimizer" in sidecar
+    with pytest.raises(ValueError, match="own folder"):      # one folder per net
+        T.train_disnet(tiny_cfg(), make_disnet_data(n=8), tmp_path, progress=False)
+
+
+def test_rssnet_learns_from_zarr_and_resumes(tmp_path):
+    data = make_rss_data(p=400, as_zarr=True)
+    cfg = tiny_cfg(**{"train.epochs": "3"})
+    ref = T.train_rssnet(cfg, data, tmp_path / "a", progress=False)
+    base = T.rssnet_baseline(data.rss, data.train_idx, data.val_idx, cfg.radar.rss_min, cfg.radar.rss_max)
+    assert min(c["val_a"] for c in ref.curves) < 0.5 * base["a"]
+    T.train_rssnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "b", progress=False)
+    res = T.train_rssnet(cfg, data, tmp_path / "b", progress=False)
+    assert res.resumed_from == 2
+    a, b = _all_tensors(ref.last_path), _all_tensors(res.last_path)
+    assert all(torch.equal(a[k], b[k]) for k in a if k.startswith(("model.", "optim.")))
+    model = T.load_rssnet(cfg, res.best_path)
+    pred = T.rssnet_predict(model, data.patches, data.range_images, data.point_vectors, batch=100)
+    assert pred.shape == (400,) and pred.dtype == np.float32
+    assert T.rssnet_metrics(model, data, data.val_idx)["a"] == pytest.approx(
+        np.mean(((pred[data.val_idx] - data.rss[:][data.val_idx]) / 70.0) ** 2), rel=1e-3)
+
+
+def test_rssnet_ablation_reads_only_its_inputs(tmp_path):
+    data = make_rss_data(p=100)
+    cfg = tiny_cfg(**{"train.epochs": "1", "rssnet.use_camera": "false", "rssnet.use_lidar": "false"})
+    only_point = T.RssNetData(None, None, data.point_vectors, data.rss, data.train_idx, data.val_idx)
+    res = T.train_rssnet(cfg, only_point, tmp_path, progress=False)
+    model = T.load_rssnet(cfg, res.last_path)
+    assert model.patch_branch is None and model.range_branch is None
+    assert T.rssnet_predict(model, None, None, data.point_vectors).shape == (100,)
+    with pytest.raises(ConfigError, match="architecture"):
+        T.load_rssnet(tiny_cfg(), res.last_path)
+    with pytest.raises(ValueError, match="range_images"):
+        T.train_rssnet(tiny_cfg(**{"rssnet.use_camera": "false"}), only_point, tmp_path / "x", progress=False)
+
+
+def test_optimizer_and_numpy_rng_round_trip_through_json():
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    model(torch.randn(4, 3)).sum().backward()
+    opt.step()
+    tensors, js = ckpt.flatten_optimizer(opt)
+    opt2 = torch.optim.Adam(torch.nn.Linear(3, 2).parameters(), lr=5.0)
+    opt2.load_state_dict(ckpt.unflatten_optimizer(tensors, json.loads(json.dumps(js))))
+    s1, s2 = opt.state_dict(), opt2.state_dict()
+    assert s1["param_groups"] == s2["param_groups"]
+    for pid in s1["state"]:
+        for k, v in s1["state"][pid].items():
+            assert torch.equal(v, s2["state"][pid][k])
+    rng = np.random.default_rng(7)
+    rng.random(5)
+    clone = ckpt.numpy_rng_from_state(json.loads(json.dumps(ckpt.numpy_rng_state(rng))))
+    assert np.array_equal(rng.random(10), clone.random(10))
+
+
+@pytest.mark.parametrize("rows_per_chunk", [1, 10])
+def test_epoch_order_is_a_seeded_permutation(rows_per_chunk):
+    idx = np.arange(3, 97)
+    o1 = T.epoch_order(idx, rows_per_chunk, 16, np.random.default_rng(1))
+    o2 = T.epoch_order(idx, rows_per_chunk, 16, np.random.default_rng(1))
+    assert np.array_equal(np.sort(o1), idx) and np.array_equal(o1, o2)
+    assert not np.array_equal(o1, idx)
+
+
+def test_take_rows_zarr_matches_numpy():
+    a = np.arange(60, dtype=np.float32).reshape(20, 3)
+    z = _to_zarr(a, chunk=4)
+    sel = np.array([7, 2, 2, 19, 0])
+    assert np.array_equal(T.take_rows(z, sel), a[sel]) and T.chunk_len(z) == 4
+
+
+def test_baselines_against_brute_force():
+    data = make_disnet_data(n=12)
+    mean = T.mean_map_baseline(data.heatmaps, data.train_idx)
+    brute = data.heatmaps[data.train_idx].astype(np.float64).mean(axis=0)
+    eps = T.BASELINE_UNIFORM_MIX                      # documented uniform share keeping the KL finite
+    np.testing.assert_allclose(mean, (1 - eps) * brute / brute.sum() + eps / brute.size, rtol=1e-5)
+    assert mean.sum() == pytest.approx(1.0)
+    got = T.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
+    kl = [rel_entr(data.heatmaps[i].astype(np.float64), mean).sum() for i in data.val_idx]
+    n_bar = data.counts[data.train_idx].mean()
+    ln = [((n_bar - data.counts[i]) / data.counts[i]) ** 2 for i in data.val_idx]
+    assert got["kl"] == pytest.approx(np.mean(kl)) and got["n"] == pytest.approx(np.mean(ln))
+    rss = np.array([1.0, 5.0, 3.0, 10.0, -2.0])
+    out = T.rssnet_baseline(rss, [0, 1, 2], [3, 4], rss_min=-10, rss_max=10)
+    assert out["a"] == pytest.approx(np.mean(((np.array([10.0, -2.0]) - 3.0) / 20) ** 2))
+
+
+def test_select_device():
+    assert T.select_device("cpu").type == "cpu"
+    assert T.select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ConfigError):
+        T.select_device("tpu")
