@@ -232,6 +232,60 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
 
 
 @main.command()
+@dataset_options
+@click.option("--tables", default="2,3", show_default=True, help="Which of the paper's tables: 2 (Dis-Net), 3 (RSS-Net).")
+@click.option("--workers", type=int, default=None, help="dask workers for the preprocessing stages.")
+@_handle_errors
+def ablate(dataset, data_root, cache_root, sets, tables, workers):
+    """Train the paper's ablation variants (Tables II and III) and write a table next to the paper's."""
+    from pipeline.runner import DatasetInputs
+    from stages.ablations import run_ablations
+
+    env = _context(dataset, data_root, cache_root, sets)
+    pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
+    _ensure_world(env, pipe.progress)
+    try:
+        pipe.run("heatmaps")
+        pipe.run("patches")
+    finally:
+        pipe.executor.close()
+    out = Path(env.dir("ablations").path)
+    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, out,
+                  tuple(t.strip() for t in tables.split(",")))
+    click.echo((out / "ablations.md").read_text())
+    click.echo(f"ablations: {out / 'ablations.md'}")
+
+
+@main.command("check-physics")
+@dataset_options
+@click.option("--workers", type=int, default=None, help="dask workers for calibrate.")
+@_handle_errors
+def check_physics(dataset, data_root, cache_root, sets, workers):
+    """Physics checks on real frames, no learning: lidar range vs measured radar range per range
+    estimator (median / 90th percentile |dr|, share without lidar support) and the Doppler of static
+    points vs the ego velocity (median |dv|). Runs calibrate first."""
+    import numpy as np
+
+    from pipeline.cache import DONE
+    from pipeline.runner import DatasetInputs
+    from stages.evaluate import physics_checks
+
+    env = _context(dataset, data_root, cache_root, sets)
+    pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
+    _ensure_world(env, pipe.progress)
+    try:
+        pipe.run("calibrate")
+    finally:
+        pipe.executor.close()
+    frames = np.flatnonzero(env.store("calibrate").status() == DONE)
+    result = physics_checks(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, frames)
+    click.echo(f"{len(frames)} frame(s) of {dataset}:")
+    for name, values in result.items():
+        click.echo(f"  {name}: " + ", ".join(f"{k} = {v:.3g}" if isinstance(v, float) else f"{k} = {v}"
+                                            for k, v in values.items()))
+
+
+@main.command()
 @click.argument("stage")
 @dataset_options
 @_handle_errors

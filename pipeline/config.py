@@ -148,6 +148,9 @@ class DisNetSection:
     """Path of a local torchvision ResNet-18 state dict ('' = random init)."""
     width: int = 64
     """Base width of the ResNet-18 (64 = standard)."""
+    prior: bool = True
+    """Add log(mean training heatmap) to the map logits and learn the residual (an improvement
+    over the paper: training starts at the mean-map baseline; False = the paper's network)."""
 
 
 @dataclass(frozen=True)

@@ -154,7 +154,7 @@ class Executor:
                 self._client = Client(self.scheduler)
             else:
                 self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                             dashboard_address=None, silence_logs=logging.ERROR)
+                                             dashboard_address=":0", silence_logs=logging.CRITICAL)
                 self._client = Client(self._cluster)
         return self._client
 
@@ -183,6 +183,8 @@ class Executor:
             bar.close()
 
     def _results(self, stage, env, todo, strict):
+        if not todo:
+            return
         if not self.distributed:
             for index, frame_id in todo:
                 result = process_frame(stage, env, index, frame_id)

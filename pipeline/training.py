@@ -56,6 +56,8 @@ class DisNetData:
     speeds: Any
     train_idx: Sequence[int]
     val_idx: Sequence[int]
+    prior_map: Any = None
+    """(H, W) mean training heatmap for disnet.prior (None: computed from the train frames)."""
 
 
 @dataclass
@@ -379,7 +381,7 @@ def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
     common = ["train.lr", "train.seed"]
     if net == "disnet":
-        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "radar.max_points",
+        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "radar.max_points",
                 "camera.working_size", "train.batch_size", "train.alpha"]
     else:
         keys = ["rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
@@ -427,6 +429,9 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
     _setup(cfg)
     model = build_disnet(cfg)
+    if cfg.disnet.prior:
+        prior = data.prior_map if data.prior_map is not None else mean_map_baseline(data.heatmaps, data.train_idx)
+        model.set_prior(prior)
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,

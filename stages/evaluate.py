@@ -12,7 +12,6 @@ Every method is evaluated on the same frames: those of eval.split that synthesiz
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +19,7 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE
 from pipeline.config import Config
-from pipeline.geometry import invert_transform, project_to_image, radial_velocity
+from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
 from stages.synthesize import SPLITS, generate, models
 
@@ -112,9 +111,8 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev) -> dic
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.figures import bev, fig8, histograms
-    from pipeline.metrics import distribution_distances, doppler_check, frame_metrics, range_check, to_spherical
+    from pipeline.metrics import distribution_distances, frame_metrics
     from pipeline.report import aggregate, write_report
-    from pipeline.synthesis import LidarAngularIndex
     from pipeline.training import rssnet_predict
     from stages.patches import point_inputs
 
@@ -132,8 +130,6 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     r = cfg.radar
     per_frame: dict[str, list] = {}
     pooled: dict[str, list] = {}
-    physics: dict[str, list] = {"abs_dr_" + e: [] for e in ("mean", cfg.synth.range_estimator)}
-    physics.update({"no_support_" + e: [] for e in ("mean", cfg.synth.range_estimator)}, abs_dv=[])
     figure_rows = []
     for i in tqdm(frames, desc="evaluate", unit="frame", disable=not inputs.progress):
         i = int(i)
@@ -156,21 +152,12 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                               gate_doppler=cfg.eval.gate_doppler_mps, doppler_span_mps=r.doppler_span_mps)
             per_frame.setdefault(name, []).append(m)
             pooled.setdefault(name, []).append(pts)
-        lidar = f.get("calibrate", "lidar")
-        index = LidarAngularIndex(lidar)
-        for est in ("mean", cfg.synth.range_estimator):
-            check = range_check(real[:, :3], lidar, lambda az, el, e=est: index.estimate_range(
-                az, el, np.radians(r.az_res_deg), np.radians(r.el_res_deg), e, "drop"))
-            physics["abs_dr_" + est].append(check["abs_dr"])
-        dv = doppler_check(real[:, :3], real[:, 3], f.get("calibrate", "ego_velocity"),
-                           _static_mask(real, f.get("calibrate", "labels")), r.doppler_span_mps)
-        physics["abs_dv"].append(dv["abs_dv"])
         if len(figure_rows) < cfg.eval.figure_frames:
             figure_rows.append((i, methods["model"][0], real))
     pooled_real = np.concatenate([_real(inputs.frame(int(i))) for i in frames])
     distances = {name: distribution_distances(_sph(np.concatenate(p)), _sph(pooled_real))
                  for name, p in pooled.items() if sum(len(x) for x in p)}
-    phys = _physics_summary(physics)
+    phys = physics_checks(inputs, cfg, frames)
     root = Path(out.path)
     figs = root / "figures"
     _figures(inputs, cfg, figure_rows, syn_store, figs, pooled["model"], pooled_real, fig8, bev, histograms)
@@ -188,6 +175,32 @@ def _sph(points5: np.ndarray) -> np.ndarray:
     from pipeline.metrics import to_spherical
 
     return to_spherical(points5)
+
+
+def physics_checks(inputs, cfg: Config, frames) -> dict:
+    """Physics checks on real frames (no learning): (a) lidar range at each real radar point's
+    angles vs its measured range, for the paper's mean rule and every other estimator; (b) Doppler
+    of static real points predicted from the ego velocity vs measured. Reads calibrate only."""
+    from pipeline.metrics import doppler_check, range_check
+    from pipeline.synthesis import LidarAngularIndex
+
+    r = cfg.radar
+    estimators = ("mean", "nearest", "median", "min")
+    physics: dict[str, list] = {"abs_dr_" + e: [] for e in estimators}
+    physics["abs_dv"] = []
+    for i in frames:
+        f = inputs.frame(int(i))
+        real = _real(f)
+        lidar = f.get("calibrate", "lidar")
+        index = LidarAngularIndex(lidar)
+        for est in estimators:
+            check = range_check(real[:, :3], lidar, lambda az, el, e=est: index.estimate_range(
+                az, el, np.radians(r.az_res_deg), np.radians(r.el_res_deg), e, "drop"))
+            physics["abs_dr_" + est].append(check["abs_dr"])
+        dv = doppler_check(real[:, :3], real[:, 3], f.get("calibrate", "ego_velocity"),
+                           _static_mask(real, f.get("calibrate", "labels")), r.doppler_span_mps)
+        physics["abs_dv"].append(dv["abs_dv"])
+    return _physics_summary(physics)
 
 
 def _physics_summary(physics: dict[str, list]) -> dict:

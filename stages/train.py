@@ -22,7 +22,7 @@ from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.stage import DatasetStage
 
-CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "rssnet.use_camera",
+CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "rssnet.use_camera",
                "rssnet.use_lidar", "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr",
                "train.batch_size", "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points",
                "radar.rss_min", "radar.rss_max")

@@ -57,6 +57,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SLEEP_ENV, LOG_ENV, ATTEMPT_ENV = "SOAK_FRAME_SLEEP", "SOAK_CALL_LOG", "SOAK_ATTEMPT"
 N_FRAMES_ENV, FAULT_ENV = "SOAK_N_FRAMES", "SOAK_FAULT"
+TRAIN_EPOCHS_ENV, TRAIN_SCALE_ENV = "SOAK_TRAIN_EPOCHS", "SOAK_TRAIN_SCALE"
 FAKE_FRAME_STAGES = ("calibrate", "heatmaps")
 
 # ------------------------------------------------------------------------------ fake stages
@@ -196,7 +197,8 @@ def train_direct_config():
     return load_config("synthetic", {
         "disnet.width": "8", "camera.working_size": "64,32", "radar.max_points": "64",
         "train.batch_size": "8", "train.lr": "3e-3", "train.threads": "1", "train.device": "cpu",
-        "patches.patch_size_px": "16", "train.rss_batch_size": "32", "train.epochs": "6",
+        "patches.patch_size_px": "16", "train.rss_batch_size": "32",
+        "train.epochs": os.environ.get(TRAIN_EPOCHS_ENV, "6"),
         "train.seed": "3"}, environ={})
 
 
@@ -206,17 +208,17 @@ def train_direct(out_dir: str) -> None:
 
     cfg = train_direct_config()
     rng = np.random.default_rng(0)
-    n, h, w = 24, 32, 64
+    scale = int(os.environ.get(TRAIN_SCALE_ENV, "2"))
+    n, h, w, p = 12 * scale, 32, 64, 160 * scale
     heat = rng.random((n, h, w)).astype(np.float32)
     heat /= heat.sum(axis=(1, 2), keepdims=True)
     dis = T.DisNetData(rng.integers(0, 256, (n, h, w, 3)).astype(np.uint8), heat,
                        rng.integers(5, 40, n), rng.uniform(0, 15, n).astype(np.float32),
-                       list(range(18)), list(range(18, n)))
-    p = 320
+                       list(range(n * 3 // 4)), list(range(n * 3 // 4, n)))
     rss = T.RssNetData(rng.integers(0, 256, (p, 16, 16, 3)).astype(np.uint8),
                        rng.uniform(-1, 255, (p, 32, 128)).astype(np.float32),
                        rng.normal(size=(p, 4)).astype(np.float32), rng.uniform(-30, 40, p).astype(np.float32),
-                       list(range(256)), list(range(256, p)))
+                       list(range(p * 4 // 5)), list(range(p * 4 // 5, p)))
     T.train_disnet(cfg, dis, Path(out_dir) / "disnet", progress=False)
     T.train_rssnet(cfg, rss, Path(out_dir) / "rssnet", progress=False)
 
@@ -508,7 +510,7 @@ def soak_mid_write(work: Path, frames: tuple[int, ...], n_frames: int = 12) -> T
             problems.append(f"frame {index}: status {store.status()[index]} after a kill mid-write (want PENDING)")
         if float(store.array("value")[index]) != 0.0:  # the second array still holds its fill value
             problems.append(f"frame {index}: second array written before the kill?")
-    final = run_once(cmd, subprocess_env(**base), None)
+    final = run_once(cmd, subprocess_env(**base, **{LOG_ENV: str(log), ATTEMPT_ENV: str(attempts)}), None)
     attempts += 1
     if final.rc != 0:
         problems.append(f"resume failed: {final.stderr[-2000:]}")
@@ -517,14 +519,17 @@ def soak_mid_write(work: Path, frames: tuple[int, ...], n_frames: int = 12) -> T
                         problems + tree_problems)
 
 
-def soak_train_direct(work: Path, kills: int, rng: random.Random) -> TargetResult:
-    """Resumable training killed at random moments vs an uninterrupted run: tensors equal exactly."""
+def soak_train_direct(work: Path, kills: int, rng: random.Random, epochs: int = 6, scale: int = 2,
+                      startup_s: float | None = None) -> TargetResult:
+    """Resumable training killed at random moments vs an uninterrupted run: tensors equal exactly.
+    ``startup_s``: seconds before training starts (measured when None)."""
     work.mkdir(parents=True, exist_ok=True)
-    env = subprocess_env()
+    env = subprocess_env(**{TRAIN_EPOCHS_ENV: str(epochs), TRAIN_SCALE_ENV: str(scale)})
     clean = run_once(python_cmd("train-direct", str(work / "clean")), env, None)
     if clean.rc != 0:
         raise RuntimeError(f"clean training failed:\n{clean.stderr[-3000:]}")
-    startup = run_once([sys.executable, "-c", "import pipeline.training"], env, None).seconds
+    startup = startup_s if startup_s is not None else \
+        run_once([sys.executable, "-c", "import pipeline.training"], env, None).seconds
     t0 = time.monotonic()
     attempts = run_with_kills(python_cmd("train-direct", str(work / "killed")), env, kills, startup,
                               max(0.5, clean.seconds - startup), rng)
@@ -538,7 +543,7 @@ def soak_train_direct(work: Path, kills: int, rng: random.Random) -> TargetResul
 # --------------------------------------------------------------------------- real stages
 
 REAL_STAGES = ("calibrate", "heatmaps", "patches", "train", "synthesize", "export")
-REAL_SETTINGS = ("dataset.world_frames=24", "train.epochs=3", "train.threads=1", "train.device=cpu")
+REAL_SETTINGS = ("train.epochs=3", "train.threads=1", "train.device=cpu")
 
 
 def real_stage_cmd(stage: str, cache: Path, world: Path, workers: int) -> list[str]:
@@ -549,10 +554,9 @@ def real_stage_cmd(stage: str, cache: Path, world: Path, workers: int) -> list[s
     return cmd
 
 
-def real_pipeline_available(work: Path) -> tuple[bool, str]:
+def real_pipeline_available(work: Path, frames: int = 24) -> tuple[bool, str]:
     """Generate the synthetic world into ``work/world``; (False, why) if it cannot be done yet."""
-    frames = next(s.split("=")[1] for s in REAL_SETTINGS if s.startswith("dataset.world_frames"))
-    att = run_once([sys.executable, "-m", "pipeline.cli", "generate-world", "--frames", frames, "--seed", "0",
+    att = run_once([sys.executable, "-m", "pipeline.cli", "generate-world", "--frames", str(frames), "--seed", "0",
                     "--out", str(work / "world")], subprocess_env(), None)
     if att.rc != 0:
         return False, (att.stderr.strip().splitlines() or ["?"])[-1]

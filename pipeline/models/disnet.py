@@ -13,6 +13,7 @@ The input image is RGB float in [0, 1]; ImageNet mean/std normalisation happens 
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -36,7 +37,8 @@ class DisNet(nn.Module):
     """
 
     def __init__(self, width: int = 64, use_speed: bool = True, max_points: int = 1000,
-                 out_hw: tuple[int, int] = (160, 320), backbone: ResNet18Backbone | None = None) -> None:
+                 out_hw: tuple[int, int] = (160, 320), backbone: ResNet18Backbone | None = None,
+                 use_prior: bool = False) -> None:
         super().__init__()
         if max_points < 1:
             raise ValueError(f"max_points must be >= 1, got {max_points}")
@@ -50,6 +52,12 @@ class DisNet(nn.Module):
         self.decoder = nn.Sequential(
             _up(c, c // 2), _up(c // 2, c // 4), _up(c // 4, c // 8),
             nn.ConvTranspose2d(c // 8, 1, 4, stride=2, padding=1))
+        self.use_prior = use_prior
+        # log of the mean training map, added to the decoder's logits (set_prior); saved in checkpoints
+        self.register_buffer("prior_logits", torch.zeros(self.out_hw))
+        if use_prior:  # start exactly at the prior: the decoder learns the per-frame residual
+            nn.init.zeros_(self.decoder[-1].weight)
+            nn.init.zeros_(self.decoder[-1].bias)
         self.count_conv = nn.Conv2d(c, 1, 1)
         self.count_fc = nn.Linear(COUNT_GRID[0] * COUNT_GRID[1], 12)
         self.speed_fc = nn.Linear(1, 12) if use_speed else None
@@ -60,6 +68,7 @@ class DisNet(nn.Module):
         feat = self.backbone((image - self.mean) / self.std)            # (B, C, H/32, W/32)
         logits = self.decoder(feat)                                     # (B, 1, H/2, W/2)
         logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
+        logits = logits + self.prior_logits                             # (B, 1, H, W)
         log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
         grid = F.adaptive_avg_pool2d(self.count_conv(feat), COUNT_GRID)  # (B, 1, 5, 18)
         code = F.relu(self.count_fc(grid.reshape(b, -1)))               # (B, 12)
@@ -70,6 +79,15 @@ class DisNet(nn.Module):
             code = torch.cat([code, F.relu(self.speed_fc(s))], dim=1)   # (B, 24)
         n_hat = torch.sigmoid(self.count_head(code)).squeeze(1) * self.max_points  # (B,)
         return log_map, n_hat
+
+    @torch.no_grad()
+    def set_prior(self, prob_map: np.ndarray, floor: float = 1e-6) -> None:
+        """Use log(prob_map) (H, W), e.g. the mean training heatmap, as the map's prior logits."""
+        p = np.asarray(prob_map, dtype=np.float64)
+        if p.shape != self.out_hw:
+            raise ValueError(f"prior map: expected shape {self.out_hw}, got {p.shape}")
+        p = p / p.sum()
+        self.prior_logits.copy_(torch.from_numpy(np.log((1 - floor) * p + floor / p.size)).float())
 
 
 def _up(in_ch: int, out_ch: int) -> nn.Sequential:
@@ -82,7 +100,7 @@ def disnet_kwargs(cfg) -> dict:
     """Constructor arguments of DisNet from a Config (disnet.*, radar.max_points, camera.working_size)."""
     w, h = cfg.camera.working_size
     return {"width": cfg.disnet.width, "use_speed": cfg.disnet.use_speed,
-            "max_points": cfg.radar.max_points, "out_hw": (h, w)}
+            "max_points": cfg.radar.max_points, "out_hw": (h, w), "use_prior": cfg.disnet.prior}
 
 
 def build_disnet(cfg, load_backbone: bool = True) -> DisNet:

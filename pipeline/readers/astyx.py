@@ -36,7 +36,6 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import Config
 from pipeline.egomotion import EgoFit, estimate_ego_velocity
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord, Object3D

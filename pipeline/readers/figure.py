@@ -28,7 +28,7 @@ def draw_overlay(ax, record: FrameRecord, title: str, max_lidar: int = 20000) ->
     idx = np.flatnonzero(valid)
     if idx.size > max_lidar:
         idx = np.random.default_rng(0).choice(idx, max_lidar, replace=False)
-    ax.scatter(uv[idx, 0], uv[idx, 1], c=depth[idx], s=0.3, cmap="viridis", vmin=0, vmax=50, linewidths=0)
+    ax.scatter(uv[idx, 0], uv[idx, 1], c=depth[idx], s=0.3 if idx.size > 5000 else 2.5, cmap="viridis", vmin=0, vmax=50, linewidths=0)
     uv_r, _, valid_r = project_to_image(record.radar_D[:, :3], record.K, T_cam_radar, (w, h))
     sc = ax.scatter(uv_r[valid_r, 0], uv_r[valid_r, 1], c=record.radar_D[valid_r, 3], s=9, cmap="coolwarm",
                     vmin=-5, vmax=5, edgecolors="k", linewidths=0.3)
@@ -52,7 +52,7 @@ def write_figure(records: list[tuple[FrameRecord, str]], out_path: Path, width_i
         sc = draw_overlay(ax, record, title)
     fig.colorbar(sc, ax=np.atleast_1d(axes).tolist(), fraction=0.02, pad=0.01, label="radar range rate (m/s)")
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_path, dpi=110)
+    fig.savefig(out_path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 

@@ -1,9 +1,9 @@
 """Built-in synthetic driving world with a hidden radar model, written in the View-of-Delft layout.
 
 ``generate(out_dir, frames, seed, ...)`` writes camera images, lidar scans, radar points, labels,
-calibration, poses and a ``world.json`` summary (written last). See generate.py.
+calibration, poses and a ``world.json`` summary (written last). See generator.py.
 """
 
-from pipeline.world.generate import generate
+from pipeline.world.generator import generate
 
 __all__ = ["generate"]

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.world.materials import MATERIAL_ID
-from pipeline.world.road import RoadLayout, ground_material
-from pipeline.world.scene import (ACROSS, ALONG, PLANE, SCENE_TYPES, Centres, Ego, Scene, _Builder)
+from pipeline.world.materials import MATERIAL_ID, material_arrays
+from pipeline.world.road import RoadLayout, ground_material, road_to_world
+from pipeline.world.scene import (ACROSS, ALONG, PLANE, SCENE_TYPES, Centres, Ego, Scene, SceneBuilder)
 
 GROUND_CENTRES_PER_M2 = 0.8
 """Density of radar scattering centres on the ground."""
@@ -25,6 +25,7 @@ CLOTHES = ((0.1, 0.1, 0.3), (0.5, 0.1, 0.1), (0.2, 0.2, 0.2), (0.8, 0.7, 0.5), (
            (0.9, 0.9, 0.85), (0.6, 0.3, 0.6))
 EGO_SPEED_RANGE = {"residential": (0.0, 8.0), "urban": (0.0, 12.0), "highway": (9.0, 15.0)}
 """Ego speed range per scene type (m/s); overall 0..15 m/s."""
+MAX_EGO_SPEED_MPS = 15.0
 
 
 def build_scene(scene_type: str, rng: np.random.Generator, frames: int, id_base: int,
@@ -40,9 +41,8 @@ def build_scene(scene_type: str, rng: np.random.Generator, frames: int, id_base:
     ego_rng = np.random.default_rng(rng.integers(2**63))
     speed0, accel = _ego_speed(ego_rng, scene_type, duration, ego_speed_mps)
     layout, ego_l = _layout(scene_type, rng)
-    travel = speed0 * duration + 0.5 * accel * duration**2
-    span = (-45.0, travel + 100.0)
-    b = _Builder(rng, layout.kappa_1pm, id_base)
+    span = (-45.0, MAX_EGO_SPEED_MPS * duration + 100.0)  # independent of the ego speed: same seed, same scene
+    b = SceneBuilder(rng, layout.kappa_1pm, id_base)
     ground = b.actor("ground")
     b.prims.append((ground, PLANE, (0.0, 0.0, 0.0), 0.0, (0.0, 0.0, 0.0), MATERIAL_ID["asphalt"], (1.0, 1.0, 1.0)))
     ego = Ego(0.0, ego_l, speed0, accel)
@@ -80,9 +80,6 @@ def _layout(scene_type: str, rng: np.random.Generator) -> tuple[RoadLayout, floa
 
 def _ground_centres(layout: RoadLayout, span: tuple[float, float], rng: np.random.Generator) -> Centres:
     """Scattering centres on the ground (z = 0, prim 0) plus kerb-line centres facing the road."""
-    from pipeline.world.materials import material_arrays
-    from pipeline.world.road import road_to_world
-
     width = layout.half_width_m + layout.shoulder_m + layout.sidewalk_m + 5.0
     n = rng.poisson(GROUND_CENTRES_PER_M2 * (span[1] - span[0]) * 2 * width)
     s = rng.uniform(span[0], span[1], n)
@@ -116,7 +113,7 @@ def _pick(rng: np.random.Generator, options: tuple) -> tuple:
     return options[int(rng.integers(len(options)))]
 
 
-def add_car(b: _Builder, s: float, l: float, heading_sign: float, speed: float = 0.0,
+def add_car(b: SceneBuilder, s: float, l: float, heading_sign: float, speed: float = 0.0,
             static: bool = True, truck: bool = False) -> None:
     """A car (or truck) at road coordinates; moving ones drive along the road at ``speed`` m/s."""
     rng = b.rng
@@ -142,7 +139,7 @@ def add_car(b: _Builder, s: float, l: float, heading_sign: float, speed: float =
         _car_parts(b, actor, L, W, H, paint, tint, pose)
 
 
-def _car_parts(b: _Builder, a: int, L: float, W: float, H: float, paint: str, tint: tuple, pose) -> None:
+def _car_parts(b: SceneBuilder, a: int, L: float, W: float, H: float, paint: str, tint: tuple, pose) -> None:
     z_body = 0.95 * H / 1.5
     b.box(a, (0.0, 0.0, (0.28 + z_body) / 2), 0.0, (L, W, z_body - 0.28), paint, tint, pose)
     cab_h = H - 0.06 - z_body
@@ -152,7 +149,7 @@ def _car_parts(b: _Builder, a: int, L: float, W: float, H: float, paint: str, ti
         b.box(a, (x, 0.0, 0.31), 0.0, (0.62, W - 0.04, 0.62), "rubber", pose=pose)
 
 
-def _truck_parts(b: _Builder, a: int, L: float, W: float, H: float, paint: str, tint: tuple, pose) -> None:
+def _truck_parts(b: SceneBuilder, a: int, L: float, W: float, H: float, paint: str, tint: tuple, pose) -> None:
     cab_l = 2.3
     b.box(a, (L / 2 - cab_l / 2, 0.0, 0.5 + 1.0), 0.0, (cab_l, W, 2.0), paint, tint, pose)
     b.box(a, (L / 2 - 0.05, 0.0, 2.0 + 0.4), 0.0, (0.1, W - 0.2, 0.7), "glass", pose=pose)
@@ -163,7 +160,7 @@ def _truck_parts(b: _Builder, a: int, L: float, W: float, H: float, paint: str, 
         b.box(a, (x, 0.0, 0.5), 0.0, (1.0, W - 0.05, 1.0), "rubber", pose=pose)
 
 
-def add_pedestrian(b: _Builder, s: float, l: float, speed: float, across: bool = False) -> None:
+def add_pedestrian(b: SceneBuilder, s: float, l: float, speed: float, across: bool = False) -> None:
     """A pedestrian walking along the sidewalk (or across the road) at ``speed`` m/s (0 = standing)."""
     rng = b.rng
     h = rng.uniform(1.55, 1.9)
@@ -179,7 +176,7 @@ def add_pedestrian(b: _Builder, s: float, l: float, speed: float, across: bool =
     b.box(actor, (0.0, 0.0, 1.615 * k), 0.0, (0.21, 0.18, 0.25 * k), "skin", skin)
 
 
-def add_cyclist(b: _Builder, s: float, l: float, speed: float) -> None:
+def add_cyclist(b: SceneBuilder, s: float, l: float, speed: float) -> None:
     """A cyclist riding along the road at ``speed`` m/s (negative = against increasing s)."""
     rng = b.rng
     actor = b.actor("Cyclist", ALONG, s, l, speed, 0.0 if speed >= 0 else np.pi, (1.8, 0.6, 1.85))
@@ -191,7 +188,7 @@ def add_cyclist(b: _Builder, s: float, l: float, speed: float) -> None:
     b.box(actor, (0.0, 0.0, 1.72), 0.0, (0.21, 0.18, 0.24), "skin", (rng.uniform(0.45, 1.1),) * 3)
 
 
-def add_building(b: _Builder, s: float, side: float, l_front: float, width: float, depth: float,
+def add_building(b: SceneBuilder, s: float, side: float, l_front: float, width: float, depth: float,
                  height: float, material: str, shopfront: bool) -> None:
     """A building whose facade faces the road at |l| = l_front, with glass window bands."""
     x, y, th = b.place(s, side * (l_front + depth / 2))
@@ -205,7 +202,7 @@ def add_building(b: _Builder, s: float, side: float, l_front: float, width: floa
         b.box(a, (0.0, facade, z + 0.7), 0.0, (0.85 * width, 0.1, 1.3), "glass", pose=pose)
 
 
-def add_tree(b: _Builder, s: float, l: float) -> None:
+def add_tree(b: SceneBuilder, s: float, l: float) -> None:
     """A tree: bark trunk and a vegetation crown (both cylinders)."""
     rng = b.rng
     x, y, _ = b.place(s, l)
@@ -215,7 +212,7 @@ def add_tree(b: _Builder, s: float, l: float) -> None:
     b.cylinder(a, (x, y), trunk_h, rng.uniform(1.2, 2.3), rng.uniform(2.5, 4.5), "vegetation")
 
 
-def add_pole(b: _Builder, s: float, l: float, sign: bool) -> None:
+def add_pole(b: SceneBuilder, s: float, l: float, sign: bool) -> None:
     """A lamp pole, or a short pole carrying a traffic sign facing the traffic."""
     rng = b.rng
     x, y, th = b.place(s, l)
@@ -229,7 +226,7 @@ def add_pole(b: _Builder, s: float, l: float, sign: bool) -> None:
         b.cylinder(a, (x, y), 0.0, 0.08, rng.uniform(5.5, 8.0), "metal_pole")
 
 
-def add_segments(b: _Builder, cls: str, span: tuple[float, float], l: float, seg_len: float, width: float,
+def add_segments(b: SceneBuilder, cls: str, span: tuple[float, float], l: float, seg_len: float, width: float,
                  z0: float, height: float, material: str, posts_every: float = 0.0) -> None:
     """A chain of straight boxes following the road (walls, guard rails, hedges, barriers)."""
     a = b.actor(cls)
@@ -241,7 +238,7 @@ def add_segments(b: _Builder, cls: str, span: tuple[float, float], l: float, seg
             b.box(a, (0.0, 0.0, (z0 + height) / 2), 0.0, (0.1, 0.1, z0 + height), "guard_rail", pose=(px, py, pth))
 
 
-def _traffic(b: _Builder, lanes: list[tuple[float, float]], span: tuple[float, float], duration: float,
+def _traffic(b: SceneBuilder, lanes: list[tuple[float, float]], span: tuple[float, float], duration: float,
              ego: Ego, speed_range: tuple[float, float], truck_prob: float) -> None:
     """Moving cars on lanes (offset, direction); the ego's lane gets cars ahead at the ego's pace."""
     rng = b.rng
@@ -259,7 +256,7 @@ def _traffic(b: _Builder, lanes: list[tuple[float, float]], span: tuple[float, f
             add_car(b, float(s), l, direction, direction * speed, static=False, truck=rng.uniform() < truck_prob)
 
 
-def _residential(b: _Builder, layout: RoadLayout, ego: Ego, span: tuple[float, float], duration: float) -> None:
+def _residential(b: SceneBuilder, layout: RoadLayout, ego: Ego, span: tuple[float, float], duration: float) -> None:
     rng = b.rng
     for side in (-1.0, 1.0):
         for s in _slots(rng, span[0], span[1], (6.0, 9.0)):
@@ -285,7 +282,7 @@ def _residential(b: _Builder, layout: RoadLayout, ego: Ego, span: tuple[float, f
         add_cyclist(b, float(s), -d * 2.75, d * rng.uniform(3.0, 6.0))
 
 
-def _urban(b: _Builder, layout: RoadLayout, ego: Ego, span: tuple[float, float], duration: float) -> None:
+def _urban(b: SceneBuilder, layout: RoadLayout, ego: Ego, span: tuple[float, float], duration: float) -> None:
     rng = b.rng
     front = layout.half_width_m + layout.sidewalk_m
     for side in (-1.0, 1.0):
@@ -311,7 +308,7 @@ def _urban(b: _Builder, layout: RoadLayout, ego: Ego, span: tuple[float, float],
         add_pedestrian(b, float(ego_end + rng.uniform(18.0, 40.0)), -d * 8.5, d * rng.uniform(1.0, 1.5), across=True)
 
 
-def _highway(b: _Builder, layout: RoadLayout, ego: Ego, span: tuple[float, float], duration: float) -> None:
+def _highway(b: SceneBuilder, layout: RoadLayout, ego: Ego, span: tuple[float, float], duration: float) -> None:
     rng = b.rng
     add_segments(b, "concrete_barrier", span, 0.0, 12.0, 0.5, 0.0, 0.85, "concrete")
     for side in (-1.0, 1.0):

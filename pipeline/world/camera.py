@@ -83,12 +83,14 @@ def texture_factor(kind: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def sky_colour(dirs_W: np.ndarray, sun_W: np.ndarray) -> np.ndarray:
     """Linear RGB (N, 3) float32 of the sky seen along directions (N, 3)."""
-    d = dirs_W / np.linalg.norm(dirs_W, axis=1, keepdims=True)
-    up = np.clip(d[:, 2], 0.0, 1.0)[:, None] ** 0.6
+    inv_norm = 1.0 / np.sqrt(np.einsum("ij,ij->i", dirs_W, dirs_W))
+    up = np.sqrt(np.clip(dirs_W[:, 2] * inv_norm, 0.0, 1.0))[:, None]
     horizon = np.array([0.78, 0.84, 0.92], np.float32)
     zenith = np.array([0.28, 0.48, 0.85], np.float32)
-    glow = np.clip(d @ sun_W.astype(np.float32), 0.0, 1.0)[:, None] ** 64 * np.array([1.0, 0.95, 0.8], np.float32)
-    return (horizon * (1 - up) + zenith * up + glow).astype(np.float32)
+    glow = np.clip((dirs_W @ sun_W.astype(np.float32)) * inv_norm, 0.0, 1.0)
+    for _ in range(6):  # glow ** 64
+        glow *= glow
+    return (horizon + (zenith - horizon) * up + glow[:, None] * np.array([1.0, 0.95, 0.8], np.float32)).astype(np.float32)
 
 
 def render_camera(scene: Scene, prims: Primitives, T_world_cam: np.ndarray, K: np.ndarray,

@@ -46,12 +46,13 @@ def make_figure(out_png: Path, seed: int = 0) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from pipeline.world.generate import generate
+    from pipeline.world.generator import generate
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         generate(root, frames=12, seed=seed, resolution_wh=(640, 384), sequence_len=4)
-        fig, axes = plt.subplots(3, 3, figsize=(15, 7.2))
+        fig, axes = plt.subplots(3, 3, figsize=(13.6, 6.9))
+        fig.subplots_adjust(wspace=0.02, hspace=0.06)
         for row, frame in enumerate(("00002", "00006", "00010")):
             img = cv2.imread(str(root / "lidar/training/image_2" / f"{frame}.png"))[..., ::-1]
             h, w = img.shape[:2]
@@ -63,7 +64,7 @@ def make_figure(out_png: Path, seed: int = 0) -> None:
             ax = axes[row]
             ax[0].imshow(img)
             ax[1].imshow(img)
-            sc = ax[1].scatter(uv_l[:, 0], uv_l[:, 1], c=depth, s=0.3, cmap="turbo", vmin=0, vmax=60)
+            sc = ax[1].scatter(uv_l[:, 0], uv_l[:, 1], c=depth, s=0.4, cmap="turbo", vmin=0, vmax=60)
             ax[2].imshow(img)
             sr = ax[2].scatter(uv_r[:, 0], uv_r[:, 1], c=radar[i_r, 4], s=9, cmap="coolwarm", vmin=-15, vmax=15,
                                edgecolors="k", linewidths=0.3)
@@ -77,7 +78,7 @@ def make_figure(out_png: Path, seed: int = 0) -> None:
         fig.colorbar(sc, ax=axes[:, 1], fraction=0.02, pad=0.01)
         fig.colorbar(sr, ax=axes[:, 2], fraction=0.02, pad=0.01)
         out_png.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(out_png, dpi=80, bbox_inches="tight")
+        fig.savefig(out_png, dpi=100, bbox_inches="tight")
         plt.close(fig)
 
 

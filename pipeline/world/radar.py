@@ -19,8 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.geometry import cartesian_to_spherical, spherical_to_cartesian
 from pipeline.world.materials import material_arrays
 from pipeline.world.raycast import first_hit_dense
+from pipeline.world.road import ground_material, world_to_road
 from pipeline.world.scene import PLANE, ActorStates, Primitives, Scene
 
 UNLABELLED = -1
@@ -46,7 +48,9 @@ class RadarModel:
     ref_range_m: float = 5.0
     threshold_db: float = -15.0
     threshold_soft_db: float = 2.0
-    doppler_notch_mps: float = 1.2
+    doppler_notch_mps: float = 0.15
+    slow_penalty_db: float = 20.0
+    slow_doppler_mps: float = 2.0
     range_bin_m: float = 0.2
     doppler_bin_mps: float = 0.12
     per_cell: int = 1
@@ -142,8 +146,6 @@ def simulate_radar(scene: Scene, prims: Primitives, states: ActorStates, T_world
 def _occluded(prims: Primitives, origin: np.ndarray, rel: np.ndarray, rng_m: np.ndarray,
               max_range_m: float) -> np.ndarray:
     """(N,) True where an opaque primitive lies between the radar and the centre (rays rel (N, 3))."""
-    from pipeline.world.materials import material_arrays
-
     near = np.linalg.norm(prims.centre - origin, axis=1) - np.linalg.norm(prims.half, axis=1) < max_range_m + 1
     opaque = ~material_arrays()["transparent"][prims.material] & (prims.kind != PLANE)
     idx = np.flatnonzero(near & opaque)
@@ -153,8 +155,6 @@ def _occluded(prims: Primitives, origin: np.ndarray, rel: np.ndarray, rng_m: np.
 
 def _centre_material(scene: Scene, prims: Primitives, pos: np.ndarray, cand: np.ndarray) -> np.ndarray:
     """Material id per candidate centre (ground centres take the road-layout material)."""
-    from pipeline.world.road import ground_material, world_to_road
-
     prim = scene.centres.prim[cand]
     mat = prims.material[prim].copy()
     ground = prims.kind[prim] == PLANE
@@ -165,8 +165,10 @@ def _centre_material(scene: Scene, prims: Primitives, pos: np.ndarray, cand: np.
 
 
 def _detection_prob(rss_db: np.ndarray, doppler_mps: np.ndarray, model: RadarModel) -> np.ndarray:
-    """Detection probability: soft power threshold times a notch around zero Doppler."""
-    power = 1.0 / (1.0 + np.exp(-(rss_db - model.threshold_db) / model.threshold_soft_db))
+    """Detection probability: soft power threshold, raised near zero Doppler (stationary clutter
+    filter: only strong slow returns survive), times a narrow notch at zero Doppler."""
+    raise_db = model.slow_penalty_db * np.exp(-((doppler_mps / model.slow_doppler_mps) ** 2))
+    power = 1.0 / (1.0 + np.exp(-(rss_db - model.threshold_db - raise_db) / model.threshold_soft_db))
     notch = 1.0 - np.exp(-((doppler_mps / model.doppler_notch_mps) ** 2))
     return power * notch
 
@@ -210,8 +212,6 @@ def _add_ghosts_and_clutter(rae: np.ndarray, scan: RadarScan, T_world_radar: np.
     g = rae[strong].copy()
     g[~mirror, 0] += rng.uniform(1.0, 5.0, (~mirror).sum())
     if mirror.any():
-        from pipeline.geometry import cartesian_to_spherical, spherical_to_cartesian
-
         p_W = spherical_to_cartesian(g[mirror]) @ T_world_radar[:3, :3].T + T_world_radar[:3, 3]
         p_W[:, 2] = -p_W[:, 2]
         g[mirror] = cartesian_to_spherical((p_W - T_world_radar[:3, 3]) @ T_world_radar[:3, :3])

@@ -81,7 +81,7 @@ def prim_t(origin_W: np.ndarray, dirs: np.ndarray, prims: Primitives, idx: np.nd
     idx = np.asarray(idx)
     out = np.full((dirs.shape[0], len(idx)), np.inf, dirs.dtype)
     kind = prims.kind[idx]
-    for k, fn in ((BOX, None), (CYLINDER, None), (PLANE, None)):
+    for k in (BOX, CYLINDER, PLANE):
         sel = np.flatnonzero(kind == k)
         if len(sel) == 0:
             continue

@@ -57,11 +57,21 @@ def _transform(R: np.ndarray, t: tuple[float, float, float]) -> np.ndarray:
     return T
 
 
-def make_rig(resolution_wh: tuple[int, int], lidar_lines: int, lidar_cols: int = 900,
+LIDAR_MAX_RAYS = 40000
+"""Rays per scan (lines x columns) at most: keeps a scan within the synthetic profile's
+``lidar.store_max_points`` so that no reader has to truncate it."""
+
+
+def make_rig(resolution_wh: tuple[int, int], lidar_lines: int, lidar_cols: int | None = None,
              lidar_fov_deg: float = 180.0) -> Rig:
-    """The rig for an image of ``resolution_wh`` and a lidar of 16, 64 or 128 lines (front half)."""
+    """The rig for an image of ``resolution_wh`` and a lidar of 16, 64 or 128 lines (front half).
+
+    ``lidar_cols`` defaults to min(900, LIDAR_MAX_RAYS // lines) columns (0.2 .. 0.56 deg steps).
+    """
     if lidar_lines not in LIDAR_PATTERNS:
         raise ValueError(f"lidar_lines must be one of {sorted(LIDAR_PATTERNS)}, got {lidar_lines}")
+    if lidar_cols is None:
+        lidar_cols = min(900, LIDAR_MAX_RAYS // lidar_lines)
     w, h = resolution_wh
     f = 0.7725 * w
     K = np.array([[f, 0.0, 0.4966 * w], [0.0, f, 0.5139 * h], [0.0, 0.0, 1.0]])

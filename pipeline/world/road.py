@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.world.materials import MATERIAL_ID
+
 STRAIGHT_EPS = 1e-9
 """|kappa| below which the road is treated as straight."""
 
@@ -67,8 +69,6 @@ def world_to_road(kappa_1pm: float, xy: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 def ground_material(layout: RoadLayout, s_m: np.ndarray, l_m: np.ndarray) -> np.ndarray:
     """Material id (N,) int32 of the ground at road coordinates (asphalt, markings, paving, verge)."""
-    from pipeline.world.materials import MATERIAL_ID
-
     a = np.abs(l_m)
     mat = np.full(np.shape(l_m), MATERIAL_ID[layout.verge], np.int32)
     paved = a < layout.half_width_m + layout.shoulder_m + layout.sidewalk_m

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.world.materials import MATERIALS, MATERIAL_ID, material_arrays
+from pipeline.world.materials import MATERIAL_ID, material_arrays
 from pipeline.world.road import RoadLayout, road_to_world
 
 SCENE_TYPES = ("residential", "urban", "highway")
@@ -183,7 +183,7 @@ def ego_speed(scene: Scene, t_s: float) -> float:
     return float(scene.ego.speed0_mps + scene.ego.accel_mps2 * t_s)
 
 
-class _Builder:
+class SceneBuilder:
     """Accumulates actors, primitives and scattering centres while a scene is built."""
 
     def __init__(self, rng: np.random.Generator, kappa: float, id_base: int) -> None:
@@ -343,7 +343,3 @@ def _cylinder_surface_points(h: np.ndarray, density: float,
     pos[:, 2] = rng.uniform(-hz, hz, n)
     return pos, nrm, np.full(n, np.nan)
 
-
-def material_name(material_id: int) -> str:
-    """Name of a material id."""
-    return MATERIALS[material_id].name

@@ -1,0 +1,411 @@
+"""MSC-Rad4R reader: the extracted-folder layout and the ROS1 bag layout (``MscReader.open`` picks).
+
+VERIFIED ONLY AGAINST DOCUMENTATION (no real MSC-Rad4R file was available; the tests build fixtures
+in the documented formats): folder and file names, the MATLAB-style calibration text (an
+``Intrinsic`` block of 9 numbers, transposed MATLAB form accepted, a ``Radial Distortion`` line;
+extrinsics as a rotation block after a line containing ``attitude`` or ``rotation`` and a
+translation after ``translation``, p_cam = R p_sensor + t, metres -- values above 20 are read as
+millimetres and counted), the timestamp files ``frame sec nsec``, the wheel files ``frame sec nsec
+linear_velocity angular_velocity``, the bag topic names and message types, the radar's axes
+(taken as the sensor's native right-down-forward frame and checked on load: median forward
+coordinate > 0), the sign of ``doppler`` (taken as range rate, ``radar.doppler_sign`` = +1) and
+that the radar boresight is the vehicle's forward axis (ego velocity = (speed, 0, 0) in {D}, speed
+from the wheels or /vel, yaw-rate lever arm ignored).
+
+Folder layout (one sequence per root, e.g. URBAN_D0/):
+``1_IMAGE/LEFT/NNNNNN.png`` + ``1_IMAGE/timestamp_image_left.txt``; ``2_LIDAR/PCD/NNNNNN.pcd`` +
+``2_LIDAR/timestamp_lidar.txt``; ``3_RADAR/PCD/NNNNNN.pcd`` (fields x y z beta alpha power doppler
+range recoveredSpeed denoiseFlag, read with pypcd4) + ``3_RADAR/timestamp_radar.txt``;
+``4_NAVIGATION/WHEEL_LEFT.txt``, ``WHEEL_RIGHT.txt``; ``5_CALIBRATION_URBAN/CALIBRATION_CAMERA.txt``,
+``CALIBRATION_CAMERA_RADAR.txt``, ``CALIBRATION_CAMERA_LIDAR.txt``.
+Bag layout: ``*.bag`` in the root (one sequence each; rosbags, no ROS needed) with the radar and
+lidar as sensor_msgs/PointCloud2 (numpy dtypes built from each message's ``fields``), the image as
+sensor_msgs/Image and /vel as geometry_msgs/TwistStamped; calibration text files as above in
+``5_CALIBRATION_URBAN/``. Bag record times are used for pairing.
+
+Frames are the radar scans; each is paired with the nearest image and lidar scan within
+``pair_tolerance_s`` (default 0.05 s); radar scans without both partners are dropped and counted
+(``pairs_dropped``). Images are undistorted with OpenCV (K unchanged).
+"""
+
+from __future__ import annotations
+
+import re
+from functools import cached_property
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.config import Config
+from pipeline.errors import ReaderError
+from pipeline.frame import FrameRecord
+from pipeline.geometry import invert_transform
+from pipeline.readers.base import (Reader, check_finite, check_intrinsics, check_not_empty, check_rigid,
+                                   require_file)
+
+R_NATIVE_D = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+"""Rotation {D} (x fwd, y left, z up) -> the radar's native right-down-forward frame."""
+RADAR_TOPIC = "/oculii_radar/point_cloud"
+LIDAR_TOPIC = "/ouster/points"
+IMAGE_TOPIC = "/camera_array/left/image_raw"
+VEL_TOPIC = "/vel"
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+# -- text formats ----------------------------------------------------------------------------------
+
+def _numbers_after(lines: list[str], keyword: str, count: int, path: Path, start: int = 0,
+                   one_line: bool = False) -> np.ndarray:
+    """The first ``count`` numbers after the first line (from ``start``) containing ``keyword``."""
+    pattern = re.compile(keyword, re.IGNORECASE)
+    hit = next((i for i in range(start, len(lines)) if pattern.search(lines[i])), None)
+    if hit is None:
+        raise ReaderError(path, f"calibration block '{keyword}' is missing")
+    found: list[float] = []
+    for line in lines[hit + 1:]:
+        numbers = _NUMBER.findall(line)
+        if not numbers and found:
+            break
+        found += [float(v) for v in numbers]
+        if len(found) >= count or (one_line and found):
+            break
+    if len(found) < count:
+        raise ReaderError(path, f"calibration block '{keyword}' has {len(found)} numbers, expected {count}")
+    return np.array(found if one_line else found[:count])
+
+
+def read_camera_calibration(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(K (3, 3), distortion (5,) k1 k2 p1 p2 k3) of the left camera from the MATLAB-style export."""
+    lines = require_file(path, None, "camera calibration").read_text(errors="replace").splitlines()
+    start = next((i for i, line in enumerate(lines) if "left" in line.lower()), 0)
+    K = _numbers_after(lines, r"intrinsic", 9, path, start).reshape(3, 3)
+    if np.allclose(K[:2, 2], 0) and not np.allclose(K[2, :2], 0):
+        K = K.T  # MATLAB IntrinsicMatrix is the transpose of the OpenCV K
+    radial = _numbers_after(lines, r"radial\s*distortion", 1, path, start, one_line=True)
+    dist = np.zeros(5)
+    dist[[0, 1, 4][:min(3, radial.size)]] = radial[:3]
+    return check_intrinsics(K, path, None), dist
+
+
+def read_extrinsics(path: Path) -> tuple[np.ndarray, bool]:
+    """(T_cam_sensor (4, 4), translation was in millimetres) from a camera-sensor calibration file."""
+    lines = require_file(path, None, "extrinsic calibration").read_text(errors="replace").splitlines()
+    R = _numbers_after(lines, r"attitude|rotation", 9, path).reshape(3, 3)
+    t = _numbers_after(lines, r"translation", 3, path)
+    millimetres = bool(np.linalg.norm(t) > 20.0)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t / 1000.0 if millimetres else t
+    return check_rigid(T, path, None, "camera extrinsics"), millimetres
+
+
+def read_stamp_file(path: Path, n_values: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``frame sec nsec [values...]`` lines -> (frames (N,) int, times (N,) s, values (N, n_values))."""
+    require_file(path, None, "timestamp")
+    rows = [line.split() for line in path.read_text(errors="replace").splitlines() if line.strip()]
+    if any(len(r) < 3 + n_values for r in rows):
+        raise ReaderError(path, f"a line has fewer than {3 + n_values} values (frame sec nsec ...)")
+    try:
+        table = np.array([r[:3 + n_values] for r in rows], dtype=np.float64).reshape(-1, 3 + n_values)
+    except ValueError:
+        raise ReaderError(path, "non-numeric timestamp line") from None
+    return table[:, 0].astype(np.int64), table[:, 1] + table[:, 2] * 1e-9, table[:, 3:]
+
+
+def pair_nearest(ref_s: np.ndarray, other_s: np.ndarray, tolerance_s: float) -> np.ndarray:
+    """Index into ``other_s`` of the nearest time to each ``ref_s`` (N,), -1 where none within tolerance."""
+    if other_s.size == 0:
+        return np.full(ref_s.shape, -1)
+    order = np.argsort(other_s, kind="stable")
+    sorted_s = other_s[order]
+    pos = np.clip(np.searchsorted(sorted_s, ref_s), 1, max(len(sorted_s) - 1, 1))
+    left = np.clip(pos - 1, 0, len(sorted_s) - 1)
+    right = np.clip(pos, 0, len(sorted_s) - 1)
+    pick = np.where(np.abs(sorted_s[left] - ref_s) <= np.abs(sorted_s[right] - ref_s), left, right)
+    return np.where(np.abs(sorted_s[pick] - ref_s) <= tolerance_s, order[pick], -1)
+
+
+# -- shared reader logic -----------------------------------------------------------------------------
+
+class MscReader(Reader):
+    """Common calibration, conversion and record building; use ``MscReader.open`` to get a reader."""
+
+    name = "msc"
+
+    def __init__(self, cfg: Config, data_root: str | Path, pair_tolerance_s: float = 0.05,
+                 calib_dir: str | Path | None = None) -> None:
+        super().__init__(cfg, data_root)
+        self.tolerance_s = float(pair_tolerance_s)
+        self.calib_dir = Path(calib_dir) if calib_dir else self.root / "5_CALIBRATION_URBAN"
+
+    @classmethod
+    def open(cls, cfg: Config, data_root: str | Path, **options: object) -> "MscReader":
+        """The folder reader if ``3_RADAR/`` exists, the bag reader if ``*.bag`` files do."""
+        root = Path(data_root)
+        if (root / "3_RADAR").is_dir():
+            return MscFolderReader(cfg, root, **options)
+        if any(root.glob("*.bag")):
+            return MscBagReader(cfg, root, **options)
+        raise ReaderError(root, "neither an extracted MSC-Rad4R folder (3_RADAR/) nor ROS1 bags (*.bag)")
+
+    @cached_property
+    def calibration(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(K, distortion, T_radar_cam, T_radar_lidar) with {D} built from the radar's native frame."""
+        K, dist = read_camera_calibration(self.calib_dir / "CALIBRATION_CAMERA.txt")
+        T_cam_native, mm_r = read_extrinsics(self.calib_dir / "CALIBRATION_CAMERA_RADAR.txt")
+        T_cam_lidar, mm_l = read_extrinsics(self.calib_dir / "CALIBRATION_CAMERA_LIDAR.txt")
+        self._counts["extrinsics_in_millimetres"] = int(mm_r) + int(mm_l)
+        T_native_D = np.eye(4)
+        T_native_D[:3, :3] = R_NATIVE_D
+        T_radar_cam = invert_transform(T_cam_native @ T_native_D)
+        return K, dist, T_radar_cam, T_radar_cam @ T_cam_lidar
+
+    def _radar_D(self, fields: dict[str, np.ndarray], path: Path, fid: str) -> np.ndarray:
+        """(M, 5) float32 in {D} from the radar fields (native RDF xyz, doppler, power)."""
+        missing = [k for k in ("x", "y", "z", "doppler", "power") if k not in fields]
+        if missing:
+            raise ReaderError(path, f"radar point fields {missing} are missing", frame=fid)
+        native = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float64)
+        out = np.zeros((native.shape[0], 5), np.float32)
+        out[:, :3] = native @ R_NATIVE_D  # = (R_NATIVE_D.T @ p)^T
+        out[:, 3] = np.asarray(fields["doppler"], np.float64) * self.cfg.radar.doppler_sign
+        out[:, 4] = fields["power"]
+        check_finite(out, path, fid, "radar")
+        check_not_empty(out, path, fid, "radar")
+        if np.median(native[:, 2]) <= 0:
+            raise ReaderError(path, "radar median forward (native z) coordinate is not positive: the points "
+                                    "are not in the right-down-forward frame", frame=fid)
+        return out
+
+    def _record(self, fid: str, seq: str, t: float, image_bgr: np.ndarray, image_path: Path,
+                lidar_xyzi: np.ndarray, lidar_path: Path, radar_D: np.ndarray, speed: float,
+                radar_path: Path) -> FrameRecord:
+        K, dist, T_radar_cam, T_radar_lidar = self.calibration
+        h, w = image_bgr.shape[:2]
+        if (w, h) != tuple(self.cfg.camera.full_size):
+            raise ReaderError(image_path, f"image is {w}x{h} pixels, expected "
+                                          f"{self.cfg.camera.full_size[0]}x{self.cfg.camera.full_size[1]}", frame=fid)
+        image = cv2.undistort(image_bgr, K, dist)[:, :, ::-1]
+        check_finite(lidar_xyzi, lidar_path, fid, "lidar")
+        check_not_empty(lidar_xyzi, lidar_path, fid, "lidar")
+        lidar_D = lidar_xyzi[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
+        record = FrameRecord(
+            frame_id=fid, sequence_id=seq, timestamp_s=t, image=np.ascontiguousarray(image), K=K,
+            lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar_xyzi[:, 3].astype(np.float32),
+            radar_D=radar_D, T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam,
+            ego_velocity_D=np.array([speed, 0.0, 0.0]), has_radar=True)
+        return self.finish(record, radar_path)
+
+
+# -- extracted folders -------------------------------------------------------------------------------
+
+def _files_by_number(folder: Path, ext: str) -> dict[int, Path]:
+    return {int(p.stem): p for p in folder.glob(f"*{ext}") if p.stem.isdigit()} if folder.is_dir() else {}
+
+
+def _stamp_path(folder: Path, hint: str) -> Path:
+    files = sorted(folder.glob("**/timestamp*.txt"))
+    preferred = [p for p in files if hint in p.name.lower()]
+    if not (preferred or files):
+        raise ReaderError(folder, "no timestamp*.txt file")
+    return (preferred or files)[0]
+
+
+def _pcd_fields(path: Path, fid: str) -> dict[str, np.ndarray]:
+    from pypcd4 import PointCloud
+
+    require_file(path, fid, "point cloud")
+    try:
+        cloud = PointCloud.from_path(path)
+    except Exception as exc:  # pypcd4 raises several types on malformed files
+        raise ReaderError(path, f"cannot parse PCD file ({type(exc).__name__}: {exc})", frame=fid) from None
+    return {name: cloud.pc_data[name] for name in cloud.fields}
+
+
+class MscFolderReader(MscReader):
+    """MSC-Rad4R extracted folders; see the module docstring."""
+
+    @cached_property
+    def _index(self) -> dict[str, tuple[int, float, Path, Path, Path]]:
+        """{frame id: (radar row, time s, radar pcd, image png, lidar pcd)}."""
+        r_frames, r_times, _ = read_stamp_file(_stamp_path(self.root / "3_RADAR", "radar"))
+        i_frames, i_times, _ = read_stamp_file(_stamp_path(self.root / "1_IMAGE", "left"))
+        l_frames, l_times, _ = read_stamp_file(_stamp_path(self.root / "2_LIDAR", "lidar"))
+        radar_files = _files_by_number(self.root / "3_RADAR" / "PCD", ".pcd")
+        image_files = _files_by_number(self.root / "1_IMAGE" / "LEFT", ".png")
+        lidar_files = _files_by_number(self.root / "2_LIDAR" / "PCD", ".pcd")
+        img_idx = pair_nearest(r_times, i_times, self.tolerance_s)
+        lid_idx = pair_nearest(r_times, l_times, self.tolerance_s)
+        index = {}
+        for row, (frame, t) in enumerate(zip(r_frames, r_times)):
+            if img_idx[row] < 0 or lid_idx[row] < 0:
+                self._counts["pairs_dropped"] += 1
+                continue
+            paths = (radar_files.get(int(frame)), image_files.get(int(i_frames[img_idx[row]])),
+                     lidar_files.get(int(l_frames[lid_idx[row]])))
+            if any(p is None for p in paths):
+                self._counts["skipped_missing"] += 1
+                continue
+            index[f"{int(frame):06d}"] = (row, float(t), *paths)
+        return index
+
+    @cached_property
+    def _stamps(self) -> np.ndarray:
+        return read_stamp_file(_stamp_path(self.root / "3_RADAR", "radar"))[1]
+
+    def frame_ids(self) -> list[str]:
+        return sorted(self._index)
+
+    def sequence_of(self, frame_id: str) -> str:
+        return self.root.name
+
+    def _speed(self, t: float) -> float:
+        speeds = []
+        for side in ("WHEEL_LEFT.txt", "WHEEL_RIGHT.txt"):
+            _, times, values = read_stamp_file(self.root / "4_NAVIGATION" / side, 2)
+            order = np.argsort(times)
+            speeds.append(float(np.interp(t, times[order], values[order, 0])))
+        return float(np.mean(speeds))
+
+    def read(self, frame_id: str) -> FrameRecord:
+        if frame_id not in self._index:
+            raise ReaderError(self.root / "3_RADAR", "unknown frame id or frame without paired image/lidar",
+                              frame=frame_id)
+        row, t, radar_path, image_path, lidar_path = self._index[frame_id]
+        if row > 0 and self._stamps[row - 1] >= t:
+            raise ReaderError(_stamp_path(self.root / "3_RADAR", "radar"), f"non-monotonic timestamps: "
+                              f"{t:.6f} s is not after the previous scan ({self._stamps[row - 1]:.6f} s)", frame=frame_id)
+        radar_D = self._radar_D(_pcd_fields(radar_path, frame_id), radar_path, frame_id)
+        lidar = _pcd_fields(lidar_path, frame_id)
+        intensity = lidar.get("intensity", lidar.get("reflectivity", np.zeros_like(lidar["x"])))
+        lidar_xyzi = np.stack([lidar["x"], lidar["y"], lidar["z"], intensity], axis=1).astype(np.float64)
+        image = cv2.imread(str(require_file(image_path, frame_id, "image")), cv2.IMREAD_COLOR)
+        if image is None:
+            raise ReaderError(image_path, "image cannot be decoded (corrupt or not an image)", frame=frame_id)
+        return self._record(frame_id, self.root.name, t, image, image_path, lidar_xyzi, lidar_path, radar_D,
+                            self._speed(t), radar_path)
+
+
+# -- ROS1 bags -----------------------------------------------------------------------------------
+
+_PC2_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def pointcloud2_fields(msg: object) -> dict[str, np.ndarray]:
+    """sensor_msgs/PointCloud2 -> {field name: (N,) array}, dtype built from the message's fields."""
+    order = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for f in msg.fields:
+        if f.datatype not in _PC2_TYPES:
+            raise ValueError(f"unsupported PointField datatype {f.datatype} for '{f.name}'")
+        names.append(f.name)
+        formats.append((order + _PC2_TYPES[f.datatype], (f.count,)) if f.count > 1 else order + _PC2_TYPES[f.datatype])
+        offsets.append(f.offset)
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": msg.point_step})
+    n = msg.width * msg.height
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    if msg.row_step * msg.height > data.size or msg.point_step * msg.width > msg.row_step:
+        raise ValueError(f"data has {data.size} bytes, too few for {n} points of {msg.point_step} bytes")
+    rows = data[:msg.row_step * msg.height].reshape(msg.height, msg.row_step)[:, :msg.point_step * msg.width]
+    points = np.frombuffer(np.ascontiguousarray(rows).tobytes(), dtype=dtype, count=n)
+    return {name: points[name].astype(np.float64) for name in names}
+
+
+def image_msg_to_bgr(msg: object) -> np.ndarray:
+    """sensor_msgs/Image (rgb8, bgr8, mono8, bayer_*8) -> (H, W, 3) uint8 BGR."""
+    raw = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(msg.encoding, 1 if msg.encoding.startswith("bayer") else 0)
+    if channels == 0:
+        raise ValueError(f"unsupported image encoding '{msg.encoding}'")
+    image = raw[:msg.step * msg.height].reshape(msg.height, msg.step)[:, :msg.width * channels]
+    image = image.reshape(msg.height, msg.width, channels)
+    if msg.encoding == "rgb8":
+        return np.ascontiguousarray(image[:, :, ::-1])
+    if msg.encoding == "bgr8":
+        return np.ascontiguousarray(image)
+    if msg.encoding == "mono8":
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    codes = {"bayer_rggb8": cv2.COLOR_BayerRG2BGR, "bayer_bggr8": cv2.COLOR_BayerBG2BGR,
+             "bayer_gbrg8": cv2.COLOR_BayerGB2BGR, "bayer_grbg8": cv2.COLOR_BayerGR2BGR}
+    if msg.encoding not in codes:
+        raise ValueError(f"unsupported image encoding '{msg.encoding}'")
+    return cv2.cvtColor(image[:, :, 0], codes[msg.encoding])
+
+
+class MscBagReader(MscReader):
+    """MSC-Rad4R ROS1 bags read with rosbags; see the module docstring."""
+
+    def __init__(self, cfg: Config, data_root: str | Path, pair_tolerance_s: float = 0.05,
+                 calib_dir: str | Path | None = None, radar_topic: str = RADAR_TOPIC,
+                 lidar_topic: str = LIDAR_TOPIC, image_topic: str = IMAGE_TOPIC, vel_topic: str = VEL_TOPIC) -> None:
+        super().__init__(cfg, data_root, pair_tolerance_s, calib_dir)
+        self.topics = {"radar": radar_topic, "lidar": lidar_topic, "image": image_topic, "vel": vel_topic}
+
+    @cached_property
+    def _typestore(self):
+        from rosbags.typesys import Stores, get_typestore
+        return get_typestore(Stores.ROS1_NOETIC)
+
+    def _messages(self, bag: Path, topic: str, start: int | None = None, stop: int | None = None):
+        from rosbags.rosbag1 import Reader as BagReader
+
+        with BagReader(bag) as reader:
+            conns = [c for c in reader.connections if c.topic == topic]
+            for conn, stamp, raw in reader.messages(connections=conns, start=start, stop=stop):
+                yield stamp, self._typestore.deserialize_ros1(raw, conn.msgtype)
+
+    def _stamps(self, bag: Path, topic: str) -> np.ndarray:
+        from rosbags.rosbag1 import Reader as BagReader
+
+        with BagReader(bag) as reader:
+            conns = [c for c in reader.connections if c.topic == topic]
+            return np.array([stamp for _, stamp, _ in reader.messages(connections=conns)], dtype=np.int64)
+
+    @cached_property
+    def _index(self) -> dict[str, tuple[Path, int, int, int, float, np.ndarray, np.ndarray]]:
+        """{frame id: (bag, radar ns, image ns, lidar ns, time s, vel times s, vel speeds)}."""
+        index = {}
+        for bag in sorted(self.root.glob("*.bag")):
+            radar, image, lidar = (self._stamps(bag, self.topics[k]) for k in ("radar", "image", "lidar"))
+            vel = [(s * 1e-9, float(np.linalg.norm([m.twist.linear.x, m.twist.linear.y, m.twist.linear.z])))
+                   for s, m in self._messages(bag, self.topics["vel"])]
+            vel_t, vel_v = (np.array(c, dtype=np.float64) for c in zip(*vel)) if vel else (np.zeros(0), np.zeros(0))
+            img_idx = pair_nearest(radar * 1e-9, image * 1e-9, self.tolerance_s)
+            lid_idx = pair_nearest(radar * 1e-9, lidar * 1e-9, self.tolerance_s)
+            for k, stamp in enumerate(radar):
+                if img_idx[k] < 0 or lid_idx[k] < 0 or vel_t.size == 0:
+                    self._counts["pairs_dropped"] += 1
+                    continue
+                index[f"{bag.stem}_{k:06d}"] = (bag, int(stamp), int(image[img_idx[k]]), int(lidar[lid_idx[k]]),
+                                                stamp * 1e-9, vel_t, vel_v)
+        return index
+
+    def frame_ids(self) -> list[str]:
+        return sorted(self._index)
+
+    def sequence_of(self, frame_id: str) -> str:
+        if frame_id not in self._index:
+            raise ReaderError(self.root, "unknown frame id", frame=frame_id)
+        return self._index[frame_id][0].stem
+
+    def _one(self, bag: Path, kind: str, stamp: int, fid: str) -> object:
+        for _, msg in self._messages(bag, self.topics[kind], stamp, stamp + 1):
+            return msg
+        raise ReaderError(bag, f"no {self.topics[kind]} message at {stamp} ns", frame=fid)
+
+    def read(self, frame_id: str) -> FrameRecord:
+        if frame_id not in self._index:
+            raise ReaderError(self.root, "unknown frame id or frame without paired image/lidar/vel", frame=frame_id)
+        bag, t_radar, t_image, t_lidar, t, vel_t, vel_v = self._index[frame_id]
+        try:
+            radar = pointcloud2_fields(self._one(bag, "radar", t_radar, frame_id))
+            lidar = pointcloud2_fields(self._one(bag, "lidar", t_lidar, frame_id))
+            image = image_msg_to_bgr(self._one(bag, "image", t_image, frame_id))
+        except ValueError as exc:
+            raise ReaderError(bag, f"malformed message: {exc}", frame=frame_id) from None
+        radar_D = self._radar_D(radar, bag, frame_id)
+        intensity = lidar.get("intensity", lidar.get("reflectivity", np.zeros_like(lidar["x"])))
+        lidar_xyzi = np.stack([lidar["x"], lidar["y"], lidar["z"], intensity], axis=1)
+        order = np.argsort(vel_t)
+        speed = float(np.interp(t, vel_t[order], vel_v[order]))
+        return self._record(frame_id, bag.stem, t, image, bag, lidar_xyzi, bag, radar_D, speed, bag)

@@ -1,0 +1,103 @@
+"""The paper's ablations (Table II: Dis-Net with and without ego speed; Table III: RSS-Net input
+combinations) over the train stage's data. Not a pipeline stage: `pipeline ablate` runs it after
+calibrate, heatmaps and patches, training each variant into ``<cache>/<dataset>/ablations/<variant>``
+(resumable like the train stage) and writing ``ablations.md`` / ``ablations.json`` beside them.
+Models are selected on the val split; the table reports the test split.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import Config
+from stages.train import disnet_data, frame_table, rssnet_data, training_fingerprint
+
+TABLE2 = (("image only", {"disnet.use_speed": "false"}), ("image + speed", {"disnet.use_speed": "true"}))
+TABLE3 = tuple(
+    (name, {"rssnet.use_camera": str(c), "rssnet.use_lidar": str(li), "rssnet.use_radar_point": str(rp)})
+    for name, c, li, rp in (("Cam", 1, 0, 0), ("Li", 0, 1, 0), ("RP", 0, 0, 1), ("Cam+Li", 1, 1, 0),
+                            ("Cam+RP", 1, 0, 1), ("Li+RP", 0, 1, 1), ("Cam+Li+RP (full)", 1, 1, 1)))
+PAPER = {  # Song et al., Tables II and III
+    "astyx": {"image only": (0.2359, 0.4745), "image + speed": (0.2271, 0.4499), "Cam+Li+RP (full)": 1.45e-2},
+    "vod": {"image only": (0.1538, 0.0266), "image + speed": (0.1564, 0.0266), "Cam+Li+RP (full)": 3.95e-3},
+    "msc": {"image only": (0.0539, 0.3561), "image + speed": (0.0524, 0.3545), "Cam+Li+RP (full)": 5.16e-8},
+}
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in name.lower()).strip("_")
+
+
+def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] = ("2", "3")) -> dict:
+    """Train every variant of the requested tables; returns the results and writes the report."""
+    from pipeline.training import disnet_metrics, load_disnet, load_rssnet, rssnet_metrics, train_disnet, \
+        train_rssnet
+
+    table = frame_table(inputs)
+    results: dict = {"table2": [], "table3": []}
+    t_start = time.perf_counter()
+    if "2" in tables:
+        data, idx = disnet_data(inputs, table)
+        for name, overrides in TABLE2:
+            c = cfg.with_overrides(overrides)
+            t0 = time.perf_counter()
+            res = train_disnet(c, data, out_root / _slug(name), progress=inputs.progress,
+                               fingerprint=training_fingerprint(inputs, c, "disnet"))
+            m = disnet_metrics(load_disnet(c, res.best_path, device="cpu"), data, idx["test"], c.train.alpha)
+            results["table2"].append({"variant": name, "L_KL": m["kl"], "L_n": m["n"], "best_epoch": res.best_epoch,
+                                      "seconds": time.perf_counter() - t0})
+    if "3" in tables:
+        train_val, test = rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2)
+        for name, overrides in TABLE3:
+            c = cfg.with_overrides(overrides)
+            t0 = time.perf_counter()
+            res = train_rssnet(c, train_val, out_root / _slug(name), progress=inputs.progress,
+                               fingerprint=training_fingerprint(inputs, c, "rssnet"))
+            m = rssnet_metrics(load_rssnet(c, res.best_path, device="cpu"), test, np.arange(len(test.rss)))
+            results["table3"].append({"variant": name, "L_a": m["a"], "best_epoch": res.best_epoch,
+                                      "seconds": time.perf_counter() - t0})
+    results["meta"] = {"dataset": inputs.env.dataset, "frames": {k: int(v) for k, v in zip(
+        ("train", "val", "test"), [(table["ok"] & (table["split"] == p)).sum() for p in (0, 1, 2)])},
+        "epochs": cfg.train.epochs, "split_rule": cfg.split.rule, "hardware": _hardware(),
+        "total_seconds": time.perf_counter() - t_start}
+    out_root.mkdir(parents=True, exist_ok=True)
+    (out_root / "ablations.json").write_text(json.dumps(results, indent=2, default=float))
+    (out_root / "ablations.md").write_text(markdown(results, cfg.profile))
+    return results
+
+
+def _hardware() -> str:
+    import torch
+
+    dev = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "CPU"
+    return f"{dev}, {platform.processor() or platform.machine()}, torch {torch.__version__}, {torch.get_num_threads()} threads"
+
+
+def markdown(results: dict, profile: str) -> str:
+    """Tables II and III next to the paper's values for the profile's dataset."""
+    paper = PAPER.get(profile, {})
+    meta = results["meta"]
+    lines = [f"# Ablations: {meta['dataset']}", "",
+             f"Frames train/val/test: {meta['frames']['train']}/{meta['frames']['val']}/{meta['frames']['test']} "
+             f"(split rule '{meta['split_rule']}'), {meta['epochs']} epochs, {meta['hardware']}, "
+             f"total {meta['total_seconds'] / 60:.1f} min. Test split; models selected on val.", ""]
+    if results["table2"]:
+        lines += ["## Table II: Dis-Net", "", "| input | L_KL | L_n | paper L_KL | paper L_n | train time |",
+                  "|---|---|---|---|---|---|"]
+        for r in results["table2"]:
+            p = paper.get(r["variant"], (float("nan"), float("nan")))
+            lines.append(f"| {r['variant']} | {r['L_KL']:.4f} | {r['L_n']:.4f} | {p[0]:.4f} | {p[1]:.4f} | "
+                         f"{r['seconds']:.0f} s |")
+        lines.append("")
+    if results["table3"]:
+        lines += ["## Table III: RSS-Net", "", "| inputs | L_a | paper L_a | train time |", "|---|---|---|---|"]
+        for r in results["table3"]:
+            p = paper.get(r["variant"])
+            lines.append(f"| {r['variant']} | {r['L_a']:.3e} | {'' if p is None else f'{p:.2e}'} | {r['seconds']:.0f} s |")
+        lines.append("")
+    return "\n".join(lines)

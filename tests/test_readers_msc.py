@@ -1,0 +1,205 @@
+"""MSC-Rad4R reader on fixtures written in the documented formats with pypcd4 and rosbags.
+
+No real MSC-Rad4R file exists here: these tests check the reader against the formats as
+documented (see pipeline/readers/msc.py), not against the real dataset.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from pypcd4 import PointCloud
+
+from pipeline.config import load_config
+from pipeline.errors import ReaderError
+from pipeline.geometry import invert_transform, project_to_image
+from pipeline.readers import get_reader
+from pipeline.readers.msc import MscBagReader, MscFolderReader, pair_nearest
+from pipeline.readers.testing import R_CAM_D
+
+K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+DIST = np.array([-0.23, 0.12, 0.0, 0.0, 0.0])
+T_CAM_NATIVE_T = np.array([0.1, 0.2, 0.3])
+T_CAM_LIDAR_T = np.array([0.0, -0.5, -0.2])
+RADAR_FIELDS = ("x", "y", "z", "beta", "alpha", "power", "doppler", "range", "recoveredSpeed", "denoiseFlag")
+
+
+def _cfg():
+    return load_config("msc").with_overrides({"camera.full_size": "64,48"})
+
+
+def _write_calibration(folder: Path) -> None:
+    folder.mkdir(parents=True)
+    kt = "\n".join("  " + " ".join(f"{v:g}" for v in row) for row in K.T)  # MATLAB (transposed) form
+    (folder / "CALIBRATION_CAMERA.txt").write_text(
+        f"Stereo parameters\nLeft camera\nIntrinsic (K)\n{kt}\nRadial Distortion\n  -0.23 0.12\n"
+        f"Right camera\nIntrinsic (K)\n  99 0 0\n 0 99 0\n 30 20 1\nRadial Distortion\n -0.1 0.0\n")
+    (folder / "CALIBRATION_CAMERA_RADAR.txt").write_text(
+        "attitude of RADAR in camera coordinate\n1 0 0\n0 1 0\n0 0 1\n"
+        "translation of RADAR in camera coordinate\n" + " ".join(map(str, T_CAM_NATIVE_T)) + "\n")
+    (folder / "CALIBRATION_CAMERA_LIDAR.txt").write_text(
+        "attitude of LIDAR in camera coordinate\n" + "\n".join(" ".join(map(str, r)) for r in R_CAM_D)
+        + "\ntranslation of LIDAR in camera coordinate\n" + " ".join(map(str, T_CAM_LIDAR_T)) + "\n")
+
+
+def _radar_native(rng: np.random.Generator, n: int = 40) -> np.ndarray:
+    """(n, 10) radar rows in the native right-down-forward frame, columns RADAR_FIELDS."""
+    xyz = rng.uniform([-8, -1, 5], [8, 1, 40], (n, 3))
+    out = np.zeros((n, 10), np.float32)
+    out[:, :3] = xyz
+    out[:, 5] = rng.uniform(2, 50, n)
+    out[:, 6] = rng.uniform(-3, 3, n)
+    out[:, 7] = np.linalg.norm(xyz, axis=1)
+    return out
+
+
+def _lidar(rng: np.random.Generator) -> np.ndarray:
+    return np.concatenate([rng.uniform([3, -8, -1], [30, 8, 2], (300, 3)), rng.uniform(0, 100, (300, 1))], 1).astype(np.float32)
+
+
+def _image(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+
+
+def _stamps(path: Path, times: list[float]) -> None:
+    path.write_text("".join(f"{k} {int(t)} {int(round((t % 1) * 1e9))}\n" for k, t in enumerate(times)))
+
+
+def make_folder(root: Path, radar_times=(100.0, 100.0667, 100.1333), image_times=(100.001, 100.068, 100.134),
+                lidar_times=(100.01, 100.13)) -> dict:
+    rng = np.random.default_rng(0)
+    truth = {"radar": [], "image": [], "lidar": []}
+    for sub in ("1_IMAGE/LEFT", "2_LIDAR/PCD", "3_RADAR/PCD", "4_NAVIGATION"):
+        (root / sub).mkdir(parents=True)
+    for k, _ in enumerate(radar_times):
+        rows = _radar_native(rng)
+        PointCloud.from_points(rows, RADAR_FIELDS, [np.float32] * 10).save(root / "3_RADAR/PCD" / f"{k:06d}.pcd")
+        truth["radar"].append(rows)
+    for k, _ in enumerate(lidar_times):
+        pts = _lidar(rng)
+        PointCloud.from_points(pts, ("x", "y", "z", "intensity"), [np.float32] * 4).save(root / "2_LIDAR/PCD" / f"{k:06d}.pcd")
+        truth["lidar"].append(pts)
+    for k, _ in enumerate(image_times):
+        cv2.imwrite(str(root / "1_IMAGE/LEFT" / f"{k:06d}.png"), _image(k))
+    _stamps(root / "3_RADAR/timestamp_radar.txt", list(radar_times))
+    _stamps(root / "1_IMAGE/timestamp_image_left.txt", list(image_times))
+    _stamps(root / "2_LIDAR/timestamp_lidar.txt", list(lidar_times))
+    for side, v in (("LEFT", 4.0), ("RIGHT", 6.0)):
+        (root / "4_NAVIGATION" / f"WHEEL_{side}.txt").write_text(
+            "".join(f"{k} {100 + k // 10} {(k % 10) * 100_000_000} {v + k * 0.1} 0.01\n" for k in range(5)))
+    _write_calibration(root / "5_CALIBRATION_URBAN")
+    return truth
+
+
+def test_pair_nearest_matches_brute_force():
+    rng = np.random.default_rng(2)
+    ref, other = rng.uniform(0, 10, 50), rng.uniform(0, 10, 30)
+    got = pair_nearest(ref, other, 0.05)
+    for i, t in enumerate(ref):
+        j = int(np.argmin(np.abs(other - t)))
+        assert got[i] == (j if abs(other[j] - t) <= 0.05 else -1)
+
+
+def test_folder_layout(tmp_path):
+    truth = make_folder(tmp_path)
+    reader = get_reader(_cfg(), tmp_path)
+    assert isinstance(reader, MscFolderReader)
+    # radar scan 1 (100.0667 s) has no lidar scan within 0.05 s
+    assert reader.frame_ids() == ["000000", "000002"] and reader.report()["pairs_dropped"] == 1
+    rec = reader.read("000002")
+    native = truth["radar"][2]
+    np.testing.assert_allclose(rec.radar_D[:, :3], np.stack([native[:, 2], -native[:, 0], -native[:, 1]], 1), atol=1e-5)
+    np.testing.assert_allclose(rec.radar_D[:, 3], native[:, 6])
+    np.testing.assert_allclose(rec.radar_D[:, 4], native[:, 5])
+    np.testing.assert_allclose(rec.K, K)
+    # projecting {D} points through the record = projecting native points with p_cam = p + t
+    uv, _, _ = project_to_image(rec.radar_D[:, :3], rec.K, invert_transform(rec.T_radar_cam), (64, 48))
+    p_cam = native[:, :3] + T_CAM_NATIVE_T
+    np.testing.assert_allclose(uv, (p_cam @ K.T)[:, :2] / p_cam[:, 2:3], atol=1e-3)
+    lidar_cam = truth["lidar"][1][:, :3] @ R_CAM_D.T + T_CAM_LIDAR_T
+    lidar_back = rec.lidar_D @ invert_transform(rec.T_radar_cam)[:3, :3].T + invert_transform(rec.T_radar_cam)[:3, 3]
+    np.testing.assert_allclose(lidar_back, lidar_cam, atol=1e-4)
+    expected = cv2.undistort(_image(2), K, DIST)[:, :, ::-1]
+    np.testing.assert_array_equal(rec.image, expected)
+    # wheels: left 4 + 0.1 k, right 6 + 0.1 k at t = 100 + k/10 -> mean 5 + t_offset
+    np.testing.assert_allclose(rec.ego_velocity_D, [5.0 + 0.1 * 1.333, 0, 0], atol=1e-3)
+
+
+def test_folder_rejects_radar_not_in_native_frame(tmp_path):
+    make_folder(tmp_path)
+    rows = _radar_native(np.random.default_rng(5))
+    rows[:, 2] *= -1
+    PointCloud.from_points(rows, RADAR_FIELDS, [np.float32] * 10).save(tmp_path / "3_RADAR/PCD/000000.pcd")
+    with pytest.raises(ReaderError, match="median forward"):
+        get_reader(_cfg(), tmp_path).read("000000")
+
+
+def test_folder_non_monotonic_radar_timestamps(tmp_path):
+    make_folder(tmp_path, radar_times=(100.0, 100.0667, 99.9), image_times=(99.9, 100.0, 100.068),
+                lidar_times=(99.91, 100.01, 100.07))
+    with pytest.raises(ReaderError, match="non-monotonic") as info:
+        get_reader(_cfg(), tmp_path).read("000002")
+    assert "timestamp_radar.txt" in str(info.value)
+
+
+def _write_bag(path: Path) -> list[np.ndarray]:
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    T = ts.types
+    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+    PointField = T["sensor_msgs/msg/PointField"]
+    rng = np.random.default_rng(1)
+
+    def header(ns: int) -> object:
+        return Header(seq=0, stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id="f")
+
+    def cloud(ns: int, names: tuple[str, ...], rows: np.ndarray, pad: int) -> object:
+        # float32 fields with `pad` unused bytes after each point: offsets must come from the fields
+        step = 4 * len(names) + pad
+        buf = np.zeros((rows.shape[0], step), np.uint8)
+        buf[:, :4 * len(names)] = rows.astype("<f4").view(np.uint8).reshape(rows.shape[0], -1)
+        fields = [PointField(name=n, offset=4 * i, datatype=7, count=1) for i, n in enumerate(names)]
+        return T["sensor_msgs/msg/PointCloud2"](header=header(ns), height=1, width=rows.shape[0], fields=fields,
+                                                is_bigendian=False, point_step=step, row_step=step * rows.shape[0],
+                                                data=buf.ravel(), is_dense=True)
+
+    radars = []
+    with Writer(path) as writer:
+        conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in (
+            ("/oculii_radar/point_cloud", "sensor_msgs/msg/PointCloud2"), ("/ouster/points", "sensor_msgs/msg/PointCloud2"),
+            ("/camera_array/left/image_raw", "sensor_msgs/msg/Image"), ("/vel", "geometry_msgs/msg/TwistStamped"))}
+        for k in range(2):
+            t0 = 10**10 + k * 100_000_000
+            rows = _radar_native(rng)
+            radars.append(rows)
+            msgs = [("/oculii_radar/point_cloud", t0, cloud(t0, RADAR_FIELDS, rows, 6)),
+                    ("/ouster/points", t0 + 5_000_000, cloud(t0, ("x", "y", "z", "intensity"), _lidar(rng), 4)),
+                    ("/camera_array/left/image_raw", t0 + 2_000_000, T["sensor_msgs/msg/Image"](
+                        header=header(t0), height=48, width=64, encoding="rgb8", is_bigendian=0, step=64 * 3,
+                        data=_image(k).ravel())),
+                    ("/vel", t0, T["geometry_msgs/msg/TwistStamped"](header=header(t0), twist=T["geometry_msgs/msg/Twist"](
+                        linear=T["geometry_msgs/msg/Vector3"](x=3.0, y=4.0, z=0.0),
+                        angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0))))]
+            for topic, stamp, msg in sorted(msgs, key=lambda m: m[1]):
+                writer.write(conns[topic], stamp, ts.serialize_ros1(msg, conns[topic].msgtype))
+    return radars
+
+
+def test_bag_layout(tmp_path):
+    radars = _write_bag(tmp_path / "URBAN_D0.bag")
+    _write_calibration(tmp_path / "5_CALIBRATION_URBAN")
+    reader = get_reader(_cfg(), tmp_path)
+    assert isinstance(reader, MscBagReader)
+    assert reader.frame_ids() == ["URBAN_D0_000000", "URBAN_D0_000001"]
+    rec = reader.read("URBAN_D0_000001")
+    native = radars[1]
+    np.testing.assert_allclose(rec.radar_D[:, :3], np.stack([native[:, 2], -native[:, 0], -native[:, 1]], 1), atol=1e-5)
+    np.testing.assert_allclose(rec.radar_D[:, 3], native[:, 6])
+    np.testing.assert_allclose(rec.ego_velocity_D, [5.0, 0, 0])
+    np.testing.assert_array_equal(rec.image, cv2.undistort(_image(1)[:, :, ::-1], K, DIST)[:, :, ::-1])
+    assert rec.lidar_D.shape == (300, 3) and rec.sequence_id == "URBAN_D0"

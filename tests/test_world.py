@@ -1,0 +1,292 @@
+"""Tests of the synthetic world (pipeline/world): file formats, physics of the hidden radar, lidar,
+ray casting against a brute-force oracle, determinism."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from pipeline.errors import ConfigError
+from pipeline.world import generate
+from pipeline.world.materials import MATERIAL_ID, MATERIALS
+from pipeline.world.radar import RadarModel, centres_world
+from pipeline.world.raycast import cast_grid, first_hit_dense, spherical_windows
+from pipeline.world.rig import lidar_directions, make_rig
+from pipeline.world.scene import BOX, CYLINDER, PLANE, actor_states, ego_pose
+from pipeline.world.sim import make_sequence
+
+FRAMES, SEQ_LEN, SIZE = 12, 6, (320, 192)
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("world")
+    summary = generate(root, frames=FRAMES, seed=5, resolution_wh=SIZE, scene_mix=("urban", "residential"),
+                       lidar_lines=16, sequence_len=SEQ_LEN)
+    assert summary["frames"] == FRAMES and summary["sequences"] == 2
+    return root
+
+
+def _radar(root: Path, fid: str) -> np.ndarray:
+    return np.fromfile(root / "radar/training/velodyne" / f"{fid}.bin", np.float32).reshape(-1, 7)
+
+
+def _calib(path: Path) -> dict[str, list[float]]:
+    out = {}
+    for line in path.read_text().splitlines():
+        key, vals = line.split(":", 1)
+        out[key] = [float(v) for v in vals.split()]
+    return out
+
+
+def test_layout_and_formats(world: Path) -> None:
+    import cv2
+
+    ids = (world / "ImageSets/full.txt").read_text().split()
+    assert ids == [f"{i:05d}" for i in range(FRAMES)]
+    seqs = [line.split() for line in (world / "ImageSets/sequences.txt").read_text().splitlines()]
+    assert [(int(a), int(b)) for _, a, b in seqs] == [(0, 5), (6, 11)]
+    meta = json.loads((world / "world.json").read_text())
+    assert meta["frames"] == FRAMES and [s["name"] for s in meta["sequences"]] == [s[0] for s in seqs]
+    assert [m["name"] for m in meta["materials"]] == [m.name for m in MATERIALS]
+    for fid in ids:
+        for sensor in ("lidar", "radar"):
+            calib = _calib(world / sensor / "training/calib" / f"{fid}.txt")
+            assert set(calib) == {"P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam", "Tr_imu_to_velo"}
+            assert len(calib["P2"]) == 12 and len(calib["Tr_velo_to_cam"]) == 12 and calib["Tr_imu_to_velo"] == []
+            lines = (world / sensor / "training/pose" / f"{fid}.json").read_text().splitlines()
+            keys = [next(iter(json.loads(line))) for line in lines]
+            assert keys == ["odomToCamera", "mapToCamera", "UTMToCamera"]
+            for line in lines:
+                T = np.array(next(iter(json.loads(line).values()))).reshape(4, 4)
+                assert np.allclose(T[3], [0, 0, 0, 1]) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
+        radar = (world / "radar/training/velodyne" / f"{fid}.bin").stat().st_size
+        assert radar % 28 == 0 and radar > 0
+        assert (world / "radar/training/meta" / f"{fid}.bin").stat().st_size == radar // 28 * 8
+        assert (world / "lidar/training/velodyne" / f"{fid}.bin").stat().st_size % 16 == 0
+        img = cv2.imread(str(world / "lidar/training/image_2" / f"{fid}.png"))
+        assert img.shape == (SIZE[1], SIZE[0], 3)
+        assert (world / "radar/training/image_2" / f"{fid}.png").read_bytes() == \
+            (world / "lidar/training/image_2" / f"{fid}.png").read_bytes()
+        for line in (world / "lidar/training/label_2" / f"{fid}.txt").read_text().splitlines():
+            f = line.split()
+            assert len(f) == 16 and f[0] in ("Car", "Truck", "Pedestrian", "Cyclist")
+            assert int(f[1]) >= 0 and 0 <= float(f[4]) <= float(f[6]) < SIZE[0]
+    assert (np.abs(_radar(world, "00003")[:, 3]) <= 40).all()
+
+
+def test_ego_velocity_recoverable_exactly(world: Path) -> None:
+    """v_r - v_r_compensated = -(u . v_radar) per point, so a least-squares fit returns v_radar."""
+    meta = json.loads((world / "world.json").read_text())
+    for seq in meta["sequences"]:
+        for k, v_true in enumerate(seq["radar_velocity_D"]):
+            pts = _radar(world, f"{seq['first_frame'] + k:05d}").astype(np.float64)
+            u = pts[:, :3] / np.linalg.norm(pts[:, :3], axis=1, keepdims=True)
+            assert np.abs((pts[:, 4] - pts[:, 5]) + u @ np.array(v_true)).max() < 1e-4
+            v_fit = np.linalg.lstsq(u, pts[:, 5] - pts[:, 4], rcond=None)[0]
+            assert np.allclose(v_fit, v_true, atol=1e-3)
+
+
+def test_labels_enclose_their_radar_points(world: Path) -> None:
+    """Radar points whose meta object id equals a label's track id lie in that 3-D box (within noise),
+    read entirely from the written files (labels, radar calibration, radar bins, meta)."""
+    model = RadarModel()
+    checked = 0
+    for k in range(FRAMES):
+        fid = f"{k:05d}"
+        calib = _calib(world / "radar/training/calib" / f"{fid}.txt")
+        T_cam_radar = np.vstack([np.array(calib["Tr_velo_to_cam"]).reshape(3, 4), [0, 0, 0, 1]])
+        pts = _radar(world, fid).astype(np.float64)
+        obj = np.fromfile(world / "radar/training/meta" / f"{fid}.bin", np.int32).reshape(-1, 2)[:, 0]
+        r = np.linalg.norm(pts[:, :3], axis=1)
+        ang = model.noise_clip * np.radians(model.az_sigma_deg + model.el_sigma_deg)
+        bound = model.noise_clip * model.range_sigma_m + (r + 1) * ang + 1e-3
+        cam = pts[:, :3] @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3]
+        for line in (world / "lidar/training/label_2" / f"{fid}.txt").read_text().splitlines():
+            f = line.split()
+            sel = obj == int(f[1])
+            if not sel.any():
+                continue
+            h, w, l, x, y, z, ry = map(float, f[8:15])
+            d = cam[sel] - [x, y - h / 2, z]
+            local = np.stack([d @ [np.cos(ry), 0, -np.sin(ry)], d @ [np.sin(ry), 0, np.cos(ry)], -d[:, 1]], 1)
+            excess = np.abs(local) - [l / 2, w / 2, h / 2]
+            assert (excess.max(axis=1) <= bound[sel]).all(), (fid, f[0], excess.max())
+            checked += sel.sum()
+    assert checked > 30
+
+
+def _finite_difference_velocity(sim, t: float, h: float = 1e-4) -> np.ndarray:
+    """Radar velocity over ground in {D} by central differences of the radar pose (independent path)."""
+    T_plus = ego_pose(sim.scene, t + h)[0] @ sim.rig.T_vehicle_radar
+    T_minus = ego_pose(sim.scene, t - h)[0] @ sim.rig.T_vehicle_radar
+    v_W = (T_plus[:3, 3] - T_minus[:3, 3]) / (2 * h)
+    return (ego_pose(sim.scene, t)[0] @ sim.rig.T_vehicle_radar)[:3, :3].T @ v_W
+
+
+@pytest.mark.parametrize("scene_type", ["residential", "urban", "highway"])
+def test_noise_free_doppler_is_range_rate(scene_type: str) -> None:
+    """Noise-free Doppler equals (v_target - v_radar) . u, velocities by finite differences of poses."""
+    sim = make_sequence(scene_type, 12, make_rig((160, 96), 16), seed=11, seq_index=2, noise=False)
+    h = 1e-4
+    n_static = n_moving = 0
+    for k in (3, 9):
+        data = sim.frame(k, ("radar",))
+        scan, t = data.radar, data.t_s
+        v_radar_D = _finite_difference_velocity(sim, t, h)
+        pts_W = scan.points_D @ data.T_world_radar[:3, :3].T + data.T_world_radar[:3, 3]
+        # match each point to its scattering centre and difference the centre's world position
+        pos_t = centres_world(sim.scene, actor_states(sim.scene, t))[0]
+        dist, idx = cKDTree(pos_t).query(pts_W)
+        assert dist.max() < 1e-6
+        v_W = (centres_world(sim.scene, actor_states(sim.scene, t + h))[0][idx]
+               - centres_world(sim.scene, actor_states(sim.scene, t - h))[0][idx]) / (2 * h)
+        v_target_D = v_W @ data.T_world_radar[:3, :3]
+        u = scan.points_D / np.linalg.norm(scan.points_D, axis=1, keepdims=True)
+        expected = np.sum((v_target_D - v_radar_D) * u, axis=1)
+        assert np.abs(scan.doppler_mps - expected).max() < 1e-3
+        static = scan.is_static
+        assert np.abs(scan.doppler_mps[static] + u[static] @ v_radar_D).max() < 1e-3
+        n_static += static.sum()
+        n_moving += (~static).sum()
+    assert n_static > 20
+    if scene_type != "highway":  # highways may have no moving object in the field of view
+        assert n_moving > 0
+
+
+def _surface_distance(p_W: np.ndarray, prims, idx: np.ndarray) -> np.ndarray:
+    """Distance (N,) from points to the nearest surface of primitives ``idx`` (oracle, per primitive)."""
+    best = np.full(len(p_W), np.inf)
+    for i in idx:
+        rel = p_W - prims.centre[i]
+        c, s = np.cos(prims.yaw[i]), np.sin(prims.yaw[i])
+        local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], 1)
+        if prims.kind[i] == PLANE:
+            d = np.abs(p_W[:, 2])
+        else:
+            if prims.kind[i] == BOX:
+                q = np.abs(local) - prims.half[i]
+            else:
+                q = np.stack([np.hypot(local[:, 0], local[:, 1]) - prims.half[i, 0],
+                              np.abs(local[:, 2]) - prims.half[i, 2]], 1)
+            outside = np.linalg.norm(np.maximum(q, 0), axis=1)
+            d = np.where(q.max(axis=1) > 0, outside, -q.max(axis=1))
+        best = np.minimum(best, d)
+    return best
+
+
+def test_radar_points_lie_on_their_object_or_are_ghosts() -> None:
+    model = RadarModel()
+    sim = make_sequence("urban", 10, make_rig((160, 96), 16), seed=4, seq_index=1, radar_model=model)
+    k_sigma = model.noise_clip
+    n_on = n_off = 0
+    for k in (0, 5, 9):
+        data = sim.frame(k, ("radar",))
+        scan = data.radar
+        pts_W = scan.points_D @ data.T_world_radar[:3, :3].T + data.T_world_radar[:3, 3]
+        r = np.linalg.norm(scan.points_D, axis=1)
+        ang = k_sigma * np.radians(model.az_sigma_deg + model.el_sigma_deg)
+        bound = k_sigma * model.range_sigma_m + (r + k_sigma * model.range_sigma_m) * ang + 1e-3
+        for oid in np.unique(scan.object_id[scan.object_id >= 0]):
+            sel = scan.object_id == oid
+            actor = int(np.flatnonzero(sim.scene.object_id == oid)[0])
+            prims = data.prims
+            d = _surface_distance(pts_W[sel], prims, np.flatnonzero(prims.actor == actor))
+            assert (d <= bound[sel]).all(), (oid, d.max())
+            n_on += sel.sum()
+        n_off += (scan.object_id < 0).sum()
+        assert ((scan.object_id < 0) == (scan.material < 0)).all()
+    assert n_on > 5 * n_off > 0
+
+
+def test_point_count_rises_with_ego_speed() -> None:
+    rig = make_rig((160, 96), 16)
+    for scene_type in ("residential", "urban", "highway"):
+        counts = []
+        for speed in (1.5, 12.0):
+            sim = make_sequence(scene_type, 8, rig, seed=21, seq_index=0, ego_speed_mps=speed)
+            counts.append(np.mean([len(sim.frame(k, ("radar",)).radar.points_D) for k in range(0, 8, 2)]))
+        assert counts[1] > 1.15 * counts[0], (scene_type, counts)
+
+
+def test_lidar_sees_through_glass() -> None:
+    rig = make_rig((160, 96), 16)
+    sim = make_sequence("urban", 4, rig, seed=8, seq_index=3, noise=False)
+    data = sim.frame(1, ("lidar",))
+    prims = data.prims
+    glass = prims.material == MATERIAL_ID["glass"]
+    assert not glass[data.lidar.prim].any()
+    # oracle: every lidar ray against every primitive, glass included
+    dirs_L = lidar_directions(rig).reshape(-1, 3)
+    T = data.T_world_lidar
+    dirs_W = dirs_L @ T[:3, :3].T
+    t, p = first_hit_dense(T[:3, 3], dirs_W, prims, np.arange(len(prims.kind)))
+    through = np.flatnonzero((p >= 0) & (t < 100) & glass[np.maximum(p, 0)])
+    assert len(through) > 20
+    glass_hits_L = t[through, None] * dirs_L[through]
+    dist, _ = cKDTree(data.lidar.points_L.astype(np.float64)).query(glass_hits_L)
+    assert dist.min() > 1e-3
+    assert (data.lidar.material != MATERIAL_ID["glass"]).all()
+
+
+def test_windowed_casting_matches_dense_oracle() -> None:
+    rig = make_rig((160, 96), 16, lidar_cols=300)
+    sim = make_sequence("residential", 4, rig, seed=2, seq_index=0)
+    data = sim.frame(2, ("radar",))
+    prims = data.prims
+    T = data.T_world_lidar
+    dirs_W = (lidar_directions(rig).reshape(-1, 3) @ T[:3, :3].T).reshape(16, 300, 3)
+    az, el = rig.lidar_az_rad, rig.lidar_el_rad
+    az_step, el_step = az[0] - az[1], el[0] - el[1]
+    win = spherical_windows(prims, T, az[0] + az_step / 2, az_step, 300, el[0] + el_step / 2, el_step, 16, 1e9)
+    t_grid, p_grid = cast_grid(T[:3, 3], dirs_W, prims, win)
+    t_dense, p_dense = first_hit_dense(T[:3, 3], dirs_W.reshape(-1, 3), prims, np.arange(len(prims.kind)))
+    finite = np.isfinite(t_dense)
+    assert (np.isfinite(t_grid.reshape(-1)) == finite).all()
+    assert np.allclose(t_grid.reshape(-1)[finite], t_dense[finite], atol=1e-6)
+    assert (prims.kind[np.unique(p_dense[finite])] != CYLINDER).any()
+
+
+def _hash_tree(root: Path) -> str:
+    h = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def test_same_seed_same_bytes(tmp_path: Path) -> None:
+    kw = dict(frames=4, resolution_wh=(96, 64), lidar_lines=16, sequence_len=2, scene_mix=("highway", "urban"))
+    generate(tmp_path / "a", seed=9, **kw)
+    generate(tmp_path / "b", seed=9, **kw)
+    assert _hash_tree(tmp_path / "a") == _hash_tree(tmp_path / "b")
+    assert len(list((tmp_path / "a").rglob("*.bin"))) == 4 * 3
+
+
+def test_failed_generation_leaves_no_world_json(tmp_path: Path, monkeypatch) -> None:
+    import pipeline.world.generator as gen
+
+    generate(tmp_path, frames=1, seed=0, resolution_wh=(64, 32), lidar_lines=16)
+    assert (tmp_path / "world.json").exists()
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("simulated crash")
+
+    monkeypatch.setattr(gen, "run_sequence", boom)
+    with pytest.raises(RuntimeError):
+        generate(tmp_path, frames=1, seed=0, resolution_wh=(64, 32), lidar_lines=16)
+    assert not (tmp_path / "world.json").exists()
+
+
+@pytest.mark.parametrize("kwargs", [dict(frames=0), dict(lidar_lines=32), dict(scene_mix=("moon",)),
+                                    dict(sequence_len=0), dict(resolution_wh=(8, 8))])
+def test_bad_arguments_raise_config_error(tmp_path: Path, kwargs: dict) -> None:
+    args = dict(frames=2, seed=0, resolution_wh=(64, 32), lidar_lines=16)
+    args.update(kwargs)
+    with pytest.raises(ConfigError):
+        generate(tmp_path, **args)
