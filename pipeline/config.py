@@ -149,8 +149,9 @@ class DisNetSection:
     width: int = 64
     """Base width of the ResNet-18 (64 = standard)."""
     prior: bool = True
-    """Add log(mean training heatmap) to the map logits and learn the residual (an improvement
-    over the paper: training starts at the mean-map baseline; False = the paper's network)."""
+    """Add log(mean training heatmap) to the map logits and start the count at the training mean
+    count, learning the residuals (an improvement over the paper: training starts at the mean-map
+    and mean-count baselines; False = the paper's network)."""
 
 
 @dataclass(frozen=True)

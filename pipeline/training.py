@@ -429,9 +429,6 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
     _setup(cfg)
     model = build_disnet(cfg)
-    if cfg.disnet.prior:
-        prior = data.prior_map if data.prior_map is not None else mean_map_baseline(data.heatmaps, data.train_idx)
-        model.set_prior(prior)
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
@@ -440,6 +437,10 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
         batch_size=cfg.train.batch_size, terms_fn=disnet_terms,
         weights={"kl": 1.0, "n": float(cfg.train.alpha)})
     _check_disnet_data(cfg, data, np.concatenate([spec.train_idx, spec.val_idx]))
+    if cfg.disnet.prior:
+        prior = data.prior_map if data.prior_map is not None else mean_map_baseline(data.heatmaps, spec.train_idx)
+        model.set_prior(prior)
+        model.set_count_prior(float(np.mean(take_rows(data.counts, spec.train_idx))))
     return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
 
 

@@ -81,6 +81,14 @@ class DisNet(nn.Module):
         return log_map, n_hat
 
     @torch.no_grad()
+    def set_count_prior(self, mean_count: float) -> None:
+        """Start the number branch at ``mean_count`` (e.g. the training mean): zero head weights,
+        bias = logit(mean_count / max_points); training then learns the per-frame deviation."""
+        q = float(np.clip(mean_count / self.max_points, 1e-4, 1 - 1e-4))
+        nn.init.zeros_(self.count_head.weight)
+        self.count_head.bias.fill_(float(np.log(q / (1 - q))))
+
+    @torch.no_grad()
     def set_prior(self, prob_map: np.ndarray, floor: float = 1e-6) -> None:
         """Use log(prob_map) (H, W), e.g. the mean training heatmap, as the map's prior logits."""
         p = np.asarray(prob_map, dtype=np.float64)

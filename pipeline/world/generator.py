@@ -107,9 +107,9 @@ def _run_jobs(jobs: list[tuple], frames: int, progress: bool) -> list[dict]:
     else:
         import multiprocessing
 
-        # fork: workers only use numpy and cv2 (single-threaded), and callers need no __main__ guard
-        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(method)) as pool:
+        # spawn, not fork: forking a process that already runs threads (torch, dask, BLAS) can
+        # deadlock the child on a lock some thread held at the fork
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
             for res in pool.map(_run_job, jobs):
                 results.append(res)
                 bar.update(res["last_frame"] - res["first_frame"] + 1)
