@@ -148,5 +148,5 @@ def _headline(s: dict) -> str:
     return "; ".join(parts) or "trained"
 
 
-STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS,
+STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=2,
                      run=run, doc=__doc__)

@@ -214,3 +214,22 @@ def test_count_and_rss_losses_against_numpy():
     np.testing.assert_allclose(rss_loss(torch.tensor(a_hat), torch.tensor(a)).numpy(), (a_hat - a) ** 2)
     with pytest.raises(ValueError):
         rss_loss(torch.zeros(3), torch.zeros(2))
+
+
+def test_disnet_priors_start_at_the_baselines():
+    """With use_prior, an untrained Dis-Net predicts exactly the prior map and the prior count."""
+    import numpy as np
+
+    from pipeline.models.disnet import DisNet
+
+    torch.manual_seed(0)
+    model = DisNet(width=8, use_speed=True, max_points=500, out_hw=(32, 64), use_prior=True).eval()
+    prior = np.random.default_rng(0).random((32, 64)) + 0.01
+    prior /= prior.sum()
+    model.set_prior(prior)
+    model.set_count_prior(123.0)
+    log_map, n_hat = model(torch.rand(2, 3, 32, 64), torch.tensor([0.0, 9.0]))
+    np.testing.assert_allclose(log_map.exp().detach().numpy(), np.broadcast_to(prior, (2, 32, 64)), rtol=1e-4)
+    np.testing.assert_allclose(n_hat.detach().numpy(), [123.0, 123.0], rtol=1e-5)
+    with pytest.raises(ValueError, match="expected shape"):
+        model.set_prior(np.ones((3, 3)))
