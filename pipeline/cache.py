@@ -87,6 +87,13 @@ class FrameStore:
         except OSError as exc:
             raise cache_error(exc, f"creating {self.url}") from None
 
+    def invalidate(self) -> None:
+        """Make the stored fingerprint match nothing: the next run recomputes the output."""
+        try:
+            self._group("r+").attrs["fingerprint"] = "stale"
+        except OSError as exc:
+            raise cache_error(exc, f"invalidating {self.url}") from None
+
     def frame_ids(self) -> list[str]:
         """Frame ids, in frame-index order."""
         return list(self._group("r").attrs["frame_ids"])

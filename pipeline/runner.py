@@ -166,9 +166,29 @@ class Pipeline:
                 report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
+            if force and name == target:
+                self.invalidate_downstream(name)
             if strict and report.failed:
                 raise FrameError(name, "?", f"{report.failed} frame(s) failed; first: {report.failures[0]}")
         return reports
+
+    def downstream(self, name: str) -> list[str]:
+        """Stages that depend on ``name``, directly or not, in execution order."""
+        out: set[str] = set()
+        for other in self.order:
+            if name in self.stages[other].upstream or out & set(self.stages[other].upstream):
+                out.add(other)
+        return [n for n in self.order if n in out]
+
+    def invalidate_downstream(self, name: str) -> None:
+        """After a forced recompute of ``name`` its fingerprint is unchanged, yet its outputs are
+        new: mark every downstream output stale so that the next run recomputes it."""
+        for other in self.downstream(name):
+            stage = self.stages[other]
+            store = self.env.store(other) if isinstance(stage, FrameStage) else self.env.dir(other)
+            if store.fingerprint() is not None:
+                store.invalidate()
+                self.log(f"{other:<11} marked stale (upstream {name} was recomputed with --force)")
 
     def _ensure_created(self, stage: FrameStage, force: bool) -> bool:
         store = self.env.store(stage.name)

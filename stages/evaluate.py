@@ -23,6 +23,11 @@ from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
 from stages.synthesize import SPLITS, generate, models
 
+NOMINAL_FRAME_PERIOD_S = 0.1
+"""Frame period assumed by the previous-frame baseline where timestamps do not give one (10 Hz)."""
+MAX_FRAME_GAP_S = 1.0
+"""Consecutive frames further apart than this (or going backwards) use the nominal period."""
+
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "radar.doppler_span_mps",
                "radar.az_res_deg", "radar.el_res_deg")
@@ -102,7 +107,9 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev) -> dic
             out[spec.name] = (np.asarray(pts, np.float64), float(stats["n_bar"]), None)
         elif spec.kind == "previous-frame" and prev is not None:
             pf = inputs.frame(prev)
-            dt = float(f.get("calibrate", "timestamp") - pf.get("calibrate", "timestamp")) or 0.1
+            dt = float(f.get("calibrate", "timestamp") - pf.get("calibrate", "timestamp"))
+            if not 0.0 < dt <= MAX_FRAME_GAP_S:  # clock wrap (Astyx: lidar µs past the hour) or a gap
+                dt = NOMINAL_FRAME_PERIOD_S
             T = ego_motion_transform(pf.get("calibrate", "ego_velocity"), dt)
             pts = np.asarray(previous_frame(_real(pf), T), np.float64)
             out[spec.name] = (pts, float(len(pts)), None)

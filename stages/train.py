@@ -22,6 +22,9 @@ from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.stage import DatasetStage
 
+VERSION = 2
+"""Bump when the training code changes what a net learns: stage outputs and checkpoints are redone."""
+
 CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "rssnet.use_camera",
                "rssnet.use_lidar", "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr",
                "train.batch_size", "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points",
@@ -94,7 +97,7 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
     from pipeline.training import default_fingerprint
 
     data = [inputs.store(s).fingerprint() for s in ("calibrate", "heatmaps", "patches")]
-    return f"{default_fingerprint(cfg, net)}-" + "-".join(str(d) for d in data)
+    return f"v{VERSION}-{default_fingerprint(cfg, net)}-" + "-".join(str(d) for d in data)
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
@@ -148,5 +151,5 @@ def _headline(s: dict) -> str:
     return "; ".join(parts) or "trained"
 
 
-STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=2,
+STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=VERSION,
                      run=run, doc=__doc__)

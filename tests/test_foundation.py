@@ -161,3 +161,16 @@ def test_cli_help_and_errors():
     assert bad.exit_code == 2 and "did you mean 'heatmap.sigma_px'" in bad.output
     missing = runner.invoke(main, ["run", "heatmaps", "--dataset", "vod"])
     assert missing.exit_code == 2 and "--data-root" in missing.output
+
+
+def test_force_recompute_marks_downstream_stale(tmp_path, monkeypatch):
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    make_pipeline(tmp_path).run("train")
+    log.unlink()
+    make_pipeline(tmp_path).run("calibrate", force=True)
+    assert not make_pipeline(tmp_path).is_current("heatmaps")
+    reports = {r.stage: r for r in make_pipeline(tmp_path).run("train")}
+    assert reports["calibrate"].processed == 0          # forced once, now current
+    assert reports["heatmaps"].processed == len(IDS)    # recomputed from the new calibrate
+    assert reports["train"].summary["message"] != "up to date"
