@@ -12,8 +12,6 @@ reads only the safetensors file.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +22,7 @@ from safetensors.torch import save_file
 from torch import Tensor, nn
 
 from pipeline.errors import CacheError
+from pipeline.fileio import atomic_path, write_atomic
 
 FORMAT = "pipeline-checkpoint/1"
 
@@ -34,14 +33,8 @@ def save_checkpoint(path: str | Path, tensors: dict[str, Tensor], meta: dict[str
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": FORMAT, **meta}
     flat = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        save_file(flat, tmp, metadata={"meta": json.dumps(meta)})
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(path) as tmp:
+        save_file(flat, str(tmp), metadata={"meta": json.dumps(meta)})
     write_json_atomic(path.with_suffix(".json"), meta)
 
 
@@ -73,10 +66,7 @@ def read_meta(path: str | Path) -> dict[str, Any]:
 
 def write_json_atomic(path: str | Path, obj: Any) -> None:
     """Write JSON to a temporary file and rename it into place."""
-    path = Path(path)
-    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    os.replace(tmp, path)
+    write_atomic(path, json.dumps(obj, indent=1))
 
 
 def model_tensors(model: nn.Module) -> dict[str, Tensor]:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -30,6 +29,7 @@ import numpy as np
 from pypcd4 import PointCloud
 
 from pipeline.errors import ReaderError
+from pipeline.fileio import atomic_path, write_atomic
 from pipeline.frame import check_shape
 from pipeline.geometry import spherical_to_cartesian
 
@@ -38,24 +38,6 @@ VOD_COLUMNS = ("x_m", "y_m", "z_m", "rcs", "v_r_mps", "v_r_compensated_mps", "ti
 VOD_POINT_BYTES = 28
 PCD_FIELDS = ("x", "y", "z", "rss", "doppler")
 """Fields of the PCD files, all float32."""
-
-
-# --------------------------------------------------------------------------- atomic writes
-
-
-def _write_atomic(path: Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same folder and os.replace."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 # --------------------------------------------------------------------------- VoD .bin
@@ -90,7 +72,7 @@ def write_vod_bin(
 def write_vod_rows(path: str | os.PathLike, rows: np.ndarray) -> Path:
     """Write ready (n, 7) VoD rows (e.g. with noise added) as little-endian float32, atomically."""
     rows = check_shape("rows", np.asarray(rows), (None, 7))
-    return _write_atomic(Path(path), rows.astype("<f4").tobytes())
+    return write_atomic(Path(path), rows.astype("<f4").tobytes())
 
 
 def read_vod_bin(path: str | os.PathLike) -> np.ndarray:
@@ -149,17 +131,9 @@ def write_pcd(path: str | os.PathLike, points_D: np.ndarray, rss: np.ndarray, do
     cloud = PointCloud.from_points(
         np.column_stack([points, rss, doppler]), PCD_FIELDS, [np.float32] * len(PCD_FIELDS)
     )
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            cloud.save(handle)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        cloud.save(handle)
+    return Path(path)
 
 
 def read_pcd(path: str | os.PathLike) -> np.ndarray:
@@ -204,7 +178,7 @@ def preview_png(
     ok, encoded = cv2.imencode(".png", canvas)
     if not ok:
         raise ValueError(f"{path}: PNG encoding failed")
-    return _write_atomic(Path(path), encoded.tobytes())
+    return write_atomic(Path(path), encoded.tobytes())
 
 
 def _draw_colour_bar(canvas: np.ndarray, max_range_m: float) -> None:
@@ -236,19 +210,12 @@ def _check_frame_id(frame_id: str) -> str:
 def _text_or_copy(dst: Path, source: str | os.PathLike) -> Path:
     """Write ``source`` to ``dst``: a str is the file's text, a Path / PathLike is copied."""
     if isinstance(source, str):
-        return _write_atomic(dst, source.encode())
+        return write_atomic(dst, source.encode())
     src = Path(source)
     if not src.is_file():
         raise ReaderError(src, "source file for the export does not exist")
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=dst.parent, prefix=f".{dst.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
+    with atomic_path(dst) as tmp:
         shutil.copyfile(src, tmp)
-        os.replace(tmp, dst)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return dst
 
 
@@ -303,5 +270,5 @@ def write_image_sets(out_root: str | os.PathLike, split: Mapping[str, Sequence[s
         if not name or "/" in name:
             raise ValueError(f"split name {name!r} is not a plain file stem")
         text = "".join(f"{_check_frame_id(i)}\n" for i in ids)
-        written[name] = _write_atomic(Path(out_root) / "ImageSets" / f"{name}.txt", text.encode())
+        written[name] = write_atomic(Path(out_root) / "ImageSets" / f"{name}.txt", text.encode())
     return written

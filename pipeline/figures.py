@@ -7,13 +7,12 @@ rename). Real points are red, synthesized points blue.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from pipeline.fileio import atomic_path
 from pipeline.frame import check_shape
 
 FIG_DPI = 100
@@ -33,17 +32,9 @@ def fig8_size_in(image_hw: tuple[int, int], n_rows: int) -> tuple[float, float]:
 
 def _save(fig: Any, out_png: str | Path) -> Path:
     """Save ``fig`` to ``out_png`` atomically."""
-    path = Path(out_png)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
-    os.close(fd)
-    try:
+    with atomic_path(out_png) as tmp:
         fig.savefig(tmp, dpi=FIG_DPI, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return Path(out_png)
 
 
 def _figure(width_in: float, height_in: float, nrows: int, ncols: int) -> tuple[Any, np.ndarray]:

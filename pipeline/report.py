@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from pipeline.fileio import write_atomic
 from pipeline.metrics import FRAME_METRICS, SPHERICAL_COLUMNS
 
 TABLE_COLUMNS: tuple[tuple[str, str], ...] = (
@@ -82,18 +81,6 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, (float, np.floating)):
         return float(obj) if math.isfinite(float(obj)) else None
     return obj
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def metrics_table_md(table: Mapping[str, Mapping[str, Mapping[str, float]]]) -> str:
@@ -191,7 +178,7 @@ def write_report(out_dir: str | Path, dataset: str, split: str,
            "distribution_distances": distances, "physics_checks": physics,
            "model_does_not_beat": shortfalls, "meta": meta}
     json_path, md_path = out / "report.json", out / "report.md"
-    _atomic_write_text(json_path, json.dumps(_jsonable(doc), indent=2, allow_nan=False) + "\n")
+    write_atomic(json_path, json.dumps(_jsonable(doc), indent=2, allow_nan=False) + "\n")
     meta_lines = "\n".join(f"- {k}: {v}" for k, v in meta.items())
     md = (
         f"# Fidelity report: {dataset} ({split})\n\n{meta_lines}\n\n"
@@ -204,5 +191,5 @@ def write_report(out_dir: str | Path, dataset: str, split: str,
         f"## Physics checks (real frames)\n\n{physics_md(physics)}\n\n"
         f"## Where the model does not beat every baseline\n\n{shortfall_paragraph(table)}\n"
     )
-    _atomic_write_text(md_path, md)
+    write_atomic(md_path, md)
     return json_path, md_path

@@ -137,11 +137,13 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     r = cfg.radar
     per_frame: dict[str, list] = {}
     pooled: dict[str, list] = {}
+    real_frames: list[np.ndarray] = []
     figure_rows = []
     for i in tqdm(frames, desc="evaluate", unit="frame", disable=not inputs.progress):
         i = int(i)
         f = inputs.frame(i)
         real = _real(f)
+        real_frames.append(real)
         target = f.get("heatmaps", "heatmap")
         rss_err = float("nan")
         if len(real):
@@ -161,7 +163,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             pooled.setdefault(name, []).append(pts)
         if len(figure_rows) < cfg.eval.figure_frames:
             figure_rows.append((i, methods["model"][0], real))
-    pooled_real = np.concatenate([_real(inputs.frame(int(i))) for i in frames])
+    pooled_real = np.concatenate(real_frames)
     distances = {name: distribution_distances(_sph(np.concatenate(p)), _sph(pooled_real))
                  for name, p in pooled.items() if sum(len(x) for x in p)}
     phys = physics_checks(inputs, cfg, frames)

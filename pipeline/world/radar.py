@@ -118,7 +118,6 @@ def simulate_radar(scene: Scene, prims: Primitives, states: ActorStates, T_world
                           & (cos_inc > 0.02))
     cand = cand[rng.random(len(cand)) < model.select_prob]
     cand = cand[~_occluded(prims, origin, rel[cand], rng_m[cand], model.max_range_m)]
-    props = material_arrays()
     mat = _centre_material(scene, prims, pos, cand)
     lobe = scene.centres.lobe[cand]
     rcs = scene.centres.rcs_dbsm[cand] + 10 * np.log10(cos_inc[cand] ** lobe + 0.01)
