@@ -14,6 +14,7 @@ that will be redone.
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import json
 import time
@@ -23,6 +24,8 @@ from typing import Any
 import fsspec
 import numpy as np
 import zarr
+import zarr.api.asynchronous as zarr_async
+from zarr.core.sync import sync
 
 from pipeline.errors import CacheError
 from pipeline.stage import ArraySpec
@@ -109,22 +112,19 @@ class FrameStore:
         return {int(i): str(arr[int(i)]) for i in np.flatnonzero(status == FAILED)}
 
     def write_frame(self, index: int, arrays: dict[str, np.ndarray], specs: tuple[ArraySpec, ...]) -> None:
-        """Write one frame's arrays, then mark it done (the marker last)."""
-        g = self._group("r+")
+        """Write one frame's arrays, then mark it done (the marker last).
+
+        All arrays of the frame are written concurrently in one round trip to zarr's IO loop (one
+        call per array costs about 1 ms of thread hand-offs each, which dominated small frames).
+        """
+        values: list[tuple[str, Any]] = []
+        for spec in specs:
+            value = np.asarray(arrays[spec.name])
+            if spec.ragged:
+                values.append((f"{spec.name}_count", np.int32(value.shape[0])))
+            values.append((spec.name, value))
         try:
-            for spec in specs:
-                value = np.asarray(arrays[spec.name])
-                target = g[spec.name]
-                if spec.ragged:
-                    k = value.shape[0]
-                    padded = np.full(target.shape[1:], spec.fill, dtype=target.dtype)
-                    padded[:k] = value
-                    target[index] = padded
-                    g[f"{spec.name}_count"][index] = k
-                else:
-                    target[index] = value.astype(target.dtype, copy=False)
-            g["reason"][index] = ""
-            g["status"][index] = DONE
+            sync(_write_frame_async(self.url, index, specs, values))
         except OSError as exc:
             raise cache_error(exc, f"writing frame {index} of {self.url}") from None
 
@@ -219,6 +219,27 @@ class DirStore:
                 self.fs.rm(self.file("_stage.json"))
         except OSError as exc:
             raise cache_error(exc, f"invalidating {self.url}") from None
+
+
+async def _write_frame_async(url: str, index: int, specs: tuple[ArraySpec, ...],
+                             values: list[tuple[str, Any]]) -> None:
+    """Write ``values`` into row ``index`` of the group's arrays concurrently, then the status."""
+    group = await zarr_async.open_group(url, mode="r+")
+    names = [name for name, _ in values] + ["reason", "status"]
+    targets = dict(zip(names, await asyncio.gather(*(group.getitem(name) for name in names))))
+    ragged = {spec.name: spec.fill for spec in specs if spec.ragged}
+
+    def row(name: str, value: Any) -> np.ndarray:
+        target = targets[name]
+        if name not in ragged:
+            return np.asarray(value).astype(target.dtype, copy=False) if target.dtype != object else value
+        padded = np.full(target.shape[1:], ragged[name], dtype=target.dtype)
+        padded[: value.shape[0]] = value
+        return padded
+
+    await asyncio.gather(*(targets[name].setitem(index, row(name, v)) for name, v in values),
+                         targets["reason"].setitem(index, ""))
+    await targets["status"].setitem(index, DONE)
 
 
 def _open_group(url: str, mode: str) -> zarr.Group:

@@ -151,7 +151,7 @@ def test_many_runs_recovering_one_stale_lock_never_overlap(tmp_path):
 
 def _fault_after_first_array(monkeypatch, stage: str, index: int, code: int) -> None:
     """Make zarr writes of frame ``index`` of ``stage`` fail with OSError(code) after one array."""
-    original_write, original_setitem = FrameStore.write_frame, zarr.Array.__setitem__
+    original_write, original_setitem = FrameStore.write_frame, zarr.AsyncArray.setitem
     state: list = []
 
     def write_frame(self, i, arrays, specs):
@@ -161,15 +161,15 @@ def _fault_after_first_array(monkeypatch, stage: str, index: int, code: int) -> 
         finally:
             state.clear()
 
-    def setitem(self, key, value):
+    async def setitem(self, key, value):
         if state and state[0] and state[1] >= 1:
             raise OSError(code, os.strerror(code))
-        original_setitem(self, key, value)
+        await original_setitem(self, key, value)
         if state:
             state[1] += 1
 
     monkeypatch.setattr(FrameStore, "write_frame", write_frame)
-    monkeypatch.setattr(zarr.Array, "__setitem__", setitem)
+    monkeypatch.setattr(zarr.AsyncArray, "setitem", setitem)
 
 
 @pytest.mark.parametrize("code, words", [(errno.ENOSPC, "disk holding the cache is full"),

@@ -1,5 +1,6 @@
 """calibrate + heatmaps + patches over the Astyx frames in ../shared/data: frames per second with
-1 and 2 dask workers (goal: 2 workers at least 1.6x faster). Skips when the data is absent."""
+1 and 2 dask workers (goal: 2 workers at least 1.6x faster); best of
+REPEATS alternating runs each. Skips when the data is absent."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from pipeline.executor import Executor, RunEnv  # noqa: E402
 from pipeline.runner import Pipeline  # noqa: E402
 from stages import all_stages  # noqa: E402
 
+REPEATS = 2
 DATA = ROOT.parent / "shared" / "data" / "astyx_hires2019" / "dataset_astyx_hires2019"
 
 
@@ -36,9 +38,13 @@ def main() -> None:
     if not DATA.is_dir():
         print("stages: skipped (../shared/data/astyx_hires2019 absent)")
         return
+    best = {1: 0.0, 2: 0.0}
     with tempfile.TemporaryDirectory() as tmp:
-        one, n = fps(1, f"{tmp}/one")
-        two, _ = fps(2, f"{tmp}/two")
+        for rep in range(REPEATS):  # alternate, keep the best of each: the machine is shared and noisy
+            for workers in (1, 2):
+                rate, n = fps(workers, f"{tmp}/{workers}-{rep}")
+                best[workers] = max(best[workers], rate)
+    one, two = best[1], best[2]
     print(f"calibrate+heatmaps+patches, {n} Astyx frames: 1 worker {one:.2f} frames/s, "
           f"2 workers {two:.2f} frames/s, speed-up {two / one:.2f}x (goal 1.6x)")
 
