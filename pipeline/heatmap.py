@@ -8,11 +8,22 @@ pixel centres (the convention of ``pipeline.frame``). Sigma is diagonal with sta
 For a diagonal Sigma every component factorises, N_i(x, y) ~ gx_i(x) gy_i(y), so the whole map is
 one matrix product ``Gy^T (H, N) @ Gx (N, W)``: exact at every pixel (sub-pixel positions kept, no
 binning), O(N (H + W)) exponentials and one GEMM instead of N * H * W exponentials.
+
+With many points the GEMM itself (H N W) dominates. A 1-D factor exp(-(x - c)^2 / 2 s^2), as a
+function of the centre c, is entire, so its Chebyshev interpolant through n + 1 nodes t_k,
+sum_k l_k(c) exp(-(x - t_k)^2 / 2 s^2), is uniformly accurate to a bound eps_n known a priori
+(Trefethen, Approximation Theory and Approximation Practice, Thm 8.2). When every centre lies in
+the image, both factors are interpolated and the map is the rank-(n+1) product
+``Gy^T (H, ny+1) @ (Ly^T Lx / Z) @ Gx (nx+1, W)`` in float64: H W n work with n ~ 85 instead of
+N = 1000. Each pixel's error (interpolation and rounding) is bounded; rows where the bound is not
+below 1e-7 of every pixel's value are recomputed exactly, so the result stays exact per pixel.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -93,7 +104,8 @@ def gaussian_heatmap(uv: np.ndarray, size_wh: Sequence[int], sigma_px: Sequence[
     Exact separable evaluation: each point's 1-D factors are scaled by their in-image maximum and
     the point weighted by exp(its in-image log-peak - the best point's), so points far outside the
     image neither underflow the whole map nor dominate it wrongly; Z is the float64 sum
-    sum_i (sum_x gx_i)(sum_y gy_i), folded into the factors before one float32 GEMM. Per-pixel
+    sum_i (sum_x gx_i)(sum_y gy_i), folded into the factors before one float32 GEMM. With many
+    points inside the image the certified interpolated product replaces the GEMM. Per-pixel
     relative error vs the float64 per-point sum (``naive_heatmap``) is ~1e-6 wherever the value is
     above ~N * 1e-38 (smaller factors are flushed to 0; tests check < 1e-5 above 1e-28). Memory:
     N * (W + H) float32 factors.
@@ -101,6 +113,12 @@ def gaussian_heatmap(uv: np.ndarray, size_wh: Sequence[int], sigma_px: Sequence[
     input, or non-positive size / sigma.
     """
     uv, w, h, sx, sy = _check_inputs(uv, size_wh, sigma_px)
+    plan_x = _chebyshev_plan(uv[:, 0], w, sx)
+    plan_y = _chebyshev_plan(uv[:, 1], h, sy) if plan_x is not None else None
+    if plan_y is not None:
+        result = _interpolated_heatmap(uv, w, h, sx, sy, plan_x, plan_y)
+        if result is not None:
+            return result
     gx, peak_x = _gauss_factors_1d(uv[:, 0], w, sx)  # (N, W) float32, max 1 per point
     gy, peak_y = _gauss_factors_1d(uv[:, 1], h, sy)  # (N, H) float32, max 1 per point
     log_weight = peak_x + peak_y
@@ -109,6 +127,112 @@ def gaussian_heatmap(uv: np.ndarray, size_wh: Sequence[int], sigma_px: Sequence[
     gy *= (weight / z).astype(np.float32)[:, None]  # normalisation folded into the row factors
     gy[gy < _FLUSH] = 0.0
     return gy.T @ gx  # (H, N) @ (N, W) -> (H, W) float32
+
+
+_CERTIFY_REL = 1e-7
+"""Largest interpolation error, relative to the pixel's value, accepted without recomputing."""
+
+_EPS_TARGET = 1e-13
+"""Uniform interpolation error aimed for (relative to a factor's peak of 1)."""
+
+
+def chebyshev_error_bound(degree: int, half_width_over_sigma: float) -> float:
+    """A priori bound on max |f - p_n| for f(t) = exp(-(d - h t)^2 / 2 sigma^2) on t in [-1, 1]
+    (any d), p_n its interpolant in the degree + 1 Chebyshev points of the second kind.
+
+    f is entire and on the Bernstein ellipse E_rho |f| <= exp(h^2 b^2 / 2 sigma^2), b the ellipse's
+    semi-minor axis (rho - 1/rho) / 2, so ||f - p_n|| <= 4 M rho^-n / (rho - 1) for every rho > 1
+    (Trefethen, ATAP, Thm 8.2); this returns the smallest over a fine grid of rho.
+    """
+    rho = np.geomspace(1.0005, 100.0, 4000)
+    b = 0.5 * (rho - 1.0 / rho)
+    log_bound = np.log(4.0) + 0.5 * (half_width_over_sigma * b) ** 2 - degree * np.log(rho) - np.log(rho - 1.0)
+    return float(np.exp(log_bound.min()))
+
+
+@functools.lru_cache(maxsize=1024)
+def _degree_for(ratio_sixteenths: int) -> tuple[int, float] | None:
+    """Smallest degree (step 4, <= 400) whose bound meets _EPS_TARGET for half-width / sigma
+    <= ratio_sixteenths / 16, with that bound; None if none does."""
+    ratio = ratio_sixteenths / 16.0
+    for degree in range(8, 401, 4):
+        bound = chebyshev_error_bound(degree, ratio)
+        if bound <= _EPS_TARGET:
+            return degree, bound
+    return None
+
+
+@dataclass(frozen=True)
+class _ChebyshevPlan:
+    nodes: np.ndarray  # (n+1,) pixel coordinates of the Chebyshev points
+    basis: np.ndarray  # (N, n+1) Lagrange basis at each centre
+    at_nodes: np.ndarray  # (n+1, W) exp(-(x - t_k)^2 / 2 sx^2)
+    eps: float  # uniform error bound of the interpolant (a factor's peak is 1)
+
+
+def _chebyshev_plan(centres: np.ndarray, n_pixels: int, sigma: float) -> _ChebyshevPlan | None:
+    """The interpolant of the x factors, or None for the exact product: when it would not be
+    clearly cheaper (degree above N / 3), or when a centre lies outside the image (its factor is
+    rescaled by its in-image peak, which the uniform bound does not cover)."""
+    lo, hi = float(centres.min()), float(centres.max())
+    if lo < -0.5 or hi > n_pixels - 0.5 or len(centres) < 24:
+        return None
+    half = max(0.5 * (hi - lo), 0.25)
+    found = _degree_for(int(np.ceil(half / sigma * 16.0)))  # ratio rounded up: the bound only grows
+    if found is None or found[0] > len(centres) // 3:
+        return None
+    degree, eps = found
+    j = np.arange(degree + 1)
+    nodes = 0.5 * (lo + hi) + half * np.cos(np.pi * j / degree)
+    bary = (-1.0) ** j
+    bary[[0, -1]] *= 0.5
+    diff = centres[:, None] - nodes[None, :]
+    exact = diff == 0.0
+    diff[exact] = 1.0
+    basis = bary / diff  # barycentric formula (second kind), numerically stable
+    basis /= basis.sum(axis=1, keepdims=True)
+    on_node = exact.any(axis=1)
+    basis[on_node] = exact[on_node]  # a centre on a node: that basis function is 1, the rest 0
+    pixels = np.arange(n_pixels, dtype=np.float64)
+    at_nodes = np.exp(-0.5 * ((pixels[None, :] - nodes[:, None]) / sigma) ** 2)
+    return _ChebyshevPlan(nodes, basis, at_nodes, eps)
+
+
+def _interpolated_heatmap(uv: np.ndarray, w: int, h: int, sx: float, sy: float, px: _ChebyshevPlan,
+                          py: _ChebyshevPlan) -> np.ndarray | None:
+    """``gaussian_heatmap`` with both 1-D factors interpolated (every centre inside the image, so
+    every point has the same weight), in float64: Gy^T (Ly^T Lx / Z) Gx. Each pixel's error is
+    bounded a priori; rows where the bound is not below _CERTIFY_REL of every pixel are
+    recomputed exactly. Returns (H, W) float32, or None when more than a quarter of the rows are
+    uncertified (points in a tight cluster, far tails in every row): the exact product is then
+    cheaper."""
+    n = uv.shape[0]
+    sum_x = px.basis @ px.at_nodes.sum(axis=1)  # (N,) sum over columns of each x factor
+    sum_y = py.basis @ py.at_nodes.sum(axis=1)
+    scale = 1.0 / float(sum_x @ sum_y)  # 1 / Z
+    core = (py.basis.T * scale) @ px.basis  # (ny+1, nx+1)
+    out = (py.at_nodes.T @ core) @ px.at_nodes  # (H, W)
+    # Bound: |Ex Ey - Px Py| <= ex Ey + ey (Ex + ex) for factors E interpolated by P (errors ex,
+    # ey), and the float64 products add at most gamma * Lambda_x * sum_i sum_j |Ly_ij| Gy_j(y)
+    # (the standard |A||B| GEMM bound with |Px| <= Lambda_x), all times 1 / Z.
+    ex, ey = px.eps, py.eps
+    sum_rows_y = py.at_nodes.T @ py.basis.sum(axis=0)  # (H,) sum_i Py_i(y)
+    sum_cols_x = px.at_nodes.T @ px.basis.sum(axis=0)  # (W,) sum_i Px_i(x)
+    abs_rows_y = py.at_nodes.T @ np.abs(py.basis).sum(axis=0)
+    gamma = (n + len(px.nodes) + len(py.nodes)) * 1.2e-16
+    lebesgue_x = float(np.abs(px.basis).sum(axis=1).max())
+    a = scale * (ex * (sum_rows_y + n * ey) + gamma * lebesgue_x * abs_rows_y)  # (H,)
+    b = scale * (ey * (sum_cols_x + n * ex) + n * ex * ey)  # (W,)
+    suspect = np.flatnonzero(out.min(axis=1) * _CERTIFY_REL < a + b.max())
+    bad = suspect[(out[suspect] * _CERTIFY_REL < a[suspect, None] + b[None, :]).any(axis=1)]
+    if 4 * bad.size > h:
+        return None
+    result = out.astype(np.float32)
+    if bad.size:
+        gy = np.exp(-0.5 * ((bad[None, :] - uv[:, 1:2]) / sy) ** 2)  # (N, rows)
+        gx = np.exp(-0.5 * ((np.arange(w)[None, :] - uv[:, 0:1]) / sx) ** 2)  # (N, W)
+        result[bad] = (gy.T * scale) @ gx
+    return result
 
 
 def naive_heatmap(uv: np.ndarray, size_wh: Sequence[int], sigma_px: Sequence[float]) -> np.ndarray:

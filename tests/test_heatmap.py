@@ -186,3 +186,63 @@ def test_sigma_from_frames_pools_objects():
     no_labels = FrameRecord(**{**frame.__dict__, "labels": []})
     with pytest.raises(ValueError, match="no object"):
         sigma_from_frames([no_labels])
+
+
+# ------------------------------------------------------- interpolated (Chebyshev) path, many points
+
+
+def test_chebyshev_bound_covers_the_observed_interpolation_error():
+    import pipeline.heatmap as hm
+
+    rng = np.random.default_rng(5)
+    centres = np.sort(rng.uniform(-0.5, 399.5, 300))
+    plan = hm._chebyshev_plan(centres, 400, 20.0)
+    assert plan is not None
+    exact = np.exp(-0.5 * ((np.arange(400)[None, :] - centres[:, None]) / 20.0) ** 2)
+    observed = np.abs(plan.basis @ plan.at_nodes - exact).max()
+    assert observed <= plan.eps <= hm._EPS_TARGET
+    # The bound is not vacuous: the interpolant one degree-step lower is measurably worse.
+    degree = len(plan.nodes) - 1
+    assert hm.chebyshev_error_bound(degree - 24, 10.0) > 1e3 * plan.eps
+
+
+@pytest.mark.parametrize("clustered", [False, True])
+def test_interpolated_path_matches_naive_and_certifies_the_tails(clustered, monkeypatch):
+    """Many points inside the image take the interpolated path; where the certified bound is not
+    small against a pixel (far tails of a cluster), that row is recomputed exactly."""
+    import pipeline.heatmap as hm
+
+    rng = np.random.default_rng(7)
+    w, h, sigma = 300, 200, (12.0, 9.0)
+    if clustered:  # a band of rows at the top: the bottom rows hold only far tails
+        uv = np.column_stack([rng.uniform(-0.5, w - 0.5, 400), rng.uniform(0, 130, 400)])
+    else:
+        uv = rng.uniform([-0.5, -0.5], [w - 0.5, h - 0.5], (400, 2))
+    assert hm._chebyshev_plan(uv[:, 0], w, sigma[0]) is not None
+    assert hm._chebyshev_plan(uv[:, 1], h, sigma[1]) is not None
+    exact_rows = []
+    original_exp = np.exp
+
+    def spy_exp(x, *args, **kwargs):  # the exact fallback is the only exp over (N, rows)
+        if isinstance(x, np.ndarray) and x.ndim == 2 and x.shape[0] == len(uv) and x.shape[1] < h:
+            exact_rows.append(x.shape[1])
+        return original_exp(x, *args, **kwargs)
+
+    monkeypatch.setattr(hm.np, "exp", spy_exp)
+    fast = hm.gaussian_heatmap(uv, (w, h), sigma)
+    monkeypatch.undo()
+    ref = naive_heatmap(uv, (w, h), sigma)
+    assert _max_rel_err(fast, ref) < 1e-5
+    assert abs(float(fast.sum(dtype=np.float64)) - 1.0) < 1e-5
+    assert bool(exact_rows) == clustered  # uniform points: every row certified; cluster: tails redone
+
+
+def test_interpolated_path_is_close_to_the_exact_product(monkeypatch):
+    import pipeline.heatmap as hm
+
+    rng = np.random.default_rng(9)
+    uv = rng.uniform([-0.5, -0.5], [399.5, 249.5], (500, 2))
+    fast = hm.gaussian_heatmap(uv, (400, 250), (30.0, 30.0))
+    monkeypatch.setattr(hm, "_chebyshev_plan", lambda *a: None)
+    exact = hm.gaussian_heatmap(uv, (400, 250), (30.0, 30.0))
+    np.testing.assert_allclose(fast, exact, rtol=3e-6)
