@@ -65,21 +65,36 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
 
 
 def _ensure_world(env, progress: bool) -> None:
-    """Generate the built-in synthetic world into the cache once (when it is the data root)."""
-    if env.cfg.dataset.reader != "synthetic" or (Path(env.data_root) / "world.json").exists():
+    """Generate the built-in synthetic world into the cache (when it is the data root) once, and
+    again when the profile's world settings no longer match the one there."""
+    if env.cfg.dataset.reader != "synthetic" or _world_matches(env):
         return
     from pipeline.lock import stage_lock
     from pipeline.world import generate
 
     with stage_lock(join(env.cache_root, env.dataset, "locks", "world.lock"), "the synthetic world", wait_s=3600):
-        if (Path(env.data_root) / "world.json").exists():
+        if _world_matches(env):
             return
         ds = env.cfg.dataset
         click.echo(f"generating the synthetic world ({ds.world_frames} frames, seed {ds.world_seed}) "
                    f"into {env.data_root} ...", err=True)
         summary = generate(env.data_root, frames=ds.world_frames, seed=ds.world_seed,
-                           resolution_wh=tuple(ds.world_resolution), progress=progress)
+                           resolution_wh=tuple(ds.world_resolution), sequence_len=ds.world_sequence_len,
+                           progress=progress)
         click.echo(f"  done in {summary.get('seconds', 0):.1f} s", err=True)
+
+
+def _world_matches(env) -> bool:
+    """True when the data root holds a finished world. A world generated into the cache must also
+    match the profile's settings; one the user pointed at with --data-root is taken as it is."""
+    path = Path(env.data_root) / "world.json"
+    if not path.exists():
+        return False
+    if Path(env.data_root).resolve() != Path(join(env.cache_root, env.dataset, "world")).resolve():
+        return True
+    world, ds = json.loads(path.read_text()), env.cfg.dataset
+    return (world.get("frames"), world.get("seed"), world.get("resolution_wh"), world.get("sequence_len")) == \
+        (ds.world_frames, ds.world_seed, list(ds.world_resolution), ds.world_sequence_len)
 
 
 def _pipeline(env, workers: int, scheduler: str | None, progress: bool | None = None):

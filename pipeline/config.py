@@ -38,6 +38,8 @@ class DatasetSection:
     """Synthetic world only: generator seed."""
     world_resolution: tuple[int, int] = (640, 384)
     """Synthetic world only: rendered image size (W, H) pixels."""
+    world_sequence_len: int = 40
+    """Synthetic world only: frames per sequence (scene types cycle from one sequence to the next)."""
     radar_mount_T_radar_lidar: tuple[float, ...] = (1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)
     """KITTI only: row-major 4x4 transform from the lidar frame to the simulated radar {D}."""
 
@@ -182,6 +184,10 @@ class TrainSection:
     """RSS-Net batch size (points)."""
     alpha: float = 1.0
     """Weight of L_n in L = L_KL + alpha L_n."""
+    weight_decay: float = 0.0
+    """Decoupled weight decay (AdamW); 0 is plain Adam, the paper's optimiser."""
+    flip: bool = False
+    """Dis-Net augmentation: mirror image and target map left-right, each frame with probability 1/2."""
     seed: int = 0
     """Seed of initialisation and shuffling."""
     device: str = "auto"

@@ -139,7 +139,8 @@ class LidarAngularIndex:
             az_all = np.concatenate([az, np.where(az[seam] > 0, az[seam] - 2.0 * np.pi, az[seam] + 2.0 * np.pi)])
             el_all = np.concatenate([el, el[seam]])
             owner = np.concatenate([np.arange(az.size), seam])
-            self._trees[key] = (cKDTree(np.stack([az_all, el_all], axis=1)), owner)
+            tree = cKDTree(np.stack([az_all, el_all], axis=1), balanced_tree=False, compact_nodes=False)  # quick build
+            self._trees[key] = (tree, owner)
         return self._trees[key]
 
     def _pairs(

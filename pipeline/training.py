@@ -251,7 +251,10 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     last, best = out_dir / "last.safetensors", out_dir / "best.safetensors"
     device = select_device(cfg.train.device)
     spec.model.to(device)
-    optimizer = torch.optim.Adam(spec.model.parameters(), lr=cfg.train.lr)
+    if cfg.train.weight_decay > 0:
+        optimizer = torch.optim.AdamW(spec.model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
+    else:
+        optimizer = torch.optim.Adam(spec.model.parameters(), lr=cfg.train.lr)
     rng = np.random.default_rng(cfg.train.seed)
     state = {"epoch": 0, "best_epoch": 0, "best_metric": math.inf, "curves": []}
     resumed = _resume(last, best, spec, optimizer, fingerprint, device)
@@ -371,18 +374,23 @@ def _disnet_inputs(batch: Batch, device: torch.device) -> tuple[Tensor, Tensor]:
 def disnet_terms(model: nn.Module, batch: Batch, device: torch.device) -> dict[str, Tensor]:
     """Per-frame L_KL ('kl') and L_n ('n') of one batch."""
     img, speed = _disnet_inputs(batch, device)
-    log_map, n_hat = model(img, speed)
     target = torch.from_numpy(np.asarray(batch["heatmaps"], np.float32)).to(device)
+    if model.training and getattr(model, "flip_augment", False):
+        # Mirror left-right with probability 1/2 per frame (torch's RNG: saved with each epoch).
+        flip = (torch.rand(img.shape[0]) < 0.5).to(device)
+        img = torch.where(flip[:, None, None, None], img.flip(-1), img)
+        target = torch.where(flip[:, None, None], target.flip(-1), target)
+    log_map, n_hat = model(img, speed)
     counts = torch.from_numpy(np.asarray(batch["counts"], np.float32)).to(device)
     return {"kl": kl_loss(log_map, target), "n": count_loss(n_hat, counts)}
 
 
 def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
-    common = ["train.lr", "train.seed"]
+    common = ["train.lr", "train.seed", "train.weight_decay"]
     if net == "disnet":
         keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "radar.max_points",
-                "camera.working_size", "train.batch_size", "train.alpha"]
+                "camera.working_size", "train.batch_size", "train.alpha", "train.flip"]
     else:
         keys = ["rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
                 "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"]
@@ -429,6 +437,7 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
     _setup(cfg)
     model = build_disnet(cfg)
+    model.flip_augment = bool(cfg.train.flip)
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,

@@ -30,7 +30,7 @@ MAX_LABELS = 64
 LABEL_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw", "vx", "vy", "vz", "track_id")
 
 CONFIG_KEYS = (
-    "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution",
+    "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution", "dataset.world_sequence_len",
     "dataset.radar_mount_T_radar_lidar",
     "camera.full_size", "camera.crop_rows", "camera.working_size",
     "radar.fov_az_deg", "radar.fov_el_deg", "radar.max_range_m", "radar.store_max_points",

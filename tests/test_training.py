@@ -126,10 +126,11 @@ def test_disnet_data_errors(tmp_path):
         T.train_disnet(tiny_cfg(), T.DisNetData(**{**data.__dict__, "train_idx": []}), tmp_path)
 
 
-def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch):
+@pytest.mark.parametrize("extra", [{}, {"train.flip": "true", "train.weight_decay": "0.01"}])
+def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
     monkeypatch.setattr(T, "WINDOW_BATCHES", 1)          # one read per batch: kill mid-epoch
     data = make_disnet_data(n=20)                        # 15 train frames = 4 batches, 5 val = 2: 6 reads per epoch
-    cfg = tiny_cfg(**{"train.batch_size": "4"})
+    cfg = tiny_cfg(**{"train.batch_size": "4", **extra})
     ref = T.train_disnet(cfg, data, tmp_path / "a", progress=False, fingerprint="fp")
     killed = T.DisNetData(**{**data.__dict__, "images": KilledAfter(data.images, 2 * 6 + 2)})
     with pytest.raises(KeyboardInterrupt):               # dies after 2 optimizer steps of epoch 3
@@ -149,6 +150,25 @@ def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch):
     fresh = T.train_disnet(tiny_cfg(**{"train.epochs": "1"}), data, tmp_path / "b", progress=False,
                            fingerprint="other")
     assert fresh.resumed_from == 0 and fresh.epoch == 1
+
+
+def test_flip_augmentation_mirrors_image_and_target_together(monkeypatch):
+    """With train.flip, a frame drawn for mirroring gives exactly the terms of the mirrored frame."""
+    data = make_disnet_data(n=4)
+    model = T.build_disnet(tiny_cfg(**{"disnet.prior": "false"}))  # random last layer: not mirror-symmetric
+    model.flip_augment = True
+    batch = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
+    mirrored = {**batch, "images": data.images[:, :, ::-1].copy(), "heatmaps": data.heatmaps[:, :, ::-1].copy()}
+    model.eval()  # BN in eval mode so that the batch's frames do not interact; augmentation checks .training
+    plain = T.disnet_terms(model, batch, torch.device("cpu"))
+    reference = T.disnet_terms(model, mirrored, torch.device("cpu"))
+    model.training = True  # only the flag: layers stay in eval mode
+    monkeypatch.setattr(torch, "rand", lambda n: torch.tensor([0.0, 0.9, 0.0, 0.9]))  # flip frames 0 and 2
+    augmented = T.disnet_terms(model, batch, torch.device("cpu"))
+    for k in ("kl", "n"):
+        torch.testing.assert_close(augmented[k][[0, 2]], reference[k][[0, 2]])
+        torch.testing.assert_close(augmented[k][[1, 3]], plain[k][[1, 3]])
+    assert not torch.allclose(plain["kl"], reference["kl"])  # the mirror changes something
 
 
 def test_checkpoints_are_safetensors_with_json_meta(tmp_path):

@@ -290,3 +290,31 @@ def test_bad_arguments_raise_config_error(tmp_path: Path, kwargs: dict) -> None:
     args.update(kwargs)
     with pytest.raises(ConfigError):
         generate(tmp_path, **args)
+
+
+def test_world_in_the_cache_follows_the_profile(tmp_path: Path) -> None:
+    """The world generated into the cache is made once, and again when its profile settings
+    change; a world the user points at with --data-root is never regenerated."""
+    from pipeline.cli import _ensure_world
+    from pipeline.config import load_config
+    from pipeline.executor import RunEnv
+
+    def env(frames: int, root: Path | None = None) -> RunEnv:
+        cfg = load_config("synthetic", {"dataset.world_frames": str(frames), "dataset.world_resolution": "64,48",
+                                        "dataset.world_sequence_len": "2"}, environ={})
+        cache = tmp_path / "cache"
+        return RunEnv(cfg, str(cache), "synthetic", str(root or cache / "synthetic" / "world"))
+
+    first = env(3)
+    _ensure_world(first, progress=False)
+    world_json = Path(first.data_root) / "world.json"
+    made = world_json.stat().st_mtime_ns
+    _ensure_world(first, progress=False)
+    assert world_json.stat().st_mtime_ns == made  # same settings: kept
+    _ensure_world(env(4), progress=False)
+    world = json.loads(world_json.read_text())
+    assert world["frames"] == 4 and world["sequence_len"] == 2  # changed settings: regenerated
+    own = tmp_path / "own"
+    generate(own, frames=2, seed=5, resolution_wh=(64, 48))
+    _ensure_world(env(4, own), progress=False)
+    assert json.loads((own / "world.json").read_text())["frames"] == 2  # the user's world is left alone
