@@ -17,6 +17,7 @@ outside that range so that no average can equal it while the input scale stays c
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 
 import numpy as np
@@ -47,15 +48,16 @@ def _render(lidar: np.ndarray, points: np.ndarray, owner: np.ndarray, neighbour:
             r_l: float, w: int, h: int) -> np.ndarray:
     """Images (N, h, w) float32 from (owner point index, lidar index) pairs, one pair per neighbour."""
     n = points.shape[0]
-    p = points[owner]  # (K, 3)
-    l = lidar[neighbour]  # (K, 3)
-    d = l - p
+    d = lidar[neighbour] - points[owner]  # (K, 3)
     dist = np.linalg.norm(d, axis=1)
     keep = dist < r_l
-    owner, p, l, d, dist = owner[keep], p[keep], l[keep], d[keep], dist[keep]
+    if not keep.all():
+        owner, neighbour, d, dist = owner[keep], neighbour[keep], d[keep], dist[keep]
     u = np.clip(np.floor(0.5 * (1.0 - d[:, 1] / r_l) * w), 0, w - 1).astype(np.int64)
     v = np.clip(np.floor((1.0 - (d[:, 2] + r_l) / (2.0 * r_l)) * h), 0, h - 1).astype(np.int64)
-    sign = np.where(np.linalg.norm(l, axis=1) > np.linalg.norm(p, axis=1), 1.0, -1.0)
+    # |l_j| and |p_i| once per point rather than per pair (the same float64 rows, the same norms)
+    farther = np.linalg.norm(lidar, axis=1)[neighbour] > np.linalg.norm(points, axis=1)[owner]
+    sign = np.where(farther, 1.0, -1.0)
     value = 127.0 + sign * np.floor(255.0 * dist / (2.0 * r_l) + 0.5)
     flat = (owner * h + v) * w + u
     # Average per occupied pixel over the sorted pairs (stable: each pixel sums in pair order), so
@@ -86,7 +88,7 @@ def local_range_images(lidar_D: np.ndarray, points_D: np.ndarray, r_l: float,
     tree = cKDTree(lidar, balanced_tree=False, compact_nodes=False) if tree is None else tree  # quick build: one query
     lists = tree.query_ball_point(points, r_l)
     counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=n)
-    neighbour = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists])
+    neighbour = np.fromiter(itertools.chain.from_iterable(lists), dtype=np.int64, count=int(counts.sum()))
     owner = np.repeat(np.arange(n, dtype=np.int64), counts)
     return _render(lidar, points, owner, neighbour, r_l, w, h)
 

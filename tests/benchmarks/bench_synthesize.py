@@ -16,7 +16,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from pipeline.config import load_config  # noqa: E402
-from pipeline.executor import Executor, FrameInputs, RunEnv  # noqa: E402
+from pipeline.executor import Executor, FrameInputs, RunEnv, tune_heap  # noqa: E402
 from pipeline.models.disnet import build_disnet  # noqa: E402
 from pipeline.models.rssnet import build_rssnet  # noqa: E402
 from pipeline.runner import Pipeline  # noqa: E402
@@ -29,6 +29,7 @@ from stages.synthesize import generate  # noqa: E402
 
 def main() -> None:
     torch.set_num_threads(2)
+    tune_heap()  # the heap settings the stage runs with (serial executor and dask workers)
     cfg = load_config("synthetic", environ={})
     with tempfile.TemporaryDirectory() as tmp:
         generate_world(f"{tmp}/world", frames=8, seed=3, resolution_wh=tuple(cfg.dataset.world_resolution))
