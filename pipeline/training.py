@@ -15,6 +15,7 @@ from its epoch and ends with exactly the weights of an uninterrupted run (same d
 from __future__ import annotations
 
 import csv
+import functools
 import logging
 import math
 import sys
@@ -371,11 +372,11 @@ def _disnet_inputs(batch: Batch, device: torch.device) -> tuple[Tensor, Tensor]:
     return img, speed
 
 
-def disnet_terms(model: nn.Module, batch: Batch, device: torch.device) -> dict[str, Tensor]:
-    """Per-frame L_KL ('kl') and L_n ('n') of one batch."""
+def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: bool = False) -> dict[str, Tensor]:
+    """Per-frame L_KL ('kl') and L_n ('n') of one batch; ``flip``: mirror augmentation in training."""
     img, speed = _disnet_inputs(batch, device)
     target = torch.from_numpy(np.asarray(batch["heatmaps"], np.float32)).to(device)
-    if model.training and getattr(model, "flip_augment", False):
+    if flip and model.training:
         # Mirror left-right with probability 1/2 per frame (torch's RNG: saved with each epoch).
         flip = (torch.rand(img.shape[0]) < 0.5).to(device)
         img = torch.where(flip[:, None, None, None], img.flip(-1), img)
@@ -437,13 +438,12 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
     _setup(cfg)
     model = build_disnet(cfg)
-    model.flip_augment = bool(cfg.train.flip)
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
         train_idx=_checked_idx(data.train_idx, "train_idx", arrays, False),
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
-        batch_size=cfg.train.batch_size, terms_fn=disnet_terms,
+        batch_size=cfg.train.batch_size, terms_fn=functools.partial(disnet_terms, flip=bool(cfg.train.flip)),
         weights={"kl": 1.0, "n": float(cfg.train.alpha)})
     _check_disnet_data(cfg, data, np.concatenate([spec.train_idx, spec.val_idx]))
     if cfg.disnet.prior:

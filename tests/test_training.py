@@ -156,15 +156,14 @@ def test_flip_augmentation_mirrors_image_and_target_together(monkeypatch):
     """With train.flip, a frame drawn for mirroring gives exactly the terms of the mirrored frame."""
     data = make_disnet_data(n=4)
     model = T.build_disnet(tiny_cfg(**{"disnet.prior": "false"}))  # random last layer: not mirror-symmetric
-    model.flip_augment = True
     batch = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     mirrored = {**batch, "images": data.images[:, :, ::-1].copy(), "heatmaps": data.heatmaps[:, :, ::-1].copy()}
     model.eval()  # BN in eval mode so that the batch's frames do not interact; augmentation checks .training
-    plain = T.disnet_terms(model, batch, torch.device("cpu"))
-    reference = T.disnet_terms(model, mirrored, torch.device("cpu"))
+    plain = T.disnet_terms(model, batch, torch.device("cpu"), flip=True)  # eval mode: never mirrored
+    reference = T.disnet_terms(model, mirrored, torch.device("cpu"), flip=True)
     model.training = True  # only the flag: layers stay in eval mode
     monkeypatch.setattr(torch, "rand", lambda n: torch.tensor([0.0, 0.9, 0.0, 0.9]))  # flip frames 0 and 2
-    augmented = T.disnet_terms(model, batch, torch.device("cpu"))
+    augmented = T.disnet_terms(model, batch, torch.device("cpu"), flip=True)
     for k in ("kl", "n"):
         torch.testing.assert_close(augmented[k][[0, 2]], reference[k][[0, 2]])
         torch.testing.assert_close(augmented[k][[1, 3]], plain[k][[1, 3]])
