@@ -19,6 +19,7 @@ import errno
 import json
 import time
 from dataclasses import dataclass
+from collections.abc import Awaitable, Iterable
 from typing import Any
 
 import fsspec
@@ -226,7 +227,7 @@ async def _write_frame_async(url: str, index: int, specs: tuple[ArraySpec, ...],
     """Write ``values`` into row ``index`` of the group's arrays concurrently, then the status."""
     group = await zarr_async.open_group(url, mode="r+")
     names = [name for name, _ in values] + ["reason", "status"]
-    targets = dict(zip(names, await asyncio.gather(*(group.getitem(name) for name in names))))
+    targets = dict(zip(names, await _gather_all(group.getitem(name) for name in names)))
     ragged = {spec.name: spec.fill for spec in specs if spec.ragged}
 
     def row(name: str, value: Any) -> np.ndarray:
@@ -237,9 +238,19 @@ async def _write_frame_async(url: str, index: int, specs: tuple[ArraySpec, ...],
         padded[: value.shape[0]] = value
         return padded
 
-    await asyncio.gather(*(targets[name].setitem(index, row(name, v)) for name, v in values),
-                         targets["reason"].setitem(index, ""))
+    await _gather_all([*(targets[name].setitem(index, row(name, v)) for name, v in values),
+                       targets["reason"].setitem(index, "")])
     await targets["status"].setitem(index, DONE)
+
+
+async def _gather_all(awaitables: Iterable[Awaitable[Any]]) -> list[Any]:
+    """Await every one to its end, then raise the first failure: a failed write must not leave the
+    others pending when the event loop closes (asyncio would print them after the error line)."""
+    results = await asyncio.gather(*awaitables, return_exceptions=True)
+    for result in results:
+        if isinstance(result, BaseException):
+            raise result
+    return results
 
 
 def _open_group(url: str, mode: str) -> zarr.Group:

@@ -9,6 +9,7 @@ CLI driving the stages of tests/fake_stages.py.
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import os
 import random
@@ -21,7 +22,7 @@ from pathlib import Path
 import pytest
 import zarr
 
-from pipeline.cache import DONE, PENDING, FrameStore, frame_store
+from pipeline.cache import DONE, PENDING, FrameStore, _gather_all, frame_store
 from pipeline.config import load_config
 from pipeline.errors import CacheError
 from pipeline.executor import Executor, RunEnv
@@ -206,6 +207,23 @@ def dask_enospc_run(tmp_path_factory):
     """One CLI run with 2 dask workers where frame 4's write fails with ENOSPC (shared by 2 tests)."""
     path = tmp_path_factory.mktemp("dask_enospc")
     return path, _cli_with_write_fault(path, 2, "ENOSPC")
+
+
+def test_failed_array_write_waits_for_the_other_writes_of_the_frame():
+    """When one of a frame's concurrent array writes fails, the others still run to their end before
+    the error propagates: none is left pending for asyncio to print after the `error:` line."""
+    finished = []
+
+    async def fails():
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    async def slow(name):
+        await asyncio.sleep(0.05)
+        finished.append(name)
+
+    with pytest.raises(OSError, match="Read-only"):
+        asyncio.run(_gather_all([fails(), slow("points"), slow("reason")]))
+    assert sorted(finished) == ["points", "reason"]
 
 
 @pytest.mark.parametrize("workers, fault, words", [(1, "EROFS", "the cache is not writable"),
