@@ -80,11 +80,12 @@ def cartesian_to_spherical(points_D: np.ndarray) -> np.ndarray:
     azimuth = atan2(y, x) (positive left), elevation = asin(z / r) (positive up); a point at the
     origin maps to (0, 0, 0).
     """
-    p = check_shape("points_D", np.asarray(points_D), (None, 3)).astype(np.float64)
-    r = np.linalg.norm(p, axis=1)
-    az = np.arctan2(p[:, 1], p[:, 0])
+    p = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    r = np.sqrt(x * x + y * y + z * z)  # what np.linalg.norm(axis=1) computes, without its overhead
+    az = np.arctan2(y, x)
     with np.errstate(divide="ignore", invalid="ignore"):
-        el = np.where(r > 0, np.arcsin(np.clip(p[:, 2] / np.where(r > 0, r, 1.0), -1.0, 1.0)), 0.0)
+        el = np.where(r > 0, np.arcsin(np.clip(z / np.where(r > 0, r, 1.0), -1.0, 1.0)), 0.0)
     return np.stack([r, az, el], axis=1)
 
 

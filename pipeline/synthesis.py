@@ -28,6 +28,8 @@ MAX_WIDENINGS = 4
 """'widen' doubles the window at most this many times (so up to 16x the resolution)."""
 SUPPORT_NONE, SUPPORT_DIRECT, SUPPORT_WIDENED = 0, 1, 2
 """Values of the per-sample support flag returned by ``estimate_range``."""
+NEAREST_CANDIDATES = 16
+"""Nearest lidar points per sample from which 'nearest' settles most samples without the passes."""
 
 
 # --------------------------------------------------------------------------- pixel sampling
@@ -120,7 +122,7 @@ class LidarAngularIndex:
     def __init__(self, lidar_D: np.ndarray) -> None:
         points = check_shape("lidar_D", np.asarray(lidar_D, dtype=np.float64), (None, 3))
         rae = cartesian_to_spherical(points)
-        keep = np.all(np.isfinite(points), axis=1) & (rae[:, 0] > 0)
+        keep = np.isfinite(rae[:, 0]) & (rae[:, 0] > 0)  # a non-finite coordinate gives a non-finite range
         self.range_m: np.ndarray = rae[keep, 0]
         """(M',) ranges of the kept lidar points, metres."""
         self.azimuth_rad: np.ndarray = rae[keep, 1]
@@ -184,6 +186,8 @@ class LidarAngularIndex:
         passes = MAX_WIDENINGS + 1 if no_support == "widen" else 1
         max_half_az = delta_az_rad * 2 ** (passes - 1)
         todo = np.arange(n)
+        if estimator == "nearest":
+            todo = self._nearest_certified(az, el, delta_az_rad, delta_el_rad, passes, range_m, support)
         for k in range(passes):
             half_az, half_el = delta_az_rad * 2**k, delta_el_rad * 2**k
             s_idx, l_idx = self._pairs(az[todo], el[todo], half_az, half_el, max_half_az)
@@ -199,6 +203,62 @@ class LidarAngularIndex:
             if todo.size == 0:
                 break
         return range_m, support
+
+    def _nearest_certified(
+        self, az: np.ndarray, el: np.ndarray, delta_az: float, delta_el: float, passes: int,
+        range_m: np.ndarray, support: np.ndarray,
+    ) -> np.ndarray:
+        """'nearest' from the NEAREST_CANDIDATES angularly nearest lidar points of each sample
+        (one k-nearest-neighbour query) instead of gathering every point of its windows.
+
+        The answer of the window passes is the point nearest the sample (Euclidean in (az, el)
+        radians; ties: lower lidar index) within its first non-empty window m (half sides
+        2^m delta). Every lidar point nearer than the last candidate, d_K, is a candidate, and
+        every point that can lie in a window is in the tree at its wrapped distance (seam copies).
+        So with m the first window holding a candidate, the candidates give the passes' answer
+        when no point can hide in window m - 1 (its half diagonal below d_K) and the best
+        candidate of window m is nearer than d_K; with no candidate in any window and the largest
+        window's half diagonal below d_K there is no support. Where window m - 1 could hide a
+        point, the passes' own tree counts its points (no pairs): none, and the candidates decide.
+        Samples with a candidate within 1e-9 of a window border, or a margin under 1e-9, are left
+        to the passes. Fills
+        ``range_m`` and ``support`` of the settled samples; returns the indices of the others.
+        """
+        half_diag = float(np.hypot(delta_az, delta_el))
+        reach = half_diag * 2 ** (passes - 1)  # half diagonal of the largest window
+        tree, owner = self._tree(1.0, min(np.pi, delta_az * 2 ** (passes - 1)))
+        k = min(NEAREST_CANDIDATES, tree.n)
+        dist, idx = tree.query(np.stack([az, el], axis=1), k=[*range(1, k + 1)],
+                               distance_upper_bound=reach * (1 + 1e-6))  # (n, k), inf beyond
+        valid = np.isfinite(dist)
+        j = owner[np.where(valid, idx, 0)]  # lidar index of each candidate
+        d_az, d_el = _wrap_angle(az[:, None] - self.azimuth_rad[j]), el[:, None] - self.elevation_rad[j]
+        with np.errstate(divide="ignore", invalid="ignore"):  # a candidate on the sample: log2(0)
+            log2_ratio = np.log2(np.maximum(np.abs(d_az) / delta_az, np.abs(d_el) / delta_el))
+            border = valid & (log2_ratio > -0.5) & (log2_ratio < passes) & (np.abs(log2_ratio - np.rint(log2_ratio)) <= 1e-9)
+        window = np.where(valid, np.maximum(0.0, np.ceil(log2_ratio)), np.inf)  # first window holding it
+        first = window.min(axis=1)  # the sample's first non-empty window, if the rest hold
+        d_k = np.where(valid[:, -1], dist[:, -1], reach * (1 + 1e-6))  # every nearer point is a candidate
+        d2 = d_az**2 + d_el**2  # the passes' metric
+        in_first = window == first[:, None]
+        best = np.where(in_first, d2, np.inf).min(axis=1)
+        choice = np.where(in_first & (d2 == best[:, None]), j, np.iinfo(np.intp).max).min(axis=1)
+        # the answer if window first - 1 (the largest window when no candidate is in one) is empty:
+        decided = ~border.any(axis=1) & ((first >= passes) | (np.sqrt(best) < d_k * (1 - 1e-9)))
+        level = np.minimum(first, passes) - 1.0  # that window
+        shut = d_k > half_diag * np.exp2(level) * (first > 0) * (1 + 1e-9)  # a hidden point would be a candidate
+        ask = np.flatnonzero(decided & ~shut & (first > 0))
+        if ask.size:  # else count that window's points in the passes' own tree (no pairs)
+            el_scale = delta_az / delta_el
+            tree_w, _ = self._tree(el_scale, min(np.pi, delta_az * 2 ** (passes - 1)))
+            inside = tree_w.query_ball_point(np.stack([az[ask], el[ask] * el_scale], axis=1),
+                                             r=delta_az * np.exp2(level[ask]), p=np.inf, return_length=True)
+            shut[ask[inside == 0]] = True
+        settled = decided & shut
+        hit = settled & (first < passes)
+        range_m[hit] = self.range_m[choice[hit]]
+        support[hit] = np.where(first[hit] == 0, SUPPORT_DIRECT, SUPPORT_WIDENED)
+        return np.flatnonzero(~settled)
 
     def estimate_range_bruteforce(
         self, az_rad: np.ndarray, el_rad: np.ndarray, delta_az_rad: float, delta_el_rad: float,

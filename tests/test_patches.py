@@ -56,6 +56,33 @@ def test_batch_matches_single_and_resize_matches_cv2():
                                                     interpolation=cv2.INTER_LINEAR))
 
 
+def _window_by_hand(img: np.ndarray, u: float, v: float, su: int, sv: int) -> np.ndarray:
+    """The S_v x S_u window of the module docstring, zero outside the image, cut out pixel by pixel."""
+    x0, y0 = int(np.rint(u - (su - 1) / 2)), int(np.rint(v - (sv - 1) / 2))
+    out = np.zeros((sv, su, 3), np.uint8)
+    for r in range(sv):
+        for c in range(su):
+            if 0 <= y0 + r < img.shape[0] and 0 <= x0 + c < img.shape[1]:
+                out[r, c] = img[y0 + r, x0 + c]
+    return out
+
+
+@pytest.mark.parametrize("r_c, out", [(8.0, 32), (4.0, 32), ((8.0, 4.0), 32), ((4.0, 8.0), 16), (2.0, 32),
+                                      (8.0, 48), (5.0, 30), (6.0, 32), (16.0, 32), (8.0, 16)])
+def test_many_windows_equal_each_window_resized_alone(r_c, out):
+    """Enlargements by powers of two run as one resize of all windows stacked; the bytes must be
+    those of cv2.resize on each window alone (no bleeding between neighbouring windows, cv2's edge
+    clamping at each window's border), for every factor and shape, points off the image included."""
+    rng = np.random.default_rng(7)
+    img = rng.integers(0, 256, (48, 80, 3), dtype=np.uint8)
+    uv = np.column_stack([rng.uniform(-12, 92, 40), rng.uniform(-12, 60, 40)])
+    su, sv = (int(round(2 * r)) for r in np.broadcast_to(r_c, (2,)))
+    interp = cv2.INTER_AREA if su * sv >= out * out else cv2.INTER_LINEAR
+    expected = np.stack([cv2.resize(_window_by_hand(img, u, v, su, sv), (out, out), interpolation=interp)
+                         for u, v in uv])
+    np.testing.assert_array_equal(image_patches(img, uv, r_c, out), expected)
+
+
 def test_rectangular_window():
     img = _coded_image()
     patch = image_patches(img, np.array([[30.0, 20.0]]), (3.0, 1.5), 6)[0]  # 6 wide x 3 high -> 6 x 6

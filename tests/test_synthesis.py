@@ -9,12 +9,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import chisquare
 
+from pipeline import synthesis
 from pipeline.frame import Object3D
 from pipeline.geometry import (
     cartesian_to_spherical, invert_transform, pixel_rays_D, project_to_image, spherical_to_cartesian,
 )
 from pipeline.synthesis import (
-    ESTIMATORS, NO_SUPPORT_RULES, SUPPORT_DIRECT, SUPPORT_NONE, SUPPORT_WIDENED, LidarAngularIndex,
+    ESTIMATORS, MAX_WIDENINGS, NO_SUPPORT_RULES, SUPPORT_DIRECT, SUPPORT_NONE, SUPPORT_WIDENED, LidarAngularIndex,
     doppler_for_points, object_velocities_for_points, place_on_camera_ray, sample_pixels,
     synthesize_frame,
 )
@@ -164,6 +165,47 @@ def test_estimators_match_bruteforce(seed, m, n, delta_az, delta_el, estimator, 
     want = index.estimate_range_bruteforce(az, el, delta_az, delta_el, estimator, no_support)
     np.testing.assert_allclose(got[0], want[0], rtol=1e-12, equal_nan=True)
     np.testing.assert_array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("layout", ["uniform", "grid", "seam", "clusters"])
+@pytest.mark.parametrize("delta_deg", [(1.5, 1.5), (1.0, 2.5), (12.0, 12.0)])
+@pytest.mark.parametrize("candidates", [1, 2, 16])
+def test_nearest_from_candidates_equals_the_window_passes(monkeypatch, layout, delta_deg, candidates):
+    """'nearest' settles most samples from their nearest lidar points (one k-NN query); its answer
+    (range and support) must be the one the window passes give, ties on a grid, widened windows,
+    no support and the azimuth seam included."""
+    rng = np.random.default_rng(len(layout) + int(delta_deg[1]))
+    if layout == "grid":  # equal distances everywhere; samples on points, edges and cell centres
+        g_az, g_el = np.meshgrid(np.deg2rad(np.arange(-40, 40, 1.0)), np.deg2rad(np.arange(-8, 8, 1.0)))
+        az_l, el_l = g_az.ravel(), g_el.ravel()
+        pick = rng.integers(0, az_l.size, 300)
+        az = az_l[pick] + rng.choice(np.deg2rad([0.0, 0.5, 1.0, 1.5, 3.0]), 300)
+        el = el_l[pick] + rng.choice(np.deg2rad([0.0, 0.5, 1.5]), 300)
+    else:
+        if layout == "uniform":
+            az_l, el_l = rng.uniform(-np.pi, np.pi, 2000), rng.uniform(-0.3, 0.3, 2000)
+        elif layout == "seam":
+            az_l, el_l = np.pi - np.abs(rng.normal(0, 0.1, 1500)) * rng.choice([-1, 1], 1500), rng.uniform(-0.2, 0.2, 1500)
+        else:
+            centres = rng.uniform(-np.pi, np.pi, 6)
+            az_l = np.concatenate([rng.normal(c, 0.03, 200) for c in centres])
+            el_l = rng.normal(0, 0.03, az_l.size)
+        az_l = np.mod(az_l + np.pi, 2 * np.pi) - np.pi
+        az = np.mod(rng.uniform(-np.pi, np.pi, 300) + (np.pi if layout == "seam" else 0), 2 * np.pi) - np.pi
+        el = rng.uniform(-0.4, 0.4, 300)
+    index = LidarAngularIndex(spherical_to_cartesian(np.column_stack([rng.uniform(1, 80, az_l.size), az_l, el_l])))
+    d_az, d_el = np.deg2rad(delta_deg)
+    monkeypatch.setattr(synthesis, "NEAREST_CANDIDATES", candidates)  # few: the margins decide more often
+    got = {rule: index.estimate_range(az, el, d_az, d_el, "nearest", rule) for rule in NO_SUPPORT_RULES}
+    settled = index._nearest_certified(az, el, d_az, d_el, MAX_WIDENINGS + 1, np.full(az.size, np.nan),
+                                       np.zeros(az.size, np.int8))
+    assert candidates == 1 or settled.size < az.size  # it settles samples (one candidate has no margin)
+    monkeypatch.undo()
+    monkeypatch.setattr(LidarAngularIndex, "_nearest_certified", lambda self, az, *rest: np.arange(az.size))
+    for rule in NO_SUPPORT_RULES:
+        want = index.estimate_range(az, el, d_az, d_el, "nearest", rule)
+        np.testing.assert_array_equal(got[rule][0], want[0])
+        np.testing.assert_array_equal(got[rule][1], want[1])
 
 
 # --------------------------------------------------------------------------- placement

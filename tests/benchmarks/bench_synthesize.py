@@ -1,9 +1,10 @@
 """Synthesize speed at the synthetic profile's working resolution on 2 CPU threads, split into
 network time (Dis-Net + RSS-Net) and the rest (sampling, range, placement, Doppler, RSS-Net inputs).
-Goal: at least 5 frames/s with the non-network part under 20%. Weights are random (the network's
-speed does not depend on them); frames come from a small generated world. The rest does depend on
+Goal: at least 5 frames/s with the non-network part under 20%. Frames come from a small generated
+world; weights are random (the network's speed does not depend on them). The rest does depend on
 where the samples fall (samples without lidar support widen their window up to 4 times), so it is
-measured twice: sampling the random network's map, and sampling the frame's real-radar heatmap."""
+measured on the random network's map, on the frame's real-radar heatmap, and, after `make demo`,
+with the demo's trained networks (the stage's case)."""
 
 from __future__ import annotations
 
@@ -22,28 +23,35 @@ from pipeline.executor import Executor, FrameInputs, RunEnv, tune_heap  # noqa: 
 from pipeline.models.disnet import build_disnet  # noqa: E402
 from pipeline.models.rssnet import build_rssnet  # noqa: E402
 from pipeline.runner import Pipeline  # noqa: E402
-from pipeline.training import disnet_predict, rssnet_predict  # noqa: E402
+from pipeline.training import disnet_predict, load_disnet, load_rssnet, rssnet_predict  # noqa: E402
 from pipeline.world import generate as generate_world  # noqa: E402
 from stages import all_stages  # noqa: E402
 from stages.patches import point_inputs  # noqa: E402
 from stages.synthesize import generate  # noqa: E402
 
 
+TRAINED_CACHE = "cache"
+"""The demo's cache: its trained Dis-Net and RSS-Net, when present, are timed too."""
+
+
 def measure(frames, cfg, disnet, rssnet, source: str) -> tuple[float, float, int, int]:
     """(network s, rest s, frames, points) over 2 timed passes after a warm-up pass. ``source``:
     'network' samples the random network's own map (n = 300), 'radar' the frame's real-radar
     heatmap with the real count: the distribution a trained Dis-Net approximates, so samples fall
-    where the lidar has support as they do in use."""
+    where the lidar has support as they do in use; 'trained network' the map and count of the
+    demo's trained Dis-Net, as the stage does."""
     t_net = t_rest = 0.0
     n_frames = n_points = 0
     for rep in range(3):
         for f in frames:
             image, ego = f.get("calibrate", "image"), f.get("calibrate", "ego_velocity")
             t0 = time.perf_counter()
-            maps, _ = disnet_predict(disnet, image[None], np.array([np.linalg.norm(ego)], np.float32))
+            maps, n_hat = disnet_predict(disnet, image[None], np.array([np.linalg.norm(ego)], np.float32))
             t1 = time.perf_counter()
             if source == "network":
                 prob, n = maps[0], 300  # random weights would give an arbitrary n_hat
+            elif source == "trained network":
+                prob, n = maps[0], float(n_hat[0])
             else:
                 prob, n = f.get("heatmaps", "heatmap"), float(f.get("heatmaps", "count"))
             out = generate(f, cfg, prob, n, None, f.rng(rep, 1))
@@ -72,7 +80,14 @@ def main() -> None:
         pipe.run("heatmaps")
         disnet, rssnet = build_disnet(cfg, load_backbone=False).eval(), build_rssnet(cfg).eval()
         frames = [FrameInputs(env, i, f) for i, f in enumerate(pipe.frame_ids())]
-        for source in ("network", "radar"):
+        runs = [("network", disnet, rssnet), ("radar", disnet, rssnet)]
+        trained = Path(TRAINED_CACHE) / "synthetic" / "train"
+        if (trained / "disnet" / "best.safetensors").exists():  # after `make demo`: the real case
+            runs.append(("trained network", load_disnet(cfg, str(trained / "disnet" / "best.safetensors"), device="cpu"),
+                         load_rssnet(cfg, str(trained / "rssnet" / "best.safetensors"), device="cpu")))
+        else:
+            print(f"(no trained models under {trained}: run `make demo` to also time the trained networks)")
+        for source, disnet, rssnet in runs:
             t_net, t_rest, n_frames, n_points = measure(frames, cfg, disnet, rssnet, source)
             total = t_net + t_rest
             print(f"synthesize {cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}, samples from the {source} map, "
