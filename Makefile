@@ -13,7 +13,7 @@ PIPELINE := $(BIN)/pipeline
 STAGES := calibrate heatmaps patches train synthesize export evaluate
 RUN_OPTS = --dataset $(DATASET) --cache $(CACHE) --workers $(WORKERS) $(if $(DATA_ROOT),--data-root $(DATA_ROOT)) $(ARGS)
 
-.PHONY: setup demo test bench soak status clean-cache $(STAGES)
+.PHONY: setup demo demo-large test bench soak status clean-cache $(STAGES)
 
 $(BIN)/.installed: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -30,6 +30,9 @@ demo: setup  ## run the whole pipeline on the built-in synthetic world
 	@echo "report:  $(CACHE)/synthetic/evaluate/report.md"
 	@echo "figures: $(CACHE)/synthetic/evaluate/figures/"
 	@echo "export:  $(CACHE)/synthetic/export/"
+
+demo-large: setup  ## the demo on a 1200-frame world, 12 epochs (about 30 min on 2 cores): the fidelity figures
+	$(MAKE) demo CACHE=cache-large ARGS="--set dataset.world_frames=1200 --set train.epochs=12 $(ARGS)"
 
 test: setup  ## the test suite (< 10 minutes on 2 cores)
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider tests

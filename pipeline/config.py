@@ -184,6 +184,8 @@ class TrainSection:
     """RSS-Net batch size (points)."""
     alpha: float = 1.0
     """Weight of L_n in L = L_KL + alpha L_n."""
+    lr_schedule: str = "constant"
+    """'constant' (the paper) or 'cosine': epoch e of E trains at lr (1 + cos(pi (e - 1) / E)) / 2."""
     weight_decay: float = 0.0
     """Decoupled weight decay (AdamW); 0 is plain Adam, the paper's optimiser."""
     flip: bool = False

@@ -90,8 +90,9 @@ def local_range_images(lidar_D: np.ndarray, points_D: np.ndarray, r_l: float,
 
     lidar_D: (M, 3) lidar points in {D}, metres. r_l: neighbourhood radius, metres.
     size_wh: (w, h) of each image. tree: a ``cKDTree`` of ``lidar_D`` to reuse (built here if None).
-    Neighbours come from one ``sparse_distance_matrix`` between a tree of the points and the lidar's; pixel values as in the module
-    docstring, ``EMPTY`` where no lidar point falls. Empty lidar or N = 0 are handled.
+    Neighbours come from one ``sparse_distance_matrix`` between a tree of the points and the
+    lidar's; pixel values as in the module docstring, ``EMPTY`` where no lidar point falls. Empty
+    lidar or N = 0 are handled.
     """
     lidar, points, w, h = _check_args(lidar_D, points_D, r_l, size_wh)
     n = points.shape[0]

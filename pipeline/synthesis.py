@@ -221,8 +221,8 @@ class LidarAngularIndex:
         window's half diagonal below d_K there is no support. Where window m - 1 could hide a
         point, the passes' own tree counts its points (no pairs): none, and the candidates decide.
         Samples with a candidate within 1e-9 of a window border, or a margin under 1e-9, are left
-        to the passes. Fills
-        ``range_m`` and ``support`` of the settled samples; returns the indices of the others.
+        to the passes. Fills ``range_m`` and ``support`` of the settled samples; returns the
+        indices of the others.
         """
         half_diag = float(np.hypot(delta_az, delta_el))
         reach = half_diag * 2 ** (passes - 1)  # half diagonal of the largest window
@@ -235,7 +235,8 @@ class LidarAngularIndex:
         d_az, d_el = _wrap_angle(az[:, None] - self.azimuth_rad[j]), el[:, None] - self.elevation_rad[j]
         with np.errstate(divide="ignore", invalid="ignore"):  # a candidate on the sample: log2(0)
             log2_ratio = np.log2(np.maximum(np.abs(d_az) / delta_az, np.abs(d_el) / delta_el))
-            border = valid & (log2_ratio > -0.5) & (log2_ratio < passes) & (np.abs(log2_ratio - np.rint(log2_ratio)) <= 1e-9)
+            on_power_of_two = np.abs(log2_ratio - np.rint(log2_ratio)) <= 1e-9
+        border = valid & (log2_ratio > -0.5) & (log2_ratio < passes) & on_power_of_two
         window = np.where(valid, np.maximum(0.0, np.ceil(log2_ratio)), np.inf)  # first window holding it
         first = window.min(axis=1)  # the sample's first non-empty window, if the rest hold
         d_k = np.where(valid[:, -1], dist[:, -1], reach * (1 + 1e-6))  # every nearer point is a candidate

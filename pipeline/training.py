@@ -267,6 +267,8 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     n_val_batches = math.ceil(len(spec.val_idx) / spec.batch_size)
     for epoch in range(start + 1, cfg.train.epochs + 1):
         t0 = time.perf_counter()
+        for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
+            group["lr"] = epoch_lr(cfg, epoch)
         order = epoch_order(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
         tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
                              spec.terms_fn, spec.weights, device, n_train_batches,
@@ -286,6 +288,19 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     write_curves(out_dir, spec.name, state["curves"], plot=True)
     return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
                        state["best_metric"], state["curves"])
+
+
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def epoch_lr(cfg, epoch: int) -> float:
+    """Learning rate of epoch ``epoch`` (1-based) of cfg.train.epochs under cfg.train.lr_schedule."""
+    t = cfg.train
+    if t.lr_schedule not in LR_SCHEDULES:
+        raise ConfigError(f"train.lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got '{t.lr_schedule}'")
+    if t.lr_schedule == "constant":
+        return t.lr
+    return t.lr * 0.5 * (1.0 + math.cos(math.pi * (epoch - 1) / t.epochs))
 
 
 def _meta(spec: _NetSpec, fingerprint: str, state: dict[str, Any]) -> dict[str, Any]:
@@ -388,7 +403,9 @@ def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: boo
 
 def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
-    common = ["train.lr", "train.seed", "train.weight_decay"]
+    common = ["train.lr", "train.seed", "train.weight_decay", "train.lr_schedule"]
+    if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
+        common.append("train.epochs")
     if net == "disnet":
         keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "radar.max_points",
                 "camera.working_size", "train.batch_size", "train.alpha", "train.flip"]

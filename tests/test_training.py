@@ -126,7 +126,8 @@ def test_disnet_data_errors(tmp_path):
         T.train_disnet(tiny_cfg(), T.DisNetData(**{**data.__dict__, "train_idx": []}), tmp_path)
 
 
-@pytest.mark.parametrize("extra", [{}, {"train.flip": "true", "train.weight_decay": "0.01"}])
+@pytest.mark.parametrize("extra", [{}, {"train.flip": "true", "train.weight_decay": "0.01",
+                                         "train.lr_schedule": "cosine"}])
 def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
     monkeypatch.setattr(T, "WINDOW_BATCHES", 1)          # one read per batch: kill mid-epoch
     data = make_disnet_data(n=20)                        # 15 train frames = 4 batches, 5 val = 2: 6 reads per epoch
@@ -150,6 +151,19 @@ def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
     fresh = T.train_disnet(tiny_cfg(**{"train.epochs": "1"}), data, tmp_path / "b", progress=False,
                            fingerprint="other")
     assert fresh.resumed_from == 0 and fresh.epoch == 1
+
+
+def test_cosine_schedule_and_its_fingerprint():
+    cfg = tiny_cfg(**{"train.lr": "0.01", "train.epochs": "4", "train.lr_schedule": "cosine"})
+    assert [T.epoch_lr(cfg, e) for e in (1, 2, 3, 4)] == pytest.approx([0.01, 0.0085355339, 0.005, 0.0014644661])
+    assert T.epoch_lr(tiny_cfg(**{"train.lr": "0.01"}), 3) == 0.01  # constant: the paper
+    # more epochs resume a constant-rate run, but change a cosine schedule: a new run
+    more = {"train.epochs": "8"}
+    assert T.default_fingerprint(tiny_cfg(), "disnet") == T.default_fingerprint(tiny_cfg(**more), "disnet")
+    cos = {"train.lr_schedule": "cosine"}
+    assert T.default_fingerprint(tiny_cfg(**cos), "disnet") != T.default_fingerprint(tiny_cfg(**cos, **more), "disnet")
+    with pytest.raises(ConfigError, match="lr_schedule"):
+        T.epoch_lr(tiny_cfg(**{"train.lr_schedule": "step"}), 1)
 
 
 def test_flip_augmentation_mirrors_image_and_target_together(monkeypatch):
