@@ -18,8 +18,8 @@ import asyncio
 import errno
 import json
 import time
-from dataclasses import dataclass
 from collections.abc import Awaitable, Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import fsspec
