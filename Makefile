@@ -31,7 +31,7 @@ demo: setup  ## run the whole pipeline on the built-in synthetic world
 	@echo "figures: $(CACHE)/synthetic/evaluate/figures/"
 	@echo "export:  $(CACHE)/synthetic/export/"
 
-demo-large: setup  ## the demo on a 1200-frame world, 12 epochs (about 30 min on 2 cores): the fidelity figures
+demo-large: setup  ## the demo on a 1200-frame world, 12 epochs (about 45 min on 2 cores): the fidelity figures
 	$(MAKE) demo CACHE=cache-large ARGS="--set dataset.world_frames=1200 --set train.epochs=12 $(ARGS)"
 
 test: setup  ## the test suite (< 10 minutes on 2 cores)
