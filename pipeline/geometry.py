@@ -74,6 +74,13 @@ def pixel_rays_D(uv: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray) -> np.n
     return d_D / np.linalg.norm(d_D, axis=1, keepdims=True)
 
 
+def norms_m(points: np.ndarray) -> np.ndarray:
+    """|p| (N,) of points (N, 3) float64: the values np.linalg.norm(axis=1) gives (same sum order),
+    without its overhead."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return np.sqrt(x * x + y * y + z * z)
+
+
 def cartesian_to_spherical(points_D: np.ndarray) -> np.ndarray:
     """(N, 3) xyz in {D} -> (N, 3) [range_m, azimuth_rad, elevation_rad] (eq. 3 inverted).
 
@@ -81,11 +88,10 @@ def cartesian_to_spherical(points_D: np.ndarray) -> np.ndarray:
     origin maps to (0, 0, 0).
     """
     p = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
-    x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    r = np.sqrt(x * x + y * y + z * z)  # what np.linalg.norm(axis=1) computes, without its overhead
-    az = np.arctan2(y, x)
+    r = norms_m(p)
+    az = np.arctan2(p[:, 1], p[:, 0])
     with np.errstate(divide="ignore", invalid="ignore"):
-        el = np.where(r > 0, np.arcsin(np.clip(z / np.where(r > 0, r, 1.0), -1.0, 1.0)), 0.0)
+        el = np.where(r > 0, np.arcsin(np.clip(p[:, 2] / np.where(r > 0, r, 1.0), -1.0, 1.0)), 0.0)
     return np.stack([r, az, el], axis=1)
 
 

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.frame import check_shape
+from pipeline.geometry import norms_m
 
 EMPTY = -1.0
 """Value of pixels without lidar points (occupied pixels are in [0, 254])."""
@@ -57,7 +58,7 @@ def _render(lidar: np.ndarray, points: np.ndarray, owner: np.ndarray, neighbour:
     u = np.clip(np.floor(0.5 * (1.0 - dy / r_l) * w), 0, w - 1).astype(np.int64)
     v = np.clip(np.floor((1.0 - (dz + r_l) / (2.0 * r_l)) * h), 0, h - 1).astype(np.int64)
     # |l_j| and |p_i| once per point rather than per pair
-    farther = _norms(lidar)[neighbour] > _norms(points)[owner]
+    farther = norms_m(lidar)[neighbour] > norms_m(points)[owner]
     level = np.floor(255.0 * dist / (2.0 * r_l) + 0.5).astype(np.int64)  # 0..127 inside the ball
     value = 127 + np.where(farther, level, -level)  # an integer in 0..254: 8 bits
     # Average per occupied pixel: sort keys (pixel << 8 | value), a plain sort of integers, and
@@ -76,12 +77,6 @@ def lidar_tree(lidar_D: np.ndarray) -> cKDTree:
     """A cKDTree of lidar points (M, 3) in {D}, built for one query per frame: sliding-midpoint
     splits without compaction (quick to build) and 32-point leaves."""
     return cKDTree(lidar_D, leafsize=32, balanced_tree=False, compact_nodes=False)
-
-
-def _norms(points: np.ndarray) -> np.ndarray:
-    """|p| of points (N, 3): the values np.linalg.norm(axis=1) gives, without its overhead."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    return np.sqrt(x * x + y * y + z * z)
 
 
 def local_range_images(lidar_D: np.ndarray, points_D: np.ndarray, r_l: float,

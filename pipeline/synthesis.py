@@ -226,7 +226,8 @@ class LidarAngularIndex:
         """
         half_diag = float(np.hypot(delta_az, delta_el))
         reach = half_diag * 2 ** (passes - 1)  # half diagonal of the largest window
-        tree, owner = self._tree(1.0, min(np.pi, delta_az * 2 ** (passes - 1)))
+        seam_margin = min(np.pi, delta_az * 2 ** (passes - 1))  # as the passes' trees
+        tree, owner = self._tree(1.0, seam_margin)
         k = min(NEAREST_CANDIDATES, tree.n)
         dist, idx = tree.query(np.stack([az, el], axis=1), k=[*range(1, k + 1)],
                                distance_upper_bound=reach * (1 + 1e-6))  # (n, k), inf beyond
@@ -251,7 +252,7 @@ class LidarAngularIndex:
         ask = np.flatnonzero(decided & ~shut & (first > 0))
         if ask.size:  # else count that window's points in the passes' own tree (no pairs)
             el_scale = delta_az / delta_el
-            tree_w, _ = self._tree(el_scale, min(np.pi, delta_az * 2 ** (passes - 1)))
+            tree_w, _ = self._tree(el_scale, seam_margin)
             inside = tree_w.query_ball_point(np.stack([az[ask], el[ask] * el_scale], axis=1),
                                              r=delta_az * np.exp2(level[ask]), p=np.inf, return_length=True)
             shut[ask[inside == 0]] = True

@@ -393,9 +393,9 @@ def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: boo
     target = torch.from_numpy(np.asarray(batch["heatmaps"], np.float32)).to(device)
     if flip and model.training:
         # Mirror left-right with probability 1/2 per frame (torch's RNG: saved with each epoch).
-        flip = (torch.rand(img.shape[0]) < 0.5).to(device)
-        img = torch.where(flip[:, None, None, None], img.flip(-1), img)
-        target = torch.where(flip[:, None, None], target.flip(-1), target)
+        mirrored = (torch.rand(img.shape[0]) < 0.5).to(device)
+        img = torch.where(mirrored[:, None, None, None], img.flip(-1), img)
+        target = torch.where(mirrored[:, None, None], target.flip(-1), target)
     log_map, n_hat = model(img, speed)
     counts = torch.from_numpy(np.asarray(batch["counts"], np.float32)).to(device)
     return {"kl": kl_loss(log_map, target), "n": count_loss(n_hat, counts)}
