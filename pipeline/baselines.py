@@ -125,30 +125,6 @@ def uniform_map(image_size_wh: tuple[int, int]) -> np.ndarray:
     return np.full((h, w), 1.0 / (w * h))
 
 
-def uniform(n_bar: int, image_size_wh: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
-    """``n_bar`` pixels (n_bar, 2) uniform over the whole image [-0.5, W - 0.5) x [-0.5, H - 0.5)."""
-    w, h = image_size_wh
-    return rng.uniform([-0.5, -0.5], [w - 0.5, h - 0.5], size=(int(n_bar), 2))
-
-
-def sample_map_pixels(prob_map: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` pixels (n, 2) drawn with replacement from a map (H, W) by inverse-transform sampling
-    (cumulative sum + searchsorted), jittered uniformly inside the pixel (eq. 11)."""
-    p = check_shape("prob_map", np.asarray(prob_map, dtype=np.float64), (None, None))
-    if not np.all(np.isfinite(p)) or p.min() < 0 or p.sum() <= 0:
-        raise ValueError("prob_map: must be finite, non-negative and have positive mass")
-    cdf = np.cumsum(p.ravel())
-    idx = np.searchsorted(cdf, rng.uniform(0.0, cdf[-1], size=int(n)), side="right")
-    idx = np.minimum(idx, p.size - 1)
-    v, u = np.divmod(idx, p.shape[1])
-    return np.stack([u, v], axis=1) + rng.uniform(-0.5, 0.5, size=(int(n), 2))
-
-
-def mean_map(mean_heatmap_hw: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` pixels (n, 2) sampled from the average training heatmap (the ``mean-map`` baseline)."""
-    return sample_map_pixels(mean_heatmap_hw, n, rng)
-
-
 def choose_count(spec: BaselineSpec, n_bar: int, n_true: int, n_hat: float | None = None) -> int:
     """The number of points a map-kind method generates: n_hat, n_bar or the real count n."""
     if spec.count_source == "model":

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from pipeline import baselines as B
-from pipeline.geometry import cartesian_to_spherical, invert_transform, project_to_image, transform_points
+from pipeline.geometry import (
+    cartesian_to_spherical,
+    invert_transform,
+    project_to_image,
+    transform_points,
+)
+from pipeline.synthesis import sample_pixels
 
 
 def _camera():
@@ -62,27 +68,26 @@ def test_mean_count_and_mean_heatmap():
         B.mean_heatmap([np.zeros((2, 2))])
 
 
-def test_uniform_covers_image():
-    rng = np.random.default_rng(1)
-    uv = B.uniform(5000, (200, 100), rng)
+def test_uniform_map_sampling_covers_image():
+    prob = B.choose_map(B.method_by_name("uniform"), (200, 100))
+    uv = sample_pixels(prob, 5000, np.random.default_rng(1))
     assert uv.shape == (5000, 2)
     assert uv[:, 0].min() >= -0.5 and uv[:, 0].max() < 199.5 and uv[:, 1].min() >= -0.5 and uv[:, 1].max() < 99.5
     assert abs(uv[:, 0].mean() - 99.5) < 3 and abs(uv[:, 1].mean() - 49.5) < 1.5
 
 
 def test_mean_map_sampling_follows_map():
-    rng = np.random.default_rng(2)
     m = np.zeros((4, 5))
     m[1, 3] = 3.0
     m[2, 0] = 1.0
-    uv = B.mean_map(m, 8000, rng)
+    prob = B.choose_map(B.method_by_name("mean-map"), (5, 4), mean_map_hw=m)
+    uv = sample_pixels(prob, 8000, np.random.default_rng(2))
     px = np.round(uv).astype(int)
     assert np.all(np.abs(uv - px) <= 0.5)
     hits = {(u, v) for u, v in px}
     assert hits == {(3, 1), (0, 2)}
     share = np.mean((px[:, 0] == 3) & (px[:, 1] == 1))
     assert share == pytest.approx(0.75, abs=0.02)
-    assert np.array_equal(B.mean_map(m, 10, np.random.default_rng(5)), B.mean_map(m, 10, np.random.default_rng(5)))
 
 
 def test_lidar_subsample_fov_count_doppler():
