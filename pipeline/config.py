@@ -184,6 +184,10 @@ class TrainSection:
     """RSS-Net batch size (points)."""
     alpha: float = 1.0
     """Weight of L_n in L = L_KL + alpha L_n."""
+    count_grad_scale: float = 1.0
+    """Dis-Net: factor on the gradient that L_n sends from the number branch into the shared
+    backbone (1: the paper; 0: the backbone learns from L_KL only, the number branch still from
+    L_n). Forward values are unchanged."""
     lr_schedule: str = "constant"
     """'constant' (the paper) or 'cosine': epoch e of E trains at lr (1 + cos(pi (e - 1) / E)) / 2."""
     weight_decay: float = 0.0

@@ -408,7 +408,7 @@ def default_fingerprint(cfg, net: str) -> str:
         common.append("train.epochs")
     if net == "disnet":
         keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "radar.max_points",
-                "camera.working_size", "train.batch_size", "train.alpha", "train.flip"]
+                "camera.working_size", "train.batch_size", "train.alpha", "train.flip", "train.count_grad_scale"]
     else:
         keys = ["rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
                 "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"]
@@ -455,6 +455,10 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
     _setup(cfg)
     model = build_disnet(cfg)
+    scale = float(cfg.train.count_grad_scale)
+    if not (np.isfinite(scale) and 0.0 <= scale <= 1.0):
+        raise ConfigError(f"train.count_grad_scale must be in [0, 1], got {scale}")
+    model.count_grad_scale = scale
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,

@@ -28,7 +28,8 @@ VERSION = 2
 CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "rssnet.use_camera",
                "rssnet.use_lidar", "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr",
                "train.batch_size", "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points",
-               "radar.rss_min", "radar.rss_max", "train.weight_decay", "train.flip", "train.lr_schedule")
+               "radar.rss_min", "radar.rss_max", "train.weight_decay", "train.flip", "train.lr_schedule",
+               "train.count_grad_scale")
 
 
 def frame_table(inputs) -> dict[str, np.ndarray]:

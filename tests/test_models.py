@@ -113,6 +113,36 @@ def test_disnet_speed_switch():
     assert torch.equal(no_speed(img, torch.tensor([0.0, 1.0]))[1], no_speed(img, None)[1])
 
 
+def _count_grads(model: DisNet, img: torch.Tensor, speed: torch.Tensor) -> tuple[torch.Tensor, dict]:
+    model.zero_grad()
+    log_map, n_hat = model(img, speed)
+    count_loss(n_hat, torch.tensor([40.0, 7.0])).sum().backward()
+    return n_hat.detach(), {k: p.grad.clone() for k, p in model.named_parameters() if p.grad is not None}
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.25])
+def test_disnet_count_grad_scale_scales_only_the_backbone_gradient(scale):
+    torch.manual_seed(0)
+    model = DisNet(width=8, use_speed=True, max_points=50, out_hw=(32, 64)).train()
+    img, speed = torch.rand(2, 3, 32, 64), torch.tensor([3.0, 12.0])
+    torch.manual_seed(1)
+    n_full, full = _count_grads(model, img, speed)
+    model.count_grad_scale = scale
+    torch.manual_seed(1)
+    n_scaled, scaled = _count_grads(model, img, speed)
+    assert torch.equal(n_full, n_scaled)  # forward values unchanged
+    backbone = [k for k in full if k.startswith("backbone.")]
+    head = [k for k in full if k.startswith(("count_", "speed_fc"))]
+    assert backbone and head
+    for k in head:  # the number branch itself still learns from L_n at full strength
+        torch.testing.assert_close(scaled[k], full[k])
+    for k in backbone:
+        if scale == 0.0:
+            assert k not in scaled or not scaled[k].any()
+        else:
+            torch.testing.assert_close(scaled[k], full[k] * scale, rtol=1e-4, atol=1e-8)
+
+
 def test_build_disnet_loads_backbone_weights(tmp_path):
     torch.manual_seed(3)
     state = ResNet18Backbone(64).state_dict()

@@ -127,7 +127,7 @@ def test_disnet_data_errors(tmp_path):
 
 
 @pytest.mark.parametrize("extra", [{}, {"train.flip": "true", "train.weight_decay": "0.01",
-                                         "train.lr_schedule": "cosine"}])
+                                         "train.lr_schedule": "cosine", "train.count_grad_scale": "0.1"}])
 def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
     monkeypatch.setattr(T, "WINDOW_BATCHES", 1)          # one read per batch: kill mid-epoch
     data = make_disnet_data(n=20)                        # 15 train frames = 4 batches, 5 val = 2: 6 reads per epoch
@@ -164,6 +164,16 @@ def test_cosine_schedule_and_its_fingerprint():
     assert T.default_fingerprint(tiny_cfg(**cos), "disnet") != T.default_fingerprint(tiny_cfg(**cos, **more), "disnet")
     with pytest.raises(ConfigError, match="lr_schedule"):
         T.epoch_lr(tiny_cfg(**{"train.lr_schedule": "step"}), 1)
+
+
+def test_count_grad_scale_is_checked_and_fingerprinted(tmp_path):
+    data = make_disnet_data(n=8)
+    for bad in ("-0.5", "2", "nan"):
+        with pytest.raises(ConfigError, match="count_grad_scale"):
+            T.train_disnet(tiny_cfg(**{"train.count_grad_scale": bad}), data, tmp_path)
+    scaled = tiny_cfg(**{"train.count_grad_scale": "0.1"})
+    assert T.default_fingerprint(scaled, "disnet") != T.default_fingerprint(tiny_cfg(), "disnet")
+    assert T.default_fingerprint(scaled, "rssnet") == T.default_fingerprint(tiny_cfg(), "rssnet")
 
 
 def test_flip_augmentation_mirrors_image_and_target_together(monkeypatch):

@@ -7,6 +7,8 @@
 - Number branch: 1x1 conv 8w -> 1, adaptive average pool to a fixed 5 x 18 grid (90 values, the
   authors' FC input size, so any image size works), FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s ->
   FC 1 -> 12 + ReLU (dropped when ``use_speed`` is False); concat -> FC -> sigmoid * max_points.
+  ``count_grad_scale`` (a training setting, not saved with the architecture) scales the gradient
+  the number branch sends back into the backbone.
 
 The input image is RGB float in [0, 1]; ImageNet mean/std normalisation happens inside.
 """
@@ -62,6 +64,7 @@ class DisNet(nn.Module):
         self.count_fc = nn.Linear(COUNT_GRID[0] * COUNT_GRID[1], 12)
         self.speed_fc = nn.Linear(1, 12) if use_speed else None
         self.count_head = nn.Linear(24 if use_speed else 12, 1)
+        self.count_grad_scale = 1.0
 
     def forward(self, image: Tensor, speed_mps: Tensor | None = None) -> tuple[Tensor, Tensor]:
         b = image.shape[0]
@@ -70,7 +73,7 @@ class DisNet(nn.Module):
         logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
         logits = logits + self.prior_logits                             # (B, 1, H, W)
         log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
-        grid = F.adaptive_avg_pool2d(self.count_conv(feat), COUNT_GRID)  # (B, 1, 5, 18)
+        grid = F.adaptive_avg_pool2d(self.count_conv(_scale_grad(feat, self.count_grad_scale)), COUNT_GRID)
         code = F.relu(self.count_fc(grid.reshape(b, -1)))               # (B, 12)
         if self.speed_fc is not None:
             if speed_mps is None:
@@ -96,6 +99,13 @@ class DisNet(nn.Module):
             raise ValueError(f"prior map: expected shape {self.out_hw}, got {p.shape}")
         p = p / p.sum()
         self.prior_logits.copy_(torch.from_numpy(np.log((1 - floor) * p + floor / p.size)).float())
+
+
+def _scale_grad(x: Tensor, scale: float) -> Tensor:
+    """``x`` in the forward pass; the gradient flowing back through it is multiplied by ``scale``."""
+    if scale == 1.0:
+        return x
+    return x.detach() if scale == 0.0 else x * scale + x.detach() * (1.0 - scale)
 
 
 def _up(in_ch: int, out_ch: int) -> nn.Sequential:
