@@ -73,7 +73,8 @@ class DisNet(nn.Module):
         logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
         logits = logits + self.prior_logits                             # (B, 1, H, W)
         log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
-        grid = F.adaptive_avg_pool2d(self.count_conv(_scale_grad(feat, self.count_grad_scale)), COUNT_GRID)
+        count_feat = _scale_grad(feat, self.count_grad_scale)           # same values, scaled gradient
+        grid = F.adaptive_avg_pool2d(self.count_conv(count_feat), COUNT_GRID)  # (B, 1, 5, 18)
         code = F.relu(self.count_fc(grid.reshape(b, -1)))               # (B, 12)
         if self.speed_fc is not None:
             if speed_mps is None:
