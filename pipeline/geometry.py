@@ -77,7 +77,11 @@ def pixel_rays_D(uv: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray) -> np.n
 def norms_m(points: np.ndarray) -> np.ndarray:
     """|p| (N,) of points (N, 3) float64: the values np.linalg.norm(axis=1) gives (same sum order),
     without its overhead."""
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return norms_xyz_m(points[:, 0], points[:, 1], points[:, 2])
+
+
+def norms_xyz_m(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """|(x, y, z)| (N,) of coordinates given as three (N,) arrays, metres (``norms_m``'s sum order)."""
     return np.sqrt(x * x + y * y + z * z)
 
 

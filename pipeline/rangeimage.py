@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.frame import check_shape
-from pipeline.geometry import norms_m
+from pipeline.geometry import norms_m, norms_xyz_m
 
 EMPTY = -1.0
 """Value of pixels without lidar points (occupied pixels are in [0, 254])."""
@@ -51,7 +51,7 @@ def _render(lidar: np.ndarray, points: np.ndarray, owner: np.ndarray, neighbour:
     n = points.shape[0]
     # per coordinate: 1-D gathers are faster than gathering (K, 3) rows
     dx, dy, dz = (lidar[:, k][neighbour] - points[:, k][owner] for k in range(3))
-    dist = np.sqrt(dx * dx + dy * dy + dz * dz)  # the same sum order as np.linalg.norm(axis=1)
+    dist = norms_xyz_m(dx, dy, dz)
     keep = dist < r_l
     if not keep.all():
         owner, neighbour, dy, dz, dist = owner[keep], neighbour[keep], dy[keep], dz[keep], dist[keep]

@@ -104,9 +104,7 @@ class DisNet(nn.Module):
 
 def _scale_grad(x: Tensor, scale: float) -> Tensor:
     """``x`` in the forward pass; the gradient flowing back through it is multiplied by ``scale``."""
-    if scale == 1.0:
-        return x
-    return x.detach() if scale == 0.0 else x * scale + x.detach() * (1.0 - scale)
+    return x if scale == 1.0 else x * scale + x.detach() * (1.0 - scale)
 
 
 def _up(in_ch: int, out_ch: int) -> nn.Sequential:
