@@ -154,6 +154,10 @@ class DisNetSection:
     """Add log(mean training heatmap) to the map logits and start the count at the training mean
     count, learning the residuals (an improvement over the paper: training starts at the mean-map
     and mean-count baselines; False = the paper's network)."""
+    speed_map: bool = False
+    """Also give the ego speed to the distribution branch (per-channel scale and shift of the
+    features it decodes): one image cannot tell a stopped ego from a moving one, yet the radar's
+    static returns depend on it. False = the paper (speed feeds the number branch only)."""
 
 
 @dataclass(frozen=True)
@@ -194,6 +198,12 @@ class TrainSection:
     """Decoupled weight decay (AdamW); 0 is plain Adam, the paper's optimiser."""
     flip: bool = False
     """Dis-Net augmentation: mirror image and target map left-right, each frame with probability 1/2."""
+    cutmix: float = 0.0
+    """Dis-Net augmentation: probability per frame of pasting a random box of another frame of the
+    batch, targets mixed accordingly (pipeline.augment.cutmix); 0: off (the paper)."""
+    ema_decay: float = 0.0
+    """Both nets: validate, select and save an exponential moving average of the weights, updated
+    after every optimiser step with this decay (e.g. 0.95); 0: the trained weights (the paper)."""
     seed: int = 0
     """Seed of initialisation and shuffling."""
     device: str = "auto"

@@ -28,7 +28,9 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from pipeline import augment
 from pipeline import checkpoint as ckpt
 from pipeline.errors import ConfigError
 from pipeline.models.disnet import DisNet, build_disnet, disnet_kwargs
@@ -184,8 +186,10 @@ def _weighted_total(terms: dict[str, Tensor], weights: dict[str, float]) -> Tens
 
 def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches: Iterable[Batch],
                     terms_fn: TermsFn, weights: dict[str, float], device: torch.device,
-                    n_batches: int = 0, desc: str = "train", progress: bool = True) -> dict[str, float]:
-    """One pass over ``batches``; loss = mean over the batch of sum_k weights[k] * term_k.
+                    n_batches: int = 0, desc: str = "train", progress: bool = True,
+                    ema: AveragedModel | None = None) -> dict[str, float]:
+    """One pass over ``batches``; loss = mean over the batch of sum_k weights[k] * term_k; ``ema``
+    (when given) is updated after every optimiser step.
 
     Returns per-sample means of every term and of the loss (key 'loss'). Raises FloatingPointError
     on a non-finite loss (before any checkpoint of the epoch is written).
@@ -203,6 +207,8 @@ def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches:
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
+        if ema is not None:
+            ema.update_parameters(model)
         count += _accumulate(sums, {**terms, "loss": total})
         if step % 10 == 0 and hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{loss.item():.4g}")
@@ -256,9 +262,11 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         optimizer = torch.optim.AdamW(spec.model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
     else:
         optimizer = torch.optim.Adam(spec.model.parameters(), lr=cfg.train.lr)
+    ema = make_ema(spec.model, cfg.train.ema_decay)
+    scored = ema.module if ema is not None else spec.model  # the weights validated and saved as best
     rng = np.random.default_rng(cfg.train.seed)
     state = {"epoch": 0, "best_epoch": 0, "best_metric": math.inf, "curves": []}
-    resumed = _resume(last, best, spec, optimizer, fingerprint, device)
+    resumed = _resume(last, best, spec, optimizer, fingerprint, device, ema)
     if resumed is not None:
         state, rng = resumed
     start = state["epoch"]
@@ -272,8 +280,8 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         order = epoch_order(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
         tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
                              spec.terms_fn, spec.weights, device, n_train_batches,
-                             f"{spec.name} epoch {epoch}/{cfg.train.epochs}", progress)
-        va = evaluate(spec.model, iter_batches(spec.arrays, spec.val_idx, spec.batch_size), spec.terms_fn,
+                             f"{spec.name} epoch {epoch}/{cfg.train.epochs}", progress, ema)
+        va = evaluate(scored, iter_batches(spec.arrays, spec.val_idx, spec.batch_size), spec.terms_fn,
                       spec.weights, device, n_val_batches, f"{spec.name} val", progress)
         metric = va["loss"] if len(spec.val_idx) else tr["loss"]
         state["curves"].append({"epoch": epoch, **{f"train_{k}": v for k, v in tr.items()},
@@ -282,12 +290,23 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         state["epoch"] = epoch
         if metric < state["best_metric"]:
             state["best_epoch"], state["best_metric"] = epoch, metric
-            ckpt.save_checkpoint(best, ckpt.model_tensors(spec.model), _meta(spec, fingerprint, state))
-        _save_last(last, spec, optimizer, rng, fingerprint, state)  # the commit point of the epoch
+            ckpt.save_checkpoint(best, ckpt.model_tensors(scored), _meta(spec, fingerprint, state))
+        _save_last(last, spec, optimizer, rng, fingerprint, state, ema)  # the commit point of the epoch
         write_curves(out_dir, spec.name, state["curves"], plot=False)
     write_curves(out_dir, spec.name, state["curves"], plot=True)
     return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
                        state["best_metric"], state["curves"])
+
+
+def make_ema(model: nn.Module, decay: float) -> AveragedModel | None:
+    """Exponential moving average of ``model``'s parameters and buffers (BatchNorm statistics
+    included) with ``decay`` per update; None when decay is 0 (ConfigError outside [0, 1))."""
+    decay = float(decay)
+    if not (np.isfinite(decay) and 0.0 <= decay < 1.0):
+        raise ConfigError(f"train.ema_decay must be in [0, 1), got {decay}")
+    if decay == 0.0:
+        return None
+    return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
 
 
 LR_SCHEDULES = ("constant", "cosine")
@@ -309,17 +328,19 @@ def _meta(spec: _NetSpec, fingerprint: str, state: dict[str, Any]) -> dict[str, 
 
 
 def _save_last(path: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, rng: np.random.Generator,
-               fingerprint: str, state: dict[str, Any]) -> None:
+               fingerprint: str, state: dict[str, Any], ema: AveragedModel | None = None) -> None:
     opt_tensors, opt_json = ckpt.flatten_optimizer(optimizer)
     tensors = {**ckpt.model_tensors(spec.model), **opt_tensors, **ckpt.rng_tensors()}
+    if ema is not None:
+        tensors.update({f"ema.{k}": v for k, v in ema.state_dict().items()})
     meta = {**_meta(spec, fingerprint, state), "optimizer": opt_json,
             "numpy_rng": ckpt.numpy_rng_state(rng)}
     ckpt.save_checkpoint(path, tensors, meta)
 
 
 def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, fingerprint: str,
-            device: torch.device) -> tuple[dict[str, Any], np.random.Generator] | None:
-    """Restore model, optimizer and RNGs from ``last`` when it matches; else clear stale files."""
+            device: torch.device, ema: AveragedModel | None = None) -> tuple[dict[str, Any], np.random.Generator] | None:
+    """Restore model, optimizer, RNGs (and ``ema``) from ``last`` when it matches; else clear stale files."""
     if not last.exists():
         return None
     meta = ckpt.read_meta(last)
@@ -334,6 +355,8 @@ def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optim
     spec.model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
     spec.model.to(device)
     optimizer.load_state_dict(ckpt.unflatten_optimizer(tensors, meta["optimizer"]))
+    if ema is not None:
+        ema.load_state_dict(ckpt.strip_prefix(tensors, "ema."), strict=True)
     ckpt.restore_rng(tensors)
     state = {k: meta[k] for k in ("epoch", "best_epoch", "best_metric", "curves")}
     return state, ckpt.numpy_rng_from_state(meta["numpy_rng"])
@@ -387,28 +410,30 @@ def _disnet_inputs(batch: Batch, device: torch.device) -> tuple[Tensor, Tensor]:
     return img, speed
 
 
-def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: bool = False) -> dict[str, Tensor]:
-    """Per-frame L_KL ('kl') and L_n ('n') of one batch; ``flip``: mirror augmentation in training."""
+def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: bool = False,
+                 cutmix: float = 0.0) -> dict[str, Tensor]:
+    """Per-frame L_KL ('kl') and L_n ('n') of one batch; in training mode, ``flip`` mirrors and
+    ``cutmix`` mixes frames (pipeline.augment), in that order."""
     img, speed = _disnet_inputs(batch, device)
     target = torch.from_numpy(np.asarray(batch["heatmaps"], np.float32)).to(device)
-    if flip and model.training:
-        # Mirror left-right with probability 1/2 per frame (torch's RNG: saved with each epoch).
-        mirrored = (torch.rand(img.shape[0]) < 0.5).to(device)
-        img = torch.where(mirrored[:, None, None, None], img.flip(-1), img)
-        target = torch.where(mirrored[:, None, None], target.flip(-1), target)
-    log_map, n_hat = model(img, speed)
     counts = torch.from_numpy(np.asarray(batch["counts"], np.float32)).to(device)
+    if model.training and flip:
+        img, target = augment.mirror(img, target)
+    if model.training and cutmix > 0:
+        img, target, counts = augment.cutmix(img, target, counts, cutmix)
+    log_map, n_hat = model(img, speed)
     return {"kl": kl_loss(log_map, target), "n": count_loss(n_hat, counts)}
 
 
 def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
-    common = ["train.lr", "train.seed", "train.weight_decay", "train.lr_schedule"]
+    common = ["train.lr", "train.seed", "train.weight_decay", "train.lr_schedule", "train.ema_decay"]
     if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
         common.append("train.epochs")
     if net == "disnet":
-        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "radar.max_points",
-                "camera.working_size", "train.batch_size", "train.alpha", "train.flip", "train.count_grad_scale"]
+        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map", "radar.max_points",
+                "camera.working_size", "train.batch_size", "train.alpha", "train.flip", "train.count_grad_scale",
+                "train.cutmix"]
     else:
         keys = ["rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
                 "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"]
@@ -459,12 +484,16 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     if not (np.isfinite(scale) and 0.0 <= scale <= 1.0):
         raise ConfigError(f"train.count_grad_scale must be in [0, 1], got {scale}")
     model.count_grad_scale = scale
+    mix = float(cfg.train.cutmix)
+    if not (np.isfinite(mix) and 0.0 <= mix <= 1.0):
+        raise ConfigError(f"train.cutmix must be a probability in [0, 1], got {mix}")
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
         train_idx=_checked_idx(data.train_idx, "train_idx", arrays, False),
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
-        batch_size=cfg.train.batch_size, terms_fn=functools.partial(disnet_terms, flip=bool(cfg.train.flip)),
+        batch_size=cfg.train.batch_size,
+        terms_fn=functools.partial(disnet_terms, flip=bool(cfg.train.flip), cutmix=mix),
         weights={"kl": 1.0, "n": float(cfg.train.alpha)})
     _check_disnet_data(cfg, data, np.concatenate([spec.train_idx, spec.val_idx]))
     if cfg.disnet.prior:

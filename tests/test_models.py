@@ -113,6 +113,27 @@ def test_disnet_speed_switch():
     assert torch.equal(no_speed(img, torch.tensor([0.0, 1.0]))[1], no_speed(img, None)[1])
 
 
+def test_disnet_speed_map_modulates_the_map_only():
+    """disnet.speed_map: starts as the speed-free network, then the speed moves the map, not the count."""
+    torch.manual_seed(0)
+    img = torch.rand(2, 3, 32, 64)
+    plain = DisNet(width=8, use_speed=True, out_hw=(32, 64)).eval()
+    film = DisNet(width=8, use_speed=True, out_hw=(32, 64), speed_map=True).eval()
+    missing, unexpected = film.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("speed_film.") for k in missing)
+    stopped, moving = torch.tensor([0.0, 0.0]), torch.tensor([12.0, 12.0])
+    for a, b in zip(film(img, moving), plain(img, moving)):  # zero-initialised last layer: identity
+        assert torch.equal(a, b)
+    torch.nn.init.normal_(film.speed_film[-1].weight, std=0.5)
+    (map_0, n_0), (map_12, n_12) = film(img, stopped), film(img, moving)
+    assert not torch.allclose(map_0, map_12)
+    # the number branch reads the unmodulated features
+    assert torch.equal(n_0, plain(img, stopped)[1]) and torch.equal(n_12, plain(img, moving)[1])
+    blind = DisNet(width=8, use_speed=False, out_hw=(32, 64), speed_map=True).eval()
+    with pytest.raises(ValueError, match="speed_map"):
+        blind(img, None)
+
+
 def _count_grads(model: DisNet, img: torch.Tensor, speed: torch.Tensor) -> tuple[torch.Tensor, dict]:
     model.zero_grad()
     log_map, n_hat = model(img, speed)

@@ -127,7 +127,8 @@ def test_disnet_data_errors(tmp_path):
 
 
 @pytest.mark.parametrize("extra", [{}, {"train.flip": "true", "train.weight_decay": "0.01",
-                                         "train.lr_schedule": "cosine", "train.count_grad_scale": "0.1"}])
+                                         "train.lr_schedule": "cosine", "train.count_grad_scale": "0.1"},
+                                   {"train.cutmix": "0.5", "train.ema_decay": "0.8"}])
 def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
     monkeypatch.setattr(T, "WINDOW_BATCHES", 1)          # one read per batch: kill mid-epoch
     data = make_disnet_data(n=20)                        # 15 train frames = 4 batches, 5 val = 2: 6 reads per epoch
@@ -174,6 +175,39 @@ def test_count_grad_scale_is_checked_and_fingerprinted(tmp_path):
     scaled = tiny_cfg(**{"train.count_grad_scale": "0.1"})
     assert T.default_fingerprint(scaled, "disnet") != T.default_fingerprint(tiny_cfg(), "disnet")
     assert T.default_fingerprint(scaled, "rssnet") == T.default_fingerprint(tiny_cfg(), "rssnet")
+
+
+def test_cutmix_and_ema_are_checked_and_fingerprinted(tmp_path):
+    data = make_disnet_data(n=8)
+    for key, bad in (("train.cutmix", "1.5"), ("train.cutmix", "nan"), ("train.ema_decay", "1"),
+                     ("train.ema_decay", "-0.1")):
+        with pytest.raises(ConfigError, match=key.split(".")[1]):
+            T.train_disnet(tiny_cfg(**{key: bad}), data, tmp_path)
+    mixed, averaged = tiny_cfg(**{"train.cutmix": "0.5"}), tiny_cfg(**{"train.ema_decay": "0.9"})
+    assert T.default_fingerprint(mixed, "disnet") != T.default_fingerprint(tiny_cfg(), "disnet")
+    assert T.default_fingerprint(mixed, "rssnet") == T.default_fingerprint(tiny_cfg(), "rssnet")
+    for net in ("disnet", "rssnet"):
+        assert T.default_fingerprint(averaged, net) != T.default_fingerprint(tiny_cfg(), net)
+
+
+def test_ema_weights_are_the_ones_validated_and_saved_as_best(tmp_path):
+    """With train.ema_decay the best checkpoint holds the moving average (BatchNorm statistics
+    included), which trails the trained weights, and reproduces the recorded validation loss."""
+    data = make_disnet_data(n=24)
+    cfg = tiny_cfg(**{"train.ema_decay": "0.7", "train.epochs": "2"})
+    res = T.train_disnet(cfg, data, tmp_path, progress=False)
+    last, best = _all_tensors(res.last_path), _all_tensors(res.best_path)
+    names = [k[len("model."):] for k in best]
+    assert names and all(f"ema.module.{n}" in last for n in names)
+    assert int(last["ema.n_averaged"]) == 2 * 3  # one update per optimiser step: 18 frames / batch 8
+    if res.best_epoch == 2:
+        for n in names:
+            assert torch.equal(best[f"model.{n}"], last[f"ema.module.{n}"]), n
+    conv = "model.backbone.conv1.weight"
+    assert not torch.equal(last[conv], last["ema.module.backbone.conv1.weight"])
+    assert not torch.equal(last["model.backbone.bn1.running_mean"], last["ema.module.backbone.bn1.running_mean"])
+    m = T.disnet_metrics(T.load_disnet(cfg, res.best_path), data, data.val_idx, cfg.train.alpha)
+    assert m["loss"] == pytest.approx(res.curves[res.best_epoch - 1]["val_loss"], rel=1e-4)
 
 
 def test_flip_augmentation_mirrors_image_and_target_together(monkeypatch):

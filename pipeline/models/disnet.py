@@ -9,6 +9,10 @@
   FC 1 -> 12 + ReLU (dropped when ``use_speed`` is False); concat -> FC -> sigmoid * max_points.
   ``count_grad_scale`` (a training setting, not saved with the architecture) scales the gradient
   the number branch sends back into the backbone.
+- ``speed_map`` (an extension of the paper): the features the distribution branch decodes are
+  modulated by the ego speed, F * (1 + gamma(s)) + beta(s) per channel (FiLM, Perez et al. 2018),
+  gamma and beta from an MLP 1 -> 32 -> 2 * 8w whose last layer starts at zero (so training starts
+  from the speed-free network).
 
 The input image is RGB float in [0, 1]; ImageNet mean/std normalisation happens inside.
 """
@@ -40,7 +44,7 @@ class DisNet(nn.Module):
 
     def __init__(self, width: int = 64, use_speed: bool = True, max_points: int = 1000,
                  out_hw: tuple[int, int] = (160, 320), backbone: ResNet18Backbone | None = None,
-                 use_prior: bool = False) -> None:
+                 use_prior: bool = False, speed_map: bool = False) -> None:
         super().__init__()
         if max_points < 1:
             raise ValueError(f"max_points must be >= 1, got {max_points}")
@@ -60,6 +64,11 @@ class DisNet(nn.Module):
         if use_prior:  # start exactly at the prior: the decoder learns the per-frame residual
             nn.init.zeros_(self.decoder[-1].weight)
             nn.init.zeros_(self.decoder[-1].bias)
+        self.speed_film = None
+        if speed_map:
+            self.speed_film = nn.Sequential(nn.Linear(1, 32), nn.ReLU(inplace=True), nn.Linear(32, 2 * c))
+            nn.init.zeros_(self.speed_film[-1].weight)
+            nn.init.zeros_(self.speed_film[-1].bias)
         self.count_conv = nn.Conv2d(c, 1, 1)
         self.count_fc = nn.Linear(COUNT_GRID[0] * COUNT_GRID[1], 12)
         self.speed_fc = nn.Linear(1, 12) if use_speed else None
@@ -69,7 +78,11 @@ class DisNet(nn.Module):
     def forward(self, image: Tensor, speed_mps: Tensor | None = None) -> tuple[Tensor, Tensor]:
         b = image.shape[0]
         feat = self.backbone((image - self.mean) / self.std)            # (B, C, H/32, W/32)
-        logits = self.decoder(feat)                                     # (B, 1, H/2, W/2)
+        map_feat = feat
+        if self.speed_film is not None:
+            gamma, beta = self.speed_film(_speed_input(speed_mps, b, feat.dtype, "speed_map")).chunk(2, dim=1)
+            map_feat = feat * (1 + gamma[:, :, None, None]) + beta[:, :, None, None]
+        logits = self.decoder(map_feat)                                 # (B, 1, H/2, W/2)
         logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
         logits = logits + self.prior_logits                             # (B, 1, H, W)
         log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
@@ -77,9 +90,7 @@ class DisNet(nn.Module):
         grid = F.adaptive_avg_pool2d(self.count_conv(count_feat), COUNT_GRID)  # (B, 1, 5, 18)
         code = F.relu(self.count_fc(grid.reshape(b, -1)))               # (B, 12)
         if self.speed_fc is not None:
-            if speed_mps is None:
-                raise ValueError("DisNet was built with use_speed=True: forward needs speed_mps (B,)")
-            s = speed_mps.reshape(b, 1).to(code.dtype) / SPEED_SCALE_MPS
+            s = _speed_input(speed_mps, b, code.dtype, "use_speed")
             code = torch.cat([code, F.relu(self.speed_fc(s))], dim=1)   # (B, 24)
         n_hat = torch.sigmoid(self.count_head(code)).squeeze(1) * self.max_points  # (B,)
         return log_map, n_hat
@@ -102,6 +113,13 @@ class DisNet(nn.Module):
         self.prior_logits.copy_(torch.from_numpy(np.log((1 - floor) * p + floor / p.size)).float())
 
 
+def _speed_input(speed_mps: Tensor | None, b: int, dtype: torch.dtype, switch: str) -> Tensor:
+    """(B, 1) network input from the ego speed (B,) m/s; ValueError naming ``switch`` when absent."""
+    if speed_mps is None:
+        raise ValueError(f"DisNet was built with {switch}=True: forward needs speed_mps (B,)")
+    return speed_mps.reshape(b, 1).to(dtype) / SPEED_SCALE_MPS
+
+
 def _scale_grad(x: Tensor, scale: float) -> Tensor:
     """``x`` in the forward pass; the gradient flowing back through it is multiplied by ``scale``."""
     return x if scale == 1.0 else x * scale + x.detach() * (1.0 - scale)
@@ -117,7 +135,8 @@ def disnet_kwargs(cfg) -> dict:
     """Constructor arguments of DisNet from a Config (disnet.*, radar.max_points, camera.working_size)."""
     w, h = cfg.camera.working_size
     return {"width": cfg.disnet.width, "use_speed": cfg.disnet.use_speed,
-            "max_points": cfg.radar.max_points, "out_hw": (h, w), "use_prior": cfg.disnet.prior}
+            "max_points": cfg.radar.max_points, "out_hw": (h, w), "use_prior": cfg.disnet.prior,
+            "speed_map": cfg.disnet.speed_map}
 
 
 def build_disnet(cfg, load_backbone: bool = True) -> DisNet:
