@@ -54,10 +54,8 @@ def cutmix(images: Tensor, maps: Tensor, counts: Tensor, prob: float) -> tuple[T
     expected = maps * counts[:, None, None]                             # points per pixel (B, H, W)
     mixed = torch.where(inside, expected[partner], expected)
     mixed_count = mixed.sum(dim=(1, 2))
-    inside &= (mixed_count >= MIN_MIXED_COUNT)[:, None, None]
-    mixed = torch.where(inside, expected[partner], expected)
-    mixed_count = mixed.sum(dim=(1, 2))
-    changed = inside.any(dim=2).any(dim=1)                              # unchanged frames keep their exact targets
+    changed = inside.any(dim=2).any(dim=1) & (mixed_count >= MIN_MIXED_COUNT)  # others keep their exact targets
+    inside &= changed[:, None, None]
     return (torch.where(inside[:, None], images[partner], images),
             torch.where(changed[:, None, None], mixed / mixed_count[:, None, None], maps),
             torch.where(changed, mixed_count, counts))

@@ -298,12 +298,18 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
                        state["best_metric"], state["curves"])
 
 
+def unit_interval(key: str, value: float, include_one: bool = True) -> float:
+    """``value`` as a float in [0, 1] ([0, 1) without ``include_one``); ConfigError naming ``key``."""
+    x = float(value)
+    if not (np.isfinite(x) and 0.0 <= x and (x <= 1.0 if include_one else x < 1.0)):
+        raise ConfigError(f"{key} must be in [0, 1{']' if include_one else ')'}, got {x}")
+    return x
+
+
 def make_ema(model: nn.Module, decay: float) -> AveragedModel | None:
     """Exponential moving average of ``model``'s parameters and buffers (BatchNorm statistics
     included) with ``decay`` per update; None when decay is 0 (ConfigError outside [0, 1))."""
-    decay = float(decay)
-    if not (np.isfinite(decay) and 0.0 <= decay < 1.0):
-        raise ConfigError(f"train.ema_decay must be in [0, 1), got {decay}")
+    decay = unit_interval("train.ema_decay", decay, include_one=False)
     if decay == 0.0:
         return None
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
@@ -480,13 +486,8 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
     _setup(cfg)
     model = build_disnet(cfg)
-    scale = float(cfg.train.count_grad_scale)
-    if not (np.isfinite(scale) and 0.0 <= scale <= 1.0):
-        raise ConfigError(f"train.count_grad_scale must be in [0, 1], got {scale}")
-    model.count_grad_scale = scale
-    mix = float(cfg.train.cutmix)
-    if not (np.isfinite(mix) and 0.0 <= mix <= 1.0):
-        raise ConfigError(f"train.cutmix must be a probability in [0, 1], got {mix}")
+    model.count_grad_scale = unit_interval("train.count_grad_scale", cfg.train.count_grad_scale)
+    mix = unit_interval("train.cutmix", cfg.train.cutmix)
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
