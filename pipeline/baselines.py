@@ -25,7 +25,7 @@ from pipeline.frame import check_shape
 from pipeline.geometry import radial_velocity, transform_points, wrap_doppler
 from pipeline.metrics import region_mask
 
-MAP_SOURCES = ("model", "uniform", "mean", "none")
+MAP_SOURCES = ("model", "uniform", "mean", "real", "none")
 COUNT_SOURCES = ("model", "mean", "oracle", "previous")
 RSS_SOURCES = ("model", "median", "train-dist", "previous")
 KINDS = ("map", "lidar-subsample", "previous-frame")
@@ -38,7 +38,8 @@ class BaselineSpec:
     name: str
     """Row name in the report."""
     map_source: str
-    """'model' (Dis-Net map), 'uniform' (constant map), 'mean' (average training heatmap), 'none'."""
+    """'model' (Dis-Net map), 'uniform' (constant map), 'mean' (average training heatmap), 'real' (the
+    frame's own real-radar heatmap: a ceiling, not a method), 'none'."""
     count_source: str
     """'model' (n_hat), 'mean' (training mean count n_bar), 'oracle' (the real count n), 'previous'."""
     rss_source: str
@@ -59,14 +60,18 @@ class BaselineSpec:
 
     @property
     def is_model(self) -> bool:
-        """True for the learned model and its oracle-count variant (not competitors of the model)."""
-        return self.map_source == "model"
+        """True for the learned model and its variants (not competitors of the model): their names
+        start with 'model'."""
+        return self.name.startswith("model")
 
 
 METHODS: tuple[BaselineSpec, ...] = (
     BaselineSpec("model", "model", "model", "model", description="Dis-Net map and count, RSS-Net"),
     BaselineSpec("model-oracle-count", "model", "oracle", "model",
                  description="model given the true count n"),
+    BaselineSpec("model-oracle-map", "real", "oracle", "model",
+                 description="the model's generation from the frame's real heatmap and count: what a perfect "
+                             "Dis-Net would reach (a ceiling, not a method)"),
     BaselineSpec("uniform", "uniform", "mean", "median",
                  description="n_bar pixels uniform over the image, RSS = training median"),
     BaselineSpec("mean-map", "mean", "mean", "train-dist",
@@ -139,8 +144,12 @@ def choose_count(spec: BaselineSpec, n_bar: int, n_true: int, n_hat: float | Non
 
 
 def choose_map(spec: BaselineSpec, image_size_wh: tuple[int, int], mean_map_hw: np.ndarray | None = None,
-               model_map_hw: np.ndarray | None = None) -> np.ndarray | None:
+               model_map_hw: np.ndarray | None = None, real_map_hw: np.ndarray | None = None) -> np.ndarray | None:
     """The (H, W) map a method samples from (None for kinds that do not sample pixels)."""
+    if spec.map_source == "real":
+        if real_map_hw is None:
+            raise ValueError(f"{spec.name}: needs the frame's real heatmap")
+        return real_map_hw
     if spec.map_source == "uniform":
         return uniform_map(image_size_wh)
     if spec.map_source == "mean":

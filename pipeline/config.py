@@ -158,6 +158,10 @@ class DisNetSection:
     """Also give the ego speed to the distribution branch (per-channel scale and shift of the
     features it decodes): one image cannot tell a stopped ego from a moving one, yet the radar's
     static returns depend on it. False = the paper (speed feeds the number branch only)."""
+    skips: bool = False
+    """Decode the map from the backbone's 1/16, 1/8 and 1/4 features as well as the 1/32 ones
+    (U-Net / FPN lateral connections), so local appearance (material, shape) reaches the map.
+    False = the paper (the distribution branch sees the 1/32 features only)."""
 
 
 @dataclass(frozen=True)

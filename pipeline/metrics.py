@@ -82,7 +82,8 @@ def kl_divergence(target: np.ndarray, pred: np.ndarray, eps: float = KL_EPS) -> 
     P = P / p_sum
     Q = np.maximum(Q / q_sum, eps)
     mask = P > 0
-    return float(np.sum(P[mask] * (np.log(P[mask]) - np.log(Q[mask]))))
+    # >= 0 by Gibbs' inequality; a map scored against itself sums to about -1e-11 in float64
+    return max(0.0, float(np.sum(P[mask] * (np.log(P[mask]) - np.log(Q[mask])))))
 
 
 def count_errors(n_hat: float, n: float) -> tuple[float, float]:

@@ -91,7 +91,10 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev) -> dic
             continue
         if spec.kind == "map":
             n = choose_count(spec, stats["n_bar"], n_true, n_hat)
-            prob = pred_map if spec.map_source == "model" else choose_map(spec, size, stats["mean_map"])
+            prob = choose_map(spec, size, stats["mean_map"], pred_map, f.get("heatmaps", "heatmap"))
+            if prob is not None and not prob.sum() > 0:  # no real point in the image: nothing to sample
+                out[spec.name] = (np.zeros((0, 5)), float(n), None)
+                continue
             gen = generate(f, cfg, prob, n, rssnet if spec.rss_source == "model" else None, rng)
             pts = _syn5(gen["points"])
             rss = choose_rss(spec, len(pts), rng, stats["rss_median"], stats["train_rss"])

@@ -134,6 +134,29 @@ def test_disnet_speed_map_modulates_the_map_only():
         blind(img, None)
 
 
+@pytest.mark.parametrize("in_hw", [(32, 64), (40, 72)])
+def test_disnet_skips_start_as_the_paper_decoder_then_see_local_features(in_hw):
+    """disnet.skips: zero-initialised laterals give the paper's decoder (at sizes divisible by 32;
+    otherwise the decoder's stages are resized to the backbone's); a non-zero lateral changes the
+    map, which stays a distribution of the right size."""
+    torch.manual_seed(0)
+    img = torch.rand(1, 3, *in_hw)
+    plain = DisNet(width=8, out_hw=in_hw).eval()
+    skip = DisNet(width=8, out_hw=in_hw, skips=True).eval()
+    missing, unexpected = skip.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("laterals.") for k in missing)
+    assert [tuple(c.weight.shape[:2]) for c in skip.laterals] == [(32, 32), (16, 16), (8, 8)]
+    speed = torch.tensor([5.0])
+    if in_hw[0] % 32 == 0 and in_hw[1] % 32 == 0:
+        for a, b in zip(skip(img, speed), plain(img, speed)):
+            assert torch.equal(a, b)
+    # only the finest lateral (layer1, 1/4 resolution) is switched on
+    torch.nn.init.normal_(skip.laterals[2].weight, std=1.0)
+    log_map, _ = skip(img, speed)
+    assert log_map.shape == (1, *in_hw) and not torch.allclose(log_map, plain(img, speed)[0])
+    assert torch.allclose(log_map.exp().sum(), torch.tensor(1.0), atol=1e-5)
+
+
 def _count_grads(model: DisNet, img: torch.Tensor, speed: torch.Tensor) -> tuple[torch.Tensor, dict]:
     model.zero_grad()
     log_map, n_hat = model(img, speed)

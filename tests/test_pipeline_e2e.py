@@ -60,6 +60,9 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     # evaluate wrote a report with every method and the figures
     report = json.loads((tmp_path / "serial" / "synthetic" / "evaluate" / "report.json").read_text())
     assert "model" in json.dumps(report) and "mean-map" in json.dumps(report)
+    # the ceiling row samples the frame's own real heatmap with the real count
+    ceiling = report["metrics"]["model-oracle-map"]
+    assert ceiling["kl"]["mean"] == 0.0 and ceiling["count_rel_err"]["mean"] == 0.0
     for fig in ("fig8.png", "bev.png", "histograms.png"):
         assert (tmp_path / "serial" / "synthetic" / "evaluate" / "figures" / fig).stat().st_size > 10_000
     check_export_round_trip(serial, world, tmp_path / "serial")

@@ -13,6 +13,10 @@
   modulated by the ego speed, F * (1 + gamma(s)) + beta(s) per channel (FiLM, Perez et al. 2018),
   gamma and beta from an MLP 1 -> 32 -> 2 * 8w whose last layer starts at zero (so training starts
   from the speed-free network).
+- ``skips`` (an extension of the paper): after each of the first three transpose convolutions
+  (1/16, 1/8, 1/4 of the input) a 1x1 convolution of the backbone's feature map of the same size
+  (layer3, layer2, layer1) is added (FPN-style lateral connections; zero-initialised, so training
+  starts from the paper's decoder). The map then sees local appearance, not only the 1/32 grid.
 
 The input image is RGB float in [0, 1]; ImageNet mean/std normalisation happens inside.
 """
@@ -44,7 +48,7 @@ class DisNet(nn.Module):
 
     def __init__(self, width: int = 64, use_speed: bool = True, max_points: int = 1000,
                  out_hw: tuple[int, int] = (160, 320), backbone: ResNet18Backbone | None = None,
-                 use_prior: bool = False, speed_map: bool = False) -> None:
+                 use_prior: bool = False, speed_map: bool = False, skips: bool = False) -> None:
         super().__init__()
         if max_points < 1:
             raise ValueError(f"max_points must be >= 1, got {max_points}")
@@ -58,6 +62,12 @@ class DisNet(nn.Module):
         self.decoder = nn.Sequential(
             _up(c, c // 2), _up(c // 2, c // 4), _up(c // 4, c // 8),
             nn.ConvTranspose2d(c // 8, 1, 4, stride=2, padding=1))
+        self.laterals = None
+        if skips:  # layer3, layer2, layer1 -> the outputs of the first three decoder stages
+            self.laterals = nn.ModuleList(nn.Conv2d(c // k, c // k, 1) for k in (2, 4, 8))
+            for conv in self.laterals:
+                nn.init.zeros_(conv.weight)
+                nn.init.zeros_(conv.bias)
         self.use_prior = use_prior
         # log of the mean training map, added to the decoder's logits (set_prior); saved in checkpoints
         self.register_buffer("prior_logits", torch.zeros(self.out_hw))
@@ -77,12 +87,13 @@ class DisNet(nn.Module):
 
     def forward(self, image: Tensor, speed_mps: Tensor | None = None) -> tuple[Tensor, Tensor]:
         b = image.shape[0]
-        feat = self.backbone((image - self.mean) / self.std)            # (B, C, H/32, W/32)
+        pyramid = self.backbone.pyramid((image - self.mean) / self.std)
+        feat = pyramid[-1]                                              # (B, C, H/32, W/32)
         map_feat = feat
         if self.speed_film is not None:
             gamma, beta = self.speed_film(_speed_input(speed_mps, b, feat.dtype, "speed_map")).chunk(2, dim=1)
             map_feat = feat * (1 + gamma[:, :, None, None]) + beta[:, :, None, None]
-        logits = self.decoder(map_feat)                                 # (B, 1, H/2, W/2)
+        logits = self._decode(map_feat, pyramid)                        # (B, 1, H/2, W/2)
         logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
         logits = logits + self.prior_logits                             # (B, 1, H, W)
         log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
@@ -94,6 +105,18 @@ class DisNet(nn.Module):
             code = torch.cat([code, F.relu(self.speed_fc(s))], dim=1)   # (B, 24)
         n_hat = torch.sigmoid(self.count_head(code)).squeeze(1) * self.max_points  # (B,)
         return log_map, n_hat
+
+    def _decode(self, feat: Tensor, pyramid: list[Tensor]) -> Tensor:
+        """Decoder logits (B, 1, H/2, W/2) from the 1/32 features, plus the lateral skips if any."""
+        if self.laterals is None:
+            return self.decoder(feat)
+        x = feat
+        for up, lateral, skip in zip(self.decoder[:3], self.laterals, pyramid[2::-1]):
+            x = up(x)
+            if x.shape[-2:] != skip.shape[-2:]:  # odd sizes: the backbone rounded up on the way down
+                x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = x + lateral(skip)
+        return self.decoder[3](x)
 
     @torch.no_grad()
     def set_count_prior(self, mean_count: float) -> None:
@@ -136,7 +159,7 @@ def disnet_kwargs(cfg) -> dict:
     w, h = cfg.camera.working_size
     return {"width": cfg.disnet.width, "use_speed": cfg.disnet.use_speed,
             "max_points": cfg.radar.max_points, "out_hw": (h, w), "use_prior": cfg.disnet.prior,
-            "speed_map": cfg.disnet.speed_map}
+            "speed_map": cfg.disnet.speed_map, "skips": cfg.disnet.skips}
 
 
 def build_disnet(cfg, load_backbone: bool = True) -> DisNet:

@@ -64,9 +64,15 @@ class ResNet18Backbone(nn.Module):
         _init_like_torchvision(self)
 
     def forward(self, x: Tensor) -> Tensor:
-        x = self.maxpool(self.relu(self.bn1(self.conv1(x))))  # (B, w, H/4, W/4)
-        x = self.layer2(self.layer1(x))                        # (B, 2w, H/8, W/8)
-        return self.layer4(self.layer3(x))                     # (B, 8w, H/32, W/32)
+        return self.pyramid(x)[-1]
+
+    def pyramid(self, x: Tensor) -> list[Tensor]:
+        """Outputs of layer1 ... layer4: (B, w, H/4, W/4), (B, 2w, H/8, W/8), (B, 4w, H/16, W/16),
+        (B, 8w, H/32, W/32) (sizes rounded up)."""
+        c1 = self.layer1(self.maxpool(self.relu(self.bn1(self.conv1(x)))))
+        c2 = self.layer2(c1)
+        c3 = self.layer3(c2)
+        return [c1, c2, c3, self.layer4(c3)]
 
     def load_torchvision_state_dict(self, state: dict[str, Tensor], source: str = "state dict") -> None:
         """Load a torchvision ResNet-18 state dict; ``fc.*`` is dropped, every other key must match."""
