@@ -158,7 +158,21 @@ def shortfall_paragraph(table: Mapping[str, Mapping[str, Mapping[str, float]]]) 
     if not sentences:
         return "The model beats every baseline on Chamfer distance, GOSPA and matched F1 (mean and median)."
     note = " Oracle-count rows are given the true count, an advantage the model does not have." if oracle else ""
-    return " ".join(sentences) + note
+    return " ".join(sentences) + note + _ceiling_sentence(table)
+
+
+def _ceiling_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]], ceiling: str = "model-oracle-map") -> str:
+    """Which baselines even a perfect Dis-Net (the ``ceiling`` row) does not beat, on the means."""
+    if ceiling not in table:
+        return ""
+    names = {"chamfer_m": "Chamfer", "gospa": "GOSPA", "f1": "F1"}
+    parts = [f"{names[key]} (" + ", ".join(f"`{d['method']}`" for d in losers) + ")"
+             for key, losers in model_shortfalls(table, model=ceiling).items() if losers]
+    if not parts:
+        return (f" `{ceiling}` (the frame's real heatmap and count) beats every baseline on the means: "
+                "a better Dis-Net can close these gaps.")
+    return (f" Even `{ceiling}` (the frame's real heatmap and count, i.e. a perfect Dis-Net) does not beat, "
+            f"on the means: {'; '.join(parts)}. Those gaps are out of reach of any map the method can learn.")
 
 
 def write_report(out_dir: str | Path, dataset: str, split: str,

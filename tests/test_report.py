@@ -47,8 +47,24 @@ def test_shortfalls():
     assert [d["method"] for d in s["f1"]] == ["lidar-subsample"]  # a tie is not a win
     text = R.shortfall_paragraph(table)
     assert "lidar-subsample" in text and "uniform" not in text and "GOSPA" not in text
+    assert "model-oracle-map" not in text  # no ceiling row, no ceiling sentence
     winner = R.aggregate({"model": _frames(rng, 2, 1.0, 1.0, 0.9), "uniform": _frames(rng, 2, 5.0, 5.0, 0.1)})
     assert "beats every baseline" in R.shortfall_paragraph(winner)
+
+
+def test_ceiling_sentence_names_the_baselines_a_perfect_map_does_not_beat():
+    rng = np.random.default_rng(2)
+    rows = {"model": _frames(rng, 3, chamfer=2.0, gospa=19.0, f1=0.14),
+            "model-oracle-map": _frames(rng, 3, chamfer=1.8, gospa=18.5, f1=0.16),
+            "lidar-subsample": _frames(rng, 3, chamfer=2.1, gospa=19.5, f1=0.15),
+            "previous-frame": _frames(rng, 3, chamfer=1.1, gospa=14.0, f1=0.48)}
+    text = R.shortfall_paragraph(R.aggregate(rows))
+    ceiling = text[text.index("Even `model-oracle-map`"):]
+    assert "Chamfer (`previous-frame`)" in ceiling and "F1 (`previous-frame`)" in ceiling
+    assert "lidar-subsample" not in ceiling
+    del rows["previous-frame"]
+    text = R.shortfall_paragraph(R.aggregate(rows))
+    assert "a better Dis-Net can close these gaps" in text and "lidar-subsample" in text
 
 
 def test_write_report_files(tmp_path):
