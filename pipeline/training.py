@@ -437,9 +437,9 @@ def default_fingerprint(cfg, net: str) -> str:
     if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
         common.append("train.epochs")
     if net == "disnet":
-        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map", "disnet.skips", "radar.max_points",
-                "camera.working_size", "train.batch_size", "train.alpha", "train.flip", "train.count_grad_scale",
-                "train.cutmix"]
+        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map",
+                "disnet.skips", "radar.max_points", "camera.working_size", "train.batch_size", "train.alpha",
+                "train.flip", "train.count_grad_scale", "train.cutmix"]
     else:
         keys = ["rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
                 "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"]

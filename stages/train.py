@@ -25,10 +25,11 @@ from pipeline.stage import DatasetStage
 VERSION = 2
 """Bump when the training code changes what a net learns: stage outputs and checkpoints are redone."""
 
-CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map", "disnet.skips", "rssnet.use_camera",
-               "rssnet.use_lidar", "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr",
-               "train.batch_size", "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points",
-               "radar.rss_min", "radar.rss_max", "train.weight_decay", "train.flip", "train.lr_schedule",
+CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior",
+               "disnet.speed_map", "disnet.skips", "rssnet.use_camera", "rssnet.use_lidar",
+               "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr", "train.batch_size",
+               "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points", "radar.rss_min",
+               "radar.rss_max", "train.weight_decay", "train.flip", "train.lr_schedule",
                "train.count_grad_scale", "train.cutmix", "train.ema_decay")
 
 
