@@ -208,6 +208,9 @@ class TrainSection:
     ema_decay: float = 0.0
     """Both nets: validate, select and save an exponential moving average of the weights, updated
     after every optimiser step with this decay (e.g. 0.95); 0: the trained weights (the paper)."""
+    select_on: str = "loss"
+    """Which validation loss picks a net's best epoch: 'loss' (the training objective, Dis-Net's
+    L_KL + alpha L_n) or 'kl' (Dis-Net's L_KL alone: its map; RSS-Net keeps its L_a)."""
     seed: int = 0
     """Seed of initialisation and shuffling."""
     device: str = "auto"

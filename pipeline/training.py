@@ -262,6 +262,7 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         optimizer = torch.optim.AdamW(spec.model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
     else:
         optimizer = torch.optim.Adam(spec.model.parameters(), lr=cfg.train.lr)
+    select_key = selection_key(cfg.train.select_on, spec.weights)
     ema = make_ema(spec.model, cfg.train.ema_decay)
     scored = ema.module if ema is not None else spec.model  # the weights validated and saved as best
     rng = np.random.default_rng(cfg.train.seed)
@@ -283,7 +284,7 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
                              f"{spec.name} epoch {epoch}/{cfg.train.epochs}", progress, ema)
         va = evaluate(scored, iter_batches(spec.arrays, spec.val_idx, spec.batch_size), spec.terms_fn,
                       spec.weights, device, n_val_batches, f"{spec.name} val", progress)
-        metric = va["loss"] if len(spec.val_idx) else tr["loss"]
+        metric = va[select_key] if len(spec.val_idx) else tr[select_key]
         state["curves"].append({"epoch": epoch, **{f"train_{k}": v for k, v in tr.items()},
                                 **{f"val_{k}": v for k, v in va.items()},
                                 "seconds": time.perf_counter() - t0})
@@ -296,6 +297,18 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     write_curves(out_dir, spec.name, state["curves"], plot=True)
     return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
                        state["best_metric"], state["curves"])
+
+
+SELECT_ON = ("loss", "kl")
+"""Values of train.select_on."""
+
+
+def selection_key(select_on: str, weights: dict[str, float]) -> str:
+    """The loss term that picks the best epoch: ``select_on`` when the net has that term (Dis-Net's
+    'kl'), else the weighted total 'loss' (RSS-Net has one term). ConfigError for unknown values."""
+    if select_on not in SELECT_ON:
+        raise ConfigError(f"train.select_on must be one of {SELECT_ON}, got {select_on!r}")
+    return select_on if select_on in weights else "loss"
 
 
 def unit_interval(key: str, value: float, include_one: bool = True) -> float:
@@ -433,7 +446,8 @@ def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: boo
 
 def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
-    common = ["train.lr", "train.seed", "train.weight_decay", "train.lr_schedule", "train.ema_decay"]
+    common = ["train.lr", "train.seed", "train.weight_decay", "train.lr_schedule", "train.ema_decay",
+              "train.select_on"]
     if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
         common.append("train.epochs")
     if net == "disnet":

@@ -30,7 +30,8 @@ CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "d
                "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr", "train.batch_size",
                "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points", "radar.rss_min",
                "radar.rss_max", "train.weight_decay", "train.flip", "train.lr_schedule",
-               "train.count_grad_scale", "train.cutmix", "train.ema_decay")
+               "train.count_grad_scale", "train.cutmix", "train.ema_decay",
+               "train.select_on")
 
 
 def frame_table(inputs) -> dict[str, np.ndarray]:

@@ -210,6 +210,31 @@ def test_ema_weights_are_the_ones_validated_and_saved_as_best(tmp_path):
     assert m["loss"] == pytest.approx(res.curves[res.best_epoch - 1]["val_loss"], rel=1e-4)
 
 
+def test_select_on_picks_the_best_epoch_by_that_validation_loss(tmp_path):
+    """train.select_on=kl: Dis-Net's best epoch minimises the val L_KL (the map), not L; RSS-Net,
+    which has no KL, keeps its loss; unknown values are refused before training."""
+    data = make_disnet_data(n=24)
+    picked = {}
+    for select_on in ("loss", "kl"):
+        cfg = tiny_cfg(**{"train.select_on": select_on, "train.epochs": "4", "train.alpha": "5"})
+        res = T.train_disnet(cfg, data, tmp_path / select_on, progress=False)
+        column = [c[f"val_{select_on}"] for c in res.curves]
+        assert res.best_epoch == int(np.argmin(column)) + 1 and res.best_metric == min(column)
+        picked[select_on] = ([{k: v for k, v in c.items() if k != "seconds"} for c in res.curves], res.best_epoch)
+    assert picked["loss"][0] == picked["kl"][0]  # the same training run, only the choice differs
+    assert picked["loss"][1] != picked["kl"][1]  # and here the two losses disagree on the best epoch
+    assert (tiny_cfg(**{"train.select_on": "kl"}).fingerprint(["train.select_on"])
+            != tiny_cfg().fingerprint(["train.select_on"]))
+    assert T.default_fingerprint(tiny_cfg(**{"train.select_on": "kl"}), "disnet") != T.default_fingerprint(
+        tiny_cfg(), "disnet")
+    rss = T.train_rssnet(tiny_cfg(**{"train.select_on": "kl", "train.epochs": "2"}), make_rss_data(p=120),
+                         tmp_path / "rss", progress=False)
+    assert rss.best_metric == min(c["val_loss"] for c in rss.curves)
+    with pytest.raises(ConfigError, match="train.select_on"):
+        T.train_disnet(tiny_cfg(**{"train.select_on": "val"}), data, tmp_path / "bad", progress=False)
+    assert not (tmp_path / "bad" / "last.safetensors").exists()
+
+
 def test_flip_augmentation_mirrors_image_and_target_together(monkeypatch):
     """With train.flip, a frame drawn for mirroring gives exactly the terms of the mirrored frame."""
     data = make_disnet_data(n=4)
