@@ -219,6 +219,19 @@ class TrainSection:
     """torch CPU threads."""
 
 
+TRAINING_KEYS: dict[str, tuple[str, ...]] = {
+    "common": ("train.lr", "train.seed", "train.weight_decay", "train.lr_schedule", "train.ema_decay",
+               "train.select_on"),
+    "disnet": ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map",
+               "disnet.skips", "radar.max_points", "camera.working_size", "train.batch_size", "train.alpha",
+               "train.flip", "train.count_grad_scale", "train.cutmix"),
+    "rssnet": ("rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
+               "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"),
+}
+"""The config keys that change what a net learns ('common' to both nets; not epochs, device or
+threads): each net's checkpoint fingerprint and the train stage's config keys are built from them."""
+
+
 @dataclass(frozen=True)
 class SynthSection:
     """4D signal generation."""

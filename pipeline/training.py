@@ -32,6 +32,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from pipeline import augment
 from pipeline import checkpoint as ckpt
+from pipeline.config import TRAINING_KEYS
 from pipeline.errors import ConfigError
 from pipeline.models.disnet import DisNet, build_disnet, disnet_kwargs
 from pipeline.models.losses import count_loss, kl_loss, rss_loss
@@ -446,18 +447,10 @@ def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: boo
 
 def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
-    common = ["train.lr", "train.seed", "train.weight_decay", "train.lr_schedule", "train.ema_decay",
-              "train.select_on"]
+    common = list(TRAINING_KEYS["common"])
     if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
         common.append("train.epochs")
-    if net == "disnet":
-        keys = ["disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map",
-                "disnet.skips", "radar.max_points", "camera.working_size", "train.batch_size", "train.alpha",
-                "train.flip", "train.count_grad_scale", "train.cutmix"]
-    else:
-        keys = ["rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
-                "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"]
-    return cfg.fingerprint(keys + common)
+    return cfg.fingerprint(list(TRAINING_KEYS["disnet" if net == "disnet" else "rssnet"]) + common)
 
 
 def _jsonable_arch(kwargs: dict[str, Any]) -> dict[str, Any]:

@@ -79,8 +79,10 @@ def _previous_index(i: int, inputs, seq: np.ndarray, done: np.ndarray) -> int | 
     return j if j >= 0 and seq[j] == seq[i] and done[j] else None
 
 
-def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev) -> dict[str, tuple[np.ndarray, float, np.ndarray | None]]:
-    """(points (N, 5), decided count, map or None) of every method on frame ``i``."""
+def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev,
+                       real_map: np.ndarray) -> dict[str, tuple[np.ndarray, float, np.ndarray | None]]:
+    """(points (N, 5), decided count, map or None) of every method on frame ``i``; ``real_map`` is
+    the frame's real heatmap (H, W)."""
     from pipeline.baselines import METHODS, choose_count, choose_map, choose_rss, ego_motion_transform, \
         lidar_subsample, previous_frame
 
@@ -96,7 +98,7 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev) -> dic
         rng = f.rng(cfg.synth.seed, zlib.crc32(spec.name.encode()))  # one stream per method
         if spec.kind == "map":
             n = choose_count(spec, stats["n_bar"], n_true, n_hat)
-            prob = choose_map(spec, size, stats["mean_map"], pred_map, f.get("heatmaps", "heatmap"))
+            prob = choose_map(spec, size, stats["mean_map"], pred_map, real_map)
             if prob is not None and not prob.sum() > 0:  # no real point in the image: nothing to sample
                 out[spec.name] = (np.zeros((0, 5)), float(n), None)
                 continue
@@ -161,7 +163,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             pred = rssnet_predict(rssnet, patches, ranges, real[:, :4].astype(np.float32))
             rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
         prev = _previous_index(i, inputs, seq, calib_done)
-        methods = _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev)
+        methods = _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev, target)
         for name, (pts, n, prob) in methods.items():
             m = frame_metrics(pts, real, n_hat=n, target_map=target if prob is not None and len(real) else None,
                               pred_map=prob, rss_err=rss_err if name == "model" else float("nan"),

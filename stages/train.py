@@ -18,20 +18,15 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.cache import DONE, RaggedRows
-from pipeline.config import Config
+from pipeline.config import TRAINING_KEYS, Config
 from pipeline.errors import PipelineError
 from pipeline.stage import DatasetStage
 
 VERSION = 2
 """Bump when the training code changes what a net learns: stage outputs and checkpoints are redone."""
 
-CONFIG_KEYS = ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior",
-               "disnet.speed_map", "disnet.skips", "rssnet.use_camera", "rssnet.use_lidar",
-               "rssnet.use_radar_point", "train.nets", "train.epochs", "train.lr", "train.batch_size",
-               "train.rss_batch_size", "train.alpha", "train.seed", "radar.max_points", "radar.rss_min",
-               "radar.rss_max", "train.weight_decay", "train.flip", "train.lr_schedule",
-               "train.count_grad_scale", "train.cutmix", "train.ema_decay",
-               "train.select_on")
+CONFIG_KEYS = tuple(dict.fromkeys(TRAINING_KEYS["disnet"] + TRAINING_KEYS["rssnet"] + TRAINING_KEYS["common"]
+                                  + ("train.nets", "train.epochs")))
 
 
 def frame_table(inputs) -> dict[str, np.ndarray]:
