@@ -1,6 +1,6 @@
 """Dis-Net training augmentations on batches of (image, target map, count) frames.
 
-Both draw from torch's global RNG, whose state every epoch's checkpoint saves, so a resumed run
+All draw from torch's global RNG, whose state every epoch's checkpoint saves, so a resumed run
 draws exactly what an uninterrupted one would.
 
 Shapes: images (B, 3, H, W) float; maps (B, H, W) float, each summing to 1 (the radar-point
@@ -21,6 +21,18 @@ def mirror(images: Tensor, maps: Tensor) -> tuple[Tensor, Tensor]:
     flipped = (torch.rand(images.shape[0]) < 0.5).to(images.device)
     return (torch.where(flipped[:, None, None, None], images.flip(-1), images),
             torch.where(flipped[:, None, None], maps.flip(-1), maps))
+
+
+def photometric(images: Tensor, strength: float) -> Tensor:
+    """Brightness and contrast jitter: per frame, contrast about the frame's mean grey level and a
+    gain, each a factor drawn from U(1 - strength, 1 + strength); clipped to [0, 1]. Hue and
+    saturation are kept (a surface's colour may tell its material, which the radar sees)."""
+    if strength <= 0.0:
+        return images
+    factors = 1.0 + strength * (2.0 * torch.rand(images.shape[0], 2) - 1.0)
+    contrast, gain = (f.to(images.device, images.dtype)[:, None, None, None] for f in factors.unbind(1))
+    grey = images.mean(dim=(1, 2, 3), keepdim=True)
+    return (((images - grey) * contrast + grey) * gain).clamp(0.0, 1.0)
 
 
 def cutmix(images: Tensor, maps: Tensor, counts: Tensor, prob: float) -> tuple[Tensor, Tensor, Tensor]:

@@ -196,6 +196,12 @@ class TrainSection:
     """Dis-Net: factor on the gradient that L_n sends from the number branch into the shared
     backbone (1: the paper; 0: the backbone learns from L_KL only, the number branch still from
     L_n). Forward values are unchanged."""
+    count_refit_epochs: int = 0
+    """Dis-Net: after training, refit the number branch alone on the best epoch's frozen backbone
+    features for this many passes over the training frames (Adam, train.lr, train.batch_size),
+    keeping the pass with the lowest val L_n (pass 0: the weights as trained); 0: off (the paper).
+    The map is unchanged. Holds the pooled features of the train and val frames in memory
+    (C x 90 floats per frame, 184 kB at disnet.width 64)."""
     lr_schedule: str = "constant"
     """'constant' (the paper) or 'cosine': epoch e of E trains at lr (1 + cos(pi (e - 1) / E)) / 2."""
     weight_decay: float = 0.0
@@ -205,6 +211,12 @@ class TrainSection:
     cutmix: float = 0.0
     """Dis-Net augmentation: probability per frame of pasting a random box of another frame of the
     batch, targets mixed accordingly (pipeline.augment.cutmix); 0: off (the paper)."""
+    jitter: float = 0.0
+    """Dis-Net augmentation: per-frame brightness and contrast factors from U(1 - jitter, 1 + jitter)
+    (pipeline.augment.photometric); 0: off (the paper)."""
+    map_dropout: float = 0.0
+    """Dis-Net: in training, drop whole channels of the features the distribution branch decodes
+    with this probability (spatial dropout); 0: off (the paper)."""
     ema_decay: float = 0.0
     """Both nets: validate, select and save an exponential moving average of the weights, updated
     after every optimiser step with this decay (e.g. 0.95); 0: the trained weights (the paper)."""
@@ -224,7 +236,8 @@ TRAINING_KEYS: dict[str, tuple[str, ...]] = {
                "train.select_on"),
     "disnet": ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map",
                "disnet.skips", "radar.max_points", "camera.working_size", "train.batch_size", "train.alpha",
-               "train.flip", "train.count_grad_scale", "train.cutmix"),
+               "train.flip", "train.count_grad_scale", "train.cutmix", "train.count_refit_epochs",
+               "train.jitter", "train.map_dropout"),
     "rssnet": ("rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
                "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"),
 }

@@ -431,9 +431,10 @@ def _disnet_inputs(batch: Batch, device: torch.device) -> tuple[Tensor, Tensor]:
 
 
 def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: bool = False,
-                 cutmix: float = 0.0) -> dict[str, Tensor]:
-    """Per-frame L_KL ('kl') and L_n ('n') of one batch; in training mode, ``flip`` mirrors and
-    ``cutmix`` mixes frames (pipeline.augment), in that order."""
+                 cutmix: float = 0.0, jitter: float = 0.0) -> dict[str, Tensor]:
+    """Per-frame L_KL ('kl') and L_n ('n') of one batch; in training mode, ``flip`` mirrors,
+    ``cutmix`` mixes frames and ``jitter`` varies brightness and contrast (pipeline.augment), in
+    that order."""
     img, speed = _disnet_inputs(batch, device)
     target = torch.from_numpy(np.asarray(batch["heatmaps"], np.float32)).to(device)
     counts = torch.from_numpy(np.asarray(batch["counts"], np.float32)).to(device)
@@ -441,6 +442,8 @@ def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: boo
         img, target = augment.mirror(img, target)
     if model.training and cutmix > 0:
         img, target, counts = augment.cutmix(img, target, counts, cutmix)
+    if model.training and jitter > 0:
+        img = augment.photometric(img, jitter)
     log_map, n_hat = model(img, speed)
     return {"kl": kl_loss(log_map, target), "n": count_loss(n_hat, counts)}
 
@@ -495,20 +498,109 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     model = build_disnet(cfg)
     model.count_grad_scale = unit_interval("train.count_grad_scale", cfg.train.count_grad_scale)
     mix = unit_interval("train.cutmix", cfg.train.cutmix)
+    jitter = unit_interval("train.jitter", cfg.train.jitter)
+    model.map_dropout = unit_interval("train.map_dropout", cfg.train.map_dropout, include_one=False)
+    if int(cfg.train.count_refit_epochs) < 0:
+        raise ConfigError(f"train.count_refit_epochs must be >= 0, got {cfg.train.count_refit_epochs}")
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
         train_idx=_checked_idx(data.train_idx, "train_idx", arrays, False),
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.train.batch_size,
-        terms_fn=functools.partial(disnet_terms, flip=bool(cfg.train.flip), cutmix=mix),
+        terms_fn=functools.partial(disnet_terms, flip=bool(cfg.train.flip), cutmix=mix, jitter=jitter),
         weights={"kl": 1.0, "n": float(cfg.train.alpha)})
     _check_disnet_data(cfg, data, np.concatenate([spec.train_idx, spec.val_idx]))
     if cfg.disnet.prior:
         prior = data.prior_map if data.prior_map is not None else mean_map_baseline(data.heatmaps, spec.train_idx)
         model.set_prior(prior)
         model.set_count_prior(float(np.mean(take_rows(data.counts, spec.train_idx))))
-    return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
+    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
+    if int(cfg.train.count_refit_epochs) > 0:
+        _refit_best_count(cfg, spec, res.best_path, progress)
+    return res
+
+
+def _refit_best_count(cfg, spec: _NetSpec, best: Path, progress: bool) -> None:
+    """Refit the number branch of the best checkpoint (refit_count_branch) unless it already was:
+    a new best epoch writes a checkpoint without the 'count_refit' record. The checkpoint is
+    replaced atomically, so a kill during the refit leaves the trained weights to refit again."""
+    epochs = int(cfg.train.count_refit_epochs)
+    tensors, meta = ckpt.load_checkpoint(best)
+    if "count_refit" in meta:
+        return
+    model = spec.model
+    model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
+    device = select_device(cfg.train.device)
+    select_idx = spec.val_idx if len(spec.val_idx) else spec.train_idx
+    record = refit_count_branch(model, spec.arrays, spec.train_idx, select_idx, epochs, cfg.train.lr,
+                                cfg.train.batch_size, cfg.train.seed, device, progress)
+    record["selection"] = "val" if len(spec.val_idx) else "train"
+    log.info("disnet: number branch refit, %s L_n %.4f -> %.4f (pass %d of %d)", record["selection"],
+             record["select_n_before"], record["select_n_after"], record["best_pass"], epochs)
+    ckpt.save_checkpoint(best, ckpt.model_tensors(model), {**meta, "count_refit": record})
+
+
+def refit_count_branch(model: DisNet, arrays: dict[str, Any], train_idx: np.ndarray, select_idx: np.ndarray,
+                       epochs: int, lr: float, batch_size: int, seed: int, device: torch.device,
+                       progress: bool = False) -> dict[str, Any]:
+    """Train ``model``'s number branch alone (DisNet.count_parameters) on L_n over ``train_idx``
+    for ``epochs`` passes, on the frozen backbone's pooled features (computed once, eval mode), and
+    leave it at the pass with the lowest mean L_n over ``select_idx`` (pass 0: as given).
+
+    ``arrays`` holds 'images' (N, H, W, 3) uint8, 'counts' (N,) and 'speeds' (N,) m/s. Returns the
+    record: best_pass, select_n_before / _after and the per-pass curve of the selection L_n.
+    """
+    model.to(device).eval()
+    sets = {name: _count_inputs(model, arrays, np.asarray(idx, np.int64), device)
+            for name, idx in (("train", train_idx), ("select", select_idx))}
+    params = model.count_parameters()
+    saved = {id(p): p.detach().clone() for p in params}
+    optimizer = torch.optim.Adam(params, lr=lr)
+    rng = np.random.default_rng(seed)
+
+    def select_n() -> float:
+        with torch.no_grad():
+            grid, speed, counts = sets["select"]
+            return float(count_loss(model.count_from_grid(grid, speed), counts).mean())
+
+    curve = [select_n()]
+    best_pass = 0
+    n_train = len(sets["train"][2])
+    for k in _progress(range(1, epochs + 1), epochs, "disnet count refit", progress):
+        order = torch.from_numpy(rng.permutation(n_train))
+        for start in range(0, n_train, batch_size):
+            rows = order[start:start + batch_size]
+            grid, speed, counts = (t[rows] for t in sets["train"])
+            loss = count_loss(model.count_from_grid(grid, speed), counts).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+        curve.append(select_n())
+        if curve[-1] < curve[best_pass]:
+            best_pass = k
+            saved = {id(p): p.detach().clone() for p in params}
+    with torch.no_grad():
+        for p in params:
+            p.copy_(saved[id(p)])
+    return {"epochs": epochs, "best_pass": best_pass, "select_n_before": curve[0],
+            "select_n_after": curve[best_pass], "curve": curve}
+
+
+@torch.no_grad()
+def _count_inputs(model: DisNet, arrays: dict[str, Any], idx: np.ndarray, device: torch.device,
+                  batch: int = 8) -> tuple[Tensor, Tensor, Tensor]:
+    """(pooled features (N, C, 5, 18), speeds (N,), counts (N,)) of frames ``idx`` on ``device``."""
+    grids, speeds, counts = [], [], []
+    sub = {k: arrays[k] for k in ("images", "speeds", "counts")}
+    for b in iter_batches(sub, idx, batch):
+        img, speed = _disnet_inputs(b, device)
+        grids.append(model.count_grid_features(img))
+        speeds.append(speed)
+        counts.append(torch.from_numpy(np.asarray(b["counts"], np.float32)).to(device))
+    if not grids:
+        raise ValueError("refit_count_branch: no frames to refit on")
+    return torch.cat(grids), torch.cat(speeds), torch.cat(counts)
 
 
 # ------------------------------------------------------------------------------- RSS-Net

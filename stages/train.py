@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.cache import DONE, RaggedRows
+from pipeline.checkpoint import read_meta
 from pipeline.config import TRAINING_KEYS, Config
 from pipeline.errors import PipelineError
 from pipeline.stage import DatasetStage
@@ -123,6 +124,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         summary["disnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from,
                              "val": res.best_metric,
                              "test": disnet_metrics(model, d_data, idx["test"], cfg.train.alpha) if len(idx["test"]) else {}}
+        refit = read_meta(res.best_path).get("count_refit")
+        if refit:
+            summary["disnet"]["count_refit"] = {k: v for k, v in refit.items() if k != "curve"}
     if "rssnet" in nets:
         r_data = rssnet_data(inputs, table, 0, 1)
         res = train_rssnet(cfg, r_data, root / "rssnet", progress=inputs.progress,

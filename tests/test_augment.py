@@ -72,3 +72,16 @@ def test_mirror_flips_image_and_map_of_the_drawn_frames(monkeypatch):
     for i, flipped in enumerate((True, False, True)):
         assert torch.equal(out_img[i], images[i].flip(-1) if flipped else images[i])
         assert torch.equal(out_map[i], maps[i].flip(-1) if flipped else maps[i])
+
+
+def test_photometric_is_a_per_frame_contrast_and_gain_within_the_strength(monkeypatch):
+    images, _, _ = _frames()
+    assert augment.photometric(images, 0.0) is images
+    # frame 0: contrast 1.2, gain 0.8; frame 1: both 1; frame 2: contrast 0.8, gain 1.2
+    _draws(monkeypatch, [[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]])
+    out = augment.photometric(images, 0.2)
+    for i, (c, g) in enumerate(((1.2, 0.8), (1.0, 1.0), (0.8, 1.2))):
+        grey = images[i].mean()
+        torch.testing.assert_close(out[i], (((images[i] - grey) * c + grey) * g).clamp(0, 1))
+    torch.testing.assert_close(out[1], images[1])
+    assert out.min() >= 0 and out.max() <= 1

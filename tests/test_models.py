@@ -187,6 +187,47 @@ def test_disnet_count_grad_scale_scales_only_the_backbone_gradient(scale):
             torch.testing.assert_close(scaled[k], full[k] * scale, rtol=1e-4, atol=1e-8)
 
 
+@pytest.mark.parametrize("use_speed", [True, False])
+def test_disnet_number_branch_from_pooled_features(use_speed):
+    """count_from_grid(count_grid_features(x)) is forward's n_hat; pooling before the 1x1
+    convolution equals the authors' convolution before pooling (12 x 20 cells onto 5 x 18)."""
+    torch.manual_seed(0)
+    model = DisNet(width=8, use_speed=use_speed, max_points=50, out_hw=(48, 80)).eval()
+    torch.nn.init.normal_(model.count_head.weight)
+    img, speed = torch.rand(2, 3, 384, 640), torch.tensor([3.0, 12.0])
+    _, n_hat = model(img, speed)
+    grid = model.count_grid_features(img)
+    assert grid.shape == (2, 64, 5, 18)
+    torch.testing.assert_close(model.count_from_grid(grid, speed), n_hat)
+    feat = model.backbone((img - model.mean) / model.std)
+    assert feat.shape[-2:] == (12, 20)
+    conv_first = torch.nn.functional.adaptive_avg_pool2d(model.count_conv(feat), (5, 18))
+    torch.testing.assert_close(model.count_conv(grid), conv_first, rtol=1e-5, atol=1e-6)
+    names = {n for n, p in model.named_parameters() if any(p is q for q in model.count_parameters())}
+    assert names == {n for n, _ in model.named_parameters() if n.startswith(("count_", "speed_fc"))}
+    assert len(names) == (8 if use_speed else 6)
+
+
+def test_disnet_map_dropout_acts_on_the_map_in_training_only():
+    torch.manual_seed(0)
+    model = DisNet(width=8, use_speed=True, max_points=50, out_hw=(32, 64))
+    torch.nn.init.normal_(model.decoder[-1].weight)
+    img, speed = torch.rand(2, 3, 32, 64), torch.tensor([3.0, 12.0])
+    model.eval()
+    ref_map, ref_n = model(img, speed)
+    model.map_dropout = 0.5
+    eval_map, eval_n = model(img, speed)
+    assert torch.equal(eval_map, ref_map) and torch.equal(eval_n, ref_n)
+    model.train()
+    model.map_dropout = 0.0
+    torch.manual_seed(1)
+    plain_map, plain_n = model(img, speed)
+    model.map_dropout = 0.5
+    torch.manual_seed(1)
+    drop_map, drop_n = model(img, speed)
+    assert torch.equal(drop_n, plain_n) and not torch.allclose(drop_map, plain_map)
+
+
 def test_build_disnet_loads_backbone_weights(tmp_path):
     torch.manual_seed(3)
     state = ResNet18Backbone(64).state_dict()

@@ -128,7 +128,8 @@ def test_disnet_data_errors(tmp_path):
 
 @pytest.mark.parametrize("extra", [{}, {"train.flip": "true", "train.weight_decay": "0.01",
                                          "train.lr_schedule": "cosine", "train.count_grad_scale": "0.1"},
-                                   {"train.cutmix": "0.5", "train.ema_decay": "0.8"}])
+                                   {"train.cutmix": "0.5", "train.ema_decay": "0.8", "train.jitter": "0.3",
+                                    "train.map_dropout": "0.2"}])
 def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
     monkeypatch.setattr(T, "WINDOW_BATCHES", 1)          # one read per batch: kill mid-epoch
     data = make_disnet_data(n=20)                        # 15 train frames = 4 batches, 5 val = 2: 6 reads per epoch
@@ -177,10 +178,10 @@ def test_count_grad_scale_is_checked_and_fingerprinted(tmp_path):
     assert T.default_fingerprint(scaled, "rssnet") == T.default_fingerprint(tiny_cfg(), "rssnet")
 
 
-def test_cutmix_and_ema_are_checked_and_fingerprinted(tmp_path):
+def test_augmentation_dropout_and_ema_are_checked_and_fingerprinted(tmp_path):
     data = make_disnet_data(n=8)
     for key, bad in (("train.cutmix", "1.5"), ("train.cutmix", "nan"), ("train.ema_decay", "1"),
-                     ("train.ema_decay", "-0.1")):
+                     ("train.ema_decay", "-0.1"), ("train.jitter", "1.5"), ("train.map_dropout", "1")):
         with pytest.raises(ConfigError, match=key.split(".")[1]):
             T.train_disnet(tiny_cfg(**{key: bad}), data, tmp_path)
     mixed, averaged = tiny_cfg(**{"train.cutmix": "0.5"}), tiny_cfg(**{"train.ema_decay": "0.9"})
@@ -188,6 +189,10 @@ def test_cutmix_and_ema_are_checked_and_fingerprinted(tmp_path):
     assert T.default_fingerprint(mixed, "rssnet") == T.default_fingerprint(tiny_cfg(), "rssnet")
     for net in ("disnet", "rssnet"):
         assert T.default_fingerprint(averaged, net) != T.default_fingerprint(tiny_cfg(), net)
+    for key in ("train.jitter", "train.map_dropout"):
+        changed = tiny_cfg(**{key: "0.2"})
+        assert T.default_fingerprint(changed, "disnet") != T.default_fingerprint(tiny_cfg(), "disnet")
+        assert T.default_fingerprint(changed, "rssnet") == T.default_fingerprint(tiny_cfg(), "rssnet")
 
 
 def test_ema_weights_are_the_ones_validated_and_saved_as_best(tmp_path):
@@ -233,6 +238,43 @@ def test_select_on_picks_the_best_epoch_by_that_validation_loss(tmp_path):
     with pytest.raises(ConfigError, match="train.select_on"):
         T.train_disnet(tiny_cfg(**{"train.select_on": "val"}), data, tmp_path / "bad", progress=False)
     assert not (tmp_path / "bad" / "last.safetensors").exists()
+
+
+def test_count_refit_improves_val_L_n_keeps_the_map_and_survives_a_kill(tmp_path):
+    """train.count_refit_epochs: the best checkpoint's number branch is refitted on frozen features
+    and left at the pass with the lowest val L_n (never above the trained one); every other tensor
+    is the trained one; a kill during the refit leaves the trained weights, and the rerun gives the
+    same checkpoint as an uninterrupted run; a finished refit is not repeated."""
+    data = make_disnet_data(n=24)
+    plain = T.train_disnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "plain", progress=False)
+    cfg = tiny_cfg(**{"train.epochs": "2", "train.count_refit_epochs": "30"})
+    fp = T.default_fingerprint(tiny_cfg(**{"train.epochs": "2"}), "disnet")
+    res = T.train_disnet(cfg, data, tmp_path / "refit", progress=False, fingerprint=fp)
+    record = ckpt.read_meta(res.best_path)["count_refit"]
+    before = T.disnet_metrics(T.load_disnet(cfg, plain.best_path), data, data.val_idx, cfg.train.alpha)
+    after = T.disnet_metrics(T.load_disnet(cfg, res.best_path), data, data.val_idx, cfg.train.alpha)
+    assert record["curve"][0] == pytest.approx(before["n"], rel=1e-4)
+    assert record["best_pass"] > 0 and len(record["curve"]) == 31
+    assert after["n"] == pytest.approx(record["select_n_after"], rel=1e-4) and after["n"] < 0.9 * before["n"]
+    assert after["kl"] == pytest.approx(before["kl"], rel=1e-6)
+    a, b = _all_tensors(plain.best_path), _all_tensors(res.best_path)
+    count = [k for k in a if k.split(".")[1] in ("count_conv", "count_fc", "speed_fc", "count_head")]
+    assert len(count) == 8 and any(not torch.equal(a[k], b[k]) for k in count)
+    assert all(torch.equal(a[k], b[k]) for k in a if k not in count)
+    # killed while reading the frames for the refit: the trained best stays, the rerun refits it
+    killed = T.DisNetData(**{**data.__dict__, "images": KilledAfter(data.images, 4)})  # 2 epochs x (train + val)
+    with pytest.raises(KeyboardInterrupt):
+        T.train_disnet(cfg, killed, tmp_path / "killed", progress=False, fingerprint=fp)
+    assert "count_refit" not in ckpt.read_meta(tmp_path / "killed" / "best.safetensors")
+    again = T.train_disnet(cfg, data, tmp_path / "killed", progress=False, fingerprint=fp)
+    c = _all_tensors(again.best_path)
+    assert set(b) == set(c) and all(torch.equal(b[k], c[k]) for k in b)
+    mtime = res.best_path.stat().st_mtime_ns
+    T.train_disnet(cfg, data, tmp_path / "refit", progress=False, fingerprint=fp)
+    assert res.best_path.stat().st_mtime_ns == mtime
+    assert T.default_fingerprint(cfg, "disnet") != fp
+    with pytest.raises(ConfigError, match="count_refit_epochs"):
+        T.train_disnet(tiny_cfg(**{"train.count_refit_epochs": "-1"}), data, tmp_path / "bad", progress=False)
 
 
 def test_flip_augmentation_mirrors_image_and_target_together(monkeypatch):

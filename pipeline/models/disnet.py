@@ -4,11 +4,13 @@
 - Distribution branch: four stride-2 transpose convolutions 8w -> 4w -> 2w -> w -> 1 (BN + ReLU
   after all but the last), bilinear resize to exactly ``out_hw``, log-softmax over all pixels:
   a proper log-probability map (the paper's "sigmoid" is not a distribution).
-- Number branch: 1x1 conv 8w -> 1, adaptive average pool to a fixed 5 x 18 grid (90 values, the
-  authors' FC input size, so any image size works), FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s ->
+- Number branch: adaptive average pool to a fixed 5 x 18 grid, 1x1 conv 8w -> 1 (90 values, the
+  authors' FC input size, so any image size works; the same as their conv-then-pool), FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s ->
   FC 1 -> 12 + ReLU (dropped when ``use_speed`` is False); concat -> FC -> sigmoid * max_points.
   ``count_grad_scale`` (a training setting, not saved with the architecture) scales the gradient
-  the number branch sends back into the backbone.
+  the number branch sends back into the backbone. ``map_dropout`` (also a training setting)
+  zeroes whole channels of the features the distribution branch decodes with that probability
+  in training mode (spatial dropout, Tompson et al. 2015); the number branch is not affected.
 - ``speed_map`` (an extension of the paper): the features the distribution branch decodes are
   modulated by the ego speed, F * (1 + gamma(s)) + beta(s) per channel (FiLM, Perez et al. 2018),
   gamma and beta from an MLP 1 -> 32 -> 2 * 8w whose last layer starts at zero (so training starts
@@ -84,6 +86,7 @@ class DisNet(nn.Module):
         self.speed_fc = nn.Linear(1, 12) if use_speed else None
         self.count_head = nn.Linear(24 if use_speed else 12, 1)
         self.count_grad_scale = 1.0
+        self.map_dropout = 0.0
 
     def forward(self, image: Tensor, speed_mps: Tensor | None = None) -> tuple[Tensor, Tensor]:
         b = image.shape[0]
@@ -93,18 +96,37 @@ class DisNet(nn.Module):
         if self.speed_film is not None:
             gamma, beta = self.speed_film(_speed_input(speed_mps, b, feat.dtype, "speed_map")).chunk(2, dim=1)
             map_feat = feat * (1 + gamma[:, :, None, None]) + beta[:, :, None, None]
+        if self.training and self.map_dropout > 0:                      # whole channels, rescaled
+            map_feat = F.dropout2d(map_feat, self.map_dropout)
         logits = self._decode(map_feat, pyramid)                        # (B, 1, H/2, W/2)
         logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
         logits = logits + self.prior_logits                             # (B, 1, H, W)
         log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
         count_feat = _scale_grad(feat, self.count_grad_scale)           # same values, scaled gradient
-        grid = F.adaptive_avg_pool2d(self.count_conv(count_feat), COUNT_GRID)  # (B, 1, 5, 18)
+        return log_map, self.count_from_grid(F.adaptive_avg_pool2d(count_feat, COUNT_GRID), speed_mps)
+
+    def count_from_grid(self, grid_feat: Tensor, speed_mps: Tensor | None = None) -> Tensor:
+        """The number branch after pooling: backbone features pooled to COUNT_GRID (B, C, 5, 18)
+        (+ speed (B,) m/s) -> n_hat (B,). Pooling first is exact: the 1x1 convolution is affine
+        per cell and the adaptive average pool averages cells."""
+        b = grid_feat.shape[0]
+        grid = self.count_conv(grid_feat)                               # (B, 1, 5, 18)
         code = F.relu(self.count_fc(grid.reshape(b, -1)))               # (B, 12)
         if self.speed_fc is not None:
             s = _speed_input(speed_mps, b, code.dtype, "use_speed")
             code = torch.cat([code, F.relu(self.speed_fc(s))], dim=1)   # (B, 24)
-        n_hat = torch.sigmoid(self.count_head(code)).squeeze(1) * self.max_points  # (B,)
-        return log_map, n_hat
+        return torch.sigmoid(self.count_head(code)).squeeze(1) * self.max_points  # (B,)
+
+    @torch.no_grad()
+    def count_grid_features(self, image: Tensor) -> Tensor:
+        """What the number branch reads of ``image`` (B, 3, H, W) float [0, 1]: the backbone's
+        1/32 features pooled to COUNT_GRID, (B, C, 5, 18)."""
+        return F.adaptive_avg_pool2d(self.backbone((image - self.mean) / self.std), COUNT_GRID)
+
+    def count_parameters(self) -> list[nn.Parameter]:
+        """The number branch's own parameters (not the shared backbone's)."""
+        modules = [self.count_conv, self.count_fc, self.count_head] + ([self.speed_fc] if self.speed_fc else [])
+        return [p for m in modules for p in m.parameters()]
 
     def _decode(self, feat: Tensor, pyramid: list[Tensor]) -> Tensor:
         """Decoder logits (B, 1, H/2, W/2) from the 1/32 features, plus the lateral skips if any."""
