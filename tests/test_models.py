@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import os
 
 import numpy as np
 import pytest
@@ -348,3 +349,21 @@ def test_disnet_priors_start_at_the_baselines():
     np.testing.assert_allclose(n_hat.detach().numpy(), [123.0, 123.0], rtol=1e-5)
     with pytest.raises(ValueError, match="expected shape"):
         model.set_prior(np.ones((3, 3)))
+
+
+def test_importing_the_package_keeps_onednn_off_its_avx512_kernels():
+    """pipeline/__init__ caps oneDNN at AVX2 (its AVX-512 1x1-convolution weight gradient segfaults
+    on some AMD EPYC machines), even when torch was imported first; a user's setting wins."""
+    import subprocess
+    import sys
+
+    code = ("import torch\nimport pipeline\ntorch.set_num_threads(2)\n"  # one thread takes torch's own kernels
+            "x = torch.rand(2, 16, 20, 20, requires_grad=True)\ntorch.nn.Conv2d(16, 32, 1)(x).sum().backward()\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("ONEDNN_MAX_CPU_ISA", "OMP_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "ONEDNN_VERBOSE": "1"},
+                         capture_output=True, text=True, check=True)
+    out = out.stdout + out.stderr
+    assert "onednn_verbose" in out and "avx512" not in out
+    assert subprocess.run([sys.executable, "-c", "import os, pipeline; print(os.environ['ONEDNN_MAX_CPU_ISA'])"],
+                          env={**env, "ONEDNN_MAX_CPU_ISA": "ALL"}, capture_output=True, text=True,
+                          check=True).stdout.strip() == "ALL"
