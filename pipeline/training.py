@@ -7,7 +7,9 @@ one window of batches at a time (sorted reads, one chunk-group order per epoch),
 Files in ``out_dir`` (one folder per net; a folder holding the other net's checkpoint is refused):
 ``last.safetensors`` (+ ``last.json`` sidecar): weights, optimizer, RNG, epoch, curves - the
 resume point, written last in every epoch; ``best.safetensors`` (+ ``best.json``): weights of the
-epoch with the lowest validation loss; ``curves.csv`` / ``curves.json`` / ``curves.png``.
+epoch with the lowest validation loss (with train.count_refit_epochs, Dis-Net's number branch then
+refitted on that epoch's backbone; its meta holds the 'count_refit' record); ``curves.csv`` /
+``curves.json`` / ``curves.png``.
 Resuming is the default: a last checkpoint with the same fingerprint and architecture continues
 from its epoch and ends with exactly the weights of an uninterrupted run (same device and threads).
 """
