@@ -9,5 +9,7 @@ __version__ = "0.1.0"
 # gdb: jit_avx512_common_1x1_convolution_bwd_weights_t). Its AVX2 kernels train as fast here
 # (0.73 vs 0.71 s per Dis-Net step). Read by oneDNN at its first primitive, so it holds wherever
 # the package is imported before training starts, dask workers included (they inherit os.environ).
-# Set ONEDNN_MAX_CPU_ISA yourself (e.g. to ALL) to override.
+# Set ONEDNN_MAX_CPU_ISA yourself (e.g. to ALL) to override. This is the package's one piece of
+# work at import time, on purpose: oneDNN reads the variable once, so setting it later (when
+# training starts) would come too late in a process that already ran a convolution.
 os.environ.setdefault("ONEDNN_MAX_CPU_ISA", "AVX2")

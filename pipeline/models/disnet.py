@@ -5,8 +5,9 @@
   after all but the last), bilinear resize to exactly ``out_hw``, log-softmax over all pixels:
   a proper log-probability map (the paper's "sigmoid" is not a distribution).
 - Number branch: adaptive average pool to a fixed 5 x 18 grid, 1x1 conv 8w -> 1 (90 values, the
-  authors' FC input size, so any image size works; the same as their conv-then-pool), FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s ->
-  FC 1 -> 12 + ReLU (dropped when ``use_speed`` is False); concat -> FC -> sigmoid * max_points.
+  authors' FC input size, so any image size works; the same function as their conv-then-pool),
+  FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s -> FC 1 -> 12 + ReLU (dropped when ``use_speed`` is
+  False); concat -> FC -> sigmoid * max_points.
   ``count_grad_scale`` (a training setting, not saved with the architecture) scales the gradient
   the number branch sends back into the backbone. ``map_dropout`` (also a training setting)
   zeroes whole channels of the features the distribution branch decodes with that probability
@@ -125,8 +126,8 @@ class DisNet(nn.Module):
 
     def count_parameters(self) -> list[nn.Parameter]:
         """The number branch's own parameters (not the shared backbone's)."""
-        modules = [self.count_conv, self.count_fc, self.count_head] + ([self.speed_fc] if self.speed_fc else [])
-        return [p for m in modules for p in m.parameters()]
+        modules = [self.count_conv, self.count_fc, self.count_head, self.speed_fc]
+        return [p for m in modules if m is not None for p in m.parameters()]
 
     def _decode(self, feat: Tensor, pyramid: list[Tensor]) -> Tensor:
         """Decoder logits (B, 1, H/2, W/2) from the 1/32 features, plus the lateral skips if any."""
