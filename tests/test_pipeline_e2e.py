@@ -94,3 +94,18 @@ def check_export_round_trip(pipe: Pipeline, world: Path, cache: Path) -> None:
     assert checked >= 3
     sets = {p.stem: p.read_text().split() for p in (export / "radar" / "ImageSets").glob("*.txt")}
     assert sorted(sum(sets.values(), [])) == sorted(ids[int(i)] for i in np.flatnonzero(syn.status() == DONE))
+
+
+def test_train_stage_reports_the_count_refit(world, tmp_path):
+    """With train.count_refit_epochs the train stage's metrics.json says what the refit did
+    (the per-pass curve stays in the checkpoint's meta), and its test L_n is the refitted model's."""
+    cfg = load_config("synthetic", {**TINY, "train.nets": "disnet", "train.count_refit_epochs": "3"}, environ={})
+    env = RunEnv(cfg, str(tmp_path / "cache"), "synthetic", str(world))
+    with Executor(1, progress=False) as ex:
+        Pipeline(all_stages(), env, ex, progress=False, log=lambda m: None).run("train")
+    summary = json.loads((tmp_path / "cache" / "synthetic" / "train" / "metrics.json").read_text())
+    refit = summary["disnet"]["count_refit"]
+    assert refit["epochs"] == 3 and 0 <= refit["best_pass"] <= 3 and "curve" not in refit
+    assert refit["select_n_after"] <= refit["select_n_before"]
+    assert refit["selection"] in ("val", "train")
+    assert "rssnet" not in summary
