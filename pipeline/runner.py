@@ -4,7 +4,8 @@ stale (fingerprint changed) or incomplete.
 A stage's fingerprint hashes its name and version, the configuration keys it declares, the
 fingerprints of its upstream stages and, for the first stage, the dataset listing. A stage whose
 stored fingerprint differs is recomputed from scratch; one that matches only processes the frames
-still pending.
+still pending. A stage rebuilt under an unchanged fingerprint (forced, or its output deleted)
+marks the downstream outputs made from its old output stale.
 """
 
 from __future__ import annotations
@@ -159,6 +160,7 @@ class Pipeline:
             lock_url = join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
             with stage_lock(lock_url, f"stage '{name}' of dataset '{self.env.dataset}'", wait_s):
                 t0 = time.perf_counter()
+                rebuilt = (force and name == target) or not self.is_current(name)
                 if isinstance(stage, FrameStage):
                     report = self._run_frames(stage, frames, strict, force and name == target, retry_failed)
                 else:
@@ -166,7 +168,7 @@ class Pipeline:
                 report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
-            if force and name == target:
+            if rebuilt:  # new outputs under a fingerprint that downstream outputs may already carry
                 self.invalidate_downstream(name)
             if strict and report.failed:
                 raise FrameError(name, "?", f"{report.failed} frame(s) failed; first: {report.failures[0]}")
@@ -181,14 +183,16 @@ class Pipeline:
         return [n for n in self.order if n in out]
 
     def invalidate_downstream(self, name: str) -> None:
-        """After a forced recompute of ``name`` its fingerprint is unchanged, yet its outputs are
-        new: mark every downstream output stale so that the next run recomputes it."""
+        """After ``name`` was rebuilt (forced, or its output was missing, e.g. deleted by hand, or
+        stale) its fingerprint may equal the one its downstream outputs were made from, yet its
+        outputs are new (training is not bit-reproducible across thread counts): mark every
+        downstream output stale so that the next run recomputes it."""
         for other in self.downstream(name):
             stage = self.stages[other]
             store = self.env.store(other) if isinstance(stage, FrameStage) else self.env.dir(other)
-            if store.fingerprint() is not None:
+            if store.fingerprint() == self.fingerprint(other):  # would pass as current; others are stale already
                 store.invalidate()
-                self.log(f"{other:<11} marked stale (upstream {name} was recomputed with --force)")
+                self.log(f"{other:<11} marked stale (upstream {name} was recomputed)")
 
     def _ensure_created(self, stage: FrameStage, force: bool) -> bool:
         store = self.env.store(stage.name)

@@ -163,6 +163,25 @@ def test_cli_help_and_errors():
     assert missing.exit_code == 2 and "--data-root" in missing.output
 
 
+def test_a_stage_rebuilt_after_its_output_was_deleted_marks_downstream_stale(tmp_path, monkeypatch):
+    """Deleting a stage's output by hand and running again rebuilds it under the same fingerprint;
+    the outputs made from the old one must not pass as current (they did before 2026-12-01)."""
+    import shutil
+
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    pipe = make_pipeline(tmp_path)
+    pipe.run("train")
+    shutil.rmtree(pipe.env.store("heatmaps").url)
+    assert make_pipeline(tmp_path).is_current("train")  # by fingerprint alone it looks current
+    reports = {r.stage: r for r in make_pipeline(tmp_path).run("train")}
+    assert reports["calibrate"].processed == 0
+    assert reports["heatmaps"].processed == len(IDS)
+    assert reports["train"].summary["message"] != "up to date"
+    again = {r.stage: r for r in make_pipeline(tmp_path).run("train")}  # and then all is current
+    assert again["heatmaps"].processed == 0 and again["train"].summary["message"] == "up to date"
+
+
 def test_force_recompute_marks_downstream_stale(tmp_path, monkeypatch):
     log = tmp_path / "calls.txt"
     monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
