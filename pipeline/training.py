@@ -502,8 +502,9 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     mix = unit_interval("train.cutmix", cfg.train.cutmix)
     jitter = unit_interval("train.jitter", cfg.train.jitter)
     model.map_dropout = unit_interval("train.map_dropout", cfg.train.map_dropout, include_one=False)
-    if int(cfg.train.count_refit_epochs) < 0:
-        raise ConfigError(f"train.count_refit_epochs must be >= 0, got {cfg.train.count_refit_epochs}")
+    refit_epochs = int(cfg.train.count_refit_epochs)
+    if refit_epochs < 0:
+        raise ConfigError(f"train.count_refit_epochs must be >= 0, got {refit_epochs}")
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
         name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
@@ -518,16 +519,15 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
         model.set_prior(prior)
         model.set_count_prior(float(np.mean(take_rows(data.counts, spec.train_idx))))
     res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
-    if int(cfg.train.count_refit_epochs) > 0:
-        _refit_best_count(cfg, spec, res.best_path, progress)
+    if refit_epochs > 0:
+        _refit_best_count(cfg, spec, res.best_path, refit_epochs, progress)
     return res
 
 
-def _refit_best_count(cfg, spec: _NetSpec, best: Path, progress: bool) -> None:
+def _refit_best_count(cfg, spec: _NetSpec, best: Path, epochs: int, progress: bool) -> None:
     """Refit the number branch of the best checkpoint (refit_count_branch) unless it already was:
     a new best epoch writes a checkpoint without the 'count_refit' record. The checkpoint is
     replaced atomically, so a kill during the refit leaves the trained weights to refit again."""
-    epochs = int(cfg.train.count_refit_epochs)
     tensors, meta = ckpt.load_checkpoint(best)
     if "count_refit" in meta:
         return
@@ -557,7 +557,7 @@ def refit_count_branch(model: DisNet, arrays: dict[str, Any], train_idx: np.ndar
     sets = {name: _count_inputs(model, arrays, np.asarray(idx, np.int64), device)
             for name, idx in (("train", train_idx), ("select", select_idx))}
     params = model.count_parameters()
-    saved = {id(p): p.detach().clone() for p in params}
+    saved = [p.detach().clone() for p in params]
     optimizer = torch.optim.Adam(params, lr=lr)
     rng = np.random.default_rng(seed)
 
@@ -581,10 +581,10 @@ def refit_count_branch(model: DisNet, arrays: dict[str, Any], train_idx: np.ndar
         curve.append(select_n())
         if curve[-1] < curve[best_pass]:
             best_pass = k
-            saved = {id(p): p.detach().clone() for p in params}
+            saved = [p.detach().clone() for p in params]
     with torch.no_grad():
-        for p in params:
-            p.copy_(saved[id(p)])
+        for p, best in zip(params, saved):
+            p.copy_(best)
     return {"epochs": epochs, "best_pass": best_pass, "select_n_before": curve[0],
             "select_n_after": curve[best_pass], "curve": curve}
 

@@ -91,7 +91,7 @@ class DisNet(nn.Module):
 
     def forward(self, image: Tensor, speed_mps: Tensor | None = None) -> tuple[Tensor, Tensor]:
         b = image.shape[0]
-        pyramid = self.backbone.pyramid((image - self.mean) / self.std)
+        pyramid = self.backbone.pyramid(self._normalise(image))
         feat = pyramid[-1]                                              # (B, C, H/32, W/32)
         map_feat = feat
         if self.speed_film is not None:
@@ -122,7 +122,11 @@ class DisNet(nn.Module):
     def count_grid_features(self, image: Tensor) -> Tensor:
         """What the number branch reads of ``image`` (B, 3, H, W) float [0, 1]: the backbone's
         1/32 features pooled to COUNT_GRID, (B, C, 5, 18)."""
-        return F.adaptive_avg_pool2d(self.backbone((image - self.mean) / self.std), COUNT_GRID)
+        return F.adaptive_avg_pool2d(self.backbone(self._normalise(image)), COUNT_GRID)
+
+    def _normalise(self, image: Tensor) -> Tensor:
+        """RGB in [0, 1] -> ImageNet-normalised backbone input."""
+        return (image - self.mean) / self.std
 
     def count_parameters(self) -> list[nn.Parameter]:
         """The number branch's own parameters (not the shared backbone's)."""
