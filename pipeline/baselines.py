@@ -5,7 +5,8 @@ RSS comes from*; the evaluate stage feeds the map and count of a :class:`Baselin
 same generation function as the model (pixel sampling, range from lidar, Doppler from the ego
 velocity) and then sets RSS as the spec says. Two baselines do not sample pixels:
 ``lidar-subsample`` (lidar points in the radar field of view) and ``previous-frame`` (the previous
-real radar frame moved by the ego motion).
+real radar frame moved by the ego motion). One row is a yardstick, not a method: ``no-points``
+(an empty output) shows what GOSPA charges for the misses alone.
 
 Radar point arrays (k, 5) have columns x_m, y_m, z_m, doppler_mps, rss in {D} (x forward, y left,
 z up); Doppler in the internal convention (range rate, positive receding, wrapped into the radar's
@@ -26,9 +27,9 @@ from pipeline.geometry import radial_velocity, transform_points, wrap_doppler
 from pipeline.metrics import region_mask
 
 MAP_SOURCES = ("model", "uniform", "mean", "real", "none")
-COUNT_SOURCES = ("model", "mean", "oracle", "previous")
-RSS_SOURCES = ("model", "median", "train-dist", "previous")
-KINDS = ("map", "lidar-subsample", "previous-frame")
+COUNT_SOURCES = ("model", "mean", "oracle", "previous", "none")
+RSS_SOURCES = ("model", "median", "train-dist", "previous", "none")
+KINDS = ("map", "lidar-subsample", "previous-frame", "empty")
 
 
 @dataclass(frozen=True)
@@ -41,15 +42,19 @@ class BaselineSpec:
     """'model' (Dis-Net map), 'uniform' (constant map), 'mean' (average training heatmap), 'real' (the
     frame's own real-radar heatmap: a ceiling, not a method), 'none'."""
     count_source: str
-    """'model' (n_hat), 'mean' (training mean count n_bar), 'oracle' (the real count n), 'previous'."""
+    """'model' (n_hat), 'mean' (training mean count n_bar), 'oracle' (the real count n), 'previous',
+    'none' (no points)."""
     rss_source: str
     """'model' (RSS-Net), 'median' (training median), 'train-dist' (drawn from training RSS values),
-    'previous' (kept from the previous frame)."""
+    'previous' (kept from the previous frame), 'none' (no points)."""
     kind: str = "map"
     """'map' (sample pixels from the map, then the model's generation steps), 'lidar-subsample',
-    'previous-frame'."""
+    'previous-frame', 'empty' (no points at all)."""
     description: str = ""
     """One line for the report."""
+    reference: bool = False
+    """A yardstick row, not a competitor: left out of the "does the model beat every baseline"
+    comparison (the ``model-*`` variants are left out by their names)."""
 
     def __post_init__(self) -> None:
         for field_name, allowed in (("map_source", MAP_SOURCES), ("count_source", COUNT_SOURCES),
@@ -82,8 +87,14 @@ METHODS: tuple[BaselineSpec, ...] = (
                  description="n_bar lidar points in the radar field of view, RSS = training median"),
     BaselineSpec("previous-frame", "none", "previous", "previous", kind="previous-frame",
                  description="previous real radar frame moved by the ego motion"),
+    BaselineSpec("no-points", "none", "none", "none", kind="empty", reference=True,
+                 description="an empty output: what GOSPA charges for missing every real point (a yardstick, "
+                             "not a method)"),
 )
 """Every method of the report, model first; ``previous-frame`` only where consecutive frames exist."""
+
+REFERENCE_ROWS: tuple[str, ...] = tuple(s.name for s in METHODS if s.reference)
+"""Rows of :data:`METHODS` that are yardsticks, not baselines the model has to beat."""
 
 
 def method_by_name(name: str) -> BaselineSpec:

@@ -162,7 +162,13 @@ def _match_with_dummies(real_idx: np.ndarray, syn_idx: np.ndarray, weight: np.nd
     return np.asarray(row_ind[keep], np.int64), np.asarray(col_ind[keep], np.int64)
 
 
-def gospa(syn_xyz: np.ndarray, real_xyz: np.ndarray, c: float = 2.0, p: float = 2.0,
+GOSPA_C_M = 2.0
+"""GOSPA cut-off c of the report (EVALUATION.md), metres."""
+GOSPA_P = 2.0
+"""GOSPA order p of the report."""
+
+
+def gospa(syn_xyz: np.ndarray, real_xyz: np.ndarray, c: float = GOSPA_C_M, p: float = GOSPA_P,
           alpha: float = 2.0) -> dict[str, float]:
     """GOSPA (Rahmathullah, Garcia-Fernandez, Svensson 2017) of synthetic (N, 3) vs real (M, 3) points.
 

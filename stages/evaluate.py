@@ -29,9 +29,9 @@ NOMINAL_FRAME_PERIOD_S = 0.1
 MAX_FRAME_GAP_S = 1.0
 """Consecutive frames further apart than this (or going backwards) use the nominal period."""
 
-VERSION = 2
+VERSION = 3
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
-random stream per method)."""
+random stream per method; 3: no-points row)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "radar.doppler_span_mps",
@@ -123,6 +123,8 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev,
             T = ego_motion_transform(pf.get("calibrate", "ego_velocity"), dt)
             pts = np.asarray(previous_frame(_real(pf), T), np.float64)
             out[spec.name] = (pts, float(len(pts)), None)
+        elif spec.kind == "empty":
+            out[spec.name] = (np.zeros((0, 5)), 0.0, None)
     return out
 
 

@@ -33,6 +33,7 @@ def test_methods_table():
     assert B.method_by_name("mean-map").rss_source == "train-dist"
     assert B.method_by_name("uniform").rss_source == "median"
     assert [s.name for s in B.METHODS if s.is_model] == ["model", "model-oracle-count", "model-oracle-map"]
+    assert B.REFERENCE_ROWS == ("no-points",) and B.method_by_name("no-points").kind == "empty"
     real = np.arange(12.0).reshape(3, 4) / 66.0
     assert B.choose_map(B.method_by_name("model-oracle-map"), (4, 3), real_map_hw=real) is real
     with pytest.raises(ValueError, match="real heatmap"):

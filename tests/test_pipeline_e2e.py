@@ -63,6 +63,10 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     # the ceiling row samples the frame's own real heatmap with the real count
     ceiling = report["metrics"]["model-oracle-map"]
     assert ceiling["kl"]["mean"] == 0.0 and ceiling["count_rel_err"]["mean"] == 0.0
+    # the empty yardstick: GOSPA from the missed points alone, no matches
+    empty = report["metrics"]["no-points"]
+    assert empty["gospa_missed"]["mean"] > 0 and empty["gospa_false"]["mean"] == empty["gospa_localisation"]["mean"] == 0
+    assert empty["f1"]["mean"] == 0.0 and "no-points" not in json.dumps(report["model_does_not_beat"])
     for fig in ("fig8.png", "bev.png", "histograms.png"):
         assert (tmp_path / "serial" / "synthetic" / "evaluate" / "figures" / fig).stat().st_size > 10_000
     check_export_round_trip(serial, world, tmp_path / "serial")

@@ -67,6 +67,25 @@ def test_ceiling_sentence_names_the_baselines_a_perfect_map_does_not_beat():
     assert "a better Dis-Net can close these gaps" in text and "lidar-subsample" in text
 
 
+def test_no_points_row_is_a_yardstick_not_a_baseline():
+    rng = np.random.default_rng(3)
+    rows = {"model": _frames(rng, 3, chamfer=2.0, gospa=20.0, f1=0.14),
+            "uniform": _frames(rng, 3, chamfer=2.4, gospa=19.5, f1=0.10),
+            "lidar-subsample": _frames(rng, 3, chamfer=2.1, gospa=21.0, f1=0.13),
+            "no-points": _frames(rng, 3, chamfer=math.nan, gospa=17.0, f1=math.nan)}
+    table = R.aggregate(rows)
+    assert [d["method"] for d in R.model_shortfalls(table)["gospa"]] == ["uniform"]  # not no-points
+    text = R.shortfall_paragraph(table)
+    scale = text[text.index("For scale"):]
+    assert "mean GOSPA of 17 m" in scale and "3 of the 3 other rows score no better" in scale
+    assert "c^p/2 = 2 m^2" in scale
+    rows["no-points"] = _frames(rng, 3, chamfer=math.nan, gospa=20.5, f1=math.nan)
+    scale = R.shortfall_paragraph(R.aggregate(rows))
+    assert "1 of the 3 other rows score no better (`lidar-subsample`)" in scale
+    del rows["no-points"]
+    assert "For scale" not in R.shortfall_paragraph(R.aggregate(rows))
+
+
 def test_write_report_files(tmp_path):
     rng = np.random.default_rng(1)
     per_frame = {"uniform": _frames(rng, 4, 5.0, 20.0, 0.1), "model": _frames(rng, 4, 2.0, 10.0, 0.3),
