@@ -259,6 +259,12 @@ class SynthSection:
     drop) or 'drop'."""
     seed: int = 0
     """Seed of the sampling."""
+    sampling: str = "iid"
+    """How pixels are drawn from the map: 'iid' (independent draws, the paper) or 'systematic'
+    (one stratified draw: every sample still follows the map, with less clumping)."""
+    refill_rounds: int = 0
+    """Draw replacements for samples dropped (no lidar support, outside the field of view, beyond
+    the maximum range) up to this many more times; 0: the paper's single draw."""
     count: str = "predicted"
     """'predicted' (n_hat) or 'oracle' (the real count, for evaluation)."""
 

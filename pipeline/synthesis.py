@@ -35,14 +35,25 @@ NEAREST_CANDIDATES = 16
 # --------------------------------------------------------------------------- pixel sampling
 
 
-def sample_pixels(prob_map: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+SAMPLINGS = ("iid", "systematic")
+"""How ``sample_pixels`` draws: independent draws (the paper) or one stratified (systematic) draw."""
+
+
+def sample_pixels(prob_map: np.ndarray, n: int, rng: np.random.Generator, method: str = "iid") -> np.ndarray:
     """Draw ``n`` continuous pixel positions from a (H, W) probability map (eq. 11).
 
     Inverse-transform sampling with replacement (cumulative sum + searchsorted) over the map's
     non-negative weights (need not sum to 1), then a uniform jitter in [-0.5, 0.5) around the
-    chosen pixel centre. Returns uv (n, 2) float64, u = column, v = row. Raises ValueError for a
-    map with negative or non-finite values or zero total mass (when n > 0).
+    chosen pixel centre. ``method`` 'iid' draws n independent uniforms (the paper); 'systematic'
+    uses (U + k) / n for k = 0..n-1 with one uniform U (systematic resampling): each sample is still
+    distributed as the map, but a region of mass q receives floor(n q) or ceil(n q) of the samples
+    at most one off from its expected share (along the row-major order), instead of a binomial count;
+    the samples are returned in random order. Returns uv (n, 2) float64, u = column, v = row.
+    Raises ValueError for a map with negative or non-finite values, zero total mass (when n > 0)
+    or an unknown method.
     """
+    if method not in SAMPLINGS:
+        raise ValueError(f"sample_pixels: method {method!r} unknown; choose one of {SAMPLINGS}")
     weights = check_shape("prob_map", np.asarray(prob_map, dtype=np.float64), (None, None))
     if n < 0:
         raise ValueError(f"sample_pixels: n must be >= 0, got {n}")
@@ -53,7 +64,8 @@ def sample_pixels(prob_map: np.ndarray, n: int, rng: np.random.Generator) -> np.
     cdf = np.cumsum(weights.ravel())
     if cdf[-1] <= 0:
         raise ValueError("prob_map: total probability mass is zero")
-    flat = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
+    u = rng.random(n) if method == "iid" else rng.permutation((rng.random() + np.arange(n)) / n)
+    flat = np.searchsorted(cdf, u * cdf[-1], side="right")
     last_positive = int(np.flatnonzero(weights.ravel() > 0)[-1])
     flat = np.minimum(flat, last_positive)  # guards the u * total == total rounding case
     rows, cols = np.divmod(flat, weights.shape[1])
@@ -396,34 +408,15 @@ def doppler_for_points(
 # --------------------------------------------------------------------------- one frame
 
 
-def synthesize_frame(
-    prob_map: np.ndarray, n_hat: float, K_w: np.ndarray, T_radar_cam: np.ndarray,
-    lidar_D: np.ndarray, ego_velocity_D: np.ndarray, labels: Sequence[Object3D], *,
-    az_res_deg: float, el_res_deg: float, fov_az_deg: float, fov_el_deg: float,
-    max_range_m: float, doppler_sign: int, doppler_span_mps: float,
-    estimator: str, no_support: str, rng: np.random.Generator,
-    index: LidarAngularIndex | None = None,
-) -> dict[str, np.ndarray | int]:
-    """Synthesize one frame's radar points except RSS (Section IV-B, steps 1-4).
-
-    ``prob_map`` (H, W) at working resolution with intrinsics ``K_w``; ``n_hat`` rounded to the
-    number of samples; ``lidar_D`` (M, 3) m in {D} (or a prebuilt ``index``); radar profile values
-    in degrees / metres; ``fov_*_deg`` are TOTAL fields of view, symmetric about x.
-    Steps: sample pixels -> camera rays -> their (az, el) -> lidar range in the window of those
-    angles -> point on the camera ray at that range from the radar origin -> r/az/el recomputed
-    from the radar origin -> drop samples without support, then outside the FOV, then beyond
-    ``max_range_m`` (each dropped sample counted under its first reason) -> Doppler.
-    Returns points_D (k, 3) float32, rae (k, 3) float32 [range_m, azimuth_rad, elevation_rad],
-    doppler (k,) float32, uv (k, 2) float32, support (k,) int8, and the int counts n_requested,
-    n_no_support, n_out_of_fov, n_beyond_range, n_widened (kept samples found by widening).
-    """
-    if not (np.isfinite(n_hat) and n_hat >= 0):
-        raise ValueError(f"n_hat must be finite and >= 0, got {n_hat}")
-    n = int(round(float(n_hat)))
-    uv = sample_pixels(prob_map, n, rng)
+def _place_samples(
+    uv: np.ndarray, K_w: np.ndarray, T_radar_cam: np.ndarray, index: LidarAngularIndex, *,
+    az_res_deg: float, el_res_deg: float, fov_az_deg: float, fov_el_deg: float, max_range_m: float,
+    estimator: str, no_support: str,
+) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """Steps 2-3 of :func:`synthesize_frame` for pixels ``uv`` (n, 2): the kept samples (points_D,
+    rae, uv, support) and the counts of dropped ones (no_support, out_of_fov, beyond_range)."""
     rays = pixel_rays_D(uv, K_w, T_radar_cam)
     ray_rae = cartesian_to_spherical(rays)
-    index = LidarAngularIndex(lidar_D) if index is None else index
     range_m, support = index.estimate_range(
         ray_rae[:, 1], ray_rae[:, 2], np.deg2rad(az_res_deg), np.deg2rad(el_res_deg),
         estimator=estimator, no_support=no_support,
@@ -434,7 +427,57 @@ def synthesize_frame(
     in_fov = (np.abs(rae[:, 1]) <= np.deg2rad(fov_az_deg) / 2) & (np.abs(rae[:, 2]) <= np.deg2rad(fov_el_deg) / 2)
     in_range = (rae[:, 0] > 0) & (rae[:, 0] <= max_range_m)
     keep = has_support & in_fov & in_range
-    points, rae, uv, support = points[keep], rae[keep], uv[keep], support[keep]
+    kept = {"points_D": points[keep], "rae": rae[keep], "uv": uv[keep], "support": support[keep]}
+    dropped = {"no_support": int((~has_support).sum()), "out_of_fov": int((has_support & ~in_fov).sum()),
+               "beyond_range": int((has_support & in_fov & ~in_range).sum())}
+    return kept, dropped
+
+
+def synthesize_frame(
+    prob_map: np.ndarray, n_hat: float, K_w: np.ndarray, T_radar_cam: np.ndarray,
+    lidar_D: np.ndarray, ego_velocity_D: np.ndarray, labels: Sequence[Object3D], *,
+    az_res_deg: float, el_res_deg: float, fov_az_deg: float, fov_el_deg: float,
+    max_range_m: float, doppler_sign: int, doppler_span_mps: float,
+    estimator: str, no_support: str, rng: np.random.Generator,
+    index: LidarAngularIndex | None = None, sampling: str = "iid", refill_rounds: int = 0,
+) -> dict[str, np.ndarray | int]:
+    """Synthesize one frame's radar points except RSS (Section IV-B, steps 1-4).
+
+    ``prob_map`` (H, W) at working resolution with intrinsics ``K_w``; ``n_hat`` rounded to the
+    number of samples; ``lidar_D`` (M, 3) m in {D} (or a prebuilt ``index``); radar profile values
+    in degrees / metres; ``fov_*_deg`` are TOTAL fields of view, symmetric about x.
+    Steps: sample pixels (``sampling``: see :func:`sample_pixels`) -> camera rays -> their (az, el)
+    -> lidar range in the window of those angles -> point on the camera ray at that range from the
+    radar origin -> r/az/el recomputed from the radar origin -> drop samples without support, then
+    outside the FOV, then beyond ``max_range_m`` (each dropped sample counted under its first
+    reason) -> Doppler. ``refill_rounds`` > 0 draws replacements for the dropped samples up to that
+    many more times (sampling the map restricted to where the radar can return a point); 0 keeps
+    the paper's single draw, so fewer than n points may come out.
+    Returns points_D (k, 3) float32, rae (k, 3) float32 [range_m, azimuth_rad, elevation_rad],
+    doppler (k,) float32, uv (k, 2) float32, support (k,) int8, and the int counts n_requested,
+    n_no_support, n_out_of_fov, n_beyond_range (dropped samples of all rounds), n_widened (kept
+    samples found by widening).
+    """
+    if not (np.isfinite(n_hat) and n_hat >= 0):
+        raise ValueError(f"n_hat must be finite and >= 0, got {n_hat}")
+    if int(refill_rounds) < 0:
+        raise ValueError(f"refill_rounds must be >= 0, got {refill_rounds}")
+    n = int(round(float(n_hat)))
+    index = LidarAngularIndex(lidar_D) if index is None else index
+    parts: list[dict[str, np.ndarray]] = []
+    dropped = {"no_support": 0, "out_of_fov": 0, "beyond_range": 0}
+    missing = n
+    for _ in range(1 + int(refill_rounds)):
+        kept, lost = _place_samples(
+            sample_pixels(prob_map, missing, rng, sampling), K_w, T_radar_cam, index, az_res_deg=az_res_deg,
+            el_res_deg=el_res_deg, fov_az_deg=fov_az_deg, fov_el_deg=fov_el_deg, max_range_m=max_range_m,
+            estimator=estimator, no_support=no_support)
+        parts.append(kept)
+        dropped = {k: dropped[k] + lost[k] for k in dropped}
+        missing -= len(kept["uv"])
+        if missing == 0:
+            break
+    points, rae, uv, support = (np.concatenate([p[k] for p in parts]) for k in ("points_D", "rae", "uv", "support"))
     object_velocity = object_velocities_for_points(points, labels)
     doppler = doppler_for_points(points, ego_velocity_D, object_velocity, doppler_sign, doppler_span_mps)
     return {
@@ -444,8 +487,8 @@ def synthesize_frame(
         "uv": uv.astype(np.float32),
         "support": support,
         "n_requested": n,
-        "n_no_support": int((~has_support).sum()),
-        "n_out_of_fov": int((has_support & ~in_fov).sum()),
-        "n_beyond_range": int((has_support & in_fov & ~in_range).sum()),
+        "n_no_support": dropped["no_support"],
+        "n_out_of_fov": dropped["out_of_fov"],
+        "n_beyond_range": dropped["beyond_range"],
         "n_widened": int((support == SUPPORT_WIDENED).sum()),
     }

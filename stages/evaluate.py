@@ -22,7 +22,7 @@ from pipeline.cache import DONE
 from pipeline.config import Config
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
-from stages.synthesize import SPLITS, generate, models
+from stages.synthesize import SPLITS, check_generation, generate, models
 
 NOMINAL_FRAME_PERIOD_S = 0.1
 """Frame period assumed by the previous-frame baseline where timestamps do not give one (10 Hz)."""
@@ -34,7 +34,8 @@ VERSION = 3
 random stream per method; 3: no-points row)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
-               "synth.range_estimator", "synth.no_support", "synth.seed", "radar.doppler_span_mps",
+               "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
+               "radar.doppler_span_mps",
                "radar.az_res_deg", "radar.el_res_deg")
 
 
@@ -135,6 +136,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.training import rssnet_predict
     from stages.patches import point_inputs
 
+    check_generation(cfg)
     calib, syn_store = inputs.store("calibrate"), inputs.store("synthesize")
     split = np.asarray(calib.array("split")[:])
     seq = np.asarray(calib.array("sequence")[:])

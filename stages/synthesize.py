@@ -25,6 +25,7 @@ from stages.patches import point_inputs
 POINT_COLUMNS = ("x_m", "y_m", "z_m", "range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss",
                  "range_rate_mps")
 CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.count",
+               "synth.sampling", "synth.refill_rounds",
                "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
                "radar.max_range_m", "radar.doppler_sign", "radar.doppler_span_mps", "radar.max_points",
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
@@ -45,7 +46,22 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
             ArraySpec("counts", (5,), "int32", "requested, no support, out of fov, beyond range, widened"))
 
 
+def check_generation(cfg: Config) -> None:
+    """ConfigError for generation settings no frame could run with (before any frame is tried)."""
+    from pipeline.errors import ConfigError
+    from pipeline.synthesis import ESTIMATORS, NO_SUPPORT_RULES, SAMPLINGS
+
+    s = cfg.synth
+    for key, value, allowed in (("range_estimator", s.range_estimator, ESTIMATORS),
+                                ("no_support", s.no_support, NO_SUPPORT_RULES), ("sampling", s.sampling, SAMPLINGS)):
+        if value not in allowed:
+            raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
+    if s.refill_rounds < 0:
+        raise ConfigError(f"synth.refill_rounds must be >= 0, got {s.refill_rounds}")
+
+
 def select(inputs, cfg: Config) -> np.ndarray:
+    check_generation(cfg)
     split = np.asarray(inputs.store("calibrate").array("split")[:])
     if cfg.synth.split == "all":
         return np.ones(len(split), bool)
@@ -92,7 +108,8 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, r
                            az_res_deg=r.az_res_deg, el_res_deg=r.el_res_deg, fov_az_deg=r.fov_az_deg,
                            fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m, doppler_sign=1,
                            doppler_span_mps=r.doppler_span_mps, estimator=cfg.synth.range_estimator,
-                           no_support=cfg.synth.no_support, rng=rng)
+                           no_support=cfg.synth.no_support, rng=rng, sampling=cfg.synth.sampling,
+                           refill_rounds=cfg.synth.refill_rounds)
     pts = np.asarray(syn["points_D"], np.float64).reshape(-1, 3)
     range_rate = np.asarray(syn["doppler"], np.float64)
     if len(pts) and rssnet is not None:

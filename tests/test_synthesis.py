@@ -66,6 +66,31 @@ def test_sample_pixels_reproducible_and_empty():
     assert sample_pixels(prob, 0, np.random.default_rng(3)).shape == (0, 2)
 
 
+def test_sample_pixels_systematic_follows_the_map_with_less_clumping():
+    prob = np.random.default_rng(1).random((4, 5))
+    prob[1, 2] = 0.0
+    prob /= prob.sum()
+    n = 200_000
+    uv = sample_pixels(prob, n, np.random.default_rng(7), method="systematic")
+    counts = np.zeros_like(prob)
+    np.add.at(counts, (np.floor(uv[:, 1] + 0.5).astype(int), np.floor(uv[:, 0] + 0.5).astype(int)), 1)
+    assert counts[1, 2] == 0
+    # every pixel gets its share to within one sample (iid: binomial spread of ~sqrt(n p))
+    assert np.abs(counts - n * prob).max() <= 1.0
+    # the top two rows (mass q, one stretch of the row-major order) get floor(n q) or ceil(n q) of
+    # 40 samples, every seed; iid draws do not
+    top = prob[:2].sum()
+    for seed in range(20):
+        v = sample_pixels(prob, 40, np.random.default_rng(seed), method="systematic")[:, 1]
+        assert abs(np.sum(v < 1.5) - 40 * top) < 1.0 + 1e-9
+    iid = [np.sum(sample_pixels(prob, 40, np.random.default_rng(s))[:, 1] < 1.5) for s in range(20)]
+    assert max(abs(c - 40 * top) for c in iid) > 1.0
+    # returned in random order, not along the rows
+    assert not np.all(np.diff(uv[:1000, 1]) >= -1.0)
+    with pytest.raises(ValueError, match="method"):
+        sample_pixels(prob, 3, np.random.default_rng(0), method="sorted")
+
+
 def test_sample_pixels_single_pixel_map():
     prob = np.zeros((3, 4))
     prob[2, 1] = 5.0
@@ -349,6 +374,24 @@ def test_synthesize_frame_drop_reasons_and_reproducibility():
     e = synthesize_frame(np.ones((80, 160)), 0, K_SMALL, T, wall_scene(), np.zeros(3), [],
                          estimator="mean", no_support="drop", rng=np.random.default_rng(0), **RADAR)
     assert e["points_D"].shape == (0, 3) and e["doppler"].shape == (0,) and e["n_requested"] == 0
+    # refill: the dropped samples are drawn again until n points are out (or the rounds run out)
+    half = dict(RADAR, fov_az_deg=40.0)
+    h = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5), **half)
+    f = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5),
+                         refill_rounds=30, **half)
+    assert h["points_D"].shape[0] < 70 and f["points_D"].shape[0] == 100
+    assert np.all(np.abs(np.rad2deg(f["rae"][:, 1])) <= 20.0 + 1e-4)
+    assert f["n_out_of_fov"] > h["n_out_of_fov"]  # every round's drops are counted
+    once = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5),
+                            refill_rounds=1, **narrow)
+    assert c["points_D"].shape[0] < once["points_D"].shape[0] < 100
+    np.testing.assert_array_equal(once["points_D"][:len(c["points_D"])], c["points_D"])  # round 0 as before
+    g = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5),
+                         refill_rounds=30, **near)
+    assert g["points_D"].shape[0] == 0 and g["n_requested"] == 100  # nothing placeable: the rounds end
+    with pytest.raises(ValueError, match="refill_rounds"):
+        synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5),
+                         refill_rounds=-1, **RADAR)
     for bad in (np.nan, -3.0):
         with pytest.raises(ValueError, match="n_hat"):
             synthesize_frame(np.ones((80, 160)), bad, K_SMALL, T, wall_scene(), np.zeros(3), [],
