@@ -396,3 +396,17 @@ def test_synthesize_frame_drop_reasons_and_reproducibility():
         with pytest.raises(ValueError, match="n_hat"):
             synthesize_frame(np.ones((80, 160)), bad, K_SMALL, T, wall_scene(), np.zeros(3), [],
                              estimator="mean", no_support="drop", rng=np.random.default_rng(0), **RADAR)
+
+
+def test_bad_generation_settings_are_config_errors():
+    from pipeline.config import load_config
+    from pipeline.errors import ConfigError
+    from stages.synthesize import check_generation
+
+    check_generation(load_config("synthetic"))
+    for key, value, words in (("synth.sampling", "sorted", "synth.sampling must be one of iid, systematic"),
+                              ("synth.range_estimator", "far", "synth.range_estimator"),
+                              ("synth.no_support", "skip", "synth.no_support"),
+                              ("synth.refill_rounds", "-1", "synth.refill_rounds must be >= 0")):
+        with pytest.raises(ConfigError, match=words):
+            check_generation(load_config("synthetic", {key: value}))
