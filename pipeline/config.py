@@ -259,12 +259,13 @@ class SynthSection:
     drop) or 'drop'."""
     seed: int = 0
     """Seed of the sampling."""
-    sampling: str = "iid"
-    """How pixels are drawn from the map: 'iid' (independent draws, the paper) or 'systematic'
-    (one stratified draw: every sample still follows the map, with less clumping)."""
-    refill_rounds: int = 0
+    sampling: str = "systematic"
+    """How pixels are drawn from the map: 'systematic' (one stratified draw: every sample still
+    follows the map, with less clumping) or 'iid' (independent draws, the paper)."""
+    refill_rounds: int = 3
     """Draw replacements for samples dropped (no lidar support, outside the field of view, beyond
-    the maximum range) up to this many more times; 0: the paper's single draw."""
+    the maximum range) up to this many more times, so that n_hat points come out; 0: the paper's
+    single draw (about 15% fewer points than n_hat on the synthetic world)."""
     count: str = "predicted"
     """'predicted' (n_hat) or 'oracle' (the real count, for evaluation)."""
 
