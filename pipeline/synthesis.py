@@ -46,29 +46,42 @@ def sample_pixels(prob_map: np.ndarray, n: int, rng: np.random.Generator, method
     non-negative weights (need not sum to 1), then a uniform jitter in [-0.5, 0.5) around the
     chosen pixel centre. ``method`` 'iid' draws n independent uniforms (the paper); 'systematic'
     uses (U + k) / n for k = 0..n-1 with one uniform U (systematic resampling): each sample is still
-    distributed as the map, but a region of mass q receives floor(n q) or ceil(n q) of the samples
-    at most one off from its expected share (along the row-major order), instead of a binomial count;
-    the samples are returned in random order. Returns uv (n, 2) float64, u = column, v = row.
+    distributed as the map, but any stretch of the row-major pixel order with mass q receives
+    floor(n q) or ceil(n q) samples instead of a binomial count; the samples are returned in random
+    order. Returns uv (n, 2) float64, u = column, v = row.
     Raises ValueError for a map with negative or non-finite values, zero total mass (when n > 0)
     or an unknown method.
     """
-    if method not in SAMPLINGS:
-        raise ValueError(f"sample_pixels: method {method!r} unknown; choose one of {SAMPLINGS}")
+    return _draw_pixels(_map_cdf(prob_map, n), n, rng, method)
+
+
+def _map_cdf(prob_map: np.ndarray, n: int = 1) -> tuple[np.ndarray, int, int]:
+    """(cumulative weights (H*W,), last pixel with positive weight, W) of a checked map; the
+    checks of :func:`sample_pixels` (the mass is checked only when ``n`` > 0)."""
     weights = check_shape("prob_map", np.asarray(prob_map, dtype=np.float64), (None, None))
     if n < 0:
         raise ValueError(f"sample_pixels: n must be >= 0, got {n}")
     if n == 0:
-        return np.zeros((0, 2), np.float64)
+        return np.zeros(0), -1, weights.shape[1]
     if not np.all(np.isfinite(weights)) or weights.min() < 0:
         raise ValueError("prob_map: values must be finite and non-negative")
     cdf = np.cumsum(weights.ravel())
     if cdf[-1] <= 0:
         raise ValueError("prob_map: total probability mass is zero")
+    return cdf, int(np.flatnonzero(weights.ravel() > 0)[-1]), weights.shape[1]
+
+
+def _draw_pixels(map_cdf: tuple[np.ndarray, int, int], n: int, rng: np.random.Generator, method: str) -> np.ndarray:
+    """``n`` pixel positions (n, 2) from a map prepared by :func:`_map_cdf`."""
+    if method not in SAMPLINGS:
+        raise ValueError(f"sample_pixels: method {method!r} unknown; choose one of {SAMPLINGS}")
+    if n == 0:
+        return np.zeros((0, 2), np.float64)
+    cdf, last_positive, width = map_cdf
     u = rng.random(n) if method == "iid" else rng.permutation((rng.random() + np.arange(n)) / n)
     flat = np.searchsorted(cdf, u * cdf[-1], side="right")
-    last_positive = int(np.flatnonzero(weights.ravel() > 0)[-1])
     flat = np.minimum(flat, last_positive)  # guards the u * total == total rounding case
-    rows, cols = np.divmod(flat, weights.shape[1])
+    rows, cols = np.divmod(flat, width)
     jitter = rng.random((n, 2)) - 0.5
     return np.stack([cols, rows], axis=1).astype(np.float64) + jitter
 
@@ -464,12 +477,13 @@ def synthesize_frame(
         raise ValueError(f"refill_rounds must be >= 0, got {refill_rounds}")
     n = int(round(float(n_hat)))
     index = LidarAngularIndex(lidar_D) if index is None else index
+    map_cdf = _map_cdf(prob_map, n)  # once for all rounds
     parts: list[dict[str, np.ndarray]] = []
     dropped = {"no_support": 0, "out_of_fov": 0, "beyond_range": 0}
     missing = n
     for _ in range(1 + int(refill_rounds)):
         kept, lost = _place_samples(
-            sample_pixels(prob_map, missing, rng, sampling), K_w, T_radar_cam, index, az_res_deg=az_res_deg,
+            _draw_pixels(map_cdf, missing, rng, sampling), K_w, T_radar_cam, index, az_res_deg=az_res_deg,
             el_res_deg=el_res_deg, fov_az_deg=fov_az_deg, fov_el_deg=fov_el_deg, max_range_m=max_range_m,
             estimator=estimator, no_support=no_support)
         parts.append(kept)
