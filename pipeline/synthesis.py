@@ -55,9 +55,9 @@ def sample_pixels(prob_map: np.ndarray, n: int, rng: np.random.Generator, method
     return _draw_pixels(_map_cdf(prob_map, n), n, rng, method)
 
 
-def _map_cdf(prob_map: np.ndarray, n: int = 1) -> tuple[np.ndarray, int, int]:
-    """(cumulative weights (H*W,), last pixel with positive weight, W) of a checked map; the
-    checks of :func:`sample_pixels` (the mass is checked only when ``n`` > 0)."""
+def _map_cdf(prob_map: np.ndarray, n: int) -> tuple[np.ndarray, int, int]:
+    """(cumulative weights (H*W,), last pixel with positive weight, W) of a map to draw ``n``
+    samples from, with the checks of :func:`sample_pixels` (values and mass only when n > 0)."""
     weights = check_shape("prob_map", np.asarray(prob_map, dtype=np.float64), (None, None))
     if n < 0:
         raise ValueError(f"sample_pixels: n must be >= 0, got {n}")

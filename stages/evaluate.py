@@ -35,8 +35,7 @@ random stream per method; 3: no-points row)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
-               "radar.doppler_span_mps",
-               "radar.az_res_deg", "radar.el_res_deg")
+               "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
 
 
 def _train_stats(inputs, cfg: Config) -> dict:
