@@ -403,10 +403,10 @@ def test_bad_generation_settings_are_config_errors():
     from pipeline.errors import ConfigError
     from stages.synthesize import check_generation
 
-    check_generation(load_config("synthetic"))
+    check_generation(load_config("synthetic", environ={}))
     for key, value, words in (("synth.sampling", "sorted", "synth.sampling must be one of iid, systematic"),
                               ("synth.range_estimator", "far", "synth.range_estimator"),
                               ("synth.no_support", "skip", "synth.no_support"),
                               ("synth.refill_rounds", "-1", "synth.refill_rounds must be >= 0")):
         with pytest.raises(ConfigError, match=words):
-            check_generation(load_config("synthetic", {key: value}))
+            check_generation(load_config("synthetic", {key: value}, environ={}))
