@@ -30,6 +30,13 @@ SUPPORT_NONE, SUPPORT_DIRECT, SUPPORT_WIDENED = 0, 1, 2
 """Values of the per-sample support flag returned by ``estimate_range``."""
 NEAREST_CANDIDATES = 16
 """Nearest lidar points per sample from which 'nearest' settles most samples without the passes."""
+KEPT, DROP_NO_SUPPORT, DROP_OUT_OF_FOV, DROP_BEYOND_RANGE = 0, 1, 2, 3
+"""Fate of a drawn sample: kept, or the first reason it was dropped."""
+REFILL_OVERSAMPLE = 1.5
+"""A refill round draws this many times the samples the keep rate so far says it needs (and keeps
+the first ones placed), so that one round nearly always completes the frame."""
+REFILL_MAX_FACTOR = 8
+"""A refill round draws at most this many times the missing samples."""
 
 
 # --------------------------------------------------------------------------- pixel sampling
@@ -425,9 +432,10 @@ def _place_samples(
     uv: np.ndarray, K_w: np.ndarray, T_radar_cam: np.ndarray, index: LidarAngularIndex, *,
     az_res_deg: float, el_res_deg: float, fov_az_deg: float, fov_el_deg: float, max_range_m: float,
     estimator: str, no_support: str,
-) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Steps 2-3 of :func:`synthesize_frame` for pixels ``uv`` (n, 2): the kept samples (points_D,
-    rae, uv, support) and the counts of dropped ones (no_support, out_of_fov, beyond_range)."""
+    rae, uv, support; in draw order) and the fate (n,) int8 of every sample: KEPT, or the first
+    reason it was dropped (DROP_NO_SUPPORT, DROP_OUT_OF_FOV, DROP_BEYOND_RANGE)."""
     rays = pixel_rays_D(uv, K_w, T_radar_cam)
     ray_rae = cartesian_to_spherical(rays)
     range_m, support = index.estimate_range(
@@ -436,14 +444,20 @@ def _place_samples(
     )
     points = place_on_camera_ray(uv, range_m, K_w, T_radar_cam)
     rae = cartesian_to_spherical(np.nan_to_num(points))
-    has_support = support > 0
     in_fov = (np.abs(rae[:, 1]) <= np.deg2rad(fov_az_deg) / 2) & (np.abs(rae[:, 2]) <= np.deg2rad(fov_el_deg) / 2)
     in_range = (rae[:, 0] > 0) & (rae[:, 0] <= max_range_m)
-    keep = has_support & in_fov & in_range
-    kept = {"points_D": points[keep], "rae": rae[keep], "uv": uv[keep], "support": support[keep]}
-    dropped = {"no_support": int((~has_support).sum()), "out_of_fov": int((has_support & ~in_fov).sum()),
-               "beyond_range": int((has_support & in_fov & ~in_range).sum())}
-    return kept, dropped
+    fate = np.select([support == SUPPORT_NONE, ~in_fov, ~in_range],
+                     [DROP_NO_SUPPORT, DROP_OUT_OF_FOV, DROP_BEYOND_RANGE], KEPT).astype(np.int8)
+    keep = fate == KEPT
+    return {"points_D": points[keep], "rae": rae[keep], "uv": uv[keep], "support": support[keep]}, fate
+
+
+def _refill_draws(missing: int, kept: int, drawn: int) -> int:
+    """Samples to draw in a refill round for ``missing`` more points after ``kept`` of ``drawn``
+    samples were kept: REFILL_OVERSAMPLE times what the keep rate so far predicts, at most
+    REFILL_MAX_FACTOR times ``missing``."""
+    rate = (kept + 1) / (drawn + 2)  # Laplace's rule: never 0, even when nothing was kept
+    return int(min(np.ceil(REFILL_OVERSAMPLE * missing / rate), REFILL_MAX_FACTOR * missing))
 
 
 def synthesize_frame(
@@ -464,11 +478,14 @@ def synthesize_frame(
     radar origin -> r/az/el recomputed from the radar origin -> drop samples without support, then
     outside the FOV, then beyond ``max_range_m`` (each dropped sample counted under its first
     reason) -> Doppler. ``refill_rounds`` > 0 draws replacements for the dropped samples up to that
-    many more times (sampling the map restricted to where the radar can return a point); 0 keeps
-    the paper's single draw, so fewer than n points may come out.
+    many more times (sampling the map restricted to where the radar can return a point): each
+    round draws REFILL_OVERSAMPLE times what the keep rate so far says it needs and keeps the
+    first samples placed, so one round nearly always suffices; 0 keeps the paper's single draw, so
+    fewer than n points may come out.
     Returns points_D (k, 3) float32, rae (k, 3) float32 [range_m, azimuth_rad, elevation_rad],
     doppler (k,) float32, uv (k, 2) float32, support (k,) int8, and the int counts n_requested,
-    n_no_support, n_out_of_fov, n_beyond_range (dropped samples of all rounds), n_widened (kept
+    n_no_support, n_out_of_fov, n_beyond_range (dropped samples of all rounds, up to the draw
+    that completed the frame), n_widened (kept
     samples found by widening).
     """
     if not (np.isfinite(n_hat) and n_hat >= 0):
@@ -480,14 +497,22 @@ def synthesize_frame(
     map_cdf = _map_cdf(prob_map, n)  # once for all rounds
     parts: list[dict[str, np.ndarray]] = []
     dropped = {"no_support": 0, "out_of_fov": 0, "beyond_range": 0}
-    missing = n
-    for _ in range(1 + int(refill_rounds)):
-        kept, lost = _place_samples(
-            _draw_pixels(map_cdf, missing, rng, sampling), K_w, T_radar_cam, index, az_res_deg=az_res_deg,
+    missing, kept_total, drawn_total = n, 0, 0
+    for round_ in range(1 + int(refill_rounds)):
+        draws = missing if round_ == 0 else _refill_draws(missing, kept_total, drawn_total)
+        kept, fate = _place_samples(
+            _draw_pixels(map_cdf, draws, rng, sampling), K_w, T_radar_cam, index, az_res_deg=az_res_deg,
             el_res_deg=el_res_deg, fov_az_deg=fov_az_deg, fov_el_deg=fov_el_deg, max_range_m=max_range_m,
             estimator=estimator, no_support=no_support)
+        used = fate.size  # draws up to the one that completes the frame: the rest are unused
+        if len(kept["uv"]) > missing:
+            used = int(np.flatnonzero(fate == KEPT)[missing - 1]) + 1
+            kept = {k: v[:missing] for k, v in kept.items()}
         parts.append(kept)
-        dropped = {k: dropped[k] + lost[k] for k in dropped}
+        for key, code in (("no_support", DROP_NO_SUPPORT), ("out_of_fov", DROP_OUT_OF_FOV),
+                          ("beyond_range", DROP_BEYOND_RANGE)):
+            dropped[key] += int((fate[:used] == code).sum())
+        kept_total, drawn_total = kept_total + len(kept["uv"]), drawn_total + used
         missing -= len(kept["uv"])
         if missing == 0:
             break

@@ -31,6 +31,8 @@ CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synt
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
                "patches.patch_size_px")
 SPLITS = {"train": 0, "val": 1, "test": 2}
+VERSION = 2
+"""2: refill rounds oversample (pipeline.synthesis.REFILL_OVERSAMPLE), so the points differ from version 1's."""
 
 
 def capacity(cfg: Config) -> int:
@@ -137,4 +139,4 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
 
 
 STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,
-                   outputs=outputs, process=process, select=select, doc=__doc__)
+                   outputs=outputs, process=process, select=select, version=VERSION, doc=__doc__)

@@ -15,9 +15,9 @@ from pipeline.geometry import (
     cartesian_to_spherical, invert_transform, pixel_rays_D, project_to_image, spherical_to_cartesian,
 )
 from pipeline.synthesis import (
-    ESTIMATORS, MAX_WIDENINGS, NO_SUPPORT_RULES, SUPPORT_DIRECT, SUPPORT_NONE, SUPPORT_WIDENED, LidarAngularIndex,
-    doppler_for_points, object_velocities_for_points, place_on_camera_ray, sample_pixels,
-    synthesize_frame,
+    ESTIMATORS, MAX_WIDENINGS, NO_SUPPORT_RULES, REFILL_MAX_FACTOR, REFILL_OVERSAMPLE, SUPPORT_DIRECT, SUPPORT_NONE,
+    SUPPORT_WIDENED, LidarAngularIndex, _refill_draws, doppler_for_points, object_velocities_for_points,
+    place_on_camera_ray, sample_pixels, synthesize_frame,
 )
 
 # Radar {D}: x fwd, y left, z up. Camera: x right, y down, z fwd. Columns = camera axes in {D}.
@@ -357,6 +357,13 @@ def test_synthesize_frame_on_a_wall():
     assert np.abs(mean["points_D"][:, 0] - 15.0).max() < 0.5
 
 
+def test_refill_draws_oversample_the_keep_rate():
+    assert _refill_draws(10, 80, 100) == int(np.ceil(REFILL_OVERSAMPLE * 10 / (81 / 102)))
+    assert _refill_draws(10, 0, 100) == REFILL_MAX_FACTOR * 10  # nothing kept: capped, never infinite
+    assert _refill_draws(10, 100, 100) == int(np.ceil(REFILL_OVERSAMPLE * 10 * 102 / 101))
+    assert _refill_draws(1, 50, 100) >= 1
+
+
 def test_synthesize_frame_drop_reasons_and_reproducibility():
     T = make_T_radar_cam()
     prob = np.ones((80, 160))
@@ -383,9 +390,17 @@ def test_synthesize_frame_drop_reasons_and_reproducibility():
     assert np.all(np.abs(np.rad2deg(f["rae"][:, 1])) <= 20.0 + 1e-4)
     assert f["n_out_of_fov"] > h["n_out_of_fov"]  # every round's drops are counted
     once = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5),
-                            refill_rounds=1, **narrow)
-    assert c["points_D"].shape[0] < once["points_D"].shape[0] < 100
-    np.testing.assert_array_equal(once["points_D"][:len(c["points_D"])], c["points_D"])  # round 0 as before
+                            refill_rounds=1, **half)
+    assert once["points_D"].shape[0] == 100  # one oversampled round suffices
+    np.testing.assert_array_equal(once["points_D"][:len(h["points_D"])], h["points_D"])  # round 0 as before
+    # the drops counted are those of the draws up to the one that completed the frame: at the
+    # field of view's keep rate q (round 0: k of 100), about (1 - q) / q per kept point
+    q = h["points_D"].shape[0] / 100
+    assert 0.7 < once["n_out_of_fov"] / (100 * (1 - q) / q) < 1.2  # all draws counted: about 1.4
+    capped = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5),
+                              refill_rounds=1, **narrow)  # keep rate ~10%: the draw cap leaves it short
+    assert c["points_D"].shape[0] < capped["points_D"].shape[0] < 100
+    np.testing.assert_array_equal(capped["points_D"][:len(c["points_D"])], c["points_D"])
     g = synthesize_frame(*args, estimator="mean", no_support="widen", rng=np.random.default_rng(5),
                          refill_rounds=30, **near)
     assert g["points_D"].shape[0] == 0 and g["n_requested"] == 100  # nothing placeable: the rounds end
