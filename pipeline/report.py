@@ -1,9 +1,10 @@
 """Aggregation of per-frame metrics and the evaluation report (report.json + report.md).
 
 The JSON holds every number (NaN written as null); the Markdown holds one table of per-frame
-metrics (mean and median over frames, model rows first), one table of distribution distances, the
-physics checks and a paragraph, computed from the numbers, naming the baselines the model does not
-beat on Chamfer, GOSPA and matched F1. Files are written atomically (temporary file + rename).
+metrics (mean and median over frames, model rows first), one table of distribution distances, one
+of the model's count and metrics by ego speed, the physics checks and a paragraph, computed from
+the numbers, naming the baselines the model does not beat on Chamfer, GOSPA and matched F1. Files
+are written atomically (temporary file + rename).
 """
 
 from __future__ import annotations
@@ -29,6 +30,13 @@ TABLE_COLUMNS: tuple[tuple[str, str], ...] = (
 
 COMPARED: tuple[tuple[str, bool], ...] = (("chamfer_m", False), ("gospa", False), ("f1", True))
 """Metrics of the "where the model does not beat every baseline" paragraph: (key, higher is better)."""
+
+SPEED_EDGES_MPS: tuple[float, ...] = (0.5, 5.0, 10.0)
+"""Ego-speed bin edges (m/s) of the report's by-speed table; below the first edge the ego stands still."""
+
+SPEED_COLUMNS: tuple[tuple[str, str], ...] = (
+    ("count_rel_err", "count rel. err"), ("chamfer_m", "Chamfer (m)"), ("gospa", "GOSPA (m)"), ("f1", "F1"))
+"""(metric key, header) of the model's means in the by-speed table."""
 
 
 def aggregate(per_frame: Mapping[str, Sequence[Mapping[str, float]]]) -> dict[str, dict[str, dict[str, float]]]:
@@ -160,7 +168,8 @@ def shortfall_paragraph(table: Mapping[str, Mapping[str, Mapping[str, float]]]) 
         return ("The model beats every baseline on Chamfer distance, GOSPA and matched F1 (mean and median)."
                 + _gospa_scale_sentence(table))
     note = " Oracle-count rows are given the true count, an advantage the model does not have." if oracle else ""
-    return " ".join(sentences) + note + _ceiling_sentence(table) + _gospa_scale_sentence(table)
+    return (" ".join(sentences) + note + _placement_sentence(table) + _ceiling_sentence(table)
+            + _gospa_scale_sentence(table))
 
 
 def _gospa_scale_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]], empty: str = "no-points") -> str:
@@ -195,22 +204,87 @@ def _ceiling_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]], ce
             f"on the means: {'; '.join(parts)}. Those gaps are out of reach of any map the method can learn.")
 
 
+def speed_breakdown(speed_mps: np.ndarray, real_count: np.ndarray, model_count: np.ndarray,
+                    model_frames: Sequence[Mapping[str, float]],
+                    edges_mps: Sequence[float] = SPEED_EDGES_MPS) -> list[dict[str, Any]]:
+    """The model's count and metrics per ego-speed bin (a stopped ego is where a radar loses its
+    static world to the zero-Doppler filter, and where a count learnt mostly in motion can fail).
+
+    ``speed_mps`` (F,) ego speed |v| per frame, ``real_count`` (F,) real points, ``model_count``
+    (F,) the model's count, ``model_frames`` the model's F per-frame metric dicts, all in one frame
+    order. Returns one dict per non-empty bin: label, lo_mps, hi_mps (inf for the last), frames,
+    real_count and model_count (means), and the mean of every SPEED_COLUMNS metric (finite values).
+    """
+    speed = np.asarray(speed_mps, np.float64)
+    real, pred = np.asarray(real_count, np.float64), np.asarray(model_count, np.float64)
+    if not (speed.shape == real.shape == pred.shape == (len(model_frames),)):
+        raise ValueError(f"speed_breakdown: {speed.shape}, {real.shape}, {pred.shape} and "
+                         f"{len(model_frames)} frames differ")
+    bounds = [0.0, *edges_mps, math.inf]
+    rows = []
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        idx = np.flatnonzero((speed >= lo) & (speed < hi))
+        if idx.size == 0:
+            continue
+        label = f"< {_fmt(hi)} m/s" if lo == 0 else (f">= {_fmt(lo)} m/s" if math.isinf(hi) else f"{_fmt(lo)}-{_fmt(hi)} m/s")
+        row = {"label": label, "lo_mps": lo, "hi_mps": hi, "frames": int(idx.size),
+               "real_count": float(real[idx].mean()), "model_count": float(pred[idx].mean())}
+        for key, _ in SPEED_COLUMNS:
+            v = np.array([float(model_frames[k].get(key, math.nan)) for k in idx])
+            row[key] = float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else math.nan
+        rows.append(row)
+    return rows
+
+
+def speed_table_md(rows: Sequence[Mapping[str, Any]]) -> str:
+    """Markdown table of :func:`speed_breakdown` rows."""
+    lines = ["| ego speed | frames | real count | model count | " + " | ".join(h for _, h in SPEED_COLUMNS) + " |",
+             "|" + "---|" * (4 + len(SPEED_COLUMNS))]
+    for r in rows:
+        lines.append(f"| {r['label']} | {r['frames']} | {_fmt(r['real_count'])} | {_fmt(r['model_count'])} | "
+                     + " | ".join(_fmt(r[k]) for k, _ in SPEED_COLUMNS) + " |")
+    return "\n".join(lines)
+
+
+def _placement_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]],
+                        model: str = "model-oracle-count", baseline: str = "mean-map-oracle-count") -> str:
+    """Like for like, both given the true count: does the model's map place points better than the
+    mean map (the comparison the oracle-count rows exist for)?"""
+    if model not in table or baseline not in table:
+        return ""
+    names = {"chamfer_m": "Chamfer", "gospa": "GOSPA", "f1": "F1"}
+    won, lost = [], []
+    for key, higher in COMPARED:
+        mv, bv = (table[m].get(key, {}).get("mean", math.nan) for m in (model, baseline))
+        if math.isfinite(mv) and math.isfinite(bv):
+            (won if (mv > bv if higher else mv < bv) else lost).append(f"{names[key]} {_fmt(mv)} vs {_fmt(bv)}")
+    if not won and not lost:
+        return ""
+    text = f" Given the true count, like for like, `{model}` against `{baseline}` (means):"
+    if won:
+        text += f" better on {', '.join(won)}"
+    if lost:
+        text += ("; " if won else " ") + f"not better on {', '.join(lost)}"
+    return text + "."
+
+
 def write_report(out_dir: str | Path, dataset: str, split: str,
                  table: Mapping[str, Mapping[str, Mapping[str, float]]],
                  distances: Mapping[str, Mapping[str, float]], physics: Mapping[str, Any],
-                 meta: Mapping[str, Any]) -> tuple[Path, Path]:
+                 meta: Mapping[str, Any], by_speed: Sequence[Mapping[str, Any]] = ()) -> tuple[Path, Path]:
     """Write ``report.json`` and ``report.md`` into ``out_dir``; returns their paths.
 
     ``table`` from :func:`aggregate`; ``distances`` method -> {range_m, azimuth_rad, ...}
     (:func:`pipeline.metrics.distribution_distances`); ``physics`` check name -> dict of numbers
     (arrays such as per-point residuals are kept in the JSON only); ``meta`` free-form run facts
-    (frames, config fingerprint, counts of skipped frames...).
+    (frames, config fingerprint, counts of skipped frames...); ``by_speed`` rows of
+    :func:`speed_breakdown` (the section is left out when empty).
     """
     out = Path(out_dir)
     shortfalls = {stat: model_shortfalls(table, stat=stat) for stat in ("mean", "median")}
     doc = {"dataset": dataset, "split": split, "metrics": table, "metric_keys": list(FRAME_METRICS),
            "distribution_distances": distances, "physics_checks": physics,
-           "model_does_not_beat": shortfalls, "meta": meta}
+           "model_does_not_beat": shortfalls, "by_ego_speed": list(by_speed), "meta": meta}
     json_path, md_path = out / "report.json", out / "report.md"
     write_atomic(json_path, json.dumps(_jsonable(doc), indent=2, allow_nan=False) + "\n")
     meta_lines = "\n".join(f"- {k}: {v}" for k, v in meta.items())
@@ -222,8 +296,9 @@ def write_report(out_dir: str | Path, dataset: str, split: str,
         f"{metrics_table_md(table)}\n\n"
         "## Distribution distances (1-D Wasserstein, all evaluated frames)\n\n"
         f"{distances_table_md(distances)}\n\n"
-        f"## Physics checks (real frames)\n\n{physics_md(physics)}\n\n"
-        f"## Where the model does not beat every baseline\n\n{shortfall_paragraph(table)}\n"
+        + (f"## The model by ego speed (means over frames)\n\n{speed_table_md(by_speed)}\n\n" if by_speed else "")
+        + f"## Physics checks (real frames)\n\n{physics_md(physics)}\n\n"
+        + f"## Where the model does not beat every baseline\n\n{shortfall_paragraph(table)}\n"
     )
     write_atomic(md_path, md)
     return json_path, md_path

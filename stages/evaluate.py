@@ -4,7 +4,7 @@ Reads: synthesize (points, pred_map, n_hat), calibrate (real radar, lidar, image
 velocity, split, sequence, timestamp), heatmaps (real heatmap, count), train (mean training
 heatmap, training count and RSS statistics, RSS-Net).
 Writes (evaluate/): report.json, report.md (one table: model and baselines, mean and median over
-frames; Wasserstein distances; physics checks), figures/fig8.png, figures/bev.png,
+frames; Wasserstein distances; the model by ego speed; physics checks), figures/fig8.png, figures/bev.png,
 figures/histograms.png.
 Config: eval.*, synth.* (baselines use the same generation steps), radar.*.
 Every method is evaluated on the same frames: those of eval.split that synthesize finished.
@@ -29,9 +29,9 @@ NOMINAL_FRAME_PERIOD_S = 0.1
 MAX_FRAME_GAP_S = 1.0
 """Consecutive frames further apart than this (or going backwards) use the nominal period."""
 
-VERSION = 3
+VERSION = 4
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
-random stream per method; 3: no-points row)."""
+random stream per method; 3: no-points row; 4: the model by ego speed)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
@@ -131,7 +131,7 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev,
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.figures import bev, fig8, histograms
     from pipeline.metrics import distribution_distances, frame_metrics
-    from pipeline.report import aggregate, write_report
+    from pipeline.report import aggregate, speed_breakdown, write_report
     from pipeline.training import rssnet_predict
     from stages.patches import point_inputs
 
@@ -151,6 +151,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     per_frame: dict[str, list] = {}
     pooled: dict[str, list] = {}
     real_frames: list[np.ndarray] = []
+    speeds, model_counts = [], []
     figure_rows = []
     for i in tqdm(frames, desc="evaluate", unit="frame", disable=not inputs.progress):
         i = int(i)
@@ -167,6 +168,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
         prev = _previous_index(i, inputs, seq, calib_done)
         methods = _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev, target)
+        speeds.append(float(np.linalg.norm(f.get("calibrate", "ego_velocity"))))
+        model_counts.append(methods["model"][1])
         for name, (pts, n, prob) in methods.items():
             m = frame_metrics(pts, real, n_hat=n, target_map=target if prob is not None and len(real) else None,
                               pred_map=prob, rss_err=rss_err if name == "model" else float("nan"),
@@ -186,7 +189,10 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     table = aggregate(per_frame)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
             "train_mean_count": stats["n_bar"], "synthesize_counts": _synth_counts(syn_store, frames)}
-    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, table, distances, phys, meta)
+    by_speed = speed_breakdown(np.array(speeds), np.array([len(x) for x in real_frames]), np.array(model_counts),
+                               per_frame["model"])
+    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, table, distances, phys, meta,
+                                      by_speed)
     model = table["model"]
     return {"report": str(md_path), "figures": str(figs),
             "message": (f"{len(frames)} frames: model chamfer {model['chamfer_m']['mean']:.2f} m, "

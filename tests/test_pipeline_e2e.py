@@ -67,6 +67,11 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     empty = report["metrics"]["no-points"]
     assert empty["gospa_missed"]["mean"] > 0 and empty["gospa_false"]["mean"] == empty["gospa_localisation"]["mean"] == 0
     assert empty["f1"]["mean"] == 0.0 and "no-points" not in json.dumps(report["model_does_not_beat"])
+    # the by-speed rows cover every evaluated frame once, and their counts are the model row's
+    by_speed = report["by_ego_speed"]
+    assert sum(r["frames"] for r in by_speed) == report["meta"]["frames"]
+    model_rel = sum(r["frames"] * r["count_rel_err"] for r in by_speed) / report["meta"]["frames"]
+    assert np.isclose(model_rel, report["metrics"]["model"]["count_rel_err"]["mean"])
     for fig in ("fig8.png", "bev.png", "histograms.png"):
         assert (tmp_path / "serial" / "synthetic" / "evaluate" / "figures" / fig).stat().st_size > 10_000
     check_export_round_trip(serial, world, tmp_path / "serial")

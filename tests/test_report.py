@@ -115,6 +115,53 @@ def test_write_report_files(tmp_path):
     assert len(header.split("|")) - 2 == 1 + len(R.TABLE_COLUMNS)
     assert "2 / 2" in metric_rows[0]  # chamfer mean / median of the model
     assert "median_abs_dr = 3.8" in md and "mean-map" in md.split("does not beat every baseline")[-1]
+    assert "by ego speed" not in md  # no rows: no section
+    by_speed = R.speed_breakdown(np.array([0.0, 1.0, 6.0, 11.0]), np.full(4, 10), np.full(4, 12), per_frame["model"])
+    R.write_report(out, "vod", "test", table, distances, physics, {}, by_speed)
+    md = mp.read_text()
+    assert md.index("## Distribution distances") < md.index("## The model by ego speed") < md.index("## Physics")
+    assert "| < 0.5 m/s | 1 | 10 | 12 |" in md
+    assert json.loads(jp.read_text())["by_ego_speed"][0]["model_count"] == 12
     # rewriting replaces the files atomically
     R.write_report(out, "vod", "test", table, distances, {}, {})
     assert json.loads(jp.read_text())["physics_checks"] == {}
+
+
+def test_speed_breakdown_bins_frames_by_ego_speed():
+    speeds = np.array([0.0, 0.2, 3.0, 7.0, 12.0, 30.0])
+    real = np.array([50, 60, 150, 200, 160, 140])
+    pred = np.array([100, 110, 150, 190, 170, 150])
+    frames = [{"count_rel_err": abs(p - r) / r, "chamfer_m": c, "gospa": 20.0, "f1": f}
+              for p, r, c, f in zip(pred, real, [3.0, 1.0, 2.0, 2.0, 2.0, math.nan], [0.1, 0.1, 0.2, 0.3, 0.2, 0.4])]
+    rows = R.speed_breakdown(speeds, real, pred, frames)
+    assert [r["label"] for r in rows] == ["< 0.5 m/s", "0.5-5 m/s", "5-10 m/s", ">= 10 m/s"]
+    assert [r["frames"] for r in rows] == [2, 1, 1, 2]
+    stopped = rows[0]
+    assert stopped["real_count"] == 55 and stopped["model_count"] == 105 and stopped["chamfer_m"] == 2.0
+    assert math.isclose(stopped["count_rel_err"], (1.0 + 50 / 60) / 2)
+    assert rows[-1]["chamfer_m"] == 2.0 and math.isclose(rows[-1]["f1"], 0.3)  # NaN ignored
+    assert R.speed_breakdown(speeds[:2], real[:2], pred[:2], frames[:2])[0]["frames"] == 2  # empty bins left out
+    md = R.speed_table_md(rows)
+    assert "| < 0.5 m/s | 2 | 55 | 105 |" in md and md.count("\n") == 5
+    try:
+        R.speed_breakdown(speeds, real, pred, frames[:3])
+    except ValueError as exc:
+        assert "differ" in str(exc)
+    else:
+        raise AssertionError("mismatched lengths must raise")
+
+
+def test_placement_sentence_compares_the_oracle_count_rows_like_for_like():
+    rng = np.random.default_rng(4)
+    rows = {"model": _frames(rng, 3, chamfer=2.0, gospa=20.4, f1=0.18),
+            "model-oracle-count": _frames(rng, 3, chamfer=1.9, gospa=19.8, f1=0.17),
+            "mean-map-oracle-count": _frames(rng, 3, chamfer=2.1, gospa=20.2, f1=0.12)}
+    text = R.shortfall_paragraph(R.aggregate(rows))
+    assert "does not beat `mean-map-oracle-count` (20.2)" in text
+    like = text[text.index("Given the true count, like for like"):]
+    assert "better on Chamfer 1.9 vs 2.1, GOSPA 19.8 vs 20.2, F1 0.17 vs 0.12." in like
+    rows["model-oracle-count"] = _frames(rng, 3, chamfer=2.2, gospa=19.8, f1=0.17)
+    like = R.shortfall_paragraph(R.aggregate(rows))
+    assert "better on GOSPA 19.8 vs 20.2, F1 0.17 vs 0.12; not better on Chamfer 2.2 vs 2.1." in like
+    del rows["mean-map-oracle-count"]
+    assert "like for like" not in R.shortfall_paragraph(R.aggregate(rows))
