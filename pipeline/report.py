@@ -77,6 +77,15 @@ def _fmt(x: Any) -> str:
     return f"{x:.3g}" if abs(x) < 1e4 else f"{x:.3e}"
 
 
+def _fmt_pair(a: float, b: float) -> str:
+    """'a vs b' with 3 significant digits, or more (up to 6) where 3 would print unequal values alike."""
+    for digits in range(3, 7):
+        sa, sb = f"{a:.{digits}g}", f"{b:.{digits}g}"
+        if sa != sb or a == b:
+            break
+    return f"{sa} vs {sb}"
+
+
 def _jsonable(obj: Any) -> Any:
     """Plain JSON values: NaN/inf -> None, numpy scalars/arrays -> Python numbers/lists."""
     if isinstance(obj, Mapping):
@@ -257,7 +266,7 @@ def _placement_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]],
     for key, higher in COMPARED:
         mv, bv = (table[m].get(key, {}).get("mean", math.nan) for m in (model, baseline))
         if math.isfinite(mv) and math.isfinite(bv):
-            (won if (mv > bv if higher else mv < bv) else lost).append(f"{names[key]} {_fmt(mv)} vs {_fmt(bv)}")
+            (won if (mv > bv if higher else mv < bv) else lost).append(f"{names[key]} {_fmt_pair(mv, bv)}")
     if not won and not lost:
         return ""
     text = f" Given the true count, like for like, `{model}` against `{baseline}` (means):"
