@@ -485,8 +485,7 @@ def synthesize_frame(
     Returns points_D (k, 3) float32, rae (k, 3) float32 [range_m, azimuth_rad, elevation_rad],
     doppler (k,) float32, uv (k, 2) float32, support (k,) int8, and the int counts n_requested,
     n_no_support, n_out_of_fov, n_beyond_range (dropped samples of all rounds, up to the draw
-    that completed the frame), n_widened (kept
-    samples found by widening).
+    that completed the frame), n_widened (kept samples found by widening).
     """
     if not (np.isfinite(n_hat) and n_hat >= 0):
         raise ValueError(f"n_hat must be finite and >= 0, got {n_hat}")

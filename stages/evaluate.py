@@ -4,8 +4,8 @@ Reads: synthesize (points, pred_map, n_hat), calibrate (real radar, lidar, image
 velocity, split, sequence, timestamp), heatmaps (real heatmap, count), train (mean training
 heatmap, training count and RSS statistics, RSS-Net).
 Writes (evaluate/): report.json, report.md (one table: model and baselines, mean and median over
-frames; Wasserstein distances; the model by ego speed; physics checks), figures/fig8.png, figures/bev.png,
-figures/histograms.png.
+frames; Wasserstein distances; the model by ego speed; physics checks), figures/fig8.png,
+figures/bev.png, figures/histograms.png.
 Config: eval.*, synth.* (baselines use the same generation steps), radar.*.
 Every method is evaluated on the same frames: those of eval.split that synthesize finished.
 """
