@@ -222,7 +222,8 @@ def speed_breakdown(speed_mps: np.ndarray, real_count: np.ndarray, model_count: 
     ``speed_mps`` (F,) ego speed |v| per frame, ``real_count`` (F,) real points, ``model_count``
     (F,) the model's count, ``model_frames`` the model's F per-frame metric dicts, all in one frame
     order. Returns one dict per non-empty bin: label, lo_mps, hi_mps (inf for the last), frames,
-    real_count and model_count (means), and the mean of every SPEED_COLUMNS metric (finite values).
+    real_count and model_count (means), and the mean of every SPEED_COLUMNS metric (finite values);
+    frames without a finite speed form a last bin labelled 'unknown' (lo_mps and hi_mps NaN).
     """
     speed = np.asarray(speed_mps, np.float64)
     real, pred = np.asarray(real_count, np.float64), np.asarray(model_count, np.float64)
@@ -230,12 +231,13 @@ def speed_breakdown(speed_mps: np.ndarray, real_count: np.ndarray, model_count: 
         raise ValueError(f"speed_breakdown: {speed.shape}, {real.shape}, {pred.shape} and "
                          f"{len(model_frames)} frames differ")
     bounds = [0.0, *edges_mps, math.inf]
+    bins = [(_speed_label(lo, hi), lo, hi, np.flatnonzero((speed >= lo) & (speed < hi)))
+            for lo, hi in zip(bounds[:-1], bounds[1:])]
+    bins.append(("unknown", math.nan, math.nan, np.flatnonzero(~np.isfinite(speed))))
     rows = []
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
-        idx = np.flatnonzero((speed >= lo) & (speed < hi))
+    for label, lo, hi, idx in bins:
         if idx.size == 0:
             continue
-        label = f"< {_fmt(hi)} m/s" if lo == 0 else (f">= {_fmt(lo)} m/s" if math.isinf(hi) else f"{_fmt(lo)}-{_fmt(hi)} m/s")
         row = {"label": label, "lo_mps": lo, "hi_mps": hi, "frames": int(idx.size),
                "real_count": float(real[idx].mean()), "model_count": float(pred[idx].mean())}
         for key, _ in SPEED_COLUMNS:
@@ -243,6 +245,12 @@ def speed_breakdown(speed_mps: np.ndarray, real_count: np.ndarray, model_count: 
             row[key] = float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else math.nan
         rows.append(row)
     return rows
+
+
+def _speed_label(lo: float, hi: float) -> str:
+    if lo == 0:
+        return f"< {_fmt(hi)} m/s"
+    return f">= {_fmt(lo)} m/s" if math.isinf(hi) else f"{_fmt(lo)}-{_fmt(hi)} m/s"
 
 
 def speed_table_md(rows: Sequence[Mapping[str, Any]]) -> str:

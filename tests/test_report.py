@@ -141,6 +141,9 @@ def test_speed_breakdown_bins_frames_by_ego_speed():
     assert math.isclose(stopped["count_rel_err"], (1.0 + 50 / 60) / 2)
     assert rows[-1]["chamfer_m"] == 2.0 and math.isclose(rows[-1]["f1"], 0.3)  # NaN ignored
     assert R.speed_breakdown(speeds[:2], real[:2], pred[:2], frames[:2])[0]["frames"] == 2  # empty bins left out
+    unknown = R.speed_breakdown(np.r_[np.nan, speeds[1:]], real, pred, frames)
+    assert unknown[-1]["label"] == "unknown" and unknown[-1]["frames"] == 1 and unknown[-1]["real_count"] == 50
+    assert sum(r["frames"] for r in unknown) == 6
     md = R.speed_table_md(rows)
     assert "| < 0.5 m/s | 2 | 55 | 105 |" in md and md.count("\n") == 5
     try:
