@@ -495,7 +495,7 @@ def synthesize_frame(
     index = LidarAngularIndex(lidar_D) if index is None else index
     map_cdf = _map_cdf(prob_map, n)  # once for all rounds
     parts: list[dict[str, np.ndarray]] = []
-    dropped = {"no_support": 0, "out_of_fov": 0, "beyond_range": 0}
+    dropped = np.zeros(4, np.int64)  # samples per fate code, over the draws used
     missing, kept_total, drawn_total = n, 0, 0
     for round_ in range(1 + int(refill_rounds)):
         draws = missing if round_ == 0 else _refill_draws(missing, kept_total, drawn_total)
@@ -508,9 +508,7 @@ def synthesize_frame(
             used = int(np.flatnonzero(fate == KEPT)[missing - 1]) + 1
             kept = {k: v[:missing] for k, v in kept.items()}
         parts.append(kept)
-        for key, code in (("no_support", DROP_NO_SUPPORT), ("out_of_fov", DROP_OUT_OF_FOV),
-                          ("beyond_range", DROP_BEYOND_RANGE)):
-            dropped[key] += int((fate[:used] == code).sum())
+        dropped += np.bincount(fate[:used], minlength=len(dropped))
         kept_total, drawn_total = kept_total + len(kept["uv"]), drawn_total + used
         missing -= len(kept["uv"])
         if missing == 0:
@@ -525,8 +523,8 @@ def synthesize_frame(
         "uv": uv.astype(np.float32),
         "support": support,
         "n_requested": n,
-        "n_no_support": dropped["no_support"],
-        "n_out_of_fov": dropped["out_of_fov"],
-        "n_beyond_range": dropped["beyond_range"],
+        "n_no_support": int(dropped[DROP_NO_SUPPORT]),
+        "n_out_of_fov": int(dropped[DROP_OUT_OF_FOV]),
+        "n_beyond_range": int(dropped[DROP_BEYOND_RANGE]),
         "n_widened": int((support == SUPPORT_WIDENED).sum()),
     }
