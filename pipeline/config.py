@@ -152,8 +152,15 @@ class DisNetSection:
     """Base width of the ResNet-18 (64 = standard)."""
     prior: bool = True
     """Add log(mean training heatmap) to the map logits and start the count at the training mean
-    count, learning the residuals (an improvement over the paper: training starts at the mean-map
-    and mean-count baselines; False = the paper's network)."""
+    count (at the frame's speed: ``speed_count_prior``), learning the residuals (an improvement
+    over the paper: training starts at the mean-map and mean-count baselines; False = the paper's
+    network)."""
+    speed_count_prior: bool = True
+    """With ``prior`` and ``use_speed``: start the count at the training mean count AT THE FRAME'S
+    EGO SPEED (``pipeline.training.speed_count_prior``: a knot for a stopped ego, speed quantiles
+    for the rest, linear between) instead of the overall mean; the number branch learns the
+    per-frame deviation from it. A radar's count depends strongly on its speed (static returns at
+    zero Doppler when stopped), and the image features alone overfit instead. False = one mean."""
     speed_map: bool = False
     """Also give the ego speed to the distribution branch (per-channel scale and shift of the
     features it decodes): one image cannot tell a stopped ego from a moving one, yet the radar's
@@ -234,10 +241,10 @@ class TrainSection:
 TRAINING_KEYS: dict[str, tuple[str, ...]] = {
     "common": ("train.lr", "train.seed", "train.weight_decay", "train.lr_schedule", "train.ema_decay",
                "train.select_on"),
-    "disnet": ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior", "disnet.speed_map",
-               "disnet.skips", "radar.max_points", "camera.working_size", "train.batch_size", "train.alpha",
-               "train.flip", "train.count_grad_scale", "train.cutmix", "train.count_refit_epochs",
-               "train.jitter", "train.map_dropout"),
+    "disnet": ("disnet.use_speed", "disnet.backbone_weights", "disnet.width", "disnet.prior",
+               "disnet.speed_count_prior", "disnet.speed_map", "disnet.skips", "radar.max_points",
+               "camera.working_size", "train.batch_size", "train.alpha", "train.flip", "train.count_grad_scale",
+               "train.cutmix", "train.count_refit_epochs", "train.jitter", "train.map_dropout"),
     "rssnet": ("rssnet.use_camera", "rssnet.use_lidar", "rssnet.use_radar_point", "radar.rss_min",
                "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"),
 }

@@ -28,6 +28,10 @@ from pipeline.geometry import norms_m, norms_xyz_m
 EMPTY = -1.0
 """Value of pixels without lidar points (occupied pixels are in [0, 254])."""
 
+INT32_KEY_PIXELS = 2**23
+"""Below this many pixels in all (2047 images of 128 x 32), the pixel << 8 | value sort keys are
+32-bit integers: they sort about twice as fast as 64-bit ones."""
+
 _BRUTE_CHUNK = 8
 """Radar points per distance matrix in the brute-force version (bounds memory to 8 x M)."""
 
@@ -63,7 +67,8 @@ def _render(lidar: np.ndarray, points: np.ndarray, owner: np.ndarray, neighbour:
     value = 127 + np.where(farther, level, -level)  # an integer in 0..254: 8 bits
     # Average per occupied pixel: sort keys (pixel << 8 | value), a plain sort of integers, and
     # sum the runs of equal pixels; O(K log K) in the pairs rather than O(N h w) accumulators.
-    key = np.sort((((owner * h + v) * w + u) << 8) | value)
+    key = (((owner * h + v) * w + u) << 8) | value
+    key = np.sort(key.astype(np.int32) if n * h * w < INT32_KEY_PIXELS else key)
     flat, value = key >> 8, key & 255
     starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]]) if flat.size else np.zeros(0, np.intp)
     image = np.full(n * h * w, EMPTY, dtype=np.float32)

@@ -36,7 +36,7 @@ from pipeline import augment
 from pipeline import checkpoint as ckpt
 from pipeline.config import TRAINING_KEYS
 from pipeline.errors import ConfigError
-from pipeline.models.disnet import DisNet, build_disnet, disnet_kwargs
+from pipeline.models.disnet import COUNT_PRIOR_KNOTS, DisNet, build_disnet, disnet_kwargs
 from pipeline.models.losses import count_loss, kl_loss, rss_loss
 from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
 
@@ -517,7 +517,13 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     if cfg.disnet.prior:
         prior = data.prior_map if data.prior_map is not None else mean_map_baseline(data.heatmaps, spec.train_idx)
         model.set_prior(prior)
-        model.set_count_prior(float(np.mean(take_rows(data.counts, spec.train_idx))))
+        counts = np.asarray(take_rows(data.counts, spec.train_idx), np.float64)
+        if cfg.disnet.use_speed and cfg.disnet.speed_count_prior:
+            knots, means = speed_count_prior(take_rows(data.speeds, spec.train_idx), counts)
+            model.set_count_prior(means, knots)
+            log.info("disnet: count prior %s at %s m/s", np.round(means, 1).tolist(), np.round(knots, 2).tolist())
+        else:
+            model.set_count_prior(float(counts.mean()))
     res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
     if refit_epochs > 0:
         _refit_best_count(cfg, spec, res.best_path, refit_epochs, progress)
@@ -664,7 +670,11 @@ def _load_into(model: nn.Module, arch: dict[str, Any], path: str | Path, device:
                 if meta.get("arch", {}).get(k) != v}
         raise ConfigError(f"{path}: checkpoint architecture differs from the configuration "
                           f"(saved, configured): {diff}")
-    model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
+    try:
+        model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
+    except RuntimeError as exc:  # e.g. a checkpoint of an older version of the network
+        raise ConfigError(f"{path}: the checkpoint does not fit this version's network (written by an "
+                          f"older version? run the train stage again): {exc}") from exc
     return model.to(device).eval()
 
 
@@ -749,6 +759,43 @@ def mean_map_baseline(heatmaps: Any, train_idx: Sequence[int], batch: int = 64) 
         total = part if total is None else total + part
     mean = total / total.sum()
     return (1 - BASELINE_UNIFORM_MIX) * mean + BASELINE_UNIFORM_MIX / mean.size
+
+
+STOPPED_MPS = 0.5
+"""Ego speeds below this (m/s) count as standing still for the count prior's own knot."""
+MIN_FRAMES_PER_KNOT = 30
+"""Fewest training frames behind one knot of the count prior."""
+
+
+def speed_count_prior(speeds_mps: Any, counts: Any, n_knots: int = COUNT_PRIOR_KNOTS,
+                      stopped_mps: float = STOPPED_MPS, min_frames: int = MIN_FRAMES_PER_KNOT
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The mean radar point count as a function of the ego speed, from training frames' speeds
+    (F,) m/s and counts (F,): (knot speeds (K,) m/s strictly increasing, mean counts (K,)), K <=
+    ``n_knots``. Frames below ``stopped_mps`` get a knot of their own when there are
+    ``min_frames`` of them (a stopped radar sees its static world at zero Doppler); the others
+    are cut into speed quantiles of at least ``min_frames`` frames each (fewer bins when frames are
+    few). A knot sits at its frames' mean speed with their mean count. Too few frames for two
+    knots give one: the mean count.
+    """
+    v = np.asarray(speeds_mps, np.float64).ravel()
+    n = np.asarray(counts, np.float64).ravel()
+    if v.size == 0 or v.shape != n.shape or not (np.all(np.isfinite(v)) and np.all(np.isfinite(n))):
+        raise ValueError(f"speed_count_prior: need as many finite speeds as counts, got {v.size} and {n.size}")
+    if n_knots < 1 or min_frames < 1:
+        raise ValueError(f"speed_count_prior: n_knots and min_frames must be >= 1, got {n_knots}, {min_frames}")
+    stopped = v < stopped_mps
+    groups = [np.flatnonzero(stopped)] if stopped.sum() >= min_frames and n_knots > 1 else []
+    moving = np.flatnonzero(~stopped) if groups else np.arange(v.size)
+    bins = max(1, min(n_knots - len(groups), moving.size // min_frames))
+    groups += [g for g in np.array_split(moving[np.argsort(v[moving], kind="stable")], bins) if g.size]
+    merged = [groups[0]]  # groups with the same mean speed (e.g. a constant speed) become one knot
+    for g in groups[1:]:
+        if v[g].mean() - v[merged[-1]].mean() > 1e-6:
+            merged.append(g)
+        else:
+            merged[-1] = np.concatenate([merged[-1], g])
+    return np.array([v[g].mean() for g in merged]), np.array([n[g].mean() for g in merged])
 
 
 def disnet_baseline(heatmaps: Any, counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int],

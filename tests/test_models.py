@@ -351,6 +351,40 @@ def test_disnet_priors_start_at_the_baselines():
         model.set_prior(np.ones((3, 3)))
 
 
+def test_speed_count_prior_is_linear_in_the_logit_between_knots_and_flat_beyond():
+    """A count prior at ego speeds: an untrained number branch (zero head) predicts it exactly at
+    the knots, the logit's linear interpolation between them, the end values beyond; a speed-blind
+    network takes one count only; bad tables are refused. The prior is saved with the weights."""
+    import numpy as np
+
+    from pipeline.models.disnet import DisNet
+
+    torch.manual_seed(0)
+    model = DisNet(width=8, use_speed=True, max_points=500, out_hw=(32, 64), use_prior=True).eval()
+    model.set_count_prior(np.array([50.0, 150.0, 100.0]), np.array([0.0, 5.0, 10.0]))
+    speeds = torch.tensor([0.0, 5.0, 10.0, 2.5, 20.0, 7.0])
+    grid = torch.randn(speeds.numel(), 64, 5, 18)  # the features do not matter with a zero head
+    n_hat = model.count_from_grid(grid, speeds).detach().numpy()
+    logit = lambda n: np.log(n / 500 / (1 - n / 500))  # noqa: E731
+    mid = lambda a, b, t: 500 / (1 + np.exp(-((1 - t) * logit(a) + t * logit(b))))  # noqa: E731
+    np.testing.assert_allclose(n_hat, [50, 150, 100, mid(50, 150, 0.5), 100, mid(150, 100, 0.4)], rtol=1e-4)
+    _, from_forward = model(torch.rand(2, 3, 32, 64), torch.tensor([0.0, 20.0]))
+    np.testing.assert_allclose(from_forward.detach().numpy(), [50, 100], rtol=1e-4)
+
+    copy = DisNet(width=8, use_speed=True, max_points=500, out_hw=(32, 64), use_prior=True).eval()
+    copy.load_state_dict(model.state_dict())
+    np.testing.assert_allclose(copy.count_from_grid(grid, speeds).detach().numpy(), n_hat, rtol=1e-6)
+
+    blind = DisNet(width=8, use_speed=False, max_points=500, out_hw=(32, 64), use_prior=True).eval()
+    blind.set_count_prior(80.0)
+    np.testing.assert_allclose(blind.count_from_grid(grid[:2]).detach().numpy(), [80, 80], rtol=1e-4)
+    with pytest.raises(ValueError, match="one count"):
+        blind.set_count_prior(np.array([50.0, 60.0]), np.array([0.0, 1.0]))
+    for counts, knots in (([50.0, 60.0], [1.0, 1.0]), ([50.0, np.nan], [0.0, 1.0]), ([1.0] * 9, list(range(9)))):
+        with pytest.raises(ValueError, match="strictly increasing"):
+            model.set_count_prior(np.array(counts), np.array(knots))
+
+
 def test_importing_the_package_keeps_onednn_off_its_avx512_kernels():
     """pipeline/__init__ caps oneDNN at AVX2 (its AVX-512 1x1-convolution weight gradient segfaults
     on some AMD EPYC machines), even when torch was imported first; a user's setting wins."""

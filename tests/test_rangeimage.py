@@ -136,3 +136,17 @@ def test_reuses_given_tree_and_matches_single():
     batch = local_range_images(lidar, points, 1.0, tree=tree)
     for i in range(3):
         np.testing.assert_array_equal(batch[i], local_range_image(lidar, points[i], 1.0, tree=tree))
+
+
+def test_64_bit_sort_keys_give_the_same_images(monkeypatch):
+    """Large batches sort 64-bit keys (32-bit ones would overflow): same images as 32-bit keys."""
+    import pipeline.rangeimage as R
+
+    rng = np.random.default_rng(1)
+    points = P + rng.uniform(-2, 2, (20, 3))
+    lidar = np.round(points[rng.integers(0, 20, 3000)] + rng.uniform(-1, 1, (3000, 3)), 2)
+    small = local_range_images(lidar, points, 1.0)
+    monkeypatch.setattr(R, "INT32_KEY_PIXELS", 0)
+    large = local_range_images(lidar, points, 1.0)
+    np.testing.assert_array_equal(large, small)
+    assert (small != EMPTY).sum() > 1000

@@ -379,6 +379,54 @@ def test_take_rows_zarr_matches_numpy():
     assert np.array_equal(T.take_rows(z, sel), a[sel]) and T.chunk_len(z) == 4
 
 
+def test_speed_count_prior_knots():
+    """A knot for a stopped ego (when there are enough such frames), speed quantiles of the moving
+    frames for the rest, each at its frames' mean speed and mean count; one knot for a constant
+    speed or too few frames; bad input is refused."""
+    rng = np.random.default_rng(0)
+    speed = np.r_[np.zeros(40), rng.uniform(1, 15, 300)]
+    count = np.r_[np.full(40, 50.0), 100 + 5 * speed[40:]]
+    knots, means = T.speed_count_prior(speed, count, n_knots=4, min_frames=30)
+    assert knots.shape == means.shape == (4,) and np.all(np.diff(knots) > 0)
+    assert knots[0] == 0 and means[0] == 50
+    moving = np.sort(speed[40:])
+    for k, part in enumerate(np.array_split(moving, 3)):  # three equal quantile bins of the moving
+        assert knots[k + 1] == pytest.approx(part.mean()) and means[k + 1] == pytest.approx(100 + 5 * part.mean())
+    # 20 stopped frames (< min_frames) join the slowest quantile; 100 frames allow 3 bins of 30
+    few = T.speed_count_prior(np.r_[np.zeros(20), np.linspace(1, 9, 80)], np.arange(100.0), n_knots=8, min_frames=30)
+    assert few[0].shape == (3,) and few[0][0] == pytest.approx(np.r_[np.zeros(20), np.linspace(1, 9, 80)][:34].mean())
+    for v in (np.full(200, 7.0), np.linspace(0, 9, 50)):  # a constant speed; too few for two bins
+        knots, means = T.speed_count_prior(v, np.arange(v.size, dtype=float), min_frames=30)
+        assert knots.tolist() == [pytest.approx(v.mean())] and means.tolist() == [pytest.approx((v.size - 1) / 2)]
+    for bad in ((np.zeros(3), np.zeros(4)), (np.array([np.nan, 1.0]), np.ones(2)), (np.zeros(0), np.zeros(0))):
+        with pytest.raises(ValueError, match="speed_count_prior"):
+            T.speed_count_prior(*bad)
+
+
+def test_disnet_starts_at_the_speed_count_prior(tmp_path, monkeypatch):
+    """train_disnet (disnet.prior) starts the number branch at the training frames' speed-binned
+    mean count (disnet.speed_count_prior), or at their mean count when that is off or the network
+    is speed-blind."""
+    data = make_disnet_data(n=80)
+    speeds = np.r_[np.zeros(40), np.linspace(2, 12, 40)]
+    data = T.DisNetData(**{**data.__dict__, "speeds": speeds.astype(np.float32), "train_idx": list(range(72)),
+                           "val_idx": list(range(72, 80))})
+    counts = np.asarray(data.counts, np.float64)
+    cases = (({}, T.speed_count_prior(speeds[:72], counts[:72])),
+             ({"disnet.speed_count_prior": "false"}, (None, counts[:72].mean())),
+             ({"disnet.use_speed": "false"}, (None, counts[:72].mean())))
+    for case, (overrides, expect) in enumerate(cases):
+        cfg = tiny_cfg(**{"train.epochs": "0", **overrides})
+        seen = {}
+        monkeypatch.setattr(T.DisNet, "set_count_prior", lambda self, c, s=None: seen.update(c=c, s=s))
+        T.train_disnet(cfg, data, tmp_path / str(case), progress=False)
+        np.testing.assert_allclose(seen["c"], expect[1])
+        assert (seen["s"] is None) == (expect[0] is None)
+        if expect[0] is not None:
+            assert len(expect[0]) >= 2 and expect[0][0] == 0
+            np.testing.assert_allclose(seen["s"], expect[0])
+
+
 def test_baselines_against_brute_force():
     data = make_disnet_data(n=12)
     mean = T.mean_map_baseline(data.heatmaps, data.train_idx)

@@ -7,7 +7,9 @@
 - Number branch: adaptive average pool to a fixed 5 x 18 grid, 1x1 conv 8w -> 1 (90 values, the
   authors' FC input size, so any image size works; the same function as their conv-then-pool),
   FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s -> FC 1 -> 12 + ReLU (dropped when ``use_speed`` is
-  False); concat -> FC -> sigmoid * max_points.
+  False); concat -> FC -> + count prior logit -> sigmoid * max_points. The count prior (an
+  extension of the paper, see ``set_count_prior``) is a piecewise-linear function of the ego speed
+  held in buffers (COUNT_PRIOR_KNOTS knots, saved in checkpoints); all zeros (logit 0) until set.
   ``count_grad_scale`` (a training setting, not saved with the architecture) scales the gradient
   the number branch sends back into the backbone. ``map_dropout`` (also a training setting)
   zeroes whole channels of the features the distribution branch decodes with that probability
@@ -39,6 +41,8 @@ COUNT_GRID = (5, 18)
 """Fixed grid the number branch pools the 1-channel feature map to (5 * 18 = 90 values)."""
 SPEED_SCALE_MPS = 10.0
 """The ego speed enters the network divided by this, m/s."""
+COUNT_PRIOR_KNOTS = 8
+"""Knots of the count prior's piecewise-linear function of the ego speed."""
 
 
 class DisNet(nn.Module):
@@ -86,6 +90,9 @@ class DisNet(nn.Module):
         self.count_fc = nn.Linear(COUNT_GRID[0] * COUNT_GRID[1], 12)
         self.speed_fc = nn.Linear(1, 12) if use_speed else None
         self.count_head = nn.Linear(24 if use_speed else 12, 1)
+        # count prior: logit(count / max_points) at increasing ego speeds (set_count_prior)
+        self.register_buffer("count_prior_speed_mps", torch.arange(COUNT_PRIOR_KNOTS, dtype=torch.float32))
+        self.register_buffer("count_prior_logit", torch.zeros(COUNT_PRIOR_KNOTS))
         self.count_grad_scale = 1.0
         self.map_dropout = 0.0
 
@@ -116,7 +123,21 @@ class DisNet(nn.Module):
         if self.speed_fc is not None:
             s = _speed_input(speed_mps, b, code.dtype, "use_speed")
             code = torch.cat([code, F.relu(self.speed_fc(s))], dim=1)   # (B, 24)
-        return torch.sigmoid(self.count_head(code)).squeeze(1) * self.max_points  # (B,)
+        logit = self.count_head(code).squeeze(1) + self._count_prior_logit(speed_mps, b)
+        return torch.sigmoid(logit) * self.max_points                  # (B,)
+
+    def _count_prior_logit(self, speed_mps: Tensor | None, b: int) -> Tensor:
+        """The count prior's logit (B,) at the ego speeds (B,) m/s: linear between knots, flat beyond
+        the first and last (np.interp's rule). Without ``use_speed`` the prior is constant (its
+        first knot), so a speed-blind network never sees the speed."""
+        x, y = self.count_prior_speed_mps, self.count_prior_logit
+        if not self.use_speed:
+            return y[0].expand(b)
+        s = _speed_input(speed_mps, b, x.dtype, "use_speed").reshape(b) * SPEED_SCALE_MPS
+        hi = torch.searchsorted(x, s.contiguous()).clamp(1, x.numel() - 1)
+        x0, x1, y0, y1 = x[hi - 1], x[hi], y[hi - 1], y[hi]
+        t = ((s - x0) / (x1 - x0)).clamp(0.0, 1.0)
+        return y0 + t * (y1 - y0)
 
     @torch.no_grad()
     def count_grid_features(self, image: Tensor) -> Tensor:
@@ -146,12 +167,30 @@ class DisNet(nn.Module):
         return self.decoder[3](x)
 
     @torch.no_grad()
-    def set_count_prior(self, mean_count: float) -> None:
-        """Start the number branch at ``mean_count`` (e.g. the training mean): zero head weights,
-        bias = logit(mean_count / max_points); training then learns the per-frame deviation."""
-        q = float(np.clip(mean_count / self.max_points, 1e-4, 1 - 1e-4))
+    def set_count_prior(self, counts: float | np.ndarray, speeds_mps: np.ndarray | None = None) -> None:
+        """Start the number branch at a prior count and learn the per-frame deviation from it: zero
+        head weights and bias, and the prior logit(count / max_points) in the buffers.
+
+        ``counts``: one count (e.g. the training mean), the prior at every speed; or counts (K,)
+        at strictly increasing ``speeds_mps`` (K,), 1 <= K <= COUNT_PRIOR_KNOTS (see
+        ``pipeline.training.speed_count_prior``), linear in the logit between them. A network
+        built without ``use_speed`` takes one count only.
+        """
+        y = np.atleast_1d(np.asarray(counts, np.float64))
+        x = np.arange(y.size, dtype=np.float64) if speeds_mps is None else np.asarray(speeds_mps, np.float64)
+        if not (1 <= y.size <= COUNT_PRIOR_KNOTS and x.shape == y.shape and np.all(np.isfinite(x))
+                and np.all(np.isfinite(y)) and np.all(np.diff(x) > 0)):
+            raise ValueError(f"count prior: need 1 to {COUNT_PRIOR_KNOTS} finite counts at strictly "
+                             f"increasing speeds, got counts {y.tolist()} at {x.tolist()}")
+        if not self.use_speed and y.size > 1:
+            raise ValueError("count prior: a network without use_speed takes one count, not a speed table")
+        pad = COUNT_PRIOR_KNOTS - y.size  # repeat the last value beyond the last knot: flat there too
+        x = np.concatenate([x, x[-1] + 1.0 + np.arange(pad)])
+        q = np.clip(np.concatenate([y, np.full(pad, y[-1])]) / self.max_points, 1e-4, 1 - 1e-4)
+        self.count_prior_speed_mps.copy_(torch.from_numpy(x).float())
+        self.count_prior_logit.copy_(torch.from_numpy(np.log(q / (1 - q))).float())
         nn.init.zeros_(self.count_head.weight)
-        self.count_head.bias.fill_(float(np.log(q / (1 - q))))
+        nn.init.zeros_(self.count_head.bias)
 
     @torch.no_grad()
     def set_prior(self, prob_map: np.ndarray, floor: float = 1e-6) -> None:

@@ -19,6 +19,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from pipeline.config import load_config  # noqa: E402
+from pipeline.errors import CacheError, ConfigError  # noqa: E402
 from pipeline.executor import Executor, FrameInputs, RunEnv, tune_heap  # noqa: E402
 from pipeline.models.disnet import build_disnet  # noqa: E402
 from pipeline.models.rssnet import build_rssnet  # noqa: E402
@@ -82,11 +83,12 @@ def main() -> None:
         frames = [FrameInputs(env, i, f) for i, f in enumerate(pipe.frame_ids())]
         runs = [("network", disnet, rssnet), ("radar", disnet, rssnet)]
         trained = Path(TRAINED_CACHE) / "synthetic" / "train"
-        if (trained / "disnet" / "best.safetensors").exists():  # after `make demo`: the real case
+        try:  # after `make demo`: the real case
             runs.append(("trained network", load_disnet(cfg, str(trained / "disnet" / "best.safetensors"), device="cpu"),
                          load_rssnet(cfg, str(trained / "rssnet" / "best.safetensors"), device="cpu")))
-        else:
-            print(f"(no trained models under {trained}: run `make demo` to also time the trained networks)")
+        except (CacheError, ConfigError) as exc:
+            print(f"(no usable trained models under {trained}: run `make demo` to also time the trained "
+                  f"networks; {str(exc).splitlines()[0]})")
         for source, disnet, rssnet in runs:
             t_net, t_rest, n_frames, n_points = measure(frames, cfg, disnet, rssnet, source)
             total = t_net + t_rest
