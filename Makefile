@@ -34,9 +34,10 @@ demo: setup  ## run the whole pipeline on the built-in synthetic world
 # Dis-Net settings measured best on the 720- and 1200-frame worlds (README, "Averaged weights ..."
 # and "Refitting the count ..."): the speed also shapes the map, the count loss leaves the backbone
 # alone, averaged weights, the best epoch picked by the map's val L_KL, brightness/contrast jitter,
-# and the number branch refitted on the chosen backbone.
+# and the number branch refitted on the chosen backbone, starting from the mean count at the ego speed.
 LARGE_SETTINGS := --set disnet.speed_map=true --set train.count_grad_scale=0 --set train.ema_decay=0.99 \
-	--set train.select_on=kl --set train.jitter=0.3 --set train.count_refit_epochs=50
+	--set train.select_on=kl --set train.jitter=0.3 --set train.count_refit_epochs=50 \
+	--set disnet.speed_count_prior=true
 
 demo-large: setup  ## the demo on a 2400-frame world, 12 epochs (about an hour on 2 cores): the fidelity figures
 	$(MAKE) demo CACHE=cache-large ARGS="--set dataset.world_frames=2400 --set train.epochs=12 $(LARGE_SETTINGS) $(ARGS)"

@@ -152,15 +152,17 @@ class DisNetSection:
     """Base width of the ResNet-18 (64 = standard)."""
     prior: bool = True
     """Add log(mean training heatmap) to the map logits and start the count at the training mean
-    count (at the frame's speed: ``speed_count_prior``), learning the residuals (an improvement
+    count (or at the frame's speed: ``speed_count_prior``), learning the residuals (an improvement
     over the paper: training starts at the mean-map and mean-count baselines; False = the paper's
     network)."""
-    speed_count_prior: bool = True
+    speed_count_prior: bool = False
     """With ``prior`` and ``use_speed``: start the count at the training mean count AT THE FRAME'S
     EGO SPEED (``pipeline.training.speed_count_prior``: a knot for a stopped ego, speed quantiles
-    for the rest, linear between) instead of the overall mean; the number branch learns the
-    per-frame deviation from it. A radar's count depends strongly on its speed (static returns at
-    zero Doppler when stopped), and the image features alone overfit instead. False = one mean."""
+    of at least 30 frames for the rest, linear between) instead of the overall mean; the number
+    branch learns the per-frame deviation from it. A radar's count depends strongly on its speed
+    (static returns at zero Doppler when stopped). For large training sets: on the 2400-frame
+    world it cut test L_n from 0.258 to 0.052, on the 240-frame demo it made L_n and L_KL worse
+    (README). False = one mean count (the default)."""
     speed_map: bool = False
     """Also give the ego speed to the distribution branch (per-channel scale and shift of the
     features it decodes): one image cannot tell a stopped ego from a moving one, yet the radar's

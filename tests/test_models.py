@@ -378,6 +378,10 @@ def test_speed_count_prior_is_linear_in_the_logit_between_knots_and_flat_beyond(
     blind = DisNet(width=8, use_speed=False, max_points=500, out_hw=(32, 64), use_prior=True).eval()
     blind.set_count_prior(80.0)
     np.testing.assert_allclose(blind.count_from_grid(grid[:2]).detach().numpy(), [80, 80], rtol=1e-4)
+    # one count sits in the head's bias (the arithmetic of the plain mean prior), not in the table
+    model.set_count_prior(80.0)
+    assert model.count_head.bias.item() == pytest.approx(logit(80.0)) and not model.count_prior_logit.any()
+    np.testing.assert_allclose(model.count_from_grid(grid, speeds).detach().numpy(), np.full(6, 80.0), rtol=1e-4)
     with pytest.raises(ValueError, match="one count"):
         blind.set_count_prior(np.array([50.0, 60.0]), np.array([0.0, 1.0]))
     for counts, knots in (([50.0, 60.0], [1.0, 1.0]), ([50.0, np.nan], [0.0, 1.0]), ([1.0] * 9, list(range(9)))):

@@ -405,16 +405,16 @@ def test_speed_count_prior_knots():
 
 def test_disnet_starts_at_the_speed_count_prior(tmp_path, monkeypatch):
     """train_disnet (disnet.prior) starts the number branch at the training frames' speed-binned
-    mean count (disnet.speed_count_prior), or at their mean count when that is off or the network
-    is speed-blind."""
+    mean count with disnet.speed_count_prior, at their mean count when that is off (the default)
+    or the network is speed-blind."""
     data = make_disnet_data(n=80)
     speeds = np.r_[np.zeros(40), np.linspace(2, 12, 40)]
     data = T.DisNetData(**{**data.__dict__, "speeds": speeds.astype(np.float32), "train_idx": list(range(72)),
                            "val_idx": list(range(72, 80))})
     counts = np.asarray(data.counts, np.float64)
-    cases = (({}, T.speed_count_prior(speeds[:72], counts[:72])),
-             ({"disnet.speed_count_prior": "false"}, (None, counts[:72].mean())),
-             ({"disnet.use_speed": "false"}, (None, counts[:72].mean())))
+    cases = (({"disnet.speed_count_prior": "true"}, T.speed_count_prior(speeds[:72], counts[:72])),
+             ({}, (None, counts[:72].mean())),  # off by default
+             ({"disnet.speed_count_prior": "true", "disnet.use_speed": "false"}, (None, counts[:72].mean())))
     for case, (overrides, expect) in enumerate(cases):
         cfg = tiny_cfg(**{"train.epochs": "0", **overrides})
         seen = {}

@@ -168,13 +168,14 @@ class DisNet(nn.Module):
 
     @torch.no_grad()
     def set_count_prior(self, counts: float | np.ndarray, speeds_mps: np.ndarray | None = None) -> None:
-        """Start the number branch at a prior count and learn the per-frame deviation from it: zero
-        head weights and bias, and the prior logit(count / max_points) in the buffers.
+        """Start the number branch at a prior count and learn the per-frame deviation from it.
 
-        ``counts``: one count (e.g. the training mean), the prior at every speed; or counts (K,)
-        at strictly increasing ``speeds_mps`` (K,), 1 <= K <= COUNT_PRIOR_KNOTS (see
-        ``pipeline.training.speed_count_prior``), linear in the logit between them. A network
-        built without ``use_speed`` takes one count only.
+        ``counts``: one count (e.g. the training mean), the prior at every speed: zero head
+        weights, head bias logit(count / max_points). Or counts (K,) at strictly increasing
+        ``speeds_mps`` (K,), 2 <= K <= COUNT_PRIOR_KNOTS (see
+        ``pipeline.training.speed_count_prior``): zero head weights and bias, the prior's logits in
+        the buffers, linear in the logit between the knots. A network built without ``use_speed``
+        takes one count only.
         """
         y = np.atleast_1d(np.asarray(counts, np.float64))
         x = np.arange(y.size, dtype=np.float64) if speeds_mps is None else np.asarray(speeds_mps, np.float64)
@@ -184,12 +185,17 @@ class DisNet(nn.Module):
                              f"increasing speeds, got counts {y.tolist()} at {x.tolist()}")
         if not self.use_speed and y.size > 1:
             raise ValueError("count prior: a network without use_speed takes one count, not a speed table")
-        pad = COUNT_PRIOR_KNOTS - y.size  # repeat the last value beyond the last knot: flat there too
-        x = np.concatenate([x, x[-1] + 1.0 + np.arange(pad)])
-        q = np.clip(np.concatenate([y, np.full(pad, y[-1])]) / self.max_points, 1e-4, 1 - 1e-4)
-        self.count_prior_speed_mps.copy_(torch.from_numpy(x).float())
-        self.count_prior_logit.copy_(torch.from_numpy(np.log(q / (1 - q))).float())
+        q = np.clip(y / self.max_points, 1e-4, 1 - 1e-4)
+        logit = np.log(q / (1 - q))
         nn.init.zeros_(self.count_head.weight)
+        if y.size == 1:  # in the head's bias: the same arithmetic as before the speed prior existed
+            self.count_head.bias.fill_(float(logit[0]))
+            self.count_prior_speed_mps.copy_(torch.arange(COUNT_PRIOR_KNOTS, dtype=torch.float32))
+            self.count_prior_logit.zero_()
+            return
+        pad = COUNT_PRIOR_KNOTS - y.size  # repeat the last value beyond the last knot: flat there too
+        self.count_prior_speed_mps.copy_(torch.from_numpy(np.concatenate([x, x[-1] + 1.0 + np.arange(pad)])).float())
+        self.count_prior_logit.copy_(torch.from_numpy(np.concatenate([logit, np.full(pad, logit[-1])])).float())
         nn.init.zeros_(self.count_head.bias)
 
     @torch.no_grad()
