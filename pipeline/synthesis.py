@@ -351,7 +351,8 @@ def _check_deltas(delta_az_rad: float, delta_el_rad: float) -> None:
 
 
 def place_on_camera_ray(
-    uv: np.ndarray, range_m: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray
+    uv: np.ndarray, range_m: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray,
+    rays_D: np.ndarray | None = None,
 ) -> np.ndarray:
     """Points (n, 3) in {D} on the camera rays of pixels ``uv`` (n, 2) at ``range_m`` (n,) from the
     RADAR origin (the method's improvement over eq. 12, which ignores the camera-radar offset).
@@ -360,13 +361,14 @@ def place_on_camera_ray(
     t = -(c.d) + sqrt((c.d)^2 - |c|^2 + r^2). Fallback, where that root is not real or not
     positive (only possible when r < |c|, i.e. closer to the radar than the camera is): t = r,
     the point at distance r from the camera along the ray. NaN ranges give NaN points.
-    ``K`` (3, 3) intrinsics of the image ``uv`` refers to; ``T_radar_cam`` (4, 4).
+    ``K`` (3, 3) intrinsics of the image ``uv`` refers to; ``T_radar_cam`` (4, 4). ``rays_D``:
+    ``pixel_rays_D(uv, K, T_radar_cam)`` when the caller has it already.
     """
     uv = check_shape("uv", np.asarray(uv, dtype=np.float64), (None, 2))
     r = check_shape("range_m", np.asarray(range_m, dtype=np.float64), (uv.shape[0],))
     if uv.shape[0] == 0:
         return np.zeros((0, 3), np.float64)
-    d = pixel_rays_D(uv, K, T_radar_cam)
+    d = pixel_rays_D(uv, K, T_radar_cam) if rays_D is None else check_shape("rays_D", rays_D, (uv.shape[0], 3))
     c = np.asarray(T_radar_cam, dtype=np.float64)[:3, 3]
     cd = d @ c
     disc = cd**2 - c @ c + r**2
@@ -376,24 +378,43 @@ def place_on_camera_ray(
     return c[None, :] + t[:, None] * d
 
 
+LABEL_ROW_COLUMNS = 10
+"""Leading columns of a label row as calibrate stores labels: centre xyz m in {D}, size l w h m,
+yaw rad, velocity xyz m/s in {D} (NaN where unknown); further columns (track id) are ignored."""
+
+
+def label_boxes(labels: Sequence[Object3D] | np.ndarray) -> np.ndarray:
+    """(L, LABEL_ROW_COLUMNS) float64 rows of ``labels``: Object3D objects, or label rows (L, >= 10)
+    as calibrate stores them (taken as they are, without building objects)."""
+    if isinstance(labels, np.ndarray):
+        rows = np.asarray(labels, np.float64)
+        if rows.size == 0:
+            return np.zeros((0, LABEL_ROW_COLUMNS))
+        if rows.ndim != 2 or rows.shape[1] < LABEL_ROW_COLUMNS:
+            raise ValueError(f"label rows: need shape (L, >= {LABEL_ROW_COLUMNS}), got {rows.shape}")
+        return rows[:, :LABEL_ROW_COLUMNS]
+    return np.array([[*np.asarray(o.center_D, np.float64), *np.asarray(o.size_lwh_m, np.float64), o.yaw_rad,
+                      *np.asarray(o.velocity_D, np.float64)] for o in labels], np.float64).reshape(-1, LABEL_ROW_COLUMNS)
+
+
 def object_velocities_for_points(
-    points_D: np.ndarray, labels: Sequence[Object3D], margin_m: float = 0.3
+    points_D: np.ndarray, labels: Sequence[Object3D] | np.ndarray, margin_m: float = 0.3
 ) -> np.ndarray:
     """Velocity over ground (n, 3) m/s in {D} of the labelled object containing each point.
 
-    A point belongs to a box when it lies inside the oriented box (centre, yaw about z, size l/w/h)
-    grown by ``margin_m`` on every face; where boxes overlap, the one with the nearest centre wins.
-    Points in no box (the static world) get 0. Labels whose velocity is unknown (NaN) count as
-    static (0): a dataset without velocities gives a static-world Doppler for its objects.
+    ``labels``: Object3D objects or calibrate's label rows (see ``label_boxes``). A point belongs
+    to a box when it lies inside the oriented box (centre, yaw about z, size l/w/h) grown by
+    ``margin_m`` on every face; where boxes overlap, the one with the nearest centre wins. Points
+    in no box (the static world) get 0. Labels whose velocity is unknown (NaN) count as static
+    (0): a dataset without velocities gives a static-world Doppler for its objects.
     """
     points = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
     out = np.zeros((points.shape[0], 3))
-    if points.shape[0] == 0 or len(labels) == 0:
+    boxes = label_boxes(labels)
+    if points.shape[0] == 0 or len(boxes) == 0:
         return out
-    centres = np.stack([np.asarray(o.center_D, np.float64) for o in labels])            # (L, 3)
-    half = np.stack([np.asarray(o.size_lwh_m, np.float64) for o in labels]) / 2 + margin_m
-    yaw = np.array([o.yaw_rad for o in labels], np.float64)
-    vel = np.nan_to_num(np.stack([np.asarray(o.velocity_D, np.float64) for o in labels]), nan=0.0)
+    centres, half, yaw = boxes[:, 0:3], boxes[:, 3:6] / 2 + margin_m, boxes[:, 6]     # (L, 3), (L, 3), (L,)
+    vel = np.nan_to_num(boxes[:, 7:10], nan=0.0)
     rel = points[None, :, :] - centres[:, None, :]                                        # (L, n, 3)
     cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
     local_x = cos * rel[..., 0] + sin * rel[..., 1]
@@ -442,7 +463,7 @@ def _place_samples(
         ray_rae[:, 1], ray_rae[:, 2], np.deg2rad(az_res_deg), np.deg2rad(el_res_deg),
         estimator=estimator, no_support=no_support,
     )
-    points = place_on_camera_ray(uv, range_m, K_w, T_radar_cam)
+    points = place_on_camera_ray(uv, range_m, K_w, T_radar_cam, rays)
     rae = cartesian_to_spherical(np.nan_to_num(points))
     in_fov = (np.abs(rae[:, 1]) <= np.deg2rad(fov_az_deg) / 2) & (np.abs(rae[:, 2]) <= np.deg2rad(fov_el_deg) / 2)
     in_range = (rae[:, 0] > 0) & (rae[:, 0] <= max_range_m)
@@ -462,7 +483,7 @@ def _refill_draws(missing: int, kept: int, drawn: int) -> int:
 
 def synthesize_frame(
     prob_map: np.ndarray, n_hat: float, K_w: np.ndarray, T_radar_cam: np.ndarray,
-    lidar_D: np.ndarray, ego_velocity_D: np.ndarray, labels: Sequence[Object3D], *,
+    lidar_D: np.ndarray, ego_velocity_D: np.ndarray, labels: Sequence[Object3D] | np.ndarray, *,
     az_res_deg: float, el_res_deg: float, fov_az_deg: float, fov_el_deg: float,
     max_range_m: float, doppler_sign: int, doppler_span_mps: float,
     estimator: str, no_support: str, rng: np.random.Generator,

@@ -66,11 +66,10 @@ def _syn5(points9: np.ndarray) -> np.ndarray:
 def _static_mask(real: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Real points outside every labelled box that moves faster than 0.5 m/s."""
     from pipeline.synthesis import object_velocities_for_points
-    from stages.synthesize import labels_from_array
 
     if len(real) == 0:
         return np.zeros(0, bool)
-    vel = object_velocities_for_points(real[:, :3], labels_from_array(labels))
+    vel = object_velocities_for_points(real[:, :3], labels)
     return np.linalg.norm(vel, axis=1) < 0.5
 
 

@@ -17,7 +17,6 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.executor import FrameInputs, process_memo
-from pipeline.frame import Object3D
 from pipeline.geometry import wrap_doppler
 from pipeline.stage import ArraySpec, FrameStage
 from stages.patches import point_inputs
@@ -90,12 +89,6 @@ def models(inputs: FrameInputs, cfg: Config):
     return process_memo(key, build)
 
 
-def labels_from_array(labels: np.ndarray) -> list[Object3D]:
-    """Object3D list from calibrate's label rows."""
-    return [Object3D("object", row[0:3].astype(np.float64), row[3:6].astype(np.float64), float(row[6]),
-                     int(row[10]) if np.isfinite(row[10]) else -1, row[7:10].astype(np.float64)) for row in labels]
-
-
 def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, rssnet, rng) -> dict:
     """Points of one frame from a map and a count (shared with evaluate's baselines)."""
     from pipeline.synthesis import synthesize_frame
@@ -106,7 +99,7 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, r
     T_radar_cam, lidar = inputs.get("calibrate", "T_radar_cam"), inputs.get("calibrate", "lidar")
     ego = inputs.get("calibrate", "ego_velocity")
     syn = synthesize_frame(prob_map, float(n), K, T_radar_cam, lidar, ego,
-                           labels_from_array(inputs.get("calibrate", "labels")),
+                           inputs.get("calibrate", "labels"),
                            az_res_deg=r.az_res_deg, el_res_deg=r.el_res_deg, fov_az_deg=r.fov_az_deg,
                            fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m, doppler_sign=1,
                            doppler_span_mps=r.doppler_span_mps, estimator=cfg.synth.range_estimator,

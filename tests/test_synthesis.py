@@ -260,6 +260,12 @@ def test_place_on_camera_ray_fallback_and_nan():
     np.testing.assert_allclose(points[0], [0.5, 1.0, 0.0], atol=1e-12)
     assert np.all(np.isnan(points[1]))
     assert place_on_camera_ray(np.zeros((0, 2)), np.zeros(0), K_SMALL, T).shape == (0, 3)
+    uv = np.array([[3.0, 4.0], [10.5, 2.25]])
+    rays = pixel_rays_D(uv, K_SMALL, T)
+    np.testing.assert_array_equal(place_on_camera_ray(uv, np.array([4.0, 9.0]), K_SMALL, T, rays),
+                                  place_on_camera_ray(uv, np.array([4.0, 9.0]), K_SMALL, T))
+    with pytest.raises(ValueError, match="rays_D"):
+        place_on_camera_ray(uv, np.array([4.0, 9.0]), K_SMALL, T, rays[:1])
 
 
 # --------------------------------------------------------------------------- Doppler
@@ -296,6 +302,12 @@ def test_object_velocities_oriented_boxes():
     vel = object_velocities_for_points(points, [car, unknown])
     np.testing.assert_allclose(vel, [[0, 3, 0], [0, 3, 0], [0, 0, 0], [0, 3, 0], [0, 0, 0]])
     assert object_velocities_for_points(points, []).shape == (5, 3)
+    # calibrate's label rows (centre, size, yaw, velocity, track id) give the same, without objects
+    rows = np.array([[*o.center_D, *o.size_lwh_m, o.yaw_rad, *o.velocity_D, 7.0] for o in (car, unknown)])
+    np.testing.assert_array_equal(object_velocities_for_points(points, rows), vel)
+    np.testing.assert_array_equal(object_velocities_for_points(points, np.zeros((0, 11))), np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="label rows"):
+        object_velocities_for_points(points, rows[:, :6])
 
 
 # --------------------------------------------------------------------------- one frame
