@@ -9,7 +9,8 @@
   FC 90 -> 12 + ReLU; speed |v_D| / 10 m/s -> FC 1 -> 12 + ReLU (dropped when ``use_speed`` is
   False); concat -> FC -> + count prior logit -> sigmoid * max_points. The count prior (an
   extension of the paper, see ``set_count_prior``) is a piecewise-linear function of the ego speed
-  held in buffers (COUNT_PRIOR_KNOTS knots, saved in checkpoints); all zeros (logit 0) until set.
+  held in buffers (COUNT_PRIOR_KNOTS knots, saved in checkpoints); all zeros (logit 0) unless a
+  speed table is set (a single prior count goes to the head's bias instead).
   ``count_grad_scale`` (a training setting, not saved with the architecture) scales the gradient
   the number branch sends back into the backbone. ``map_dropout`` (also a training setting)
   zeroes whole channels of the features the distribution branch decodes with that probability
