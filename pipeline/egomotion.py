@@ -15,6 +15,10 @@ import numpy as np
 
 from pipeline.frame import check_shape
 
+STOPPED_MPS = 0.5
+"""Ego speeds below this (m/s) count as standing still: the radar then sees its static world at
+zero Doppler (the count prior's own knot, the report's first speed bin)."""
+
 
 @dataclass(frozen=True)
 class EgoFit:

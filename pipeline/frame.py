@@ -14,6 +14,7 @@ Conventions (all readers convert to these):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +51,17 @@ class Object3D:
     yaw_rad: float
     track_id: int = -1
     velocity_D: np.ndarray = field(default_factory=lambda: np.full(3, np.nan, np.float32))
+
+
+LABEL_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw", "vx", "vy", "vz", "track_id")
+"""Columns of a label row (calibrate's ``labels`` array): an Object3D's centre_D, size_lwh_m,
+yaw_rad, velocity_D and track_id."""
+
+
+def label_rows(labels: Sequence[Object3D]) -> np.ndarray:
+    """(L, len(LABEL_COLUMNS)) float64 rows of ``labels`` in LABEL_COLUMNS order."""
+    return np.array([[*o.center_D, *o.size_lwh_m, o.yaw_rad, *o.velocity_D, o.track_id] for o in labels],
+                    np.float64).reshape(-1, len(LABEL_COLUMNS))
 
 
 @dataclass

@@ -17,6 +17,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from pipeline.baselines import REFERENCE_ROWS
+from pipeline.egomotion import STOPPED_MPS
 from pipeline.fileio import write_atomic
 from pipeline.metrics import FRAME_METRICS, GOSPA_C_M, GOSPA_P, SPHERICAL_COLUMNS
 
@@ -31,7 +32,10 @@ TABLE_COLUMNS: tuple[tuple[str, str], ...] = (
 COMPARED: tuple[tuple[str, bool], ...] = (("chamfer_m", False), ("gospa", False), ("f1", True))
 """Metrics of the "where the model does not beat every baseline" paragraph: (key, higher is better)."""
 
-SPEED_EDGES_MPS: tuple[float, ...] = (0.5, 5.0, 10.0)
+SHORT_NAMES: dict[str, str] = {"chamfer_m": "Chamfer", "gospa": "GOSPA", "f1": "F1"}
+"""Names of the COMPARED metrics in the report's sentences."""
+
+SPEED_EDGES_MPS: tuple[float, ...] = (STOPPED_MPS, 5.0, 10.0)
 """Ego-speed bin edges (m/s) of the report's by-speed table; below the first edge the ego stands still."""
 
 SPEED_COLUMNS: tuple[tuple[str, str], ...] = (
@@ -134,6 +138,11 @@ def physics_md(physics: Mapping[str, Any]) -> str:
     return "\n".join(lines) if lines else "- (none)"
 
 
+def _beats(value: float, other: float, higher_is_better: bool) -> bool:
+    """``value`` strictly better than ``other`` (a tie does not beat)."""
+    return value > other if higher_is_better else value < other
+
+
 def model_shortfalls(table: Mapping[str, Mapping[str, Mapping[str, float]]], model: str = "model",
                      stat: str = "mean") -> dict[str, list[dict[str, Any]]]:
     """Per compared metric, the non-model methods at least as good as ``model`` on ``stat``.
@@ -155,7 +164,7 @@ def model_shortfalls(table: Mapping[str, Mapping[str, Mapping[str, float]]], mod
             if method.startswith("model") or method in REFERENCE_ROWS:
                 continue
             bv = row.get(key, {}).get(stat, math.nan)
-            if math.isfinite(bv) and (bv >= mv if higher else bv <= mv):
+            if math.isfinite(bv) and not _beats(mv, bv, higher):
                 out[key].append({"method": method, "value": bv, "model_value": mv})
     return out
 
@@ -203,8 +212,7 @@ def _ceiling_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]], ce
     """Which baselines even a perfect Dis-Net (the ``ceiling`` row) does not beat, on the means."""
     if ceiling not in table:
         return ""
-    names = {"chamfer_m": "Chamfer", "gospa": "GOSPA", "f1": "F1"}
-    parts = [f"{names[key]} (" + ", ".join(f"`{d['method']}`" for d in losers) + ")"
+    parts = [f"{SHORT_NAMES[key]} (" + ", ".join(f"`{d['method']}`" for d in losers) + ")"
              for key, losers in model_shortfalls(table, model=ceiling).items() if losers]
     if not parts:
         return (f" `{ceiling}` (the frame's real heatmap and count) beats every baseline on the means: "
@@ -269,12 +277,11 @@ def _placement_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]],
     mean map (the comparison the oracle-count rows exist for)?"""
     if model not in table or baseline not in table:
         return ""
-    names = {"chamfer_m": "Chamfer", "gospa": "GOSPA", "f1": "F1"}
     won, lost = [], []
     for key, higher in COMPARED:
         mv, bv = (table[m].get(key, {}).get("mean", math.nan) for m in (model, baseline))
         if math.isfinite(mv) and math.isfinite(bv):
-            (won if (mv > bv if higher else mv < bv) else lost).append(f"{names[key]} {_fmt_pair(mv, bv)}")
+            (won if _beats(mv, bv, higher) else lost).append(f"{SHORT_NAMES[key]} {_fmt_pair(mv, bv)}")
     if not won and not lost:
         return ""
     text = f" Given the true count, like for like, `{model}` against `{baseline}` (means):"

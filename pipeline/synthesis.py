@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.frame import Object3D, check_shape
+from pipeline.frame import LABEL_COLUMNS, Object3D, check_shape, label_rows
 from pipeline.geometry import cartesian_to_spherical, pixel_rays_D, radial_velocity, wrap_doppler
 
 ESTIMATORS = ("mean", "nearest", "median", "min")
@@ -378,23 +378,20 @@ def place_on_camera_ray(
     return c[None, :] + t[:, None] * d
 
 
-LABEL_ROW_COLUMNS = 10
-"""Leading columns of a label row as calibrate stores labels: centre xyz m in {D}, size l w h m,
-yaw rad, velocity xyz m/s in {D} (NaN where unknown); further columns (track id) are ignored."""
+BOX_COLUMNS = LABEL_COLUMNS.index("vz") + 1
+"""Leading columns of a label row (pipeline.frame.LABEL_COLUMNS) that describe the moving box:
+centre, size, yaw, velocity; the track id is not needed."""
 
 
 def label_boxes(labels: Sequence[Object3D] | np.ndarray) -> np.ndarray:
-    """(L, LABEL_ROW_COLUMNS) float64 rows of ``labels``: Object3D objects, or label rows (L, >= 10)
-    as calibrate stores them (taken as they are, without building objects)."""
-    if isinstance(labels, np.ndarray):
-        rows = np.asarray(labels, np.float64)
-        if rows.size == 0:
-            return np.zeros((0, LABEL_ROW_COLUMNS))
-        if rows.ndim != 2 or rows.shape[1] < LABEL_ROW_COLUMNS:
-            raise ValueError(f"label rows: need shape (L, >= {LABEL_ROW_COLUMNS}), got {rows.shape}")
-        return rows[:, :LABEL_ROW_COLUMNS]
-    return np.array([[*np.asarray(o.center_D, np.float64), *np.asarray(o.size_lwh_m, np.float64), o.yaw_rad,
-                      *np.asarray(o.velocity_D, np.float64)] for o in labels], np.float64).reshape(-1, LABEL_ROW_COLUMNS)
+    """(L, BOX_COLUMNS) float64 rows of ``labels``: Object3D objects, or label rows (L, >= 10) as
+    calibrate stores them (taken as they are, without building objects)."""
+    rows = np.asarray(labels, np.float64) if isinstance(labels, np.ndarray) else label_rows(labels)
+    if rows.size == 0:
+        return np.zeros((0, BOX_COLUMNS))
+    if rows.ndim != 2 or rows.shape[1] < BOX_COLUMNS:
+        raise ValueError(f"label rows: need shape (L, >= {BOX_COLUMNS}), got {rows.shape}")
+    return rows[:, :BOX_COLUMNS]
 
 
 def object_velocities_for_points(

@@ -35,6 +35,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from pipeline import augment
 from pipeline import checkpoint as ckpt
 from pipeline.config import TRAINING_KEYS
+from pipeline.egomotion import STOPPED_MPS
 from pipeline.errors import ConfigError
 from pipeline.models.disnet import COUNT_PRIOR_KNOTS, DisNet, build_disnet, disnet_kwargs
 from pipeline.models.losses import count_loss, kl_loss, rss_loss
@@ -761,8 +762,6 @@ def mean_map_baseline(heatmaps: Any, train_idx: Sequence[int], batch: int = 64) 
     return (1 - BASELINE_UNIFORM_MIX) * mean + BASELINE_UNIFORM_MIX / mean.size
 
 
-STOPPED_MPS = 0.5
-"""Ego speeds below this (m/s) count as standing still for the count prior's own knot."""
 MIN_FRAMES_PER_KNOT = 30
 """Fewest training frames behind one knot of the count prior."""
 

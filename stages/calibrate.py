@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.errors import FrameError
+from pipeline.frame import LABEL_COLUMNS, label_rows
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform
 from pipeline.split import assign_split
@@ -27,7 +28,6 @@ from pipeline.stage import ArraySpec, FrameStage
 from pipeline.working import common_fov_mask, crop_resize
 
 MAX_LABELS = 64
-LABEL_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw", "vx", "vy", "vz", "track_id")
 
 CONFIG_KEYS = (
     "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution", "dataset.world_sequence_len",
@@ -76,8 +76,7 @@ def _split_table(inputs: FrameInputs) -> dict[str, int]:
 
 
 def _labels_array(labels) -> np.ndarray:
-    rows = [[*o.center_D, *o.size_lwh_m, o.yaw_rad, *o.velocity_D, o.track_id] for o in labels[:MAX_LABELS]]
-    return np.asarray(rows, np.float32).reshape(-1, len(LABEL_COLUMNS))
+    return label_rows(labels[:MAX_LABELS]).astype(np.float32)
 
 
 def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
