@@ -294,6 +294,33 @@ class LidarAngularIndex:
         support[hit] = np.where(first[hit] == 0, SUPPORT_DIRECT, SUPPORT_WIDENED)
         return np.flatnonzero(~settled)
 
+    def closest_range_in_window(
+        self, az_rad: np.ndarray, el_rad: np.ndarray, range_m: np.ndarray, delta_az_rad: float,
+        delta_el_rad: float,
+    ) -> np.ndarray:
+        """Range (n,) of the lidar point in each direction's window whose range is closest to
+        ``range_m`` (n,) m; NaN where the window is empty (no widening).
+
+        An oracle, for the physics checks: it needs the measured range and shows how often *some*
+        lidar point of the window is at the radar's range, i.e. what a better choice than
+        ``estimate_range``'s rules could reach.
+        """
+        az, el = _check_directions(az_rad, el_rad)
+        _check_deltas(delta_az_rad, delta_el_rad)
+        target = np.asarray(range_m, np.float64).ravel()
+        if target.size != az.size:
+            raise ValueError(f"range_m has {target.size} values for {az.size} directions")
+        out = np.full(az.size, np.nan)
+        if az.size == 0 or len(self) == 0:
+            return out
+        s_idx, l_idx = self._pairs(az, el, delta_az_rad, delta_el_rad, delta_az_rad)
+        order = np.lexsort((np.abs(self.range_m[l_idx] - target[s_idx]), s_idx))
+        s_sorted = s_idx[order]
+        first = np.ones(s_sorted.size, bool)
+        first[1:] = s_sorted[1:] != s_sorted[:-1]
+        out[s_sorted[first]] = self.range_m[l_idx[order][first]]
+        return out
+
     def estimate_range_bruteforce(
         self, az_rad: np.ndarray, el_rad: np.ndarray, delta_az_rad: float, delta_el_rad: float,
         estimator: str = "mean", no_support: str = "widen", chunk: int = 64,

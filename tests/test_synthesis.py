@@ -192,6 +192,41 @@ def test_estimators_match_bruteforce(seed, m, n, delta_az, delta_el, estimator, 
     np.testing.assert_array_equal(got[1], want[1])
 
 
+@settings(deadline=None, max_examples=40)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(0, 300), n=st.integers(0, 40),
+       delta_az=st.floats(0.005, 0.3), delta_el=st.floats(0.005, 0.3))
+def test_closest_range_in_window_matches_a_scan(seed, m, n, delta_az, delta_el):
+    rng = np.random.default_rng(seed)
+    rae = np.column_stack([rng.uniform(1, 60, m), rng.uniform(-np.pi, np.pi, m), rng.uniform(-0.6, 0.6, m)])
+    index = LidarAngularIndex(spherical_to_cartesian(rae))
+    az, el, r = rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.7, 0.7, n), rng.uniform(1, 60, n)
+    got = index.closest_range_in_window(az, el, r, delta_az, delta_el)
+    want = np.full(n, np.nan)
+    for k in range(n):  # reference scan over every lidar point (the seam included)
+        d_az = np.abs((index.azimuth_rad - az[k] + np.pi) % (2 * np.pi) - np.pi)
+        inside = (d_az <= delta_az) & (np.abs(index.elevation_rad - el[k]) <= delta_el)
+        if inside.any():
+            cand = index.range_m[inside]
+            want[k] = cand[np.argmin(np.abs(cand - r[k]))]
+    # a tie between two candidates equally far from r may pick either: compare |dr|
+    np.testing.assert_allclose(np.abs(got - r), np.abs(want - r), rtol=1e-12, atol=1e-12, equal_nan=True)
+    assert np.all(np.isnan(got) == np.isnan(want))
+
+
+def test_closest_range_in_window_is_never_worse_than_the_rules():
+    rng = np.random.default_rng(3)
+    rae = np.column_stack([rng.uniform(1, 60, 2000), rng.uniform(-0.5, 0.5, 2000), rng.uniform(-0.2, 0.2, 2000)])
+    index = LidarAngularIndex(spherical_to_cartesian(rae))
+    az, el, r = rng.uniform(-0.45, 0.45, 200), rng.uniform(-0.15, 0.15, 200), rng.uniform(1, 60, 200)
+    best = np.abs(index.closest_range_in_window(az, el, r, 0.03, 0.03) - r)
+    for rule in ("nearest", "min"):  # the rules that pick one lidar point (a mean can fall between)
+        est, _ = index.estimate_range(az, el, 0.03, 0.03, rule, "drop")
+        ok = np.isfinite(est)
+        assert np.all(best[ok] <= np.abs(est[ok] - r[ok]) + 1e-9)
+    with pytest.raises(ValueError, match="range_m has 3 values for 200 directions"):
+        index.closest_range_in_window(az, el, r[:3], 0.03, 0.03)
+
+
 @pytest.mark.parametrize("layout", ["uniform", "grid", "seam", "clusters"])
 @pytest.mark.parametrize("delta_deg", [(1.5, 1.5), (1.0, 2.5), (12.0, 12.0)])
 @pytest.mark.parametrize("candidates", [1, 2, 16])
