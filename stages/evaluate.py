@@ -213,8 +213,8 @@ def physics_checks(inputs, cfg: Config, frames) -> dict:
     """Physics checks on real frames (no learning): (a) lidar range at each real radar point's
     angles vs its measured range, for the paper's mean rule and every other estimator, and for the
     window's lidar point closest to the measured range (an oracle: how often some lidar point of
-    the window is right); (b) Doppler
-    of static real points predicted from the ego velocity vs measured. Reads calibrate only."""
+    the window is right); (b) Doppler of static real points predicted from the ego velocity vs
+    measured. Reads calibrate only."""
     from pipeline.metrics import doppler_check, range_check
     from pipeline.synthesis import LidarAngularIndex
 
@@ -247,11 +247,12 @@ def _physics_summary(physics: dict[str, list]) -> dict:
         v = np.concatenate(values) if values else np.zeros(0)
         if key.startswith("abs_dr_"):
             ok = np.isfinite(v)
+            within = float(np.mean(v[ok] <= RANGE_CHECK_TOLERANCE_M)) if ok.any() else float("nan")
             name = "best lidar point in the window, an oracle" if key == "abs_dr_best" else f"{key[7:]} rule"
             out[f"range ({name})"] = {
                 "median_abs_dr_m": float(np.median(v[ok])) if ok.any() else float("nan"),
                 "p90_abs_dr_m": float(np.percentile(v[ok], 90)) if ok.any() else float("nan"),
-                f"within_{RANGE_CHECK_TOLERANCE_M:g}m_share": float(np.mean(v[ok] <= RANGE_CHECK_TOLERANCE_M)) if ok.any() else float("nan"),
+                f"within_{RANGE_CHECK_TOLERANCE_M:g}m_share": within,
                 "no_support_share": float(1 - ok.mean()) if len(v) else float("nan"), "points": int(len(v))}
         elif key == "abs_dv":
             out["doppler (static points)"] = {"median_abs_dv_mps": float(np.median(v)) if len(v) else float("nan"),

@@ -6,6 +6,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from pipeline import report as R
 from pipeline.metrics import SPHERICAL_COLUMNS
@@ -170,3 +171,21 @@ def test_placement_sentence_compares_the_oracle_count_rows_like_for_like():
     assert "GOSPA 20.19 vs 20.2" in R.shortfall_paragraph(R.aggregate(rows))  # more digits where 3 tie
     del rows["mean-map-oracle-count"]
     assert "like for like" not in R.shortfall_paragraph(R.aggregate(rows))
+
+
+def test_physics_summary_rows_and_share_within_tolerance():
+    from stages.evaluate import RANGE_CHECK_TOLERANCE_M, _physics_summary
+
+    out = _physics_summary({"abs_dr_nearest": [np.array([0.5, 2.0, np.nan]), np.array([1.0])],
+                            "abs_dr_best": [np.array([0.1, 0.2, np.nan]), np.array([3.0])],
+                            "abs_dv": [np.array([0.1, 0.3])]})
+    key = f"within_{RANGE_CHECK_TOLERANCE_M:g}m_share"
+    near = out["range (nearest rule)"]
+    assert near[key] == pytest.approx(2 / 3)  # 0.5 and 1.0 of the three supported values
+    assert near["no_support_share"] == pytest.approx(0.25) and near["points"] == 4
+    assert near["median_abs_dr_m"] == pytest.approx(1.0)
+    best = out["range (best lidar point in the window, an oracle)"]
+    assert best[key] == pytest.approx(2 / 3) and best["median_abs_dr_m"] == pytest.approx(0.2)
+    assert out["doppler (static points)"]["median_abs_dv_mps"] == pytest.approx(0.2)
+    empty = _physics_summary({"abs_dr_mean": [np.full(2, np.nan)]})["range (mean rule)"]
+    assert np.isnan(empty[key]) and empty["no_support_share"] == 1.0
