@@ -115,8 +115,9 @@ def _group_statistic(
     """Per-sample statistic of the lidar ranges of (sample, lidar) pairs; NaN for empty samples.
 
     ``sample_idx`` (P,) sample of each pair, in non-decreasing order (pairs grouped by sample);
-    ``lidar_idx`` (P,) its lidar point; ``ang_dist2`` (P,) squared angular distance (rad^2),
-    needed by 'nearest' only (ties: the lower lidar index). O(P) except 'median' (one sort).
+    ``lidar_idx`` (P,) its lidar point; ``ang_dist2`` (P,) the key 'nearest' minimises (the
+    squared angular distance, rad^2; the oracle passes |dr| instead), needed by 'nearest' only
+    (ties: the lower lidar index). O(P) except 'median' (one sort).
     """
     out = np.full(n, np.nan)
     if sample_idx.size == 0:
@@ -310,16 +311,11 @@ class LidarAngularIndex:
         target = np.asarray(range_m, np.float64).ravel()
         if target.size != az.size:
             raise ValueError(f"range_m has {target.size} values for {az.size} directions")
-        out = np.full(az.size, np.nan)
         if az.size == 0 or len(self) == 0:
-            return out
+            return np.full(az.size, np.nan)
         s_idx, l_idx = self._pairs(az, el, delta_az_rad, delta_el_rad, delta_az_rad)
-        order = np.lexsort((np.abs(self.range_m[l_idx] - target[s_idx]), s_idx))
-        s_sorted = s_idx[order]
-        first = np.ones(s_sorted.size, bool)
-        first[1:] = s_sorted[1:] != s_sorted[:-1]
-        out[s_sorted[first]] = self.range_m[l_idx[order][first]]
-        return out
+        abs_dr = np.abs(self.range_m[l_idx] - target[s_idx])
+        return _group_statistic(s_idx, l_idx, abs_dr, self.range_m, az.size, "nearest")
 
     def estimate_range_bruteforce(
         self, az_rad: np.ndarray, el_rad: np.ndarray, delta_az_rad: float, delta_el_rad: float,
