@@ -38,7 +38,8 @@ from pipeline.config import TRAINING_KEYS
 from pipeline.egomotion import STOPPED_MPS
 from pipeline.errors import ConfigError
 from pipeline.models.disnet import COUNT_PRIOR_KNOTS, DisNet, build_disnet, disnet_kwargs
-from pipeline.models.losses import count_loss, kl_loss, rss_loss
+from pipeline.models.losses import count_loss, kl_loss, poisson_loss, rss_loss
+from pipeline.models.placenet import PlaceNet, build_placenet, placenet_kwargs
 from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
 
 log = logging.getLogger(__name__)
@@ -80,6 +81,20 @@ class RssNetData:
     range_images: Any
     point_vectors: Any
     rss: Any
+    train_idx: Sequence[int]
+    val_idx: Sequence[int]
+
+
+@dataclass
+class PlaceNetData:
+    """PlaceNet training data; arrays indexed by sampled lidar candidate along axis 0.
+
+    features (P, len(pipeline.placement.FEATURES)) float32; counts (P,) real radar points whose
+    nearest candidate this is (pipeline.placement.radar_counts); train_idx / val_idx: row indices.
+    """
+
+    features: Any
+    counts: Any
     train_idx: Sequence[int]
     val_idx: Sequence[int]
 
@@ -254,6 +269,8 @@ class _NetSpec:
     batch_size: int
     terms_fn: TermsFn
     weights: dict[str, float]
+    lr: float | None = None
+    """Base learning rate (None: cfg.train.lr)."""
 
 
 def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True) -> TrainResult:
@@ -262,10 +279,11 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     last, best = out_dir / "last.safetensors", out_dir / "best.safetensors"
     device = select_device(cfg.train.device)
     spec.model.to(device)
+    base_lr = cfg.train.lr if spec.lr is None else spec.lr
     if cfg.train.weight_decay > 0:
-        optimizer = torch.optim.AdamW(spec.model.parameters(), lr=cfg.train.lr, weight_decay=cfg.train.weight_decay)
+        optimizer = torch.optim.AdamW(spec.model.parameters(), lr=base_lr, weight_decay=cfg.train.weight_decay)
     else:
-        optimizer = torch.optim.Adam(spec.model.parameters(), lr=cfg.train.lr)
+        optimizer = torch.optim.Adam(spec.model.parameters(), lr=base_lr)
     select_key = selection_key(cfg.train.select_on, spec.weights)
     ema = make_ema(spec.model, cfg.train.ema_decay)
     scored = ema.module if ema is not None else spec.model  # the weights validated and saved as best
@@ -281,7 +299,7 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     for epoch in range(start + 1, cfg.train.epochs + 1):
         t0 = time.perf_counter()
         for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
-            group["lr"] = epoch_lr(cfg, epoch)
+            group["lr"] = epoch_lr(cfg, epoch, base_lr)
         order = epoch_order(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
         tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
                              spec.terms_fn, spec.weights, device, n_train_batches,
@@ -335,14 +353,16 @@ def make_ema(model: nn.Module, decay: float) -> AveragedModel | None:
 LR_SCHEDULES = ("constant", "cosine")
 
 
-def epoch_lr(cfg, epoch: int) -> float:
-    """Learning rate of epoch ``epoch`` (1-based) of cfg.train.epochs under cfg.train.lr_schedule."""
+def epoch_lr(cfg, epoch: int, base_lr: float | None = None) -> float:
+    """Learning rate of epoch ``epoch`` (1-based) of cfg.train.epochs under cfg.train.lr_schedule,
+    starting from ``base_lr`` (None: cfg.train.lr)."""
     t = cfg.train
+    lr = t.lr if base_lr is None else base_lr
     if t.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"train.lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got '{t.lr_schedule}'")
     if t.lr_schedule == "constant":
-        return t.lr
-    return t.lr * 0.5 * (1.0 + math.cos(math.pi * (epoch - 1) / t.epochs))
+        return lr
+    return lr * 0.5 * (1.0 + math.cos(math.pi * (epoch - 1) / t.epochs))
 
 
 def _meta(spec: _NetSpec, fingerprint: str, state: dict[str, Any]) -> dict[str, Any]:
@@ -456,7 +476,9 @@ def default_fingerprint(cfg, net: str) -> str:
     common = list(TRAINING_KEYS["common"])
     if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
         common.append("train.epochs")
-    return cfg.fingerprint(list(TRAINING_KEYS["disnet" if net == "disnet" else "rssnet"]) + common)
+    if net not in TRAINING_KEYS or net == "common":
+        raise ValueError(f"default_fingerprint: unknown net {net!r}")
+    return cfg.fingerprint(list(TRAINING_KEYS[net]) + common)
 
 
 def _jsonable_arch(kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -661,6 +683,37 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
     return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress)
 
 
+# ------------------------------------------------------------------------------- PlaceNet
+
+
+def placenet_terms(model: nn.Module, batch: Batch, device: torch.device) -> dict[str, Tensor]:
+    """Per-candidate Poisson negative log-likelihood ('nll') of one batch."""
+    log_rate = model(torch.from_numpy(np.asarray(batch["features"], np.float32)).to(device))
+    counts = torch.from_numpy(np.asarray(batch["counts"], np.float32)).to(device)
+    return {"nll": poisson_loss(log_rate, counts)}
+
+
+STANDARDISATION_ROWS = 200_000
+"""Training rows (evenly spaced) from which PlaceNet's feature standardisation is computed."""
+
+
+def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool = True,
+                   fingerprint: str | None = None) -> TrainResult:
+    """Train PlaceNet with the Poisson NLL (Adam at placement.lr, batch placement.batch_size,
+    train.epochs); the features are standardised with the training rows' statistics; resumes."""
+    _setup(cfg)
+    model = build_placenet(cfg)
+    arrays = {"features": data.features, "counts": data.counts}
+    train_idx = _checked_idx(data.train_idx, "train_idx", arrays, False)
+    rows = train_idx[np.unique(np.linspace(0, len(train_idx) - 1, min(len(train_idx), STANDARDISATION_ROWS)).astype(np.int64))]
+    model.set_standardisation(take_rows(data.features, rows))
+    spec = _NetSpec(
+        name="placenet", model=model, arch=_jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
+        train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
+        batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr)
+    return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
+
+
 # ------------------------------------------------------------------------------- inference
 
 
@@ -690,6 +743,12 @@ def load_rssnet(cfg, path: str | Path, device: str | None = None) -> RSSNet:
     """RSS-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``)."""
     model = build_rssnet(cfg)
     return _load_into(model, _jsonable_arch(rssnet_kwargs(cfg)), path, select_device(device or cfg.train.device))
+
+
+def load_placenet(cfg, path: str | Path, device: str | None = None) -> PlaceNet:
+    """PlaceNet from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``)."""
+    model = build_placenet(cfg)
+    return _load_into(model, _jsonable_arch(placenet_kwargs(cfg)), path, select_device(device or cfg.train.device))
 
 
 def _device_of(model: nn.Module) -> torch.device:
@@ -728,6 +787,17 @@ def rssnet_predict(model: RSSNet, patches: Any, range_images: Any, point_vectors
     return out
 
 
+@torch.no_grad()
+def placenet_predict(model: PlaceNet, features: np.ndarray, batch: int = 65536) -> np.ndarray:
+    """Intensity lambda (C,) float64 >= 0 of candidates with features (C, n_features)."""
+    model.eval()
+    x = np.asarray(features, np.float32)
+    out = np.empty(len(x), np.float64)
+    for s in range(0, len(x), batch):
+        out[s:s + batch] = model(torch.from_numpy(x[s:s + batch]).to(_device_of(model))).exp().double().cpu().numpy()
+    return out
+
+
 def disnet_metrics(model: DisNet, data: DisNetData, idx: Sequence[int], alpha: float,
                    batch: int = 8) -> dict[str, float]:
     """Per-frame mean L_KL ('kl'), L_n ('n') and L_KL + alpha L_n ('loss') on frames ``idx``."""
@@ -741,6 +811,23 @@ def rssnet_metrics(model: RSSNet, data: RssNetData, idx: Sequence[int], batch: i
     arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
     return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), rssnet_terms,
                     {"a": 1.0}, _device_of(model), progress=False)
+
+
+def placenet_metrics(model: PlaceNet, data: PlaceNetData, idx: Sequence[int], batch: int = 4096) -> dict[str, float]:
+    """Per-candidate mean Poisson NLL ('nll', = 'loss') on rows ``idx``."""
+    arrays = {"features": data.features, "counts": data.counts}
+    return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), placenet_terms,
+                    {"nll": 1.0}, _device_of(model), progress=False)
+
+
+def placenet_baseline(counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int]) -> dict[str, float]:
+    """The constant-intensity PlaceNet: the training mean count for every candidate; its mean
+    Poisson NLL ('nll') on rows ``eval_idx`` and the rate ('rate')."""
+    c = np.asarray(counts, np.float64)
+    rate = float(c[np.asarray(train_idx, np.int64)].mean())
+    test = c[np.asarray(eval_idx, np.int64)]
+    log_rate = math.log(rate) if rate > 0 else -30.0
+    return {"nll": float(np.mean(math.exp(log_rate) - test * log_rate)) if len(test) else math.nan, "rate": rate}
 
 
 # ------------------------------------------------------------------------------- baselines

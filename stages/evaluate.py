@@ -29,10 +29,10 @@ NOMINAL_FRAME_PERIOD_S = 0.1
 MAX_FRAME_GAP_S = 1.0
 """Consecutive frames further apart than this (or going backwards) use the nominal period."""
 
-VERSION = 5
+VERSION = 6
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
 random stream per method; 3: no-points row; 4: the model by ego speed; 5: physics checks with the
-share within 1 m and the best-lidar-point oracle)."""
+share within 1 m and the best-lidar-point oracle; 6: the baselines follow synth.placement)."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
@@ -40,7 +40,7 @@ measured range (the matched-F1 gate's default)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
-               "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
+               "synth.placement", "placement.voxel_m", "heatmap.sigma_px", "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
 
 
 def _train_stats(inputs, cfg: Config) -> dict:
@@ -83,7 +83,7 @@ def _previous_index(i: int, inputs, seq: np.ndarray, done: np.ndarray) -> int | 
     return j if j >= 0 and seq[j] == seq[i] and done[j] else None
 
 
-def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev,
+def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, nets, prev,
                        real_map: np.ndarray) -> dict[str, tuple[np.ndarray, float, np.ndarray | None]]:
     """(points (N, 5), decided count, map or None) of every method on frame ``i``; ``real_map`` is
     the frame's real heatmap (H, W)."""
@@ -106,7 +106,7 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev,
             if prob is not None and not prob.sum() > 0:  # no real point in the image: nothing to sample
                 out[spec.name] = (np.zeros((0, 5)), float(n), None)
                 continue
-            gen = generate(f, cfg, prob, n, rssnet if spec.rss_source == "model" else None, rng)
+            gen = generate(f, cfg, prob, n, nets, rng, rss=spec.rss_source == "model")
             pts = _syn5(gen["points"])
             rss = choose_rss(spec, len(pts), rng, stats["rss_median"], stats["train_rss"])
             if rss is not None:
@@ -150,7 +150,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         raise PipelineError(f"evaluate: no synthesized frame in split '{cfg.eval.split}' "
                             f"(synth.split = '{cfg.synth.split}')")
     stats = _train_stats(inputs, cfg)
-    _, rssnet = models(inputs.frame(int(frames[0])), cfg)
+    nets = models(inputs.frame(int(frames[0])), cfg)
     r = cfg.radar
     per_frame: dict[str, list] = {}
     pooled: dict[str, list] = {}
@@ -168,10 +168,10 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             patches, ranges = point_inputs(f.get("calibrate", "image"), f.get("calibrate", "K"),
                                            f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"),
                                            real[:, :3], cfg)
-            pred = rssnet_predict(rssnet, patches, ranges, real[:, :4].astype(np.float32))
+            pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
             rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
         prev = _previous_index(i, inputs, seq, calib_done)
-        methods = _methods_for_frame(i, f, inputs, cfg, stats, syn_store, rssnet, prev, target)
+        methods = _methods_for_frame(i, f, inputs, cfg, stats, syn_store, nets, prev, target)
         speeds.append(float(np.linalg.norm(f.get("calibrate", "ego_velocity"))))
         model_counts.append(methods["model"][1])
         for name, (pts, n, prob) in methods.items():
@@ -192,6 +192,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     _figures(inputs, cfg, figure_rows, syn_store, figs, pooled["model"], pooled_real, fig8, bev, histograms)
     table = aggregate(per_frame)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
+            "placement": cfg.synth.placement,
             "train_mean_count": stats["n_bar"], "synthesize_counts": _synth_counts(syn_store, frames)}
     by_speed = speed_breakdown(np.array(speeds), np.array([len(x) for x in real_frames]), np.array(model_counts),
                                per_frame["model"])

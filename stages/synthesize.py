@@ -1,21 +1,27 @@
 """synthesize: generate the radar frame of a camera + lidar frame (Section IV-B).
 
 Reads: calibrate (image, K, T_radar_cam, lidar, labels, ego_velocity, split), heatmaps (count, for
-synth.count = oracle), train (best Dis-Net and RSS-Net checkpoints).
+synth.count = oracle), train (best Dis-Net, RSS-Net and, for synth.placement = lidar, PlaceNet
+checkpoints).
 Writes (synthesize.zarr) per frame of split synth.split:
   points (<= capacity, 9) float32 in {D}: x, y, z (m), range (m), azimuth (rad), elevation (rad),
   doppler (m/s, in the simulated radar's convention: radar.doppler_sign * range rate, wrapped into
   radar.doppler_span_mps), rss (dataset units), range_rate (m/s, internal convention, wrapped);
   pred_map (h, w) float32 Dis-Net's distribution; n_hat float32; counts (5,) int32 [requested,
-  no lidar support, outside the field of view, beyond max range, found by widening the window].
-Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs).
+  no lidar support, outside the field of view, beyond max range, found by widening the window]
+  (with lidar placement: points without a candidate left count as without support).
+Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs),
+placement.voxel_m and heatmap.sigma_px (lidar placement).
 """
 
 from __future__ import annotations
 
+from typing import Any, NamedTuple
+
 import numpy as np
 
 from pipeline.config import Config
+from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import wrap_doppler
 from pipeline.stage import ArraySpec, FrameStage
@@ -24,14 +30,17 @@ from stages.patches import point_inputs
 POINT_COLUMNS = ("x_m", "y_m", "z_m", "range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss",
                  "range_rate_mps")
 CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.count",
-               "synth.sampling", "synth.refill_rounds",
+               "synth.sampling", "synth.refill_rounds", "synth.placement", "placement.voxel_m", "heatmap.sigma_px",
                "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
                "radar.max_range_m", "radar.doppler_sign", "radar.doppler_span_mps", "radar.max_points",
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
                "patches.patch_size_px")
 SPLITS = {"train": 0, "val": 1, "test": 2}
-VERSION = 2
-"""2: refill rounds oversample (pipeline.synthesis.REFILL_OVERSAMPLE), so the points differ from version 1's."""
+VERSION = 3
+"""2: refill rounds oversample (pipeline.synthesis.REFILL_OVERSAMPLE), so the points differ from version 1's.
+3: lidar placement (synth.placement)."""
+PLACEMENTS = ("lidar", "ray")
+"""Values of synth.placement."""
 
 
 def capacity(cfg: Config) -> int:
@@ -54,15 +63,30 @@ def check_generation(cfg: Config) -> None:
 
     s = cfg.synth
     for key, value, allowed in (("range_estimator", s.range_estimator, ESTIMATORS),
-                                ("no_support", s.no_support, NO_SUPPORT_RULES), ("sampling", s.sampling, SAMPLINGS)):
+                                ("no_support", s.no_support, NO_SUPPORT_RULES), ("sampling", s.sampling, SAMPLINGS),
+                                ("placement", s.placement, PLACEMENTS)):
         if value not in allowed:
             raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
     if s.refill_rounds < 0:
         raise ConfigError(f"synth.refill_rounds must be >= 0, got {s.refill_rounds}")
+    if not cfg.placement.voxel_m >= 0:
+        raise ConfigError(f"placement.voxel_m must be >= 0, got {cfg.placement.voxel_m}")
+
+
+def check_checkpoints(train_dir, cfg: Config) -> None:
+    """PipelineError naming what is missing unless the train stage's output ``train_dir`` holds
+    every checkpoint generation needs (PlaceNet only for synth.placement = 'lidar')."""
+    nets = ("disnet", "rssnet") + (("placenet",) if cfg.synth.placement == "lidar" else ())
+    missing = [n for n in nets if not train_dir.fs.exists(train_dir.file(f"{n}/best.safetensors"))]
+    if missing:
+        hint = " (or set synth.placement=ray, which needs no PlaceNet)" if missing == ["placenet"] else ""
+        raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
+                            f"train stage with {', '.join(missing)} in train.nets{hint}")
 
 
 def select(inputs, cfg: Config) -> np.ndarray:
     check_generation(cfg)
+    check_checkpoints(inputs.dir("train"), cfg)
     split = np.asarray(inputs.store("calibrate").array("split")[:])
     if cfg.synth.split == "all":
         return np.ones(len(split), bool)
@@ -72,25 +96,55 @@ def select(inputs, cfg: Config) -> np.ndarray:
     return split == SPLITS[cfg.synth.split]
 
 
-def models(inputs: FrameInputs, cfg: Config):
-    """Best Dis-Net and RSS-Net of the train stage, loaded once per process (CPU)."""
+class Nets(NamedTuple):
+    """The train stage's best networks (CPU); placenet is None with synth.placement = 'ray'."""
+
+    disnet: Any
+    rssnet: Any
+    placenet: Any
+
+
+def models(inputs: FrameInputs, cfg: Config) -> Nets:
+    """Best Dis-Net, RSS-Net and (lidar placement) PlaceNet of the train stage, loaded once per
+    process (CPU)."""
     import torch
 
-    from pipeline.training import load_disnet, load_rssnet
+    from pipeline.training import load_disnet, load_placenet, load_rssnet
 
     out = inputs.env.dir("train")
-    key = ("models", out.url, out.fingerprint())
+    key = ("models", out.url, out.fingerprint(), cfg.synth.placement)
 
     def build():
         torch.set_num_threads(max(1, cfg.train.threads // max(1, cfg.run.workers)))
-        return (load_disnet(cfg, out.file("disnet/best.safetensors"), device="cpu"),
-                load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu"))
+        check_checkpoints(out, cfg)
+        placenet = (load_placenet(cfg, out.file("placenet/best.safetensors"), device="cpu")
+                    if cfg.synth.placement == "lidar" else None)
+        return Nets(load_disnet(cfg, out.file("disnet/best.safetensors"), device="cpu"),
+                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu"), placenet)
 
     return process_memo(key, build)
 
 
-def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, rssnet, rng) -> dict:
-    """Points of one frame from a map and a count (shared with evaluate's baselines)."""
+def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, placenet, rng) -> dict:
+    """synth.placement = 'lidar': points on the frame's lidar candidates (pipeline.placement)."""
+    from pipeline.placement import place_on_lidar
+    from pipeline.training import placenet_predict
+    from stages.heatmaps import working_sigma
+    from stages.patches import candidates, features
+
+    points, uv = candidates(inputs, cfg)
+    intensity = placenet_predict(placenet, features(inputs, points, uv)) if len(points) else np.zeros(0)
+    return place_on_lidar(prob_map, float(n), points, uv, intensity, image_wh=tuple(cfg.camera.working_size),
+                          sigma_px=working_sigma(cfg), voxel_m=cfg.placement.voxel_m,
+                          ego_velocity_D=inputs.get("calibrate", "ego_velocity"),
+                          labels=inputs.get("calibrate", "labels"), doppler_span_mps=cfg.radar.doppler_span_mps,
+                          rng=rng)
+
+
+def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, nets: Nets, rng,
+             rss: bool = True) -> dict:
+    """Points of one frame from a map and a count (shared with evaluate's baselines): placed as
+    synth.placement says, RSS from RSS-Net (``rss`` False: zeros, for a caller that sets its own)."""
     from pipeline.synthesis import synthesize_frame
     from pipeline.training import rssnet_predict
 
@@ -98,23 +152,26 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, r
     image, K = inputs.get("calibrate", "image"), inputs.get("calibrate", "K")
     T_radar_cam, lidar = inputs.get("calibrate", "T_radar_cam"), inputs.get("calibrate", "lidar")
     ego = inputs.get("calibrate", "ego_velocity")
-    syn = synthesize_frame(prob_map, float(n), K, T_radar_cam, lidar, ego,
-                           inputs.get("calibrate", "labels"),
-                           az_res_deg=r.az_res_deg, el_res_deg=r.el_res_deg, fov_az_deg=r.fov_az_deg,
-                           fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m, doppler_sign=1,
-                           doppler_span_mps=r.doppler_span_mps, estimator=cfg.synth.range_estimator,
-                           no_support=cfg.synth.no_support, rng=rng, sampling=cfg.synth.sampling,
-                           refill_rounds=cfg.synth.refill_rounds)
+    if cfg.synth.placement == "lidar":
+        syn = _place(inputs, cfg, prob_map, n, nets.placenet, rng)
+    else:
+        syn = synthesize_frame(prob_map, float(n), K, T_radar_cam, lidar, ego,
+                               inputs.get("calibrate", "labels"),
+                               az_res_deg=r.az_res_deg, el_res_deg=r.el_res_deg, fov_az_deg=r.fov_az_deg,
+                               fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m, doppler_sign=1,
+                               doppler_span_mps=r.doppler_span_mps, estimator=cfg.synth.range_estimator,
+                               no_support=cfg.synth.no_support, rng=rng, sampling=cfg.synth.sampling,
+                               refill_rounds=cfg.synth.refill_rounds)
     pts = np.asarray(syn["points_D"], np.float64).reshape(-1, 3)
     range_rate = np.asarray(syn["doppler"], np.float64)
-    if len(pts) and rssnet is not None:
+    if len(pts) and rss:
         patches, ranges = point_inputs(image, K, T_radar_cam, lidar, pts, cfg)
         vectors = np.column_stack([pts, range_rate]).astype(np.float32)
-        rss = rssnet_predict(rssnet, patches, ranges, vectors)
+        values = rssnet_predict(nets.rssnet, patches, ranges, vectors)
     else:
-        rss = np.zeros(len(pts), np.float32)
+        values = np.zeros(len(pts), np.float32)
     doppler = wrap_doppler(r.doppler_sign * range_rate, r.doppler_span_mps)
-    rows = np.column_stack([pts, np.asarray(syn["rae"], np.float64).reshape(-1, 3), doppler, rss, range_rate])
+    rows = np.column_stack([pts, np.asarray(syn["rae"], np.float64).reshape(-1, 3), doppler, values, range_rate])
     counts = np.array([syn["n_requested"], syn["n_no_support"], syn["n_out_of_fov"], syn["n_beyond_range"],
                        syn["n_widened"]], np.int32)
     return {"points": rows.astype(np.float32), "uv": np.asarray(syn["uv"]), "counts": counts}
@@ -123,11 +180,11 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, r
 def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     from pipeline.training import disnet_predict
 
-    disnet, rssnet = models(inputs, cfg)
+    nets = models(inputs, cfg)
     speed = np.float32(np.linalg.norm(inputs.get("calibrate", "ego_velocity")))
-    maps, n_hat = disnet_predict(disnet, inputs.get("calibrate", "image")[None], np.array([speed], np.float32))
+    maps, n_hat = disnet_predict(nets.disnet, inputs.get("calibrate", "image")[None], np.array([speed], np.float32))
     n = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else float(n_hat[0])
-    out = generate(inputs, cfg, maps[0], min(n, capacity(cfg)), rssnet, inputs.rng(cfg.synth.seed, 21))
+    out = generate(inputs, cfg, maps[0], min(n, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
     return {"points": out["points"], "pred_map": maps[0], "n_hat": np.float32(n_hat[0]), "counts": out["counts"]}
 
 

@@ -1,13 +1,14 @@
 """train: Dis-Net and RSS-Net on the train split, model selection on val, figures on test.
 
 Reads: calibrate (image, ego_velocity, split), heatmaps (heatmap, count), patches (patch,
-range_image, point, rss).
-Writes (train/): disnet/{last,best}.safetensors (+ .json sidecars), rssnet/..., training curves
-(CSV, JSON, PNG) per net, metrics.json: held-out test metrics of the best epochs next to the
-baselines (mean training map, training mean count, training median RSS).
-Config: disnet.*, rssnet.*, train.*, radar.max_points / rss_min / rss_max.
+range_image, point, rss, place_features, place_count).
+Writes (train/): disnet/{last,best}.safetensors (+ .json sidecars), rssnet/..., placenet/...,
+training curves (CSV, JSON, PNG) per net, metrics.json: held-out test metrics of the best epochs
+next to the baselines (mean training map, training mean count, training median RSS, constant
+PlaceNet intensity).
+Config: disnet.*, rssnet.*, placement.* (PlaceNet), train.*, radar.max_points / rss_min / rss_max.
 Frames without a projected radar point have no defined heatmap target: they are left out of
-Dis-Net training and counted in the summary.
+Dis-Net and PlaceNet training and counted in the summary.
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ from pipeline.stage import DatasetStage
 VERSION = 2
 """Bump when the training code changes what a net learns: stage outputs and checkpoints are redone."""
 
-CONFIG_KEYS = tuple(dict.fromkeys(TRAINING_KEYS["disnet"] + TRAINING_KEYS["rssnet"] + TRAINING_KEYS["common"]
+NETS = ("disnet", "rssnet", "placenet")
+"""Values train.nets may list."""
+CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING_KEYS["common"])
                                   + ("train.nets", "train.epochs")))
 
 
@@ -66,6 +69,23 @@ def rssnet_data(inputs, table, part: int, val_part: int = 1):
                       val_idx=np.arange(n_train, n_all) if part != val_part else np.arange(0))
 
 
+def placenet_data(inputs, table, part: int, val_part: int = 1):
+    """PlaceNet rows of the usable frames (radar points in the image) of split ``part`` (train) and
+    ``val_part``; counts loaded into memory, features read per batch."""
+    from pipeline.training import PlaceNetData
+
+    store = inputs.store("patches")
+    per_frame = np.asarray(store.array("place_count_count")[:])
+    usable = table["ok"] & (table["count"] > 0)
+    frames = {p: np.flatnonzero(usable & (table["split"] == p)) for p in (part, val_part)}
+    allf = np.concatenate([frames[part], frames[val_part]]) if part != val_part else frames[part]
+    features = RaggedRows(store.array("place_features"), per_frame, allf)
+    counts = RaggedRows(store.array("place_count"), per_frame, allf)
+    n_train, n_all = int(per_frame[frames[part]].sum()), len(counts)
+    return PlaceNetData(features=features, counts=counts[np.arange(n_all)], train_idx=np.arange(n_train),
+                        val_idx=np.arange(n_train, n_all) if part != val_part else np.arange(0))
+
+
 def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
     """Held-out test losses of the trivial predictors the networks must beat."""
     from pipeline.training import disnet_baseline, mean_map_baseline, rssnet_baseline
@@ -95,7 +115,8 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
     """
     from pipeline.training import default_fingerprint
 
-    data = [inputs.store(s).fingerprint() for s in ("calibrate", "heatmaps", "patches")]
+    stores = ("calibrate", "heatmaps") if net == "disnet" else ("calibrate", "heatmaps", "patches")
+    data = [inputs.store(s).fingerprint() for s in stores]  # Dis-Net reads no patches
     return f"v{VERSION}-{default_fingerprint(cfg, net)}-" + "-".join(str(d) for d in data)
 
 
@@ -105,9 +126,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                                    train_rssnet)
 
     nets = {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
-    unknown = nets - {"disnet", "rssnet"}
+    unknown = nets - set(NETS)
     if unknown:
-        raise PipelineError(f"train.nets: unknown net(s) {sorted(unknown)} (use disnet, rssnet)")
+        raise PipelineError(f"train.nets: unknown net(s) {sorted(unknown)} (use {', '.join(NETS)})")
     table = frame_table(inputs)
     d_data, idx = disnet_data(inputs, table)
     if len(idx["train"]) == 0:
@@ -135,9 +156,35 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         test = rssnet_data(inputs, table, 2, 2)
         summary["rssnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
                              "test": rssnet_metrics(model, test, np.arange(len(test.rss))) if len(test.rss) else {}}
+    if "placenet" in nets:
+        summary["placenet"] = _train_placenet(inputs, cfg, table, root)
     (root / "metrics.json").write_text(json.dumps(summary, indent=2, default=float))
     summary["message"] = _headline(summary)
     return summary
+
+
+def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
+    """Train PlaceNet; its summary with the test NLL next to the constant intensity's."""
+    from pipeline.training import load_placenet, placenet_baseline, placenet_metrics, train_placenet
+
+    data = placenet_data(inputs, table, 0, 1)
+    if len(data.train_idx) == 0:
+        raise PipelineError("train: PlaceNet has no training row (no lidar point in the radar's field of view "
+                            "of any usable training frame)")
+    res = train_placenet(cfg, data, root / "placenet", progress=inputs.progress,
+                         fingerprint=training_fingerprint(inputs, cfg, "placenet"))
+    model = load_placenet(cfg, res.best_path, device="cpu")
+    test = placenet_data(inputs, table, 2, 2)
+    out = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
+           "rows": {"train": int(len(data.train_idx)), "val": int(len(data.val_idx)), "test": int(len(test.train_idx))},
+           "test": {}}
+    if len(test.train_idx):
+        out["test"] = placenet_metrics(model, test, test.train_idx)
+        train_counts = data.counts[np.asarray(data.train_idx)]
+        out["constant_intensity_test_nll"] = placenet_baseline(
+            np.concatenate([train_counts, test.counts]), np.arange(len(train_counts)),
+            np.arange(len(train_counts), len(train_counts) + len(test.counts)))["nll"]
+    return out
 
 
 def _headline(s: dict) -> str:
@@ -150,6 +197,9 @@ def _headline(s: dict) -> str:
                      f"L_n {t['n']:.4f} (mean count {b.get('mean_count_L_n', nan):.4f})")
     if "rssnet" in s and s["rssnet"]["test"]:
         parts.append(f"RSS-Net test L_a {s['rssnet']['test']['a']:.2e} (median {b.get('median_rss_L_a', float('nan')):.2e})")
+    if "placenet" in s and s["placenet"]["test"]:
+        parts.append(f"PlaceNet test NLL {s['placenet']['test']['nll']:.4f} "
+                     f"(constant intensity {s['placenet'].get('constant_intensity_test_nll', nan):.4f})")
     return "; ".join(parts) or "trained"
 
 

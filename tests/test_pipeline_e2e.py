@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zarr
 
-from pipeline.cache import DONE, EXCLUDED
+from pipeline.cache import DONE, EXCLUDED, PENDING
 from pipeline.config import load_config
 from pipeline.executor import Executor, RunEnv
 from pipeline.readers.vod import VodReader
@@ -57,6 +57,18 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
         for name in a:
             np.testing.assert_array_equal(a[name], b[name], err_msg=f"{stage}/{name}")
         assert np.all(np.isin(a["status"], (DONE, EXCLUDED))), stage
+    # PlaceNet was trained on the patches stage's candidate rows and scored on the test frames
+    placenet = json.loads((tmp_path / "serial" / "synthetic" / "train" / "metrics.json").read_text())["placenet"]
+    assert min(placenet["rows"].values()) > 0 and np.isfinite(placenet["test"]["nll"])
+    patches = arrays(tmp_path / "serial", "patches")
+    assert patches["place_count"][np.isfinite(patches["place_count"])].sum() > 0
+    # the synthesized points are lidar points of their frame (lidar placement, the default)
+    syn, calib = serial.env.store("synthesize"), serial.env.store("calibrate")
+    done = [int(i) for i in np.flatnonzero(syn.status() == DONE)]
+    for i in done:
+        lidar = {tuple(p) for p in calib.read("lidar", i).astype(np.float32).tolist()}
+        assert all(tuple(p) in lidar for p in syn.read("points", i)[:, :3].tolist()), i
+    assert sum(len(syn.read("points", i)) for i in done) > 0
     # evaluate wrote a report with every method and the figures
     report = json.loads((tmp_path / "serial" / "synthetic" / "evaluate" / "report.json").read_text())
     assert "model" in json.dumps(report) and "mean-map" in json.dumps(report)
@@ -118,3 +130,26 @@ def test_train_stage_reports_the_count_refit(world, tmp_path):
     assert refit["select_n_after"] <= refit["select_n_before"]
     assert refit["selection"] in ("val", "train")
     assert "rssnet" not in summary
+
+
+def test_lidar_placement_without_placenet_is_a_clear_error_and_ray_placement_works(world, tmp_path):
+    """Nets trained without PlaceNet: synthesize with the default lidar placement stops before any
+    frame, naming the missing checkpoint; synth.placement=ray generates from Dis-Net and RSS-Net."""
+    from pipeline.errors import PipelineError
+
+    def pipeline(**extra: str) -> Pipeline:
+        cfg = load_config("synthetic", {**TINY, "train.nets": "disnet,rssnet", **extra}, environ={})
+        env = RunEnv(cfg, str(tmp_path / "cache"), "synthetic", str(world))
+        return Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
+
+    with pytest.raises(PipelineError, match="no placenet checkpoint.*synth.placement=ray"):
+        pipeline().run("synthesize")
+    pipe = pipeline(**{"synth.placement": "ray"})
+    assert np.all(pipe.env.store("synthesize").status() == PENDING)  # no frame was attempted
+    pipe.run("synthesize")
+    syn = pipe.env.store("synthesize")
+    assert np.all(syn.status() == DONE)
+    counts = np.stack([syn.read("counts", i) for i in range(len(syn.status()))])
+    assert counts[:, 0].sum() > 0 and counts[:, 4].sum() >= 0
+    points = np.concatenate([syn.read("points", i) for i in range(len(syn.status()))])
+    assert len(points) > 0 and np.all(np.isfinite(points))

@@ -469,6 +469,8 @@ def test_bad_generation_settings_are_config_errors():
     for key, value, words in (("synth.sampling", "sorted", "synth.sampling must be one of iid, systematic"),
                               ("synth.range_estimator", "far", "synth.range_estimator"),
                               ("synth.no_support", "skip", "synth.no_support"),
-                              ("synth.refill_rounds", "-1", "synth.refill_rounds must be >= 0")):
+                              ("synth.refill_rounds", "-1", "synth.refill_rounds must be >= 0"),
+                              ("synth.placement", "mesh", "synth.placement must be one of lidar, ray"),
+                              ("placement.voxel_m", "-1", "placement.voxel_m must be >= 0")):
         with pytest.raises(ConfigError, match=words):
             check_generation(load_config("synthetic", {key: value}, environ={}))

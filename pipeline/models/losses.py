@@ -36,3 +36,11 @@ def rss_loss(a_hat_norm: Tensor, a_norm: Tensor) -> Tensor:
     if a_hat_norm.shape != a_norm.shape:
         raise ValueError(f"rss_loss: shapes {tuple(a_hat_norm.shape)} and {tuple(a_norm.shape)} differ")
     return (a_hat_norm - a_norm.to(a_hat_norm.dtype)) ** 2
+
+
+def poisson_loss(log_rate: Tensor, count: Tensor) -> Tensor:
+    """Poisson negative log-likelihood per point without the constant log(count!):
+    exp(log_rate) - count * log_rate. log_rate, count (B,); counts >= 0. (B,)."""
+    if log_rate.shape != count.shape:
+        raise ValueError(f"poisson_loss: shapes {tuple(log_rate.shape)} and {tuple(count.shape)} differ")
+    return torch.exp(log_rate) - count.to(log_rate.dtype) * log_rate

@@ -1,0 +1,220 @@
+"""Lidar-point placement: put the synthetic radar points on lidar points instead of on camera rays.
+
+The paper places each sampled pixel on its camera ray at a lidar range estimated in an angular
+window, which lands on the wrong surface for most points (README, physics checks). Here the points
+are lidar points themselves. Every lidar point y of the radar's field of view that projects into
+the image (a *candidate*) gets an intensity lambda(y) >= 0 from PlaceNet: the expected number of
+real radar points whose nearest candidate it is (learned from the training frames). With G the
+heatmap's Gaussian blur and M the predicted map, a map sample x picks candidate y with probability
+G(x - pix(y)) lambda(y) / Z(x), Z = G * splat(lambda); summed over x ~ M that is
+
+    q(y) = lambda(y) * (G * (M / Z))(pix(y)),
+
+two blurs of the map-sized image per frame. n points are then drawn from q without replacement
+(Gumbel top-k), spread over voxels of side ``voxel_m`` (a radar resolves one return per cell;
+random grid offset): a voxel gets a second point only once every voxel holding a candidate has
+one, so that two points do not crowd one real return while another is left without.
+
+Frames and units: points in {D} (x forward, y left, z up), metres; pixels (u right, v down) at the
+working resolution; azimuth / elevation in radians. Pure numpy / scipy / OpenCV.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline.frame import Object3D, check_shape
+from pipeline.geometry import cartesian_to_spherical, invert_transform, project_to_image, radial_velocity
+
+MIN_RANGE_M = 0.5
+"""Candidates nearer than this to the radar are ignored (sensor housing, the ego vehicle)."""
+NORMAL_NEIGHBOURS = 10
+"""Lidar neighbours of a candidate whose covariance gives its surface normal."""
+COLOUR_WINDOW_PX = 5
+"""Side of the window of the local colour mean and standard deviation, working pixels."""
+FEATURES = ("log_range", "z_m", "abs_range_rate", "abs_range_rate_clip3", "abs_range_rate_clip05", "on_object",
+            "ego_speed", "azimuth", "elevation", "red", "green", "blue", "red_mean", "green_mean", "blue_mean",
+            "red_std", "green_std", "blue_std", "cos_incidence", "planarity", "log_neighbour_dist", "normal_z2")
+"""Columns of :func:`candidate_features`, in order."""
+
+
+def lidar_candidates(
+    lidar_D: np.ndarray, K_w: np.ndarray, T_radar_cam: np.ndarray, image_wh: tuple[int, int],
+    fov_az_deg: float, fov_el_deg: float, max_range_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (C,) of the lidar points (M, 3) m in {D} that can carry a radar point: inside the
+    radar's TOTAL fields of view ``fov_*_deg`` (symmetric about x), between MIN_RANGE_M and
+    ``max_range_m``, projecting into the working image (size ``image_wh``, intrinsics ``K_w``);
+    and their pixels (C, 2)."""
+    points = check_shape("lidar_D", np.asarray(lidar_D, np.float64), (None, 3))
+    rae = cartesian_to_spherical(points)
+    with np.errstate(invalid="ignore"):
+        ok = ((rae[:, 0] > MIN_RANGE_M) & (rae[:, 0] <= max_range_m)
+              & (np.abs(rae[:, 1]) <= np.deg2rad(fov_az_deg) / 2) & (np.abs(rae[:, 2]) <= np.deg2rad(fov_el_deg) / 2))
+    idx = np.flatnonzero(ok)
+    uv, _, valid = project_to_image(points[idx], K_w, invert_transform(T_radar_cam), image_wh)
+    return idx[valid], uv[valid]
+
+
+def candidate_features(
+    points_D: np.ndarray, uv: np.ndarray, image: np.ndarray, lidar_D: np.ndarray, ego_velocity_D: np.ndarray,
+    labels: Sequence[Object3D] | np.ndarray,
+) -> np.ndarray:
+    """PlaceNet inputs (C, len(FEATURES)) float32 of candidates ``points_D`` (C, 3) at pixels ``uv``.
+
+    Per candidate: log range; height z; |range rate| from the ego velocity (3,) m/s and the
+    velocity of the labelled box holding it (also clipped at 3 and 0.5 m/s: a radar's static
+    filter acts near 0); whether it lies in a moving labelled box; the ego speed;
+    azimuth, elevation; the working image's RGB (0..1) at its pixel and the mean and standard
+    deviation over COLOUR_WINDOW_PX (material); from its NORMAL_NEIGHBOURS nearest points of the
+    whole lidar cloud ``lidar_D``: |cos| of the angle between the surface normal and the line of
+    sight, planarity (smallest / summed covariance eigenvalue), log distance of the farthest
+    neighbour (lidar density) and the normal's squared z (ground or wall).
+    """
+    from pipeline.synthesis import object_velocities_for_points
+
+    pts = check_shape("points_D", np.asarray(points_D, np.float64), (None, 3))
+    uv = check_shape("uv", np.asarray(uv, np.float64), (pts.shape[0], 2))
+    if pts.shape[0] == 0:
+        return np.zeros((0, len(FEATURES)), np.float32)
+    rae = cartesian_to_spherical(pts)
+    ego = check_shape("ego_velocity_D", np.asarray(ego_velocity_D, np.float64), (3,))
+    v_obj = object_velocities_for_points(pts, labels)
+    on_object = np.any(v_obj != 0, axis=1)
+    rate = np.abs(radial_velocity(pts, ego, v_obj))
+    colour = _colour_features(image, uv)
+    geometry = _geometry_features(pts, rae[:, 0], lidar_D)
+    cols = [np.log(rae[:, 0]), pts[:, 2], rate, np.minimum(rate, 3.0), np.minimum(rate, 0.5), on_object,
+            np.full(len(pts), np.linalg.norm(ego)), rae[:, 1], rae[:, 2]]
+    return np.column_stack([*cols, colour, geometry]).astype(np.float32)
+
+
+def _colour_features(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(C, 9): RGB at the nearest pixel, window mean, window standard deviation (0..1)."""
+    img = check_shape("image", np.asarray(image), (None, None, 3)).astype(np.float32) / 255.0
+    h, w = img.shape[:2]
+    k = (COLOUR_WINDOW_PX, COLOUR_WINDOW_PX)
+    mean = cv2.blur(img, k)
+    std = np.sqrt(np.maximum(cv2.blur(img * img, k) - mean * mean, 0.0))
+    px = np.clip(np.rint(uv).astype(np.int64), 0, [w - 1, h - 1])
+    return np.concatenate([a[px[:, 1], px[:, 0]] for a in (img, mean, std)], axis=1)
+
+
+def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, lidar_D: np.ndarray) -> np.ndarray:
+    """(C, 4): |cos incidence|, planarity, log neighbour distance, normal z^2 (zeros with too few
+    lidar points)."""
+    cloud = np.asarray(lidar_D, np.float64).reshape(-1, 3)
+    cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
+    k = min(NORMAL_NEIGHBOURS, len(cloud))
+    if k < 3:
+        return np.zeros((len(points_D), 4))
+    dist, idx = cKDTree(cloud).query(points_D, k=k)
+    nb = cloud[idx] - cloud[idx].mean(axis=1, keepdims=True)       # (C, k, 3)
+    eigval, eigvec = np.linalg.eigh(np.einsum("cki,ckj->cij", nb, nb))
+    normal = eigvec[:, :, 0]                                      # smallest eigenvalue's vector
+    cos_inc = np.abs(np.sum(normal * points_D, axis=1)) / np.maximum(range_m, 1e-9)
+    planarity = eigval[:, 0] / np.maximum(eigval.sum(axis=1), 1e-12)
+    return np.column_stack([cos_inc, planarity, np.log(dist[:, -1] + 1e-3), normal[:, 2] ** 2])
+
+
+def radar_counts(candidates_D: np.ndarray, radar_D: np.ndarray, gate_m: float) -> np.ndarray:
+    """PlaceNet target (C,) int: the real radar points (R, 3) whose nearest candidate (C, 3) is this
+    one, counting only those within ``gate_m`` metres of it."""
+    cand = check_shape("candidates_D", np.asarray(candidates_D, np.float64), (None, 3))
+    radar = check_shape("radar_D", np.asarray(radar_D, np.float64), (None, 3))
+    if len(cand) == 0 or len(radar) == 0:
+        return np.zeros(len(cand), np.int64)
+    dist, idx = cKDTree(cand).query(radar)
+    return np.bincount(idx[dist <= gate_m], minlength=len(cand))
+
+
+def placement_weights(
+    prob_map: np.ndarray, uv: np.ndarray, intensity: np.ndarray, image_wh: tuple[int, int],
+    sigma_px: tuple[float, float],
+) -> np.ndarray:
+    """q (C,) summing to 1 (zeros when nothing can be placed): the probability that a map sample
+    lands on each candidate (module docstring). ``prob_map`` (H, W) >= 0 at any resolution;
+    ``uv`` (C, 2) working pixels of an image ``image_wh``; ``intensity`` (C,) >= 0; ``sigma_px``
+    (u, v) the blur's standard deviations in working pixels."""
+    m = check_shape("prob_map", np.asarray(prob_map, np.float64), (None, None))
+    uv = check_shape("uv", np.asarray(uv, np.float64), (None, 2))
+    lam = check_shape("intensity", np.asarray(intensity, np.float64), (uv.shape[0],))
+    if not (np.all(np.isfinite(lam)) and np.all(lam >= 0)):
+        raise ValueError("intensity: values must be finite and >= 0")
+    if len(lam) == 0 or not lam.sum() > 0 or not m.sum() > 0:
+        return np.zeros(len(lam))
+    (mh, mw), (w, h) = m.shape, image_wh
+    px = np.clip(np.rint(uv * [mw / w, mh / h]).astype(np.int64), 0, [mw - 1, mh - 1])
+    sx, sy = sigma_px[0] * mw / w, sigma_px[1] * mh / h
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(a, (0, 0), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_CONSTANT)
+
+    splat = np.zeros((mh, mw))
+    np.add.at(splat, (px[:, 1], px[:, 0]), lam)
+    z = blur(splat)
+    ratio = np.zeros_like(z)
+    reached = z > 1e-12 * z.max()  # map mass no candidate can take is lost, not blown up
+    ratio[reached] = m[reached] / z[reached]
+    q = lam * blur(ratio)[px[:, 1], px[:, 0]]
+    total = q.sum()
+    return q / total if total > 0 else np.zeros(len(lam))
+
+
+def choose_candidates(q: np.ndarray, points_D: np.ndarray, n: int, rng: np.random.Generator,
+                      voxel_m: float) -> np.ndarray:
+    """Indices of up to ``n`` candidates drawn from weights ``q`` (C,) without replacement, spread
+    over cubes of side ``voxel_m`` (grid with a random offset; 0: no such limit), in draw order.
+
+    Gumbel top-k: keys log q + Gumbel noise. Each cube's best key is drawn first, then each
+    cube's second best, and so on, so a second point goes into a cube only once every cube that
+    holds a candidate has one. Fewer than n come out only when fewer candidates have q > 0.
+    """
+    q = np.asarray(q, np.float64).ravel()
+    points = check_shape("points_D", np.asarray(points_D, np.float64), (q.size, 3))
+    if n < 0:
+        raise ValueError(f"choose_candidates: n must be >= 0, got {n}")
+    live = np.flatnonzero(q > 0)
+    if n == 0 or live.size == 0:
+        return np.zeros(0, np.int64)
+    keys = np.log(q[live]) + rng.gumbel(size=live.size)
+    rank = np.zeros(live.size, np.int64)
+    if voxel_m > 0:
+        cell = np.floor(points[live] / voxel_m + rng.random(3)).astype(np.int64)
+        order = np.lexsort((-keys, cell[:, 2], cell[:, 1], cell[:, 0]))
+        new = np.r_[True, np.any(cell[order][1:] != cell[order][:-1], axis=1)]
+        start = np.maximum.accumulate(np.where(new, np.arange(live.size), 0))
+        rank[order] = np.arange(live.size) - start      # 0 for each cube's best key, 1 for the next...
+    best = np.lexsort((-keys, rank))[:n]
+    return live[best]
+
+
+def place_on_lidar(
+    prob_map: np.ndarray, n_hat: float, candidates_D: np.ndarray, uv: np.ndarray, intensity: np.ndarray, *,
+    image_wh: tuple[int, int], sigma_px: tuple[float, float], voxel_m: float, ego_velocity_D: np.ndarray,
+    labels: Sequence[Object3D] | np.ndarray, doppler_span_mps: float, rng: np.random.Generator,
+) -> dict[str, np.ndarray | int]:
+    """One frame's radar points except RSS, placed on lidar candidates (module docstring): the same
+    keys as :func:`pipeline.synthesis.synthesize_frame` (Doppler as the range rate, wrapped into
+    ``doppler_span_mps``). ``candidates_D`` (C, 3), ``uv`` (C, 2) and ``intensity`` (C,) describe
+    the frame's candidates; ``n_hat`` is rounded. Points that cannot be placed (fewer candidates
+    with q > 0 than points) are counted as without support."""
+    from pipeline.synthesis import SUPPORT_DIRECT, doppler_for_points, object_velocities_for_points
+
+    if not (np.isfinite(n_hat) and n_hat >= 0):
+        raise ValueError(f"n_hat must be finite and >= 0, got {n_hat}")
+    n = int(round(float(n_hat)))
+    cand = check_shape("candidates_D", np.asarray(candidates_D, np.float64), (None, 3))
+    q = placement_weights(prob_map, uv, intensity, image_wh, sigma_px) if n else np.zeros(len(cand))
+    idx = choose_candidates(q, cand, n, rng, voxel_m)
+    points = cand[idx]
+    doppler = doppler_for_points(points, ego_velocity_D, object_velocities_for_points(points, labels), 1,
+                                 doppler_span_mps)
+    return {"points_D": points.astype(np.float32), "rae": cartesian_to_spherical(points).astype(np.float32),
+            "doppler": doppler.astype(np.float32), "uv": np.asarray(uv, np.float32).reshape(-1, 2)[idx],
+            "support": np.full(len(idx), SUPPORT_DIRECT, np.int8), "n_requested": n,
+            "n_no_support": n - len(idx), "n_out_of_fov": 0, "n_beyond_range": 0, "n_widened": 0}

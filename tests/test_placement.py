@@ -1,0 +1,284 @@
+"""Lidar-point placement (pipeline.placement) and PlaceNet: candidates, features, the training
+target, the placement weights against a brute-force sum, the voxel-limited draw, and PlaceNet's
+standardisation, loss, training and resume."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline import placement as P
+from pipeline import training as T
+from pipeline.config import load_config
+from pipeline.frame import Object3D
+from pipeline.geometry import cartesian_to_spherical, invert_transform, project_to_image
+from pipeline.models import PlaceNet, poisson_loss
+
+torch.set_num_threads(1)
+
+# Radar {D}: x fwd, y left, z up. Camera: x right, y down, z fwd. Columns = camera axes in {D}.
+T_RADAR_CAM = np.eye(4)
+T_RADAR_CAM[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+T_RADAR_CAM[:3, 3] = (0.3, 0.4, 0.5)
+K_SMALL = np.array([[100.0, 0.0, 79.5], [0.0, 100.0, 39.5], [0.0, 0.0, 1.0]])  # 160 x 80 image
+
+
+def wall(x_m: float = 10.0, step: float = 0.1) -> np.ndarray:
+    """Lidar wall x = x_m, y in [-3, 3), z in [-1, 1) on a ``step`` grid, (N, 3) m."""
+    y, z = np.meshgrid(np.arange(-3, 3, step), np.arange(-1, 1, step))
+    return np.column_stack([np.full(y.size, x_m), y.ravel(), z.ravel()])
+
+
+# --------------------------------------------------------------------------- candidates
+
+
+def test_lidar_candidates_keep_only_points_the_radar_and_camera_both_see():
+    points = np.array([
+        [10.0, 0.0, 0.0],     # ahead: kept
+        [0.3, 0.0, 0.0],      # nearer than MIN_RANGE_M
+        [60.0, 0.0, 0.0],     # beyond max range
+        [10.0, 2.5, 0.0],     # azimuth 14 deg > 20 / 2, inside the image
+        [10.0, 0.0, 4.0],     # elevation 21.8 deg > 20 / 2, inside the image
+        [-10.0, 0.0, 0.0],    # behind
+        [10.0, 9.0, 0.0],     # azimuth 42 deg: outside the 160 px image
+        [np.nan, 0.0, 0.0],
+        [20.0, -1.0, 0.5],    # kept
+    ])
+    idx, uv = P.lidar_candidates(points, K_SMALL, T_RADAR_CAM, (160, 80), fov_az_deg=20.0, fov_el_deg=20.0,
+                                 max_range_m=50.0)
+    np.testing.assert_array_equal(idx, [0, 8])
+    wide, _ = P.lidar_candidates(points, K_SMALL, T_RADAR_CAM, (160, 80), 100.0, 20.0, 50.0)
+    np.testing.assert_array_equal(wide, [0, 3, 8])    # the radar sees 42 deg, the camera does not
+    expect, _, _ = project_to_image(points[idx], K_SMALL, invert_transform(T_RADAR_CAM), (160, 80))
+    np.testing.assert_allclose(uv, expect)
+    with pytest.raises(ValueError, match="lidar_D"):
+        P.lidar_candidates(points[:, :2], K_SMALL, T_RADAR_CAM, (160, 80), 80.0, 20.0, 50.0)
+
+
+def test_candidate_features_hand_computed():
+    gx, gy = np.meshgrid(np.arange(-3, 3, 0.1), np.arange(4, 6, 0.1))
+    ground = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, -1.5)])
+    lidar = np.vstack([wall(10.0), ground])
+    cand = np.array([[10.0, 0.0, 0.0], [0.5, 5.0, -1.5], [10.0, 2.0, 0.5]])
+    uv = np.array([[80.0, 40.0], [0.0, 0.0], [159.0, 79.0]])
+    image = np.zeros((80, 160, 3), np.uint8)
+    image[40, 80] = (255, 0, 51)                                # one coloured pixel under the first candidate
+    ego = np.array([4.0, 0.0, 0.0])
+    box = Object3D("Car", np.array([10.0, 2.0, 0.5]), np.array([1.0, 1.0, 1.0]), 0.0,
+                   velocity_D=np.array([4.0, 0.0, 0.0]))    # moves with the ego: range rate 0
+    f = P.candidate_features(cand, uv, image, lidar, ego, [box])
+    assert f.shape == (3, len(P.FEATURES)) and f.dtype == np.float32 and np.all(np.isfinite(f))
+    col = {name: f[:, k] for k, name in enumerate(P.FEATURES)}
+    rae = cartesian_to_spherical(cand)
+    np.testing.assert_allclose(col["log_range"], np.log(rae[:, 0]), rtol=1e-6)
+    np.testing.assert_allclose(col["z_m"], cand[:, 2])
+    np.testing.assert_allclose(col["azimuth"], rae[:, 1], atol=1e-6)
+    np.testing.assert_allclose(col["elevation"], rae[:, 2], atol=1e-6)
+    rate = np.abs(cand @ ego / rae[:, 0]) * [1, 1, 0]           # static: |unit . ego|; in the box: 0
+    np.testing.assert_allclose(col["abs_range_rate"], rate, atol=1e-5)
+    np.testing.assert_allclose(col["abs_range_rate_clip3"], np.minimum(rate, 3), atol=1e-5)
+    np.testing.assert_allclose(col["abs_range_rate_clip05"], np.minimum(rate, 0.5), atol=1e-5)
+    np.testing.assert_array_equal(col["on_object"], [0, 0, 1])
+    np.testing.assert_allclose(col["ego_speed"], 4.0)
+    np.testing.assert_allclose([col["red"][0], col["green"][0], col["blue"][0]], [1.0, 0.0, 0.2], atol=1e-6)
+    np.testing.assert_allclose(col["red_mean"][0], 1 / 25, atol=1e-6)
+    np.testing.assert_allclose(col["red_std"][0], np.sqrt(1 / 25 - 1 / 625), atol=1e-5)
+    # the wall's normal is x: seen head on from the origin at (10, 0, 0); the ground's is z
+    assert col["cos_incidence"][0] == pytest.approx(1.0, abs=1e-6)
+    assert col["normal_z2"][0] == pytest.approx(0.0, abs=1e-6) and col["normal_z2"][1] == pytest.approx(1.0)
+    np.testing.assert_allclose(col["cos_incidence"][1], 1.5 / rae[1, 0], rtol=1e-5)
+    assert np.all(col["planarity"] < 1e-6)
+    # the 10th nearest point of a 10 cm grid is 0.2 m away (plus the 1 mm floor)
+    np.testing.assert_allclose(np.exp(col["log_neighbour_dist"][:2]), 0.201, rtol=1e-5)
+    empty = P.candidate_features(np.zeros((0, 3)), np.zeros((0, 2)), image, lidar, ego, [])
+    assert empty.shape == (0, len(P.FEATURES))
+    # too few lidar points for a normal: the geometry columns are zeros, not NaN
+    few = P.candidate_features(cand, uv, image, lidar[:2], ego, [])
+    assert np.all(np.isfinite(few)) and np.all(few[:, -4:] == 0)
+
+
+def test_radar_counts_against_brute_force():
+    rng = np.random.default_rng(3)
+    cand, radar = rng.uniform(0, 20, (300, 3)), rng.uniform(0, 20, (80, 3))
+    got = P.radar_counts(cand, radar, gate_m=1.5)
+    d = np.linalg.norm(radar[:, None] - cand[None], axis=2)
+    nearest = d.argmin(axis=1)
+    expect = np.bincount(nearest[d.min(axis=1) <= 1.5], minlength=300)
+    np.testing.assert_array_equal(got, expect)
+    assert 0 < got.sum() < 80  # some gated out
+    assert P.radar_counts(cand, np.zeros((0, 3)), 1.0).tolist() == [0] * 300
+    assert P.radar_counts(np.zeros((0, 3)), radar, 1.0).shape == (0,)
+
+
+# --------------------------------------------------------------------------- placement weights
+
+
+def gaussian(d: np.ndarray, sigma: float) -> np.ndarray:
+    return np.exp(-0.5 * (d / sigma) ** 2)
+
+
+def test_placement_weights_equal_the_sum_over_map_pixels():
+    """q(y) = sum_x M(x) G(x - y) lambda(y) / sum_y' G(x - y') lambda(y'). The image (12 x 10) is
+    smaller than the blur kernel's half width at sigma 3, so OpenCV's truncated kernel is the full
+    Gaussian here."""
+    rng = np.random.default_rng(0)
+    w, h, sigma = 12, 10, (3.0, 2.5)
+    m = rng.random((h, w))
+    uv = rng.uniform(0, [w - 1, h - 1], (15, 2))
+    lam = rng.gamma(1.0, 1.0, 15)
+    lam[4] = 0.0
+    q = P.placement_weights(m, uv, lam, (w, h), sigma)
+    px = np.rint(uv).astype(int)
+    yy, xx = np.mgrid[0:h, 0:w]
+    g = gaussian(xx[..., None] - px[:, 0], sigma[0]) * gaussian(yy[..., None] - px[:, 1], sigma[1])  # (h, w, C)
+    brute = lam * np.einsum("hw,hwc->c", m / (g @ lam), g)
+    np.testing.assert_allclose(q, brute / brute.sum(), rtol=1e-6)
+    assert q[4] == 0 and q.sum() == pytest.approx(1.0)
+    # a map at half the resolution: the candidates' pixels and the blur scale with it
+    half = P.placement_weights(m[::2, ::2], uv, lam, (2 * w, 2 * h), (2 * sigma[0], 2 * sigma[1]))
+    np.testing.assert_allclose(half, P.placement_weights(m[::2, ::2], uv / 2, lam, (w, h), sigma), rtol=1e-9)
+
+
+def test_placement_weights_edge_cases():
+    m = np.zeros((8, 8))
+    m[0, 0] = 1.0
+    uv = np.array([[7.0, 7.0], [7.0, 7.0], [0.0, 7.0]])
+    # two candidates on one pixel share its mass in proportion to their intensity
+    q = P.placement_weights(m, uv, np.array([1.0, 3.0, 0.0]), (8, 8), (2.0, 2.0))
+    np.testing.assert_allclose(q, [0.25, 0.75, 0.0])
+    # map mass far beyond the blur's reach is lost, not blown up: nothing can be placed
+    far = np.zeros((8, 200))
+    far[0, 0] = 1.0
+    assert P.placement_weights(far, np.array([[199.0, 7.0]]), np.ones(1), (200, 8), (1.0, 1.0)).tolist() == [0.0]
+    assert P.placement_weights(m, uv, np.zeros(3), (8, 8), (2.0, 2.0)).tolist() == [0, 0, 0]
+    assert P.placement_weights(np.zeros((8, 8)), uv, np.ones(3), (8, 8), (2.0, 2.0)).tolist() == [0, 0, 0]
+    assert P.placement_weights(m, np.zeros((0, 2)), np.zeros(0), (8, 8), (2.0, 2.0)).shape == (0,)
+    for bad in (np.array([1.0, -1.0, 0.0]), np.array([1.0, np.nan, 0.0])):
+        with pytest.raises(ValueError, match="intensity"):
+            P.placement_weights(m, uv, bad, (8, 8), (2.0, 2.0))
+
+
+# --------------------------------------------------------------------------- the draw
+
+
+def test_choose_candidates_fill_every_voxel_before_doubling_up():
+    rng = np.random.default_rng(1)
+    sites = np.array([[10.0, 0, 0], [10, 5, 0], [20, 0, 0], [30, -5, 1], [40, 3, 0]])
+    points = np.repeat(sites, 3, axis=0)                 # three candidates on each site
+    q = np.full(15, 1 / 15)
+    q[0] = 0.9                                           # one heavy candidate does not crowd its site
+    q[12:] = 0.0                                         # the last site cannot be drawn
+    for _ in range(20):
+        first = P.choose_candidates(q, points, 4, rng, voxel_m=1.0)
+        assert sorted(points[first].tolist()) == sorted(sites[:4].tolist())  # one per site
+        got = P.choose_candidates(q, points, 9, rng, voxel_m=1.0)
+        assert len(np.unique(got)) == 9 and np.all(q[got] > 0)
+        per_site = np.bincount(got // 3, minlength=5)
+        assert sorted(per_site.tolist()) == [0, 2, 2, 2, 3]   # seconds everywhere before a third
+        assert per_site[4] == 0
+    assert len(P.choose_candidates(q, points, 100, rng, voxel_m=1.0)) == 12
+    free = P.choose_candidates(q, points, 10, rng, voxel_m=0.0)   # no spreading
+    assert len(free) == 10 and len(np.unique(free)) == 10 and np.all(free < 12)
+    assert P.choose_candidates(q, points, 0, rng, 1.0).shape == (0,)
+    assert P.choose_candidates(np.zeros(15), points, 3, rng, 1.0).shape == (0,)
+    with pytest.raises(ValueError, match="n must be"):
+        P.choose_candidates(q, points, -1, rng, 1.0)
+    with pytest.raises(ValueError, match="points_D"):
+        P.choose_candidates(q, points[:3], 1, rng, 1.0)
+
+
+def test_choose_candidates_single_draw_follows_q():
+    rng = np.random.default_rng(2)
+    q = np.array([0.5, 0.3, 0.2])
+    points = np.array([[0.0, 0, 0], [5, 0, 0], [10, 0, 0]])
+    draws = np.array([P.choose_candidates(q, points, 1, rng, 1.0)[0] for _ in range(4000)])
+    freq = np.bincount(draws, minlength=3) / len(draws)
+    np.testing.assert_allclose(freq, q, atol=4 * np.sqrt(0.25 / 4000))
+
+
+def test_place_on_lidar_puts_points_on_candidates():
+    cand = wall(10.0, 0.5)
+    uv, _, valid = project_to_image(cand, K_SMALL, invert_transform(T_RADAR_CAM), (160, 80))
+    cand, uv = cand[valid], uv[valid]
+    m = np.ones((40, 80))
+    ego = np.array([5.0, 0.0, 0.0])
+    out = P.place_on_lidar(m, 20.4, cand, uv, np.ones(len(cand)), image_wh=(160, 80), sigma_px=(4.0, 4.0),
+                           voxel_m=1.0, ego_velocity_D=ego, labels=[], doppler_span_mps=0.0,
+                           rng=np.random.default_rng(0))
+    assert out["n_requested"] == 20 and len(out["points_D"]) == 20 and out["n_no_support"] == 0
+    rows = {tuple(p) for p in cand.astype(np.float32).tolist()}
+    assert all(tuple(p) in rows for p in out["points_D"].tolist())
+    np.testing.assert_allclose(out["rae"], cartesian_to_spherical(out["points_D"].astype(np.float64)), atol=1e-5)
+    unit = out["points_D"] / np.linalg.norm(out["points_D"], axis=1, keepdims=True)
+    np.testing.assert_allclose(out["doppler"], -(unit @ ego), atol=1e-5)      # static world: range rate
+    # more points than candidates: the rest count as without support
+    many = P.place_on_lidar(m, 500, cand, uv, np.ones(len(cand)), image_wh=(160, 80), sigma_px=(4.0, 4.0),
+                            voxel_m=1.0, ego_velocity_D=ego, labels=[], doppler_span_mps=0.0,
+                            rng=np.random.default_rng(0))
+    assert len(cand) < 500 and len(many["points_D"]) == len(cand) and many["n_no_support"] == 500 - len(cand)
+    with pytest.raises(ValueError, match="n_hat"):
+        P.place_on_lidar(m, np.nan, cand, uv, np.ones(len(cand)), image_wh=(160, 80), sigma_px=(4.0, 4.0),
+                         voxel_m=1.0, ego_velocity_D=ego, labels=[], doppler_span_mps=0.0,
+                         rng=np.random.default_rng(0))
+
+
+# --------------------------------------------------------------------------- PlaceNet
+
+
+def test_placenet_standardisation_and_loss():
+    net = PlaceNet(n_features=3, width=4, depth=1)
+    x = np.array([[1.0, 5.0, 2.0], [3.0, 5.0, 4.0]])
+    net.set_standardisation(x)
+    np.testing.assert_allclose(net.feature_mean.numpy(), [2.0, 5.0, 3.0])
+    np.testing.assert_allclose(net.feature_std.numpy(), [1.0, 1.0, 1.0])   # the constant column: 1, not 0
+    assert net(torch.tensor(x, dtype=torch.float32)).shape == (2,)
+    with pytest.raises(ValueError, match="expected features"):
+        net(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match="no training features"):
+        net.set_standardisation(np.zeros((0, 3)))
+    log_rate, count = torch.tensor([0.0, np.log(2.0), -1.0]), torch.tensor([0.0, 3.0, 1.0])
+    expect = torch.exp(log_rate) - count * log_rate
+    torch.testing.assert_close(poisson_loss(log_rate, count), expect)
+    with pytest.raises(ValueError, match="shapes"):
+        poisson_loss(log_rate, count[:2])
+
+
+def make_place_data(p: int = 3000, seed: int = 0) -> T.PlaceNetData:
+    """Counts ~ Poisson(exp(1.5 x0 - 1)) with x0 on a scale PlaceNet must standardise (mean 50)."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(0, 1, (p, len(P.FEATURES)))
+    counts = rng.poisson(np.exp(1.5 * x[:, 0] - 1.0))
+    x[:, 0] = 50 + 10 * x[:, 0]
+    idx = rng.permutation(p)
+    return T.PlaceNetData(x.astype(np.float32), counts.astype(np.int32), idx[: p * 3 // 4], idx[p * 3 // 4:])
+
+
+def tiny_cfg(**overrides: str):
+    base = {"train.threads": "1", "train.device": "cpu", "placement.width": "8", "placement.batch_size": "256",
+            "placement.lr": "1e-2", "train.epochs": "4"}
+    return load_config("synthetic", {**base, **overrides}, environ={})
+
+
+def test_placenet_learns_beats_the_constant_rate_and_resumes(tmp_path):
+    data = make_place_data()
+    cfg = tiny_cfg()
+    ref = T.train_placenet(cfg, data, tmp_path / "a", progress=False)
+    model = T.load_placenet(cfg, ref.best_path)
+    got = T.placenet_metrics(model, data, data.val_idx)["nll"]
+    const = T.placenet_baseline(data.counts, data.train_idx, data.val_idx)
+    assert const["rate"] == pytest.approx(data.counts[data.train_idx].mean())
+    truth = np.exp(1.5 * (data.features[:, 0] - 50) / 10 - 1.0)[data.val_idx]
+    c = data.counts[data.val_idx]
+    oracle = np.mean(truth - c * np.log(truth))
+    assert got < const["nll"] - 0.5 * (const["nll"] - oracle)   # more than half of the way to the truth
+    lam = T.placenet_predict(model, data.features[:10], batch=3)
+    assert lam.shape == (10,) and np.all(lam > 0)
+    np.testing.assert_allclose(model.feature_mean.numpy()[0], data.features[data.train_idx, 0].mean(), rtol=1e-4)
+    # killed after two epochs and resumed: the same weights and optimizer state as one run
+    T.train_placenet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "b", progress=False)
+    res = T.train_placenet(cfg, data, tmp_path / "b", progress=False)
+    assert res.resumed_from == 2 and res.epoch == 4
+    from safetensors.torch import load_file
+    a, b = load_file(ref.last_path), load_file(res.last_path)
+    assert all(torch.equal(a[k], b[k]) for k in a if k.startswith(("model.", "optim.")))
