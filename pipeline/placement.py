@@ -113,12 +113,49 @@ def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, lidar_D: np.nd
     if k < 3:
         return np.zeros((len(points_D), 4))
     dist, idx = cKDTree(cloud).query(points_D, k=k)
-    nb = cloud[idx] - cloud[idx].mean(axis=1, keepdims=True)       # (C, k, 3)
-    eigval, eigvec = np.linalg.eigh(np.einsum("cki,ckj->cij", nb, nb))
-    normal = eigvec[:, :, 0]                                      # smallest eigenvalue's vector
+    nb = cloud[idx]
+    nb -= nb.mean(axis=1, keepdims=True)                          # (C, k, 3)
+    cov = np.matmul(nb.transpose(0, 2, 1), nb)
+    smallest, normal = smallest_eigenpair_sym3(cov)
     cos_inc = np.abs(np.sum(normal * points_D, axis=1)) / np.maximum(range_m, 1e-9)
-    planarity = eigval[:, 0] / np.maximum(eigval.sum(axis=1), 1e-12)
+    planarity = np.maximum(smallest, 0.0) / np.maximum(np.trace(cov, axis1=1, axis2=2), 1e-12)
     return np.column_stack([cos_inc, planarity, np.log(dist[:, -1] + 1e-3), normal[:, 2] ** 2])
+
+
+def smallest_eigenpair_sym3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smallest eigenvalue (C,) and a unit eigenvector (C, 3) of symmetric matrices ``a`` (C, 3, 3)
+    float64, in closed form (numpy's batched eigh spends about 1 us per 3x3 matrix, 8 ms per frame).
+
+    Eigenvalues by the trigonometric solution of the characteristic cubic (absolute error about
+    1e-8 of the trace); the vector is the largest cross product of two rows of a - lambda I. Where
+    the smallest eigenvalue is (nearly) repeated, any unit vector of its eigenspace is returned (as
+    eigh would); an isotropic matrix gives z.
+    """
+    a = check_shape("a", np.asarray(a, np.float64), (None, 3, 3))
+    xx, yy, zz, xy, xz, yz = a[:, 0, 0], a[:, 1, 1], a[:, 2, 2], a[:, 0, 1], a[:, 0, 2], a[:, 1, 2]
+    q = (xx + yy + zz) / 3
+    dx, dy, dz = xx - q, yy - q, zz - q
+    p = np.sqrt((dx * dx + dy * dy + dz * dz + 2 * (xy * xy + xz * xz + yz * yz)) / 6)
+    safe = np.where(p > 0, p, 1.0)
+    det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
+    phi = np.arccos(np.clip(det / safe ** 3 / 2, -1.0, 1.0)) / 3
+    smallest = np.where(p > 0, q + 2 * p * np.cos(phi + 2 * np.pi / 3), q)
+    r0 = np.stack([xx - smallest, xy, xz], axis=1)                         # rows of a - lambda I
+    r1 = np.stack([xy, yy - smallest, yz], axis=1)
+    r2 = np.stack([xz, yz, zz - smallest], axis=1)
+    crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)   # (C, 3, 3)
+    size = np.einsum("cij,cij->ci", crosses, crosses)
+    best = np.argmax(size, axis=1)
+    rows = np.arange(len(a))
+    vec = crosses[rows, best]
+    scale = np.max(np.abs(np.stack([r0, r1, r2], axis=1)), axis=(1, 2))
+    degenerate = size[rows, best] <= (1e-10 * scale * scale) ** 2
+    if np.any(degenerate):  # a - lambda I has rank <= 1: its largest row spans the other eigenspace
+        m = np.stack([r0, r1, r2], axis=1)[degenerate]
+        row = m[np.arange(len(m)), np.argmax(np.einsum("cij,cij->ci", m, m), axis=1)]
+        other = np.cross(row, np.eye(3)[np.argmin(np.abs(row), axis=1)])
+        vec[degenerate] = np.where(np.any(row != 0, axis=1)[:, None], other, [0.0, 0.0, 1.0])
+    return smallest, vec / np.linalg.norm(vec, axis=1, keepdims=True)
 
 
 def radar_counts(candidates_D: np.ndarray, radar_D: np.ndarray, gate_m: float) -> np.ndarray:

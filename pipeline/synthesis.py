@@ -441,9 +441,9 @@ def object_velocities_for_points(
     local_y = -sin * rel[..., 0] + cos * rel[..., 1]
     inside = ((np.abs(local_x) <= half[:, None, 0]) & (np.abs(local_y) <= half[:, None, 1])
               & (np.abs(rel[..., 2]) <= half[:, None, 2]))                                # (L, n)
-    dist = np.where(inside, np.linalg.norm(rel, axis=2), np.inf)
-    hit = inside.any(axis=0)
-    out[hit] = vel[np.argmin(dist[:, hit], axis=0)]
+    hit = np.flatnonzero(inside.any(axis=0))                                             # most points: none
+    dist = np.where(inside[:, hit], np.linalg.norm(rel[:, hit], axis=2), np.inf)
+    out[hit] = vel[np.argmin(dist, axis=0)]
     return out
 
 

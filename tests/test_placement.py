@@ -98,6 +98,31 @@ def test_candidate_features_hand_computed():
     assert np.all(np.isfinite(few)) and np.all(few[:, -4:] == 0)
 
 
+def test_smallest_eigenpair_matches_eigh_and_handles_degenerate_matrices():
+    rng = np.random.default_rng(4)
+    # covariances of 10-point patches: planes, lines and blobs in random orientations
+    pts = rng.normal(size=(3000, 10, 3)) * rng.uniform(0, 1, (3000, 1, 3)) ** 3
+    pts = pts @ np.linalg.qr(rng.normal(size=(3000, 3, 3)))[0]
+    nb = pts - pts.mean(axis=1, keepdims=True)
+    cov = nb.transpose(0, 2, 1) @ nb
+    value, vector = P.smallest_eigenpair_sym3(cov)
+    w, v = np.linalg.eigh(cov)
+    trace = w.sum(axis=1)
+    np.testing.assert_allclose(value, w[:, 0], rtol=0, atol=1e-7 * trace.max())
+    assert np.max(np.abs(value - w[:, 0]) / trace) < 1e-7
+    np.testing.assert_allclose(np.linalg.norm(vector, axis=1), 1.0, atol=1e-12)
+    separated = (w[:, 1] - w[:, 0]) > 1e-6 * trace  # the eigenvector is unique up to sign
+    assert separated.mean() > 0.9
+    np.testing.assert_allclose(np.abs(np.sum(vector * v[:, :, 0], axis=1))[separated], 1.0, atol=1e-8)
+    # (nearly) repeated smallest eigenvalue: any unit vector of its eigenspace; isotropic: z
+    value, vector = P.smallest_eigenpair_sym3(np.stack([np.diag([0.0, 0.0, 1.0]), np.diag([2.0, 0.0, 0.0]),
+                                                       np.eye(3), np.zeros((3, 3))]))
+    np.testing.assert_allclose(value, [0, 0, 1, 0], atol=1e-7)
+    assert abs(vector[0, 2]) < 1e-6 and abs(vector[1, 0]) < 1e-6
+    np.testing.assert_allclose(np.linalg.norm(vector, axis=1), 1.0)
+    np.testing.assert_allclose(vector[2:], [[0, 0, 1], [0, 0, 1]])
+
+
 def test_radar_counts_against_brute_force():
     rng = np.random.default_rng(3)
     cand, radar = rng.uniform(0, 20, (300, 3)), rng.uniform(0, 20, (80, 3))

@@ -1,10 +1,12 @@
 """Synthesize speed at the synthetic profile's working resolution on 2 CPU threads, split into
-network time (Dis-Net + RSS-Net) and the rest (sampling, range, placement, Doppler, RSS-Net inputs).
+network time (Dis-Net + RSS-Net + PlaceNet) and the rest (candidates and their features, sampling,
+placement, Doppler, RSS-Net inputs).
 Goal: at least 5 frames/s with the non-network part under 20%. Frames come from a small generated
 world; weights are random (the network's speed does not depend on them). The rest does depend on
 where the samples fall (samples without lidar support widen their window up to 4 times), so it is
 measured on the random network's map, on the frame's real-radar heatmap, and, after `make demo`,
-with the demo's trained networks (the stage's case)."""
+with the demo's trained networks (the stage's case); the last line is the last case with the
+paper's camera-ray placement (synth.placement = ray), which needs no lidar candidates or PlaceNet."""
 
 from __future__ import annotations
 
@@ -22,20 +24,37 @@ from pipeline.config import load_config  # noqa: E402
 from pipeline.errors import CacheError, ConfigError  # noqa: E402
 from pipeline.executor import Executor, FrameInputs, RunEnv, tune_heap  # noqa: E402
 from pipeline.models.disnet import build_disnet  # noqa: E402
+from pipeline.models.placenet import build_placenet  # noqa: E402
 from pipeline.models.rssnet import build_rssnet  # noqa: E402
 from pipeline.runner import Pipeline  # noqa: E402
-from pipeline.training import disnet_predict, load_disnet, load_rssnet, rssnet_predict  # noqa: E402
+from pipeline.training import (disnet_predict, load_disnet, load_placenet, load_rssnet,  # noqa: E402
+                               rssnet_predict)
 from pipeline.world import generate as generate_world  # noqa: E402
 from stages import all_stages  # noqa: E402
 from stages.patches import point_inputs  # noqa: E402
-from stages.synthesize import generate  # noqa: E402
+from stages.synthesize import Nets, generate  # noqa: E402
 
 
 TRAINED_CACHE = "cache"
-"""The demo's cache: its trained Dis-Net and RSS-Net, when present, are timed too."""
+"""The demo's cache: its trained networks, when present, are timed too."""
 
 
-def measure(frames, cfg, disnet, rssnet, source: str) -> tuple[float, float, int, int]:
+class Timed(torch.nn.Module):
+    """A network whose forward calls add their wall time to ``seconds`` (PlaceNet runs inside
+    ``generate``; its time is network time)."""
+
+    def __init__(self, net: torch.nn.Module) -> None:
+        super().__init__()
+        self.net, self.seconds = net, 0.0
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        t0 = time.perf_counter()
+        out = self.net(x)
+        self.seconds += time.perf_counter() - t0
+        return out
+
+
+def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, float, int, int]:
     """(network s, rest s, frames, points) over 2 timed passes after a warm-up pass. ``source``:
     'network' samples the random network's own map (n = 300), 'radar' the frame's real-radar
     heatmap with the real count: the distribution a trained Dis-Net approximates, so samples fall
@@ -43,6 +62,8 @@ def measure(frames, cfg, disnet, rssnet, source: str) -> tuple[float, float, int
     demo's trained Dis-Net, as the stage does."""
     t_net = t_rest = 0.0
     n_frames = n_points = 0
+    placenet = Timed(placenet)
+    nets = Nets(disnet, rssnet, placenet)
     for rep in range(3):
         for f in frames:
             image, ego = f.get("calibrate", "image"), f.get("calibrate", "ego_velocity")
@@ -55,7 +76,8 @@ def measure(frames, cfg, disnet, rssnet, source: str) -> tuple[float, float, int
                 prob, n = maps[0], float(n_hat[0])
             else:
                 prob, n = f.get("heatmaps", "heatmap"), float(f.get("heatmaps", "count"))
-            out = generate(f, cfg, prob, n, None, f.rng(rep, 1))
+            placenet.seconds = 0.0
+            out = generate(f, cfg, prob, n, nets, f.rng(rep, 1), rss=False)
             pts = out["points"][:, :3].astype(np.float64)
             patches, ranges = point_inputs(image, f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam"),
                                            f.get("calibrate", "lidar"), pts, cfg)
@@ -63,8 +85,8 @@ def measure(frames, cfg, disnet, rssnet, source: str) -> tuple[float, float, int
             rssnet_predict(rssnet, patches, ranges, out["points"][:, [0, 1, 2, 8]])
             t3 = time.perf_counter()
             if rep:  # the first pass warms up
-                t_net += (t1 - t0) + (t3 - t2)
-                t_rest += t2 - t1
+                t_net += (t1 - t0) + (t3 - t2) + placenet.seconds
+                t_rest += t2 - t1 - placenet.seconds
                 n_frames += 1
                 n_points += len(pts)
     return t_net, t_rest, n_frames, n_points
@@ -79,20 +101,23 @@ def main() -> None:
         env = RunEnv(cfg, f"{tmp}/cache", "synthetic", f"{tmp}/world")
         pipe = Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
         pipe.run("heatmaps")
-        disnet, rssnet = build_disnet(cfg, load_backbone=False).eval(), build_rssnet(cfg).eval()
+        random = (build_disnet(cfg, load_backbone=False).eval(), build_rssnet(cfg).eval(), build_placenet(cfg).eval())
         frames = [FrameInputs(env, i, f) for i, f in enumerate(pipe.frame_ids())]
-        runs = [("network", disnet, rssnet), ("radar", disnet, rssnet)]
+        runs = [("network", *random), ("radar", *random)]
         trained = Path(TRAINED_CACHE) / "synthetic" / "train"
         try:  # after `make demo`: the real case
             runs.append(("trained network", load_disnet(cfg, str(trained / "disnet" / "best.safetensors"), device="cpu"),
-                         load_rssnet(cfg, str(trained / "rssnet" / "best.safetensors"), device="cpu")))
+                         load_rssnet(cfg, str(trained / "rssnet" / "best.safetensors"), device="cpu"),
+                         load_placenet(cfg, str(trained / "placenet" / "best.safetensors"), device="cpu")))
         except (CacheError, ConfigError) as exc:
             print(f"(no usable trained models under {trained}: run `make demo` to also time the trained "
                   f"networks; {str(exc).splitlines()[0]})")
-        for source, disnet, rssnet in runs:
-            t_net, t_rest, n_frames, n_points = measure(frames, cfg, disnet, rssnet, source)
+        ray = load_config("synthetic", {"synth.placement": "ray"}, environ={})
+        for (source, disnet, rssnet, placenet), c in [(run, cfg) for run in runs] + [(runs[-1], ray)]:
+            t_net, t_rest, n_frames, n_points = measure(frames, c, disnet, rssnet, placenet, source)
             total = t_net + t_rest
-            print(f"synthesize {cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}, samples from the {source} map, "
+            print(f"synthesize {cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}, {c.synth.placement} placement, "
+                  f"samples from the {source} map, "
                   f"{n_points / n_frames:.0f} points/frame, 2 threads: {n_frames / total:.1f} frames/s (network "
                   f"{1e3 * t_net / n_frames:.1f} ms, rest {1e3 * t_rest / n_frames:.1f} ms per frame), non-network "
                   f"share {t_rest / total:.2f} (goal < 0.20)")
