@@ -101,7 +101,7 @@ class PlaceNetData:
 
 @dataclass
 class TrainResult:
-    """Outcome of train_disnet / train_rssnet."""
+    """Outcome of train_disnet / train_rssnet / train_placenet."""
 
     net: str
     last_path: Path
@@ -705,7 +705,8 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
     model = build_placenet(cfg)
     arrays = {"features": data.features, "counts": data.counts}
     train_idx = _checked_idx(data.train_idx, "train_idx", arrays, False)
-    rows = train_idx[np.unique(np.linspace(0, len(train_idx) - 1, min(len(train_idx), STANDARDISATION_ROWS)).astype(np.int64))]
+    spaced = np.linspace(0, len(train_idx) - 1, min(len(train_idx), STANDARDISATION_ROWS)).astype(np.int64)
+    rows = train_idx[np.unique(spaced)]
     model.set_standardisation(take_rows(data.features, rows))
     spec = _NetSpec(
         name="placenet", model=model, arch=_jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,

@@ -116,8 +116,8 @@ def main() -> None:
         for (source, disnet, rssnet, placenet), c in [(run, cfg) for run in runs] + [(runs[-1], ray)]:
             t_net, t_rest, n_frames, n_points = measure(frames, c, disnet, rssnet, placenet, source)
             total = t_net + t_rest
-            print(f"synthesize {cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}, {c.synth.placement} placement, "
-                  f"samples from the {source} map, "
+            size = f"{cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}"
+            print(f"synthesize {size}, {c.synth.placement} placement, samples from the {source} map, "
                   f"{n_points / n_frames:.0f} points/frame, 2 threads: {n_frames / total:.1f} frames/s (network "
                   f"{1e3 * t_net / n_frames:.1f} ms, rest {1e3 * t_rest / n_frames:.1f} ms per frame), non-network "
                   f"share {t_rest / total:.2f} (goal < 0.20)")
