@@ -212,7 +212,7 @@ class RssNetSection:
 
 @dataclass(frozen=True)
 class TrainSection:
-    """Training of both networks."""
+    """Training of the networks."""
 
     nets: str = "disnet,rssnet,placenet"
     """Comma-separated nets to train (placenet: needed by synth.placement = 'lidar')."""
@@ -276,7 +276,7 @@ TRAINING_KEYS: dict[str, tuple[str, ...]] = {
                "radar.rss_max", "patches.patch_size_px", "patches.range_image_size", "train.rss_batch_size"),
     "placenet": ("placement.width", "placement.depth", "placement.lr", "placement.batch_size"),
 }
-"""The config keys that change what a net learns ('common' to both nets; not epochs, device or
+"""The config keys that change what a net learns ('common' to every net; not epochs, device or
 threads): each net's checkpoint fingerprint and the train stage's config keys are built from them."""
 
 

@@ -11,9 +11,9 @@ G(x - pix(y)) lambda(y) / Z(x), Z = G * splat(lambda); summed over x ~ M that is
     q(y) = lambda(y) * (G * (M / Z))(pix(y)),
 
 two blurs of the map-sized image per frame. n points are then drawn from q without replacement
-(Gumbel top-k), spread over voxels of side ``voxel_m`` (a radar resolves one return per cell;
-random grid offset): a voxel gets a second point only once every voxel holding a candidate has
-one, so that two points do not crowd one real return while another is left without.
+(Gumbel top-k). With ``voxel_m`` > 0 (off by default: it lowered F1 on Astyx) they are spread
+over voxels of that side (random grid offset): a voxel gets a second point only once every voxel
+holding a candidate has one.
 
 Frames and units: points in {D} (x forward, y left, z up), metres; pixels (u right, v down) at the
 working resolution; azimuth / elevation in radians. Pure numpy / scipy / OpenCV.

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch.nn import functional as F
 
 
 def kl_loss(log_pred: Tensor, target: Tensor) -> Tensor:
@@ -43,4 +44,4 @@ def poisson_loss(log_rate: Tensor, count: Tensor) -> Tensor:
     exp(log_rate) - count * log_rate. log_rate, count (B,); counts >= 0. (B,)."""
     if log_rate.shape != count.shape:
         raise ValueError(f"poisson_loss: shapes {tuple(log_rate.shape)} and {tuple(count.shape)} differ")
-    return torch.exp(log_rate) - count.to(log_rate.dtype) * log_rate
+    return F.poisson_nll_loss(log_rate, count.to(log_rate.dtype), log_input=True, full=False, reduction="none")
