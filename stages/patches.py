@@ -33,9 +33,10 @@ CONFIG_KEYS = ("patches.points_per_frame", "patches.r_c_px", "patches.r_l_m", "p
                "patches.patch_size_px", "patches.seed", "camera.full_size", "camera.crop_rows",
                "camera.working_size", "placement.points_per_frame", "placement.gate_m", "radar.fov_az_deg",
                "radar.fov_el_deg", "radar.max_range_m")
-VERSION = 3
-"""2: PlaceNet's training rows (place_features, place_count). 3: their surface normal in closed
-form (pipeline.placement.smallest_eigenpair_sym3; the same values to about 1e-8)."""
+VERSION = 2
+"""2: PlaceNet's training rows (place_features, place_count). Not bumped when their surface normal
+moved to closed form (pipeline.placement.smallest_eigenpair_sym3): the same values to about 1e-8,
+and a bump would retrain RSS-Net, whose rows did not change."""
 
 
 def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
