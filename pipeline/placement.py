@@ -140,18 +140,17 @@ def smallest_eigenpair_sym3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
     phi = np.arccos(np.clip(det / safe ** 3 / 2, -1.0, 1.0)) / 3
     smallest = np.where(p > 0, q + 2 * p * np.cos(phi + 2 * np.pi / 3), q)
-    r0 = np.stack([xx - smallest, xy, xz], axis=1)                         # rows of a - lambda I
-    r1 = np.stack([xy, yy - smallest, yz], axis=1)
-    r2 = np.stack([xz, yz, zz - smallest], axis=1)
+    m = a - smallest[:, None, None] * np.eye(3)                            # (C, 3, 3), rows r0, r1, r2
+    r0, r1, r2 = m[:, 0], m[:, 1], m[:, 2]
     crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)   # (C, 3, 3)
     size = np.einsum("cij,cij->ci", crosses, crosses)
     best = np.argmax(size, axis=1)
     rows = np.arange(len(a))
     vec = crosses[rows, best]
-    scale = np.max(np.abs(np.stack([r0, r1, r2], axis=1)), axis=(1, 2))
+    scale = np.max(np.abs(m), axis=(1, 2))
     degenerate = size[rows, best] <= (1e-10 * scale * scale) ** 2
     if np.any(degenerate):  # a - lambda I has rank <= 1: its largest row spans the other eigenspace
-        m = np.stack([r0, r1, r2], axis=1)[degenerate]
+        m = m[degenerate]
         row = m[np.arange(len(m)), np.argmax(np.einsum("cij,cij->ci", m, m), axis=1)]
         other = np.cross(row, np.eye(3)[np.argmin(np.abs(row), axis=1)])
         vec[degenerate] = np.where(np.any(row != 0, axis=1)[:, None], other, [0.0, 0.0, 1.0])

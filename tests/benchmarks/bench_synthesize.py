@@ -113,10 +113,10 @@ def main() -> None:
             print(f"(no usable trained models under {trained}: run `make demo` to also time the trained "
                   f"networks; {str(exc).splitlines()[0]})")
         ray = load_config("synthetic", {"synth.placement": "ray"}, environ={})
+        size = f"{cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}"
         for (source, disnet, rssnet, placenet), c in [(run, cfg) for run in runs] + [(runs[-1], ray)]:
             t_net, t_rest, n_frames, n_points = measure(frames, c, disnet, rssnet, placenet, source)
             total = t_net + t_rest
-            size = f"{cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}"
             print(f"synthesize {size}, {c.synth.placement} placement, samples from the {source} map, "
                   f"{n_points / n_frames:.0f} points/frame, 2 threads: {n_frames / total:.1f} frames/s (network "
                   f"{1e3 * t_net / n_frames:.1f} ms, rest {1e3 * t_rest / n_frames:.1f} ms per frame), non-network "
