@@ -209,9 +209,21 @@ class DirStore:
             raise cache_error(exc, f"writing {target}") from None
 
     def finish(self, fingerprint: str, summary: dict[str, Any]) -> None:
-        """Mark the stage complete (written last)."""
+        """Mark the stage complete (written last). The folder's path is kept so that
+        :meth:`summary` can move the summary's paths along with a moved or copied cache."""
         self.write_text("_stage.json", json.dumps({"fingerprint": fingerprint, "finished": time.time(),
-                                                   "summary": summary}, indent=2, default=str))
+                                                   "path": self.path, "summary": summary}, indent=2, default=str))
+
+    def summary(self) -> dict[str, Any]:
+        """The summary the stage finished with ({} if it never did); string values that were paths
+        inside the folder are given at its current path (the cache may have been moved since)."""
+        meta = self.meta() or {}
+        summary, old = dict(meta.get("summary", {})), meta.get("path")
+        if old and old != self.path:
+            for key, value in summary.items():
+                if isinstance(value, str) and (value == old or value.startswith(old.rstrip("/") + "/")):
+                    summary[key] = self.path + value[len(old):]
+        return summary
 
     def invalidate(self) -> None:
         """Forget completion (the files stay; the stage decides what to reuse)."""

@@ -257,7 +257,7 @@ class Pipeline:
         fp = self.fingerprint(stage.name)
         report = StageReport(stage.name, "dataset")
         if not force and out.fingerprint() == fp:
-            report.summary = {**(out.meta() or {}).get("summary", {}), "message": "up to date"}
+            report.summary = {**out.summary(), "message": "up to date"}
             return report
         out.ensure()
         out.invalidate()
@@ -290,9 +290,9 @@ class Pipeline:
                 else:
                     row["exists"] = False
             else:
-                meta = self.env.dir(name).meta()
-                row["exists"] = meta is not None
-                row["summary"] = (meta or {}).get("summary", {})
+                folder = self.env.dir(name)
+                row["exists"] = folder.meta() is not None
+                row["summary"] = folder.summary()
             row["current"] = current if row["exists"] else False
             rows.append(row)
         return rows

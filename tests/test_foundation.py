@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cache import DONE, FAILED, PENDING, frame_store
+from pipeline.cache import DONE, FAILED, PENDING, DirStore, frame_store
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, FrameError, LockError
 from pipeline.executor import Executor, RunEnv
@@ -70,6 +70,28 @@ def test_rerun_of_finished_stage_does_no_frame_work(tmp_path, monkeypatch):
     assert calls(log) == []
     assert [r.processed for r in reports[:2]] == [0, 0]
     assert reports[2].summary["message"] == "up to date"
+
+
+def test_a_moved_cache_reports_its_files_where_they_are_now(tmp_path):
+    """A dataset stage's summary names files in its folder (the train stage's checkpoints, the
+    report); after the cache is copied elsewhere an up-to-date run must name the copies."""
+    import json
+    import shutil
+
+    old = DirStore(str(tmp_path / "a" / "train"))
+    old.ensure()
+    summary = {"checkpoints": old.path, "report": f"{old.path}/report.md", "sibling": f"{old.path}2/x",
+               "outside": str(tmp_path / "elsewhere"), "note": "a plain string", "epochs": 3}
+    old.finish("fp", summary)
+    assert old.summary() == summary
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    moved = DirStore(str(tmp_path / "b" / "train")).summary()
+    assert moved == {**summary, "checkpoints": str(tmp_path / "b" / "train"),
+                     "report": str(tmp_path / "b" / "train" / "report.md")}
+    legacy = tmp_path / "b" / "train" / "_stage.json"   # written before the folder's path was kept
+    legacy.write_text(json.dumps({"fingerprint": "fp", "summary": summary}))
+    assert DirStore(str(tmp_path / "b" / "train")).summary() == summary
+    assert DirStore(str(tmp_path / "never")).summary() == {}
 
 
 def test_changing_sigma_recomputes_downstream_only(tmp_path, monkeypatch):
