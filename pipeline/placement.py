@@ -10,10 +10,12 @@ G(x - pix(y)) lambda(y) / Z(x), Z = G * splat(lambda); summed over x ~ M that is
 
     q(y) = lambda(y) * (G * (M / Z))(pix(y)),
 
-two blurs of the map-sized image per frame. n points are then drawn from q without replacement
-(Gumbel top-k). With ``voxel_m`` > 0 (off by default: it lowered F1 on Astyx) they are spread
-over voxels of that side (random grid offset): a voxel gets a second point only once every voxel
-holding a candidate has one.
+two blurs of the map-sized image per frame. The map weight beta (``placement.map_weight``) raises
+the second factor to the power beta: 1 (the above) lets the map decide each image region's share
+of the points and PlaceNet only which candidates inside it; 0 ignores the map (q = lambda / sum
+lambda). n points are then drawn from q without replacement (Gumbel top-k). With ``voxel_m`` > 0
+(off by default: it lowered F1 on Astyx) they are spread over voxels of that side (random grid
+offset): a voxel gets a second point only once every voxel holding a candidate has one.
 
 Frames and units: points in {D} (x forward, y left, z up), metres; pixels (u right, v down) at the
 working resolution; azimuth / elevation in radians. Pure numpy / scipy / OpenCV.
@@ -170,17 +172,20 @@ def radar_counts(candidates_D: np.ndarray, radar_D: np.ndarray, gate_m: float) -
 
 def placement_weights(
     prob_map: np.ndarray, uv: np.ndarray, intensity: np.ndarray, image_wh: tuple[int, int],
-    sigma_px: tuple[float, float],
+    sigma_px: tuple[float, float], map_weight: float = 1.0,
 ) -> np.ndarray:
-    """q (C,) summing to 1 (zeros when nothing can be placed): the probability that a map sample
-    lands on each candidate (module docstring). ``prob_map`` (H, W) >= 0 at any resolution;
-    ``uv`` (C, 2) working pixels of an image ``image_wh``; ``intensity`` (C,) >= 0; ``sigma_px``
-    (u, v) the blur's standard deviations in working pixels."""
+    """q (C,) summing to 1 (zeros when nothing can be placed): the probability that a point goes to
+    each candidate (module docstring). ``prob_map`` (H, W) >= 0 at any resolution; ``uv`` (C, 2)
+    working pixels of an image ``image_wh``; ``intensity`` (C,) >= 0; ``sigma_px`` (u, v) the
+    blur's standard deviations in working pixels; ``map_weight`` in [0, 1] the map's exponent
+    beta (1: a map sample picks a candidate near it; 0: the map is ignored)."""
     m = check_shape("prob_map", np.asarray(prob_map, np.float64), (None, None))
     uv = check_shape("uv", np.asarray(uv, np.float64), (None, 2))
     lam = check_shape("intensity", np.asarray(intensity, np.float64), (uv.shape[0],))
     if not (np.all(np.isfinite(lam)) and np.all(lam >= 0)):
         raise ValueError("intensity: values must be finite and >= 0")
+    if not 0.0 <= map_weight <= 1.0:
+        raise ValueError(f"map_weight must be in [0, 1], got {map_weight}")
     if len(lam) == 0 or not lam.sum() > 0 or not m.sum() > 0:
         return np.zeros(len(lam))
     (mh, mw), (w, h) = m.shape, image_wh
@@ -196,7 +201,7 @@ def placement_weights(
     ratio = np.zeros_like(z)
     reached = z > 1e-12 * z.max()  # map mass no candidate can take is lost, not blown up
     ratio[reached] = m[reached] / z[reached]
-    q = lam * blur(ratio)[px[:, 1], px[:, 0]]
+    q = lam * np.maximum(blur(ratio)[px[:, 1], px[:, 0]], 0.0) ** map_weight
     total = q.sum()
     return q / total if total > 0 else np.zeros(len(lam))
 
@@ -233,6 +238,7 @@ def place_on_lidar(
     prob_map: np.ndarray, n_hat: float, candidates_D: np.ndarray, uv: np.ndarray, intensity: np.ndarray, *,
     image_wh: tuple[int, int], sigma_px: tuple[float, float], voxel_m: float, ego_velocity_D: np.ndarray,
     labels: Sequence[Object3D] | np.ndarray, doppler_span_mps: float, rng: np.random.Generator,
+    map_weight: float = 1.0,
 ) -> dict[str, np.ndarray | int]:
     """One frame's radar points except RSS, placed on lidar candidates (module docstring): the same
     keys as :func:`pipeline.synthesis.synthesize_frame` (Doppler as the range rate, wrapped into
@@ -245,7 +251,7 @@ def place_on_lidar(
         raise ValueError(f"n_hat must be finite and >= 0, got {n_hat}")
     n = int(round(float(n_hat)))
     cand = check_shape("candidates_D", np.asarray(candidates_D, np.float64), (None, 3))
-    q = placement_weights(prob_map, uv, intensity, image_wh, sigma_px) if n else np.zeros(len(cand))
+    q = placement_weights(prob_map, uv, intensity, image_wh, sigma_px, map_weight) if n else np.zeros(len(cand))
     idx = choose_candidates(q, cand, n, rng, voxel_m)
     points = cand[idx]
     doppler = doppler_for_points(points, ego_velocity_D, object_velocities_for_points(points, labels), 1,

@@ -40,8 +40,8 @@ measured range (the matched-F1 gate's default)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
-               "synth.placement", "placement.voxel_m", "heatmap.sigma_px", "radar.doppler_span_mps",
-               "radar.az_res_deg", "radar.el_res_deg")
+               "synth.placement", "placement.voxel_m", "placement.map_weight", "heatmap.sigma_px",
+               "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
 
 
 def _train_stats(inputs, cfg: Config) -> dict:

@@ -11,7 +11,7 @@ Writes (synthesize.zarr) per frame of split synth.split:
   no lidar support, outside the field of view, beyond max range, found by widening the window]
   (with lidar placement: points without a candidate left count as without support).
 Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs),
-placement.voxel_m and heatmap.sigma_px (lidar placement).
+placement.voxel_m, placement.map_weight and heatmap.sigma_px (lidar placement).
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from stages.patches import point_inputs
 POINT_COLUMNS = ("x_m", "y_m", "z_m", "range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss",
                  "range_rate_mps")
 CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.count",
-               "synth.sampling", "synth.refill_rounds", "synth.placement", "placement.voxel_m", "heatmap.sigma_px",
-               "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
+               "synth.sampling", "synth.refill_rounds", "synth.placement", "placement.voxel_m", "placement.map_weight",
+               "heatmap.sigma_px", "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
                "radar.max_range_m", "radar.doppler_sign", "radar.doppler_span_mps", "radar.max_points",
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
                "patches.patch_size_px")
@@ -71,6 +71,8 @@ def check_generation(cfg: Config) -> None:
         raise ConfigError(f"synth.refill_rounds must be >= 0, got {s.refill_rounds}")
     if not cfg.placement.voxel_m >= 0:
         raise ConfigError(f"placement.voxel_m must be >= 0, got {cfg.placement.voxel_m}")
+    if not 0.0 <= cfg.placement.map_weight <= 1.0:
+        raise ConfigError(f"placement.map_weight must be in [0, 1], got {cfg.placement.map_weight}")
 
 
 def check_checkpoints(train_dir, cfg: Config) -> None:
@@ -136,6 +138,7 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
     intensity = placenet_predict(placenet, features(inputs, points, uv)) if len(points) else np.zeros(0)
     return place_on_lidar(prob_map, float(n), points, uv, intensity, image_wh=tuple(cfg.camera.working_size),
                           sigma_px=working_sigma(cfg), voxel_m=cfg.placement.voxel_m,
+                          map_weight=cfg.placement.map_weight,
                           ego_velocity_D=inputs.get("calibrate", "ego_velocity"),
                           labels=inputs.get("calibrate", "labels"), doppler_span_mps=cfg.radar.doppler_span_mps,
                           rng=rng)

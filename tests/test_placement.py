@@ -184,6 +184,33 @@ def test_placement_weights_edge_cases():
             P.placement_weights(m, uv, bad, (8, 8), (2.0, 2.0))
 
 
+def test_map_weight_scales_the_maps_say_from_full_to_none():
+    """beta = 1 is the map-sample rule; beta = 0 ignores the map (q = lambda / sum lambda, whatever
+    the map); in between q = lambda * b ** beta with b the blurred map ratio of beta = 1."""
+    rng = np.random.default_rng(1)
+    w, h, sigma = 40, 30, (3.0, 2.5)
+    uv = rng.uniform(0, [w - 1, h - 1], (60, 2))
+    lam = rng.gamma(1.0, 1.0, 60)
+    m = np.full((h, w), 1e-4)
+    m[:, : w // 4] = 1.0                       # the map puts nearly everything on the left quarter
+    full = P.placement_weights(m, uv, lam, (w, h), sigma)
+    np.testing.assert_allclose(P.placement_weights(m, uv, lam, (w, h), sigma, map_weight=1.0), full)
+    for other in (m, rng.random((h, w))):
+        np.testing.assert_allclose(P.placement_weights(other, uv, lam, (w, h), sigma, map_weight=0.0),
+                                   lam / lam.sum(), rtol=1e-12)
+    b = full / lam                             # the map's factor at beta = 1 (up to the normaliser)
+    half = P.placement_weights(m, uv, lam, (w, h), sigma, map_weight=0.5)
+    expected = lam * np.sqrt(b)
+    np.testing.assert_allclose(half, expected / expected.sum(), rtol=1e-9)
+    right = uv[:, 0] > w / 4 + 6 * sigma[0]
+    assert right.sum() > 10
+    shares = [P.placement_weights(m, uv, lam, (w, h), sigma, map_weight=beta)[right].sum() for beta in (1.0, 0.5, 0.0)]
+    assert shares[0] < 0.01 < shares[1] < shares[2]   # the less the map weighs, the more goes where it says not
+    for bad in (-0.1, 1.5, np.nan):
+        with pytest.raises(ValueError, match="map_weight"):
+            P.placement_weights(m, uv, lam, (w, h), sigma, map_weight=bad)
+
+
 # --------------------------------------------------------------------------- the draw
 
 
