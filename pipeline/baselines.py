@@ -3,7 +3,8 @@
 Most methods differ only in *which map* pixels are sampled from, *which count* is drawn and *where
 RSS comes from*; the evaluate stage feeds the map and count of a :class:`BaselineSpec` into the
 same generation function as the model (pixel sampling, range from lidar, Doppler from the ego
-velocity) and then sets RSS as the spec says. Two baselines do not sample pixels:
+velocity) and then sets RSS as the spec says; a baseline samples its map at full weight
+(:func:`generation_config`). Two baselines do not sample pixels:
 ``lidar-subsample`` (lidar points in the radar field of view) and ``previous-frame`` (the previous
 real radar frame moved by the ego motion). One row is a yardstick, not a method: ``no-points``
 (an empty output) shows what GOSPA charges for the misses alone.
@@ -17,14 +18,17 @@ centres, the image covering [-0.5, W - 0.5) x [-0.5, H - 0.5)). Every sampler ta
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Iterable
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
 from pipeline.frame import check_shape
 from pipeline.geometry import radial_velocity, transform_points, wrap_doppler
 from pipeline.metrics import region_mask
+
+if TYPE_CHECKING:
+    from pipeline.config import Config
 
 MAP_SOURCES = ("model", "uniform", "mean", "real", "none")
 COUNT_SOURCES = ("model", "mean", "oracle", "previous", "none")
@@ -48,7 +52,7 @@ class BaselineSpec:
     """'model' (RSS-Net), 'median' (training median), 'train-dist' (drawn from training RSS values),
     'previous' (kept from the previous frame), 'none' (no points)."""
     kind: str = "map"
-    """'map' (sample pixels from the map, then the model's generation steps), 'lidar-subsample',
+    """'map' (sample the map, then the model's generation steps), 'lidar-subsample',
     'previous-frame', 'empty' (no points at all)."""
     description: str = ""
     """One line for the report."""
@@ -95,6 +99,16 @@ METHODS: tuple[BaselineSpec, ...] = (
 
 REFERENCE_ROWS: tuple[str, ...] = tuple(s.name for s in METHODS if s.reference)
 """Rows of :data:`METHODS` that are yardsticks, not baselines the model has to beat."""
+
+
+def generation_config(spec: BaselineSpec, cfg: Config) -> Config:
+    """The configuration a 'map' method generates with: the model's rows take ``cfg`` as it is; a
+    baseline samples its map (EVALUATION.md: "sample n_bar points from the average training
+    heatmap"), so with the lidar placement its map weighs fully (placement.map_weight = 1) whatever
+    weight the model's generation uses."""
+    if spec.is_model:
+        return cfg
+    return replace(cfg, placement=replace(cfg.placement, map_weight=1.0))
 
 
 def method_by_name(name: str) -> BaselineSpec:

@@ -29,10 +29,11 @@ NOMINAL_FRAME_PERIOD_S = 0.1
 MAX_FRAME_GAP_S = 1.0
 """Consecutive frames further apart than this (or going backwards) use the nominal period."""
 
-VERSION = 6
+VERSION = 7
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
 random stream per method; 3: no-points row; 4: the model by ego speed; 5: physics checks with the
-share within 1 m and the best-lidar-point oracle; 6: the baselines follow synth.placement)."""
+share within 1 m and the best-lidar-point oracle; 6: the baselines follow synth.placement; 7: the
+baselines sample their maps at full weight, pipeline.baselines.generation_config)."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
@@ -89,7 +90,7 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, nets, prev,
     """(points (N, 5), decided count, map or None) of every method on frame ``i``; ``real_map`` is
     the frame's real heatmap (H, W)."""
     from pipeline.baselines import METHODS, choose_count, choose_map, choose_rss, ego_motion_transform, \
-        lidar_subsample, previous_frame
+        generation_config, lidar_subsample, previous_frame
 
     out = {}
     n_true = int(f.get("heatmaps", "count"))
@@ -107,7 +108,7 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, nets, prev,
             if prob is not None and not prob.sum() > 0:  # no real point in the image: nothing to sample
                 out[spec.name] = (np.zeros((0, 5)), float(n), None)
                 continue
-            gen = generate(f, cfg, prob, n, nets, rng, rss=spec.rss_source == "model")
+            gen = generate(f, generation_config(spec, cfg), prob, n, nets, rng, rss=spec.rss_source == "model")
             pts = _syn5(gen["points"])
             rss = choose_rss(spec, len(pts), rng, stats["rss_median"], stats["train_rss"])
             if rss is not None:

@@ -44,6 +44,22 @@ def test_methods_table():
         B.BaselineSpec("x", "bogus", "mean", "median")
 
 
+def test_baselines_sample_their_maps_at_full_weight():
+    """The model's rows generate with the configured map weight; a baseline that samples a map
+    always with weight 1 (it samples that map), the rest of the configuration untouched."""
+    from pipeline.config import load_config
+
+    cfg = load_config("synthetic", {"placement.map_weight": "0.3", "placement.voxel_m": "0.5"}, environ={})
+    for spec in B.METHODS:
+        got = B.generation_config(spec, cfg)
+        if spec.is_model:
+            assert got is cfg
+        else:
+            assert got.placement.map_weight == 1.0 and got.placement.voxel_m == 0.5
+            assert got.synth == cfg.synth and got.radar == cfg.radar
+    assert cfg.placement.map_weight == 0.3   # not changed in place
+
+
 def test_choose_count_map_rss():
     rng = np.random.default_rng(0)
     assert B.choose_count(B.method_by_name("uniform"), n_bar=7, n_true=3) == 7
