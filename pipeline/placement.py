@@ -188,6 +188,8 @@ def placement_weights(
         raise ValueError(f"map_weight must be in [0, 1], got {map_weight}")
     if len(lam) == 0 or not lam.sum() > 0 or not m.sum() > 0:
         return np.zeros(len(lam))
+    if map_weight == 0:  # the map's factor ** 0 is 1 everywhere: no blur needed
+        return lam / lam.sum()
     (mh, mw), (w, h) = m.shape, image_wh
     px = np.clip(np.rint(uv * [mw / w, mh / h]).astype(np.int64), 0, [mw - 1, mh - 1])
     sx, sy = sigma_px[0] * mw / w, sigma_px[1] * mh / h
