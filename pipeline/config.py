@@ -158,6 +158,11 @@ class PlacementSection:
     """Adam learning rate of PlaceNet (a small MLP: train.lr is Dis-Net's and RSS-Net's)."""
     batch_size: int = 4096
     """Candidates per batch."""
+    epochs: int = 32
+    """PlaceNet's epochs (train.epochs is Dis-Net's and RSS-Net's; a PlaceNet epoch takes about a
+    second). At the 8-12 epochs of train.epochs it was undertrained: at 32 the val NLL fell on
+    both worlds and F1 rose on three of the four val and test splits (README, "PlaceNet epochs");
+    the best epoch came before 32 on both, and 64 or 128 chose the same weights."""
     voxel_m: float = 0.0
     """Spread the synthetic points over cubes of this side, metres: a cube gets a second point only
     once every cube holding a candidate has one (0: no spreading). Off by default: on Astyx, whose

@@ -88,6 +88,14 @@ class FrameInputs:
             self._cache[key] = self.env.store(stage).read(name, self.index)
         return self._cache[key]
 
+    def memo(self, key: tuple, build: Callable[[], Any]) -> Any:
+        """``build()`` once per key for this frame (work that several callers of one frame share,
+        e.g. evaluate's baselines placing points on the same lidar candidates)."""
+        key = ("memo", *key)
+        if key not in self._cache:
+            self._cache[key] = build()
+        return self._cache[key]
+
     @property
     def reader(self):
         """The dataset reader (built once per process)."""

@@ -271,10 +271,17 @@ class _NetSpec:
     weights: dict[str, float]
     lr: float | None = None
     """Base learning rate (None: cfg.train.lr)."""
+    epochs: int | None = None
+    """Epochs (None: cfg.train.epochs)."""
 
 
 def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True) -> TrainResult:
-    """Train ``spec.model`` for cfg.train.epochs epochs, resuming from ``out_dir`` when possible."""
+    """Train ``spec.model`` for ``spec.epochs`` (None: cfg.train.epochs) epochs, resuming from
+    ``out_dir`` when possible."""
+    n_epochs = int(cfg.train.epochs if spec.epochs is None else spec.epochs)
+    if n_epochs < 0:
+        key = "train.epochs" if spec.epochs is None else f"{spec.name} epochs"
+        raise ConfigError(f"{key} must be >= 0, got {n_epochs}")
     out_dir = Path(out_dir)
     last, best = out_dir / "last.safetensors", out_dir / "best.safetensors"
     device = select_device(cfg.train.device)
@@ -296,14 +303,14 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     rows_per_chunk = chunk_len(next(iter(spec.arrays.values())))
     n_train_batches = math.ceil(len(spec.train_idx) / spec.batch_size)
     n_val_batches = math.ceil(len(spec.val_idx) / spec.batch_size)
-    for epoch in range(start + 1, cfg.train.epochs + 1):
+    for epoch in range(start + 1, n_epochs + 1):
         t0 = time.perf_counter()
         for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
-            group["lr"] = epoch_lr(cfg, epoch, base_lr)
+            group["lr"] = epoch_lr(cfg, epoch, base_lr, n_epochs)
         order = epoch_order(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
         tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
                              spec.terms_fn, spec.weights, device, n_train_batches,
-                             f"{spec.name} epoch {epoch}/{cfg.train.epochs}", progress, ema)
+                             f"{spec.name} epoch {epoch}/{n_epochs}", progress, ema)
         va = evaluate(scored, iter_batches(spec.arrays, spec.val_idx, spec.batch_size), spec.terms_fn,
                       spec.weights, device, n_val_batches, f"{spec.name} val", progress)
         metric = va[select_key] if len(spec.val_idx) else tr[select_key]
@@ -353,16 +360,16 @@ def make_ema(model: nn.Module, decay: float) -> AveragedModel | None:
 LR_SCHEDULES = ("constant", "cosine")
 
 
-def epoch_lr(cfg, epoch: int, base_lr: float | None = None) -> float:
-    """Learning rate of epoch ``epoch`` (1-based) of cfg.train.epochs under cfg.train.lr_schedule,
-    starting from ``base_lr`` (None: cfg.train.lr)."""
+def epoch_lr(cfg, epoch: int, base_lr: float | None = None, epochs: int | None = None) -> float:
+    """Learning rate of epoch ``epoch`` (1-based) of ``epochs`` (None: cfg.train.epochs) under
+    cfg.train.lr_schedule, starting from ``base_lr`` (None: cfg.train.lr)."""
     t = cfg.train
     lr = t.lr if base_lr is None else base_lr
     if t.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"train.lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got '{t.lr_schedule}'")
     if t.lr_schedule == "constant":
         return lr
-    return lr * 0.5 * (1.0 + math.cos(math.pi * (epoch - 1) / t.epochs))
+    return lr * 0.5 * (1.0 + math.cos(math.pi * (epoch - 1) / (t.epochs if epochs is None else epochs)))
 
 
 def _meta(spec: _NetSpec, fingerprint: str, state: dict[str, Any]) -> dict[str, Any]:
@@ -475,7 +482,7 @@ def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
     common = list(TRAINING_KEYS["common"])
     if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
-        common.append("train.epochs")
+        common.append("placement.epochs" if net == "placenet" else "train.epochs")
     if net not in TRAINING_KEYS or net == "common":
         raise ValueError(f"default_fingerprint: unknown net {net!r}")
     return cfg.fingerprint(list(TRAINING_KEYS[net]) + common)
@@ -700,7 +707,9 @@ STANDARDISATION_ROWS = 200_000
 def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool = True,
                    fingerprint: str | None = None) -> TrainResult:
     """Train PlaceNet with the Poisson NLL (Adam at placement.lr, batch placement.batch_size,
-    train.epochs); the features are standardised with the training rows' statistics; resumes."""
+    placement.epochs); the features are standardised with the training rows' statistics; resumes."""
+    if int(cfg.placement.epochs) < 0:
+        raise ConfigError(f"placement.epochs must be >= 0, got {cfg.placement.epochs}")
     _setup(cfg)
     model = build_placenet(cfg)
     arrays = {"features": data.features, "counts": data.counts}
@@ -711,7 +720,8 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
     spec = _NetSpec(
         name="placenet", model=model, arch=_jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
-        batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr)
+        batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr,
+        epochs=cfg.placement.epochs)
     return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
 
 

@@ -30,7 +30,7 @@ VERSION = 2
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
 CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING_KEYS["common"])
-                                  + ("train.nets", "train.epochs")))
+                                  + ("train.nets", "train.epochs", "placement.epochs")))
 
 
 def frame_table(inputs) -> dict[str, np.ndarray]:
@@ -111,7 +111,8 @@ def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
 def training_fingerprint(inputs, cfg: Config, net: str) -> str:
     """What a net's checkpoints depend on: its config keys (not epochs) and the training data.
 
-    Raising train.epochs re-runs the stage but continues from the last finished epoch.
+    Raising train.epochs (placement.epochs for PlaceNet) re-runs the stage but continues from the
+    last finished epoch.
     """
     from pipeline.training import default_fingerprint
 

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from pipeline.cache import DONE, FAILED, PENDING, DirStore, frame_store
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, FrameError, LockError
-from pipeline.executor import Executor, RunEnv
+from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import stage_lock
 from pipeline.runner import Pipeline, parse_frames
 from tests import fake_stages
@@ -92,6 +92,25 @@ def test_a_moved_cache_reports_its_files_where_they_are_now(tmp_path):
     legacy.write_text(json.dumps({"fingerprint": "fp", "summary": summary}))
     assert DirStore(str(tmp_path / "b" / "train")).summary() == summary
     assert DirStore(str(tmp_path / "never")).summary() == {}
+
+
+def test_frame_memo_builds_once_per_frame_and_key():
+    """FrameInputs.memo: one build per (frame, key); another key or another frame builds again;
+    the memo does not collide with the frame's array reads."""
+    builds = []
+
+    def build(tag):
+        return lambda: builds.append(tag) or np.full(3, len(builds))
+
+    a, b = FrameInputs(None, 0, "000"), FrameInputs(None, 1, "001")
+    first = a.memo(("lidar-candidates", "net"), build("a"))
+    again = a.memo(("lidar-candidates", "net"), build("a-again"))
+    assert again is first and builds == ["a"]
+    a.memo(("lidar-candidates", "other net"), build("a2"))
+    b.memo(("lidar-candidates", "net"), build("b"))
+    assert builds == ["a", "a2", "b"]
+    a._cache[("lidar-candidates", "net")] = "an array read"   # what get() would store for that pair
+    assert a.memo(("lidar-candidates", "net"), build("a3")) is first
 
 
 def test_changing_sigma_recomputes_downstream_only(tmp_path, monkeypatch):

@@ -11,6 +11,7 @@ import torch
 from pipeline import placement as P
 from pipeline import training as T
 from pipeline.config import load_config
+from pipeline.errors import ConfigError
 from pipeline.frame import Object3D
 from pipeline.geometry import cartesian_to_spherical, invert_transform, project_to_image
 from pipeline.models import PlaceNet, poisson_loss
@@ -308,7 +309,7 @@ def make_place_data(p: int = 3000, seed: int = 0) -> T.PlaceNetData:
 
 def tiny_cfg(**overrides: str):
     base = {"train.threads": "1", "train.device": "cpu", "placement.width": "8", "placement.batch_size": "256",
-            "placement.lr": "1e-2", "train.epochs": "4"}
+            "placement.lr": "1e-2", "placement.epochs": "4"}
     return load_config("synthetic", {**base, **overrides}, environ={})
 
 
@@ -327,10 +328,29 @@ def test_placenet_learns_beats_the_constant_rate_and_resumes(tmp_path):
     lam = T.placenet_predict(model, data.features[:10], batch=3)
     assert lam.shape == (10,) and np.all(lam > 0)
     np.testing.assert_allclose(model.feature_mean.numpy()[0], data.features[data.train_idx, 0].mean(), rtol=1e-4)
+    assert ref.epoch == 4 and len(ref.curves) == 4   # placement.epochs, not train.epochs (8 here)
     # killed after two epochs and resumed: the same weights and optimizer state as one run
-    T.train_placenet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "b", progress=False)
+    T.train_placenet(tiny_cfg(**{"placement.epochs": "2"}), data, tmp_path / "b", progress=False)
     res = T.train_placenet(cfg, data, tmp_path / "b", progress=False)
     assert res.resumed_from == 2 and res.epoch == 4
     from safetensors.torch import load_file
     a, b = load_file(ref.last_path), load_file(res.last_path)
     assert all(torch.equal(a[k], b[k]) for k in a if k.startswith(("model.", "optim.")))
+
+
+def test_placenet_epochs_are_its_own(tmp_path):
+    """placement.epochs sets PlaceNet's epochs whatever train.epochs says; a negative value is a
+    ConfigError naming the key; under a cosine schedule it is part of PlaceNet's fingerprint (and
+    train.epochs is not), so that changing it starts a new run."""
+    data = make_place_data(p=400)
+    res = T.train_placenet(tiny_cfg(**{"placement.epochs": "3", "train.epochs": "1"}), data, tmp_path / "a",
+                           progress=False)
+    assert res.epoch == 3 and [c["epoch"] for c in res.curves] == [1, 2, 3]
+    with pytest.raises(ConfigError, match="placement.epochs"):
+        T.train_placenet(tiny_cfg(**{"placement.epochs": "-1"}), data, tmp_path / "b", progress=False)
+    cos = {"train.lr_schedule": "cosine"}
+    fp = T.default_fingerprint
+    assert fp(tiny_cfg(**cos, **{"placement.epochs": "3"}), "placenet") != fp(tiny_cfg(**cos), "placenet")
+    assert fp(tiny_cfg(**cos, **{"train.epochs": "3"}), "placenet") == fp(tiny_cfg(**cos), "placenet")
+    assert fp(tiny_cfg(**cos, **{"placement.epochs": "3"}), "disnet") == fp(tiny_cfg(**cos), "disnet")
+    assert fp(tiny_cfg(**{"placement.epochs": "3"}), "placenet") == fp(tiny_cfg(), "placenet")  # constant: resumes
