@@ -129,8 +129,8 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
 
 def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, placenet, rng) -> dict:
     """synth.placement = 'lidar': points on the frame's lidar candidates (pipeline.placement). The
-    candidates and their PlaceNet intensities are computed once per frame and PlaceNet (evaluate
-    places the points of several maps on them)."""
+    candidates and their PlaceNet intensities are computed once per frame and PlaceNet: evaluate
+    places the points of several maps on them."""
     from pipeline.placement import place_on_lidar
     from pipeline.training import placenet_predict
     from stages.heatmaps import working_sigma
@@ -138,7 +138,8 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
 
     def build() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         points, uv = candidates(inputs, cfg)
-        return points, uv, placenet_predict(placenet, features(inputs, points, uv)) if len(points) else np.zeros(0)
+        intensity = placenet_predict(placenet, features(inputs, points, uv)) if len(points) else np.zeros(0)
+        return points, uv, intensity
 
     points, uv, intensity = inputs.memo(("lidar-candidates", placenet), build)
     return place_on_lidar(prob_map, float(n), points, uv, intensity, image_wh=tuple(cfg.camera.working_size),
