@@ -271,17 +271,16 @@ class _NetSpec:
     weights: dict[str, float]
     lr: float | None = None
     """Base learning rate (None: cfg.train.lr)."""
-    epochs: int | None = None
-    """Epochs (None: cfg.train.epochs)."""
+    epochs_key: str = "train.epochs"
+    """The config key holding the number of epochs."""
 
 
 def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True) -> TrainResult:
-    """Train ``spec.model`` for ``spec.epochs`` (None: cfg.train.epochs) epochs, resuming from
-    ``out_dir`` when possible."""
-    n_epochs = int(cfg.train.epochs if spec.epochs is None else spec.epochs)
+    """Train ``spec.model`` for the epochs ``spec.epochs_key`` says, resuming from ``out_dir`` when
+    possible."""
+    n_epochs = int(cfg.get(spec.epochs_key))
     if n_epochs < 0:
-        key = "train.epochs" if spec.epochs is None else f"{spec.name} epochs"
-        raise ConfigError(f"{key} must be >= 0, got {n_epochs}")
+        raise ConfigError(f"{spec.epochs_key} must be >= 0, got {n_epochs}")
     out_dir = Path(out_dir)
     last, best = out_dir / "last.safetensors", out_dir / "best.safetensors"
     device = select_device(cfg.train.device)
@@ -708,8 +707,6 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
                    fingerprint: str | None = None) -> TrainResult:
     """Train PlaceNet with the Poisson NLL (Adam at placement.lr, batch placement.batch_size,
     placement.epochs); the features are standardised with the training rows' statistics; resumes."""
-    if int(cfg.placement.epochs) < 0:
-        raise ConfigError(f"placement.epochs must be >= 0, got {cfg.placement.epochs}")
     _setup(cfg)
     model = build_placenet(cfg)
     arrays = {"features": data.features, "counts": data.counts}
@@ -721,7 +718,7 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
         name="placenet", model=model, arch=_jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr,
-        epochs=cfg.placement.epochs)
+        epochs_key="placement.epochs")
     return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
 
 
