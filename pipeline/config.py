@@ -290,6 +290,10 @@ TRAINING_KEYS: dict[str, tuple[str, ...]] = {
 """The config keys that change what a net learns ('common' to every net; not epochs, device or
 threads): each net's checkpoint fingerprint and the train stage's config keys are built from them."""
 
+EPOCHS_KEYS: dict[str, str] = {"disnet": "train.epochs", "rssnet": "train.epochs", "placenet": "placement.epochs"}
+"""The config key holding each net's number of epochs (PlaceNet's epochs take about a second, so it
+has its own)."""
+
 
 @dataclass(frozen=True)
 class SynthSection:

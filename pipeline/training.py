@@ -34,7 +34,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from pipeline import augment
 from pipeline import checkpoint as ckpt
-from pipeline.config import TRAINING_KEYS
+from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS
 from pipeline.egomotion import STOPPED_MPS
 from pipeline.errors import ConfigError
 from pipeline.models.disnet import COUNT_PRIOR_KNOTS, DisNet, build_disnet, disnet_kwargs
@@ -271,16 +271,15 @@ class _NetSpec:
     weights: dict[str, float]
     lr: float | None = None
     """Base learning rate (None: cfg.train.lr)."""
-    epochs_key: str = "train.epochs"
-    """The config key holding the number of epochs."""
 
 
 def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True) -> TrainResult:
-    """Train ``spec.model`` for the epochs ``spec.epochs_key`` says, resuming from ``out_dir`` when
-    possible."""
-    n_epochs = int(cfg.get(spec.epochs_key))
+    """Train ``spec.model`` for the epochs its config key says (EPOCHS_KEYS), resuming from ``out_dir``
+    when possible."""
+    epochs_key = EPOCHS_KEYS[spec.name]
+    n_epochs = int(cfg.get(epochs_key))
     if n_epochs < 0:
-        raise ConfigError(f"{spec.epochs_key} must be >= 0, got {n_epochs}")
+        raise ConfigError(f"{epochs_key} must be >= 0, got {n_epochs}")
     out_dir = Path(out_dir)
     last, best = out_dir / "last.safetensors", out_dir / "best.safetensors"
     device = select_device(cfg.train.device)
@@ -479,11 +478,11 @@ def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: boo
 
 def default_fingerprint(cfg, net: str) -> str:
     """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
-    common = list(TRAINING_KEYS["common"])
-    if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
-        common.append("placement.epochs" if net == "placenet" else "train.epochs")
     if net not in TRAINING_KEYS or net == "common":
         raise ValueError(f"default_fingerprint: unknown net {net!r}")
+    common = list(TRAINING_KEYS["common"])
+    if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
+        common.append(EPOCHS_KEYS[net])
     return cfg.fingerprint(list(TRAINING_KEYS[net]) + common)
 
 
@@ -717,8 +716,7 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
     spec = _NetSpec(
         name="placenet", model=model, arch=_jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
-        batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr,
-        epochs_key="placement.epochs")
+        batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr)
     return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
 
 

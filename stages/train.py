@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.cache import DONE, RaggedRows
 from pipeline.checkpoint import read_meta
-from pipeline.config import TRAINING_KEYS, Config
+from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config
 from pipeline.errors import PipelineError
 from pipeline.stage import DatasetStage
 
@@ -30,7 +30,7 @@ VERSION = 2
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
 CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING_KEYS["common"])
-                                  + ("train.nets", "train.epochs", "placement.epochs")))
+                                  + ("train.nets", *EPOCHS_KEYS.values())))
 
 
 def frame_table(inputs) -> dict[str, np.ndarray]:
