@@ -96,6 +96,11 @@ class FrameInputs:
             self._cache[key] = build()
         return self._cache[key]
 
+    def clear_memo(self) -> None:
+        """Forget what :meth:`memo` built (the arrays read stay cached); a benchmark that times the
+        same frame again calls it so that each pass does the work."""
+        self._cache = {k: v for k, v in self._cache.items() if k[0] != "memo"}
+
     @property
     def reader(self):
         """The dataset reader (built once per process)."""

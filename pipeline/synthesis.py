@@ -435,15 +435,31 @@ def object_velocities_for_points(
         return out
     centres, half, yaw = boxes[:, 0:3], boxes[:, 3:6] / 2 + margin_m, boxes[:, 6]     # (L, 3), (L, 3), (L,)
     vel = np.nan_to_num(boxes[:, 7:10], nan=0.0)
-    rel = points[None, :, :] - centres[:, None, :]                                        # (L, n, 3)
-    cos, sin = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
-    local_x = cos * rel[..., 0] + sin * rel[..., 1]
-    local_y = -sin * rel[..., 0] + cos * rel[..., 1]
-    inside = ((np.abs(local_x) <= half[:, None, 0]) & (np.abs(local_y) <= half[:, None, 1])
-              & (np.abs(rel[..., 2]) <= half[:, None, 2]))                                # (L, n)
-    hit = np.flatnonzero(inside.any(axis=0))                                             # most points: none
-    dist = np.where(inside[:, hit], np.linalg.norm(rel[:, hit], axis=2), np.inf)
-    out[hit] = vel[np.argmin(dist, axis=0)]
+    # A point inside box l lies within its x extent |dx| <= hypot(half_x, half_y): each box tests
+    # only the points of that slice of the points sorted by x (one loop step per box, not per point).
+    order = np.argsort(points[:, 0], kind="stable")
+    xs = points[order, 0]
+    reach = np.hypot(half[:, 0], half[:, 1]) * (1 + 1e-9) + 1e-9  # slack for rounding
+    lo = np.searchsorted(xs, centres[:, 0] - reach, side="left")
+    hi = np.searchsorted(xs, centres[:, 0] + reach, side="right")
+    box_of, point_of, dist_of = [], [], []
+    for box in np.flatnonzero(hi > lo):
+        idx = order[lo[box]:hi[box]]
+        rel = points[idx] - centres[box]                                                 # (k, 3)
+        cos, sin = np.cos(yaw[box]), np.sin(yaw[box])
+        inside = ((np.abs(cos * rel[:, 0] + sin * rel[:, 1]) <= half[box, 0])
+                  & (np.abs(-sin * rel[:, 0] + cos * rel[:, 1]) <= half[box, 1])
+                  & (np.abs(rel[:, 2]) <= half[box, 2]))
+        box_of.append(np.full(int(inside.sum()), box))
+        point_of.append(idx[inside])
+        dist_of.append(np.linalg.norm(rel[inside], axis=1))
+    if not box_of:
+        return out
+    box_of, point_of, dist_of = np.concatenate(box_of), np.concatenate(point_of), np.concatenate(dist_of)
+    # where boxes overlap the nearest centre wins (the lower box index on a tie)
+    pick = np.lexsort((box_of, dist_of, point_of))
+    first = np.r_[True, point_of[pick][1:] != point_of[pick][:-1]]
+    out[point_of[pick][first]] = vel[box_of[pick][first]]
     return out
 
 

@@ -345,6 +345,43 @@ def test_object_velocities_oriented_boxes():
         object_velocities_for_points(points, rows[:, :6])
 
 
+def _velocities_every_pair(points: np.ndarray, rows: np.ndarray, margin_m: float = 0.3) -> np.ndarray:
+    """Reference: every point tested against every box; the nearest centre wins, then the lower index."""
+    out = np.zeros((len(points), 3))
+    for i, p in enumerate(points):
+        best = (np.inf, -1)
+        for j, r in enumerate(rows):
+            rel = p - r[0:3]
+            c, s = np.cos(r[6]), np.sin(r[6])
+            half = r[3:6] / 2 + margin_m
+            if (abs(c * rel[0] + s * rel[1]) <= half[0] and abs(-s * rel[0] + c * rel[1]) <= half[1]
+                    and abs(rel[2]) <= half[2] and np.linalg.norm(rel) < best[0]):
+                best = (np.linalg.norm(rel), j)
+        if best[1] >= 0:
+            out[i] = np.nan_to_num(rows[best[1], 7:10], nan=0.0)
+    return out
+
+
+def test_object_velocities_match_every_pair_test():
+    """Overlapping, rotated, coincident boxes and points on their faces: the sorted-x search finds
+    the same box for every point as testing every pair."""
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        rows = np.zeros((12, 11))
+        rows[:, 0:2] = rng.uniform(-8, 8, (12, 2))
+        rows[:, 3:6] = rng.uniform(0.5, 6, (12, 3))
+        rows[:, 6] = rng.uniform(-np.pi, np.pi, 12)
+        rows[:, 7:10] = rng.normal(0, 5, (12, 3))
+        rows[1, :7] = rows[0, :7]        # the same box twice: the lower index wins
+        rows[2, 7] = np.nan              # unknown velocity: static
+        points = rng.uniform(-10, 10, (400, 3))
+        points[:, 2] *= 0.3
+        c, s = np.cos(rows[3, 6]), np.sin(rows[3, 6])
+        edge = rows[3, 3] / 2 + 0.3      # points on box 3's grown +x face
+        points[:5, :2] = rows[3, :2] + np.outer([edge] * 5, [c, s]) + np.outer(rng.uniform(-0.2, 0.2, 5), [-s, c])
+        points[:5, 2] = 0.0
+        np.testing.assert_array_equal(object_velocities_for_points(points, rows), _velocities_every_pair(points, rows))
+
 # --------------------------------------------------------------------------- one frame
 
 

@@ -77,6 +77,7 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
             else:
                 prob, n = f.get("heatmaps", "heatmap"), float(f.get("heatmaps", "count"))
             placenet.seconds = 0.0
+            f.clear_memo()  # each pass computes the candidates and PlaceNet's intensities again
             out = generate(f, cfg, prob, n, nets, f.rng(rep, 1), rss=False)
             pts = out["points"][:, :3].astype(np.float64)
             patches, ranges = point_inputs(image, f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam"),
