@@ -31,7 +31,7 @@ demo: setup  ## run the whole pipeline on the built-in synthetic world
 	@echo "figures: $(CACHE)/synthetic/evaluate/figures/"
 	@echo "export:  $(CACHE)/synthetic/export/"
 
-# Dis-Net settings measured best on the 720- and 1200-frame worlds (README, "Averaged weights ..."
+# Dis-Net settings measured best on the 720- and 1200-frame worlds (docs/EXPERIMENTS.md, "Averaged weights ..."
 # and "Refitting the count ..."): the speed also shapes the map, the count loss leaves the backbone
 # alone, averaged weights, the best epoch picked by the map's val L_KL, brightness/contrast jitter,
 # and the number branch refitted on the chosen backbone, starting from the mean count at the ego speed.

@@ -161,7 +161,7 @@ class PlacementSection:
     epochs: int = 32
     """PlaceNet's epochs (train.epochs is Dis-Net's and RSS-Net's; a PlaceNet epoch takes about a
     second). At the 8-12 epochs of train.epochs it was undertrained: at 32 the val NLL fell on
-    both worlds and F1 rose on three of the four val and test splits (README, "PlaceNet epochs");
+    both worlds and F1 rose on three of the four val and test splits (docs/EXPERIMENTS.md, "PlaceNet epochs");
     the best epoch came before 32 on both, and 64 or 128 chose the same weights."""
     voxel_m: float = 0.0
     """Spread the synthetic points over cubes of this side, metres: a cube gets a second point only
@@ -172,7 +172,7 @@ class PlacementSection:
     """Exponent beta of the map in the placement weights q = lambda * (G * (M / Z)) ** beta
     (pipeline.placement), 0..1: 1 lets the map decide each image region's share of the points and
     PlaceNet only which candidates inside it; 0 ignores the map. 0.5 was chosen on the val splits
-    (README, "Map weight"): on Astyx F1 0.316 at 1, 0.323 at 0.5, 0.327 at 0; on the demo world
+    (docs/EXPERIMENTS.md, "Map weight"): on Astyx F1 0.316 at 1, 0.323 at 0.5, 0.327 at 0; on the demo world
     0.284, 0.289, 0.289."""
 
 
@@ -198,7 +198,7 @@ class DisNetSection:
     branch learns the per-frame deviation from it. A radar's count depends strongly on its speed
     (static returns at zero Doppler when stopped). For large training sets: on the 2400-frame
     world it cut test L_n from 0.258 to 0.052, on the 240-frame demo it made L_n and L_KL worse
-    (README). False = one mean count (the default)."""
+    (docs/EXPERIMENTS.md). False = one mean count (the default)."""
     speed_map: bool = False
     """Also give the ego speed to the distribution branch (per-channel scale and shift of the
     features it decodes): one image cannot tell a stopped ego from a moving one, yet the radar's
