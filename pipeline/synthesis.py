@@ -456,6 +456,8 @@ def object_velocities_for_points(
     if not box_of:
         return out
     box_of, point_of, dist_of = np.concatenate(box_of), np.concatenate(point_of), np.concatenate(dist_of)
+    if len(point_of) == 0:  # points near a box in x, none inside
+        return out
     # where boxes overlap the nearest centre wins (the lower box index on a tie)
     pick = np.lexsort((box_of, dist_of, point_of))
     first = np.r_[True, point_of[pick][1:] != point_of[pick][:-1]]

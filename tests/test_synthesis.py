@@ -381,6 +381,10 @@ def test_object_velocities_match_every_pair_test():
         points[:5, :2] = rows[3, :2] + np.outer([edge] * 5, [c, s]) + np.outer(rng.uniform(-0.2, 0.2, 5), [-s, c])
         points[:5, 2] = 0.0
         np.testing.assert_array_equal(object_velocities_for_points(points, rows), _velocities_every_pair(points, rows))
+    # points beside a box (within its x extent) but inside none, as on Astyx frame 000492
+    rows = np.array([[50.0, 3.0, 1.0, 3.7, 1.7, 1.4, -3.1, np.nan, np.nan, np.nan, 0.0]])
+    beside = np.array([[50.0, -10.0, 0.0], [49.0, 20.0, 1.0]])
+    np.testing.assert_array_equal(object_velocities_for_points(beside, rows), np.zeros((2, 3)))
 
 # --------------------------------------------------------------------------- one frame
 
