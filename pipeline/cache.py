@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import hashlib
 import json
 import time
 from collections.abc import Awaitable, Iterable
@@ -105,6 +106,14 @@ class FrameStore:
     def status(self) -> np.ndarray:
         """(F,) uint8 status codes."""
         return np.asarray(self._group("r")["status"][:])
+
+    def done_digest(self) -> str:
+        """A short digest of which frames are done ('absent' without an output): what a dataset
+        stage reading this output records, to notice frames finished (or redone) after it ran."""
+        if not self.exists():
+            return "absent"
+        done = np.flatnonzero(self.status() == DONE).astype(np.int64)
+        return hashlib.sha256(done.tobytes()).hexdigest()[:16]
 
     def reasons(self) -> dict[int, str]:
         """Failure reason per failed frame index."""
@@ -208,11 +217,13 @@ class DirStore:
         except OSError as exc:
             raise cache_error(exc, f"writing {target}") from None
 
-    def finish(self, fingerprint: str, summary: dict[str, Any]) -> None:
+    def finish(self, fingerprint: str, summary: dict[str, Any], frames: dict[str, str] | None = None) -> None:
         """Mark the stage complete (written last). The folder's path is kept so that
-        :meth:`summary` can move the summary's paths along with a moved or copied cache."""
+        :meth:`summary` can move the summary's paths along with a moved or copied cache; ``frames``
+        (per-frame upstream stage -> :meth:`FrameStore.done_digest`) says which frames it read."""
         self.write_text("_stage.json", json.dumps({"fingerprint": fingerprint, "finished": time.time(),
-                                                   "path": self.path, "summary": summary}, indent=2, default=str))
+                                                   "path": self.path, "frames": frames or {}, "summary": summary},
+                                                  indent=2, default=str))
 
     def summary(self) -> dict[str, Any]:
         """The summary the stage finished with ({} if it never did); string values that were paths

@@ -140,10 +140,22 @@ class Pipeline:
             self._fp[name] = hashlib.sha256(text.encode()).hexdigest()[:16]
         return self._fp[name]
 
+    def frames_read(self, name: str) -> dict[str, str]:
+        """Which frames the per-frame upstream stages of stage ``name`` have done (stage -> digest)."""
+        return {u: self.env.store(u).done_digest() for u in self.stages[name].upstream
+                if isinstance(self.stages[u], FrameStage)}
+
     def is_current(self, name: str) -> bool:
+        """A per-frame stage: its fingerprint matches. A dataset stage also needs its per-frame
+        inputs to hold the frames it read (a frame retried, or finished by a later run, makes it
+        stale). Outputs written before dataset stages recorded their frames pass on the fingerprint."""
         stage = self.stages[name]
-        store = self.env.store(name) if isinstance(stage, FrameStage) else self.env.dir(name)
-        return store.fingerprint() == self.fingerprint(name)
+        if isinstance(stage, FrameStage):
+            return self.env.store(name).fingerprint() == self.fingerprint(name)
+        meta = self.env.dir(name).meta() or {}
+        if meta.get("fingerprint") != self.fingerprint(name):
+            return False
+        return "frames" not in meta or meta["frames"] == self.frames_read(name)
 
     # ---- running --------------------------------------------------------------------------
 
@@ -256,14 +268,17 @@ class Pipeline:
         out = self.env.dir(stage.name)
         fp = self.fingerprint(stage.name)
         report = StageReport(stage.name, "dataset")
-        if not force and out.fingerprint() == fp:
+        if not force and self.is_current(stage.name):
             report.summary = {**out.summary(), "message": "up to date"}
             return report
+        frames = self.frames_read(stage.name)
+        if not force and out.fingerprint() == fp:
+            self.log(f"{stage.name:<11} recomputing: its per-frame inputs finished other frames since it ran")
         out.ensure()
         out.invalidate()
         summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
                             fingerprint=fp)
-        out.finish(fp, summary)
+        out.finish(fp, summary, frames)
         report.summary = summary
         return report
 

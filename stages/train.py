@@ -109,7 +109,9 @@ def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
 
 
 def training_fingerprint(inputs, cfg: Config, net: str) -> str:
-    """What a net's checkpoints depend on: its config keys (not epochs) and the training data.
+    """What a net's checkpoints depend on: its config keys (not epochs) and the training data (the
+    upstream outputs and which of their frames are done: a frame retried or finished later starts
+    training afresh instead of resuming checkpoints that never saw it).
 
     Raising train.epochs (placement.epochs for PlaceNet) re-runs the stage but continues from the
     last finished epoch.
@@ -117,7 +119,7 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
     from pipeline.training import default_fingerprint
 
     stores = ("calibrate", "heatmaps") if net == "disnet" else ("calibrate", "heatmaps", "patches")
-    data = [inputs.store(s).fingerprint() for s in stores]  # Dis-Net reads no patches
+    data = [f"{inputs.store(s).fingerprint()}:{inputs.store(s).done_digest()}" for s in stores]  # Dis-Net reads no patches
     return f"v{VERSION}-{default_fingerprint(cfg, net)}-" + "-".join(str(d) for d in data)
 
 

@@ -25,7 +25,7 @@ def _count_call(stage: str, frame_id: str) -> None:
 
 def first(inputs, cfg):
     _count_call("calibrate", inputs.frame_id)
-    if inputs.frame_id.startswith("bad"):
+    if inputs.frame_id.startswith("bad") and not os.environ.get("FAKE_STAGE_FIXED"):  # FIXED: the file was replaced
         raise ValueError(f"file {inputs.frame_id}.bin is truncated")
     rng = inputs.rng(1)
     n = int(rng.integers(0, 6))

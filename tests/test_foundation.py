@@ -155,6 +155,37 @@ def test_failed_frame_recorded_and_others_continue(tmp_path):
         make_pipeline(tmp_path / "strict", ids=ids).run("heatmaps", strict=True)
 
 
+def test_dataset_stage_reruns_when_its_inputs_finish_other_frames(tmp_path, monkeypatch):
+    """A dataset stage records which frames its per-frame inputs had done: frames finished by a
+    later run, or a failed frame retried, make it stale (before 2026-12-02 it stayed 'up to date'
+    and e.g. evaluate's report silently left such frames out)."""
+    import json
+
+    first = {r.stage: r for r in make_pipeline(tmp_path).run("train", frames=list(range(4)))}
+    assert first["heatmaps"].done == 4 and first["train"].summary["message"] != "up to date"
+    assert make_pipeline(tmp_path).is_current("train")    # nothing changed since
+    rest = {r.stage: r for r in make_pipeline(tmp_path).run("train")}
+    assert rest["heatmaps"].processed == 8
+    assert rest["train"].summary["message"] != "up to date"
+    assert make_pipeline(tmp_path).run("train")[2].summary["message"] == "up to date"
+
+    ids = IDS[:4] + ["bad004"] + IDS[5:8]
+    pipe = make_pipeline(tmp_path / "retry", ids=ids)
+    pipe.run("train")
+    monkeypatch.setenv("FAKE_STAGE_FIXED", "1")
+    assert make_pipeline(tmp_path / "retry", ids=ids).run("train")[2].summary["message"] == "up to date"
+    retried = {r.stage: r for r in make_pipeline(tmp_path / "retry", ids=ids).run("train", retry_failed=True)}
+    assert retried["calibrate"].processed == 1 and retried["heatmaps"].done == len(ids)
+    assert retried["train"].summary["message"] != "up to date"
+
+    # an output written before dataset stages recorded their frames passes on its fingerprint
+    meta_path = Path(pipe.env.dir("train").file("_stage.json"))
+    meta = json.loads(meta_path.read_text())
+    del meta["frames"]
+    meta_path.write_text(json.dumps(meta))
+    assert make_pipeline(tmp_path / "retry", ids=ids).is_current("train")
+
+
 def test_frames_option_limits_work(tmp_path):
     pipe = make_pipeline(tmp_path)
     pipe.run("calibrate", frames=parse_frames("0:4", IDS))
@@ -217,7 +248,8 @@ def test_a_stage_rebuilt_after_its_output_was_deleted_marks_downstream_stale(tmp
     pipe = make_pipeline(tmp_path)
     pipe.run("train")
     shutil.rmtree(pipe.env.store("heatmaps").url)
-    assert make_pipeline(tmp_path).is_current("train")  # by fingerprint alone it looks current
+    assert pipe.env.dir("train").fingerprint() == make_pipeline(tmp_path).fingerprint("train")  # looks current
+    assert not make_pipeline(tmp_path).is_current("train")  # but its input now has no frame done
     reports = {r.stage: r for r in make_pipeline(tmp_path).run("train")}
     assert reports["calibrate"].processed == 0
     assert reports["heatmaps"].processed == len(IDS)

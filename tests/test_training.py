@@ -449,3 +449,26 @@ def test_select_device():
     assert T.select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     with pytest.raises(ConfigError):
         T.select_device("tpu")
+
+
+def test_training_fingerprint_follows_which_frames_are_done(tmp_path):
+    """A frame of the training data finished later (retried, or a partial run completed) must not
+    let the train stage resume checkpoints that never saw it."""
+    from pipeline.cache import frame_store
+    from pipeline.stage import ArraySpec
+    from stages.train import training_fingerprint
+
+    class Inputs:
+        def store(self, stage):
+            return frame_store(str(tmp_path), "d", stage)
+
+    for stage in ("calibrate", "heatmaps", "patches"):
+        frame_store(str(tmp_path), "d", stage).create("fp-" + stage, ["a", "b"], (ArraySpec("x", (), "float32", "-"),),
+                                                      {"x": ()}, {})
+        frame_store(str(tmp_path), "d", stage).write_frame(0, {"x": np.float32(1)}, (ArraySpec("x", (), "float32", "-"),))
+    cfg = tiny_cfg()
+    before = {net: training_fingerprint(Inputs(), cfg, net) for net in ("disnet", "rssnet")}
+    assert before == {net: training_fingerprint(Inputs(), cfg, net) for net in ("disnet", "rssnet")}
+    frame_store(str(tmp_path), "d", "patches").write_frame(1, {"x": np.float32(2)}, (ArraySpec("x", (), "float32", "-"),))
+    assert training_fingerprint(Inputs(), cfg, "disnet") == before["disnet"]   # Dis-Net reads no patches
+    assert training_fingerprint(Inputs(), cfg, "rssnet") != before["rssnet"]
