@@ -110,10 +110,7 @@ class FrameStore:
     def done_digest(self) -> str:
         """A short digest of which frames are done ('absent' without an output): what a dataset
         stage reading this output records, to notice frames finished (or redone) after it ran."""
-        if not self.exists():
-            return "absent"
-        done = np.flatnonzero(self.status() == DONE).astype(np.int64)
-        return hashlib.sha256(done.tobytes()).hexdigest()[:16]
+        return done_digest(self.status()) if self.exists() else "absent"
 
     def reasons(self) -> dict[int, str]:
         """Failure reason per failed frame index."""
@@ -162,6 +159,12 @@ class FrameStore:
     def attrs(self) -> dict[str, Any]:
         """Group attributes."""
         return dict(self._group("r").attrs)
+
+
+def done_digest(status: np.ndarray) -> str:
+    """Short digest of the indices of the frames whose status (F,) is DONE."""
+    done = np.flatnonzero(np.asarray(status) == DONE).astype(np.int64)
+    return hashlib.sha256(done.tobytes()).hexdigest()[:16]
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, join
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest, join
 from pipeline.errors import ConfigError, FrameError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import stage_lock
@@ -88,6 +88,9 @@ class Pipeline:
         self.progress = sys.stderr.isatty() if progress is None else progress
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
         self._fp: dict[str, str] = {}
+        self._done: dict[str, str] = {}
+        """Done-frames digest of the frame stages this run brought up to date (saves re-reading
+        their status for the dataset stages after them)."""
         self._frame_ids: list[str] | None = None
         self._frame_lister = frame_lister
 
@@ -142,7 +145,7 @@ class Pipeline:
 
     def frames_read(self, name: str) -> dict[str, str]:
         """Which frames the per-frame upstream stages of stage ``name`` have done (stage -> digest)."""
-        return {u: self.env.store(u).done_digest() for u in self.stages[name].upstream
+        return {u: self._done.get(u) or self.env.store(u).done_digest() for u in self.stages[name].upstream
                 if isinstance(self.stages[u], FrameStage)}
 
     def is_current(self, name: str) -> bool:
@@ -167,6 +170,7 @@ class Pipeline:
         even if current. With ``strict`` the first failed frame raises FrameError.
         """
         reports = []
+        self._done.clear()
         for name in self.upstream_closure(target):
             stage = self.stages[name]
             lock_url = join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
@@ -258,6 +262,7 @@ class Pipeline:
                 if strict:
                     break
         final = store.status()
+        self._done[stage.name] = done_digest(final)  # what frames_read would read again
         report.done = int((final == DONE).sum())
         report.failed = int((final == FAILED).sum())
         report.pending = int((final == PENDING).sum())
