@@ -450,14 +450,13 @@ def object_velocities_for_points(
         inside = ((np.abs(cos * rel[:, 0] + sin * rel[:, 1]) <= half[box, 0])
                   & (np.abs(-sin * rel[:, 0] + cos * rel[:, 1]) <= half[box, 1])
                   & (np.abs(rel[:, 2]) <= half[box, 2]))
-        box_of.append(np.full(int(inside.sum()), box))
-        point_of.append(idx[inside])
-        dist_of.append(np.linalg.norm(rel[inside], axis=1))
-    if not box_of:
+        if inside.any():
+            box_of.append(np.full(int(inside.sum()), box))
+            point_of.append(idx[inside])
+            dist_of.append(np.linalg.norm(rel[inside], axis=1))
+    if not box_of:  # no point inside any box
         return out
     box_of, point_of, dist_of = np.concatenate(box_of), np.concatenate(point_of), np.concatenate(dist_of)
-    if len(point_of) == 0:  # points near a box in x, none inside
-        return out
     # where boxes overlap the nearest centre wins (the lower box index on a tie)
     pick = np.lexsort((box_of, dist_of, point_of))
     first = np.r_[True, point_of[pick][1:] != point_of[pick][:-1]]
