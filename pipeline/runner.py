@@ -233,15 +233,23 @@ class Pipeline:
         todo_mask = status == PENDING
         if retry_failed:
             todo_mask |= status == FAILED
+        up_statuses = {up: self.env.store(up).status() for up in stage.upstream
+                       if isinstance(self.stages[up], FrameStage)}
+        if not retry_failed and (status == FAILED).any():
+            # A frame that failed only because an upstream frame had failed was never tried: it
+            # runs once its upstream frames are done (e.g. after `run calibrate --retry-failed`).
+            ready = np.ones(len(ids), bool)
+            for up_status in up_statuses.values():
+                ready &= up_status == DONE
+            for i, reason in store.reasons().items():
+                if ready[i] and reason.startswith("upstream stage "):
+                    todo_mask[i] = True
         if frames is not None:
             sel = np.zeros(len(ids), bool)
             sel[[i for i in frames if 0 <= i < len(ids)]] = True
             todo_mask &= sel
         # Frames whose upstream failed or was excluded cannot be computed: record why.
-        for up in stage.upstream:
-            if not isinstance(self.stages[up], FrameStage):
-                continue
-            up_status = self.env.store(up).status()
+        for up, up_status in up_statuses.items():
             for code, word in ((FAILED, "failed"), (EXCLUDED, "was excluded")):
                 blocked = todo_mask & (up_status == code)
                 for i in np.flatnonzero(blocked):

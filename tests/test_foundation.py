@@ -178,6 +178,17 @@ def test_dataset_stage_reruns_when_its_inputs_finish_other_frames(tmp_path, monk
     assert retried["calibrate"].processed == 1 and retried["heatmaps"].done == len(ids)
     assert retried["train"].summary["message"] != "up to date"
 
+    # a frame blocked only by its upstream's failure runs once that is fixed, without --retry-failed
+    monkeypatch.delenv("FAKE_STAGE_FIXED")
+    blocked = make_pipeline(tmp_path / "blocked", ids=ids)
+    blocked.run("heatmaps")
+    assert blocked.env.store("heatmaps").status()[4] == FAILED
+    monkeypatch.setenv("FAKE_STAGE_FIXED", "1")
+    make_pipeline(tmp_path / "blocked", ids=ids).run("calibrate", retry_failed=True)
+    again = {r.stage: r for r in make_pipeline(tmp_path / "blocked", ids=ids).run("heatmaps")}
+    assert again["heatmaps"].processed == 1 and again["heatmaps"].done == len(ids)
+    assert make_pipeline(tmp_path / "blocked", ids=ids).run("heatmaps")[1].processed == 0
+
     # an output written before dataset stages recorded their frames passes on its fingerprint
     meta_path = Path(pipe.env.dir("train").file("_stage.json"))
     meta = json.loads(meta_path.read_text())
