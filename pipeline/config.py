@@ -334,6 +334,9 @@ class ExportSection:
     """Also write PCD files."""
     previews: bool = True
     """Write a preview PNG per frame."""
+    images: bool = True
+    """Write image_2/<id> beside each frame (OpenPCDet reads the image size from it): the dataset's
+    own file where it has VoD-layout images, else the reader's image as PNG."""
 
 
 @dataclass(frozen=True)

@@ -5,10 +5,11 @@ PCD files and preview images.
 VoD layout (one folder per point-cloud kind, e.g. ``<root>/radar``)::
 
     radar/ImageSets/{train,val,test}.txt       one frame id per line
-    radar/training/velodyne/NNNNN.bin          7 float32 per point (below)
+    radar/training/velodyne/NNNNN.bin          7 float32 per point (below); frames of the train and
+                                               val splits here, of the test split under testing/
     radar/training/calib/NNNNN.txt             KITTI calib text (Tr_velo_to_cam = radar -> camera)
     radar/training/label_2/NNNNN.txt           KITTI labels (camera frame)
-    radar/training/image_2/NNNNN.<ext>         optional image (OpenPCDet reads the image size)
+    radar/training/image_2/NNNNN.<ext>         the image (OpenPCDet reads the image size from it)
 
 Radar .bin columns (float32 little-endian): x, y, z (m, radar frame {D}: x forward, y left, z up),
 RCS (dataset RSS units), v_r (range rate m/s, negative approaching), v_r_compensated
@@ -175,6 +176,11 @@ def preview_png(
     for (u, v), colour in zip(np.rint(uv[finite]).astype(int), colours[finite]):
         cv2.circle(canvas, (int(u), int(v)), radius, tuple(int(c) for c in colour), -1, cv2.LINE_AA)
     _draw_colour_bar(canvas, max_range_m)
+    return _write_png_bgr(path, canvas)
+
+
+def _write_png_bgr(path: str | os.PathLike, canvas: np.ndarray) -> Path:
+    """Encode an OpenCV (BGR) image as PNG and write it atomically."""
     ok, encoded = cv2.imencode(".png", canvas)
     if not ok:
         raise ValueError(f"{path}: PNG encoding failed")
@@ -245,6 +251,33 @@ def write_kitti_layout(
             raise ValueError("image must be a Path to copy, not text")
         written["image_2"] = _text_or_copy(base / "image_2" / f"{frame_id}{Path(image).suffix}", image)
     return written
+
+
+def detector_label_text(text: str) -> str:
+    """KITTI label text for a detector. The second column is KITTI's truncation (0..1); View-of-Delft's
+    tracking release and the synthetic world put track ids there, which OpenPCDet would read as
+    truncation (boxes above 0.5 leave its evaluation), so values outside 0..1 become 0. Lines with
+    fewer than 15 fields are kept as they are."""
+    lines = []
+    for line in text.splitlines():
+        fields = line.split()
+        if len(fields) >= 15:
+            try:
+                truncation = float(fields[1])
+            except ValueError:
+                truncation = -1.0
+            if not 0.0 <= truncation <= 1.0:
+                line = " ".join([fields[0], "0", *fields[2:]])
+        lines.append(line)
+    return "".join(f"{line}\n" for line in lines)
+
+
+def write_image_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write ``image`` (H, W, 3) uint8 RGB as a PNG at ``path`` (atomically)."""
+    image = check_shape("image", np.asarray(image), (None, None, 3))
+    if image.dtype != np.uint8:
+        raise ValueError(f"image: expected uint8, got {image.dtype}")
+    return _write_png_bgr(path, np.ascontiguousarray(image[:, :, ::-1]))
 
 
 def kitti_calib_text(P2: np.ndarray, T_cam_radar: np.ndarray) -> str:

@@ -9,13 +9,22 @@ from pathlib import Path
 from typing import Iterator
 
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)  # read once: os.umask can only be read by setting it
+FILE_MODE = 0o666 & ~_UMASK
+"""Mode of the files written here: what open() would give (mkstemp alone gives 0600, which other
+users, e.g. a training container, cannot read)."""
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; when the body succeeds it is renamed onto
-    ``path`` (os.replace), otherwise removed. The folder is created if needed."""
+    ``path`` (os.replace), otherwise removed. The folder is created if needed; the file gets the
+    mode a plain open() would give (FILE_MODE)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.fchmod(fd, FILE_MODE)
     os.close(fd)
     try:
         yield Path(tmp)

@@ -38,12 +38,23 @@ def full_to_working_uv(uv: np.ndarray, crop_rows: Sequence[int], full_wh: Sequen
     return np.stack([(uv[:, 0] + 0.5) * sx - 0.5, (uv[:, 1] - top + 0.5) * sy - 0.5], axis=1)
 
 
+def _pixel_map(crop_rows: Sequence[int], full_wh: Sequence[int], working_wh: Sequence[int]) -> np.ndarray:
+    """(3, 3) homogeneous map of full-image pixels to working-image pixels (module docstring)."""
+    top, sx, sy = _scales(crop_rows, full_wh, working_wh)
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, (0.5 - top) * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
 def working_K(K: np.ndarray, crop_rows: Sequence[int], full_wh: Sequence[int], working_wh: Sequence[int]) -> np.ndarray:
     """Intrinsics (3, 3) float64 of the working image from those of the full image (module docstring)."""
     K = check_shape("K", np.asarray(K, dtype=np.float64), (3, 3))
-    top, sx, sy = _scales(crop_rows, full_wh, working_wh)
-    A = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, (0.5 - top) * sy - 0.5], [0.0, 0.0, 1.0]])
-    return A @ K
+    return _pixel_map(crop_rows, full_wh, working_wh) @ K
+
+
+def full_K(K_w: np.ndarray, crop_rows: Sequence[int], full_wh: Sequence[int], working_wh: Sequence[int]) -> np.ndarray:
+    """Intrinsics (3, 3) float64 of the full image from those of the working image (the inverse of
+    :func:`working_K`), e.g. for a calib file that goes with the dataset's own image."""
+    K_w = check_shape("K_w", np.asarray(K_w, dtype=np.float64), (3, 3))
+    return np.linalg.solve(_pixel_map(crop_rows, full_wh, working_wh), K_w)
 
 
 def crop_resize(image: np.ndarray, K: np.ndarray, crop_rows: Sequence[int],

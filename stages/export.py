@@ -1,17 +1,23 @@
 """export: synthesized radar in detector-ready layouts.
 
 Reads: synthesize (points), calibrate (image, K, T_radar_cam, ego_velocity, split), the raw
-dataset's calib and label files where it has KITTI-layout ones (VoD, the synthetic world).
-Writes (export/): radar/training/velodyne/<id>.bin (7 float32: x, y, z, RCS, v_r,
+dataset's calib, label and image files where it has VoD-layout ones (VoD, the synthetic world),
+else the reader's image.
+Writes (export/): radar/<subset>/velodyne/<id>.bin (7 float32: x, y, z, RCS, v_r,
 v_r_compensated, time = 0, the View-of-Delft radar layout that OpenPCDet's VoD configuration
-reads), radar/training/calib/<id>.txt and label_2/<id>.txt carried over (calib generated from K and
-T_radar_cam when the dataset has none), radar/ImageSets/{train,val,test}.txt, optional
+reads), with <subset> 'training' for frames of the train and val splits and 'testing' for the
+test split (where OpenPCDet looks for them); <subset>/calib/<id>.txt carried over, or generated
+from the full-resolution K and T_radar_cam when the dataset has none; <subset>/label_2/<id>.txt
+carried over with track ids out of the truncation column (pipeline.export.detector_label_text);
+<subset>/image_2/<id> (export.images); radar/ImageSets/{train,val,test}.txt; optional
 pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range).
-Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds).
+Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds),
+camera.* (the full-resolution K of a generated calib).
 """
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +28,11 @@ from pipeline.config import Config
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
 
-CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "radar.fov_az_deg", "radar.fov_el_deg",
-               "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign")
+CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export.images", "radar.fov_az_deg",
+               "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
+               "camera.full_size", "camera.crop_rows", "camera.working_size")
+VERSION = 2
+"""2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
@@ -32,15 +41,28 @@ def _source_file(data_root: str, *parts: str) -> Path | None:
     return path if path.is_file() else None
 
 
+def _source_image(data_root: str, frame_id: str) -> Path | None:
+    """The frame's image in a VoD layout (radar/ then lidar/ image_2, .jpg or .png), if any."""
+    for tree in ("radar", "lidar"):
+        for ext in (".jpg", ".png"):
+            path = _source_file(data_root, tree, "training", "image_2", f"{frame_id}{ext}")
+            if path:
+                return path
+    return None
+
+
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
-    from pipeline.export import (add_uniform_noise, kitti_calib_text, preview_png, vod_points, write_image_sets,
-                                 write_kitti_layout, write_pcd)
+    from pipeline.export import (add_uniform_noise, detector_label_text, kitti_calib_text, preview_png, vod_points,
+                                 write_image_png, write_image_sets, write_kitti_layout, write_pcd)
+    from pipeline.working import full_K
 
     syn, calib = inputs.store("synthesize"), inputs.store("calibrate")
     done = np.flatnonzero(syn.status() == DONE)
     split = np.asarray(calib.array("split")[:])
     root = Path(out.path)
     radar_root = root / "radar"
+    for folder in ("radar", "pcd", "preview"):  # a new export replaces the last one: no frame of it is left over
+        shutil.rmtree(root / folder, ignore_errors=True)
     lists: dict[str, list[str]] = {name: [] for name in SPLIT_NAMES.values()}
     n_points = n_noise = 0
     for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
@@ -60,18 +82,26 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             n_noise += len(rows) - before
         K, T_radar_cam = f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam")
         T_cam_radar = invert_transform(T_radar_cam)
-        calib_src = _source_file(inputs.env.data_root, "radar", "training", "calib", f"{fid}.txt")
-        label_src = _source_file(inputs.env.data_root, "lidar", "training", "label_2", f"{fid}.txt")
-        write_kitti_layout(radar_root, fid, rows,
-                           calib=calib_src or kitti_calib_text(np.column_stack([K, np.zeros(3)]), T_cam_radar),
-                           label=label_src)
+        name = SPLIT_NAMES.get(int(split[i]), "test")
+        subset = "testing" if name == "test" else "training"
+        data_root, c = inputs.env.data_root, cfg.camera
+        calib_src = _source_file(data_root, "radar", "training", "calib", f"{fid}.txt")
+        label_src = _source_file(data_root, "lidar", "training", "label_2", f"{fid}.txt")
+        image_src = _source_image(data_root, fid) if cfg.export.images else None
+        if calib_src is None:  # the reader's image goes with the dataset's full-resolution K
+            K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)
+            calib_src = kitti_calib_text(np.column_stack([K_full, np.zeros(3)]), T_cam_radar)
+        write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset,
+                           label=detector_label_text(label_src.read_text()) if label_src else None)
+        if cfg.export.images and image_src is None:
+            write_image_png(radar_root / subset / "image_2" / f"{fid}.png", f.reader.read(fid).image)
         if cfg.export.pcd:
             write_pcd(root / "pcd" / f"{fid}.pcd", pts[:, :3], pts[:, 7], pts[:, 6])
         if cfg.export.previews:
             image = f.get("calibrate", "image")
             uv, _, valid = project_to_image(pts[:, :3], K, T_cam_radar, (image.shape[1], image.shape[0]))
             preview_png(root / "preview" / f"{fid}.png", image, uv[valid], pts[valid, 3], cfg.radar.max_range_m)
-        lists[SPLIT_NAMES.get(int(split[i]), "test")].append(fid)
+        lists[name].append(fid)
         n_points += len(pts)
     write_image_sets(radar_root, lists)
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
@@ -79,4 +109,4 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
 
 
 STAGE = DatasetStage(name="export", upstream=("calibrate", "synthesize"), config_keys=CONFIG_KEYS, run=run,
-                     doc=__doc__)
+                     version=VERSION, doc=__doc__)

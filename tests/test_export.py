@@ -3,6 +3,7 @@ PCD round trip, preview images and the KITTI/VoD folder layout."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
@@ -11,8 +12,8 @@ import pytest
 
 from pipeline.errors import ReaderError
 from pipeline.export import (
-    add_uniform_noise, kitti_calib_text, preview_png, read_pcd, read_vod_bin, vod_points,
-    write_image_sets, write_kitti_layout, write_pcd, write_vod_bin,
+    add_uniform_noise, detector_label_text, kitti_calib_text, preview_png, read_pcd, read_vod_bin, vod_points,
+    write_image_png, write_image_sets, write_kitti_layout, write_pcd, write_vod_bin,
 )
 from pipeline.geometry import cartesian_to_spherical
 from pipeline.synthesis import doppler_for_points
@@ -149,3 +150,25 @@ def test_kitti_calib_text_parses_back():
     np.testing.assert_allclose(parsed["P2"].reshape(3, 4), P2)
     np.testing.assert_allclose(parsed["Tr_velo_to_cam"].reshape(3, 4), T[:3])
     np.testing.assert_allclose(parsed["R0_rect"].reshape(3, 3), np.eye(3))
+
+
+def test_detector_labels_keep_truncation_and_drop_track_ids():
+    vod = "Car 0 0 -1.7 1232.0 764.3 1357.1 941.7 1.2 0.7 2.0 2.8 2.5 12.8 -1.4 1\n"
+    tracked = "Pedestrian 10035 0 -1.98 526.56 195.84 547.44 235.96 1.55 0.6 0.5 8.61 1.5 19.44 -1.57 1\n"
+    half = "Cyclist 0.5 1 0.1 1 2 3 4 1.5 0.6 1.7 1.0 1.5 10.0 0.2\n"
+    out = detector_label_text(vod + tracked + half + "short line\n")
+    assert out.splitlines()[0] == vod.strip() and out.splitlines()[2] == half.strip()
+    assert out.splitlines()[1].split()[:3] == ["Pedestrian", "0", "0"]
+    assert out.splitlines()[1].split()[3:] == tracked.split()[3:]
+    assert out.splitlines()[3] == "short line" and out.endswith("\n")
+
+
+def test_exported_files_are_readable_by_others(tmp_path: Path):
+    """Atomic writes go through mkstemp (mode 0600); the files must get the mode open() gives."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    image = np.zeros((4, 6, 3), np.uint8)
+    image[1, 2] = (255, 0, 0)
+    path = write_image_png(tmp_path / "image_2" / "00001.png", image)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~mask
+    np.testing.assert_array_equal(cv2.imread(str(path))[:, :, ::-1], image)   # RGB in, RGB back

@@ -94,20 +94,32 @@ def check_export_round_trip(pipe: Pipeline, world: Path, cache: Path) -> None:
     """The exported radar, read by the VoD reader beside the world's lidar and images, gives back
     the synthesized points, RSS, range rate, and the ego velocity."""
     export = cache / "synthetic" / "export"
-    root = cache / "vod_view"
-    root.mkdir()
-    os.symlink(export / "radar", root / "radar")
-    os.symlink(world / "lidar", root / "lidar")
-    reader = VodReader(pipe.env.cfg, root)
+    readers = {}
+    for subset in ("training", "testing"):  # a VoD view of each subset: its radar beside the world's lidar
+        root = cache / f"vod_view_{subset}"
+        (root / "radar").mkdir(parents=True)
+        os.symlink(export / "radar" / subset, root / "radar" / "training")
+        os.symlink(world / "lidar", root / "lidar")
+        readers[subset] = VodReader(pipe.env.cfg, root)
     syn = pipe.env.store("synthesize")
     calib = pipe.env.store("calibrate")
+    split = calib.array("split")[:]
     ids = pipe.frame_ids()
+    mode = 0o666 & ~_umask()
     checked = 0
     for i in np.flatnonzero(syn.status() == DONE):
+        subset = "testing" if split[int(i)] == 2 else "training"
+        frame = export / "radar" / subset
+        fid = ids[int(i)]
+        source = next((world / "lidar" / "training" / "image_2").glob(f"{fid}.*"))
+        assert (frame / "image_2" / source.name).read_bytes() == source.read_bytes()
+        assert (frame / "velodyne" / f"{fid}.bin").stat().st_mode & 0o777 == mode   # readable as open() makes them
+        labels = [line.split() for line in (frame / "label_2" / f"{fid}.txt").read_text().splitlines()]
+        assert labels and all(0.0 <= float(fields[1]) <= 1.0 for fields in labels)  # truncation, not track ids
         pts = syn.read("points", int(i))
         if len(pts) < 3:
             continue
-        rec = reader.read(ids[int(i)])
+        rec = readers[subset].read(fid)
         np.testing.assert_allclose(rec.radar_D[:, :3], pts[:, :3], atol=1e-6)
         np.testing.assert_allclose(rec.radar_D[:, 3], pts[:, 8], atol=1e-5)   # range rate
         np.testing.assert_allclose(rec.radar_D[:, 4], pts[:, 7], atol=1e-5)   # RSS
@@ -116,6 +128,14 @@ def check_export_round_trip(pipe: Pipeline, world: Path, cache: Path) -> None:
     assert checked >= 3
     sets = {p.stem: p.read_text().split() for p in (export / "radar" / "ImageSets").glob("*.txt")}
     assert sorted(sum(sets.values(), [])) == sorted(ids[int(i)] for i in np.flatnonzero(syn.status() == DONE))
+    assert sets["test"] and sets["train"]
+    assert sorted(sets["test"]) == sorted(p.stem for p in (export / "radar" / "testing" / "velodyne").glob("*.bin"))
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def test_train_stage_reports_the_count_refit(world, tmp_path):

@@ -11,6 +11,7 @@ from pipeline.working import (
     common_fov_mask,
     crop_resize,
     fov_mask,
+    full_K,
     full_to_working_uv,
     scale_rc,
     scale_sigma,
@@ -106,3 +107,10 @@ def test_common_fov_mask_requires_projection_inside_working_image():
     # Row of (20, 0, 0): 610 + 1480 * 0.2 / 20 = 624.8, inside the crop 571..1214 -> in.
     # Above the crop (z = 5 m at 20 m projects to row ~250) -> out; beyond range (60 m) -> out.
     assert mask[0] and not mask[1] and mask[2] and not mask[3]
+
+
+def test_full_K_inverts_working_K():
+    """A calib generated for the dataset's own image needs the full-resolution intrinsics back."""
+    Kw = working_K(K_FULL, CROP, FULL_WH, WORK_WH)
+    np.testing.assert_allclose(full_K(Kw, CROP, FULL_WH, WORK_WH), K_FULL, rtol=1e-12, atol=1e-9)
+    assert not np.allclose(Kw, K_FULL)
