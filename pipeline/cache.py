@@ -193,6 +193,8 @@ class DirStore:
                 return json.load(fh)
         except (FileNotFoundError, json.JSONDecodeError):
             return None
+        except OSError as exc:  # e.g. the cache path is a file
+            raise cache_error(exc, f"reading {self.file('_stage.json')}") from None
 
     def fingerprint(self) -> str | None:
         meta = self.meta()
@@ -238,6 +240,14 @@ class DirStore:
                 if isinstance(value, str) and (value == old or value.startswith(old.rstrip("/") + "/")):
                     summary[key] = self.path + value[len(old):]
         return summary
+
+    def clear(self) -> None:
+        """Remove the folder and everything in it."""
+        try:
+            if self.fs.exists(self.path):
+                self.fs.rm(self.path, recursive=True)
+        except OSError as exc:
+            raise cache_error(exc, f"removing {self.url}") from None
 
     def invalidate(self) -> None:
         """Forget completion (the files stay; the stage decides what to reuse)."""

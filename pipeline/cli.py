@@ -69,6 +69,10 @@ def _ensure_world(env, progress: bool) -> None:
     again when the profile's world settings no longer match the one there."""
     if env.cfg.dataset.reader != "synthetic" or _world_matches(env):
         return
+    if not _is_cache_world(env):  # never generate into (or over) a folder the user named
+        raise ConfigError(f"--data-root {env.data_root}: no synthetic world there (no world.json). Omit "
+                          f"--data-root to use the one generated in the cache, or make one with "
+                          f"`pipeline generate-world --out {env.data_root}`")
     from pipeline.lock import stage_lock
     from pipeline.world import generate
 
@@ -90,11 +94,16 @@ def _world_matches(env) -> bool:
     path = Path(env.data_root) / "world.json"
     if not path.exists():
         return False
-    if Path(env.data_root).resolve() != Path(join(env.cache_root, env.dataset, "world")).resolve():
+    if not _is_cache_world(env):
         return True
     world, ds = json.loads(path.read_text()), env.cfg.dataset
     return (world.get("frames"), world.get("seed"), world.get("resolution_wh"), world.get("sequence_len")) == \
         (ds.world_frames, ds.world_seed, list(ds.world_resolution), ds.world_sequence_len)
+
+
+def _is_cache_world(env) -> bool:
+    """True when the data root is the world folder inside the cache (where the CLI generates it)."""
+    return Path(env.data_root).resolve() == Path(join(env.cache_root, env.dataset, "world")).resolve()
 
 
 def _pipeline(env, workers: int, scheduler: str | None, progress: bool | None = None):
@@ -118,16 +127,18 @@ def main() -> None:
 @main.command()
 @click.argument("stage")
 @dataset_options
-@click.option("--workers", type=int, default=None, help="dask worker processes (1 = serial, in-process). [default: run.workers = 2]")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="dask worker processes (1 = serial, in-process). [default: run.workers = 2]")
 @click.option("--scheduler", default=lambda: os.environ.get("DASK_SCHEDULER_ADDRESS", ""), metavar="ADDRESS",
               help="Run per-frame work on an existing dask.distributed cluster (tcp://HOST:PORT; "
                    "or $DASK_SCHEDULER_ADDRESS). Its workers need the package and access to the cache and data.")
 @click.option("--frames", "frames_spec", default="", metavar="SPEC",
               help="Limit per-frame work to START:STOP[:STEP] frame indices or a comma list of frame ids.")
 @click.option("--strict", is_flag=True, help="Stop at the first failed frame with a non-zero exit code.")
-@click.option("--force", is_flag=True, help="Recompute STAGE even if its output is current.")
+@click.option("--force", is_flag=True, help="Recompute STAGE from scratch even if its output is current (train: "
+              "its checkpoints are discarded and the nets trained again).")
 @click.option("--retry-failed", is_flag=True, help="Also re-run frames recorded as failed.")
-@click.option("--wait", "wait_s", type=float, default=0.0, metavar="SECONDS",
+@click.option("--wait", "wait_s", type=click.FloatRange(min=0.0), default=0.0, metavar="SECONDS",
               help="If another run holds a stage's lock, wait up to this long instead of stopping.")
 @click.option("--dry-run", is_flag=True, help="Show per stage whether it is current and frames done / to do; compute nothing.")
 @_handle_errors
@@ -143,10 +154,15 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     workers = env.cfg.run.workers if workers is None else workers
     pipe = _pipeline(env, workers, scheduler or None)
     closure = pipe.upstream_closure(stage)
+    pipe.check_config(stage)
     if dry_run:
         rows = {r["stage"]: r for r in pipe.status()}
         for name in closure:
             _print_status_row(rows[name])
+        if force:
+            click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
+        if frames_spec:
+            click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames")
         return
     _ensure_world(env, pipe.progress)
     frames = parse_frames(frames_spec, pipe.frame_ids())
@@ -306,15 +322,10 @@ def check_physics(dataset, data_root, cache_root, sets, workers):
 @_handle_errors
 def unlock(stage, dataset, data_root, cache_root, sets):
     """Remove the lock of STAGE left by a run that died on another machine."""
-    import fsspec
+    from pipeline.lock import remove_lock
 
     url = join(cache_root, dataset, "locks", f"{stage}.lock")
-    fs, path = fsspec.core.url_to_fs(url)
-    if fs.exists(path):
-        fs.rm(path)
-        click.echo(f"removed {url}")
-    else:
-        click.echo(f"no lock at {url}")
+    click.echo(f"removed {url}" if remove_lock(url) else f"no lock at {url}")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -344,7 +344,7 @@ class EvalSection:
     """Fidelity evaluation."""
 
     split: str = "test"
-    """Split evaluated."""
+    """Split evaluated: 'train', 'val', 'test' or 'all' (its frames that synthesize finished)."""
     figure_frames: int = 4
     """Frames drawn in the Fig. 8-style figure."""
     gate_m: float = 1.0

@@ -161,3 +161,17 @@ def _acquire_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str, what
         if time.monotonic() >= deadline:
             raise _refuse(what, info)
         time.sleep(0.5)
+
+
+def remove_lock(url: str) -> bool:
+    """Remove the lock file ``url`` left by a dead run (``pipeline unlock``); False if there is none.
+    LockError when the lock belongs to a process still running on this machine."""
+    fs, path = fsspec.core.url_to_fs(url)
+    if not fs.exists(path):
+        return False
+    info = _read(fs, path)
+    if info is not None and info.get("host") == socket.gethostname() and _pid_alive(int(info.get("pid", -1))):
+        raise LockError(f"{url} is held by pid {info.get('pid')}, still running on this machine: stop that run "
+                        f"(or wait for it) instead of removing its lock")
+    fs.rm(path)
+    return True

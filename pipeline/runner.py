@@ -171,12 +171,16 @@ class Pipeline:
         """
         reports = []
         self._done.clear()
+        self.check_config(target)
         for name in self.upstream_closure(target):
             stage = self.stages[name]
             lock_url = join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
             with stage_lock(lock_url, f"stage '{name}' of dataset '{self.env.dataset}'", wait_s):
                 t0 = time.perf_counter()
-                rebuilt = (force and name == target) or not self.is_current(name)
+                if (force and name == target) or not self.is_current(name):
+                    # new outputs under a fingerprint that downstream outputs may already carry:
+                    # marked stale first, so that a run killed while rebuilding leaves them stale
+                    self.invalidate_downstream(name)
                 if isinstance(stage, FrameStage):
                     report = self._run_frames(stage, frames, strict, force and name == target, retry_failed)
                 else:
@@ -184,11 +188,17 @@ class Pipeline:
                 report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
-            if rebuilt:  # new outputs under a fingerprint that downstream outputs may already carry
-                self.invalidate_downstream(name)
             if strict and report.failed:
                 raise FrameError(name, "?", f"{report.failed} frame(s) failed; first: {report.failures[0]}")
         return reports
+
+    def check_config(self, target: str) -> None:
+        """ConfigError for settings a stage of ``target``'s run cannot work with, before any output
+        is touched (each stage's ``check``)."""
+        for name in self.upstream_closure(target):
+            check = self.stages[name].check
+            if check is not None:
+                check(self.env.cfg)
 
     def downstream(self, name: str) -> list[str]:
         """Stages that depend on ``name``, directly or not, in execution order."""
@@ -287,6 +297,8 @@ class Pipeline:
         frames = self.frames_read(stage.name)
         if not force and out.fingerprint() == fp:
             self.log(f"{stage.name:<11} recomputing: its per-frame inputs finished other frames since it ran")
+        if force:
+            out.clear()  # from scratch: nothing of the last run is reused (train's checkpoints included)
         out.ensure()
         out.invalidate()
         summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
@@ -298,8 +310,10 @@ class Pipeline:
     # ---- status ---------------------------------------------------------------------------
 
     def status(self) -> list[dict[str, Any]]:
-        """Per stage: done / failed / pending / excluded counts and whether it is current."""
+        """Per stage: done / failed / pending / excluded counts and whether it is current (which
+        needs its upstream stages current too: a run would rebuild it after them)."""
         rows = []
+        current_of: dict[str, bool | None] = {}
         for name in self.order:
             stage = self.stages[name]
             row: dict[str, Any] = {"stage": name}
@@ -321,7 +335,9 @@ class Pipeline:
                 folder = self.env.dir(name)
                 row["exists"] = folder.meta() is not None
                 row["summary"] = folder.summary()
-            row["current"] = current if row["exists"] else False
+            upstream_current = all(current_of.get(u) for u in stage.upstream)
+            row["current"] = (current and upstream_current) if row["exists"] else False
+            current_of[name] = row["current"]
             rows.append(row)
         return rows
 
@@ -334,9 +350,16 @@ def parse_frames(spec: str | None, frame_ids: list[str]) -> list[int] | None:
     if ":" in spec:
         try:
             parts = [int(p) if p else None for p in spec.split(":")]
+            if len(parts) > 3 or (len(parts) == 3 and parts[2] == 0):
+                raise ValueError
         except ValueError:
-            raise ConfigError(f"--frames: cannot parse '{spec}' (use START:STOP[:STEP] or a comma list)") from None
-        return list(range(len(frame_ids)))[slice(*parts)]
+            raise ConfigError(f"--frames: cannot parse '{spec}' (use START:STOP[:STEP] with a non-zero STEP, "
+                              f"or a comma list)") from None
+        chosen = list(range(len(frame_ids)))[slice(*parts)]
+        if not chosen:
+            raise ConfigError(f"--frames {spec}: selects no frame (this dataset has {len(frame_ids)}, "
+                              f"indices 0 to {len(frame_ids) - 1})")
+        return chosen
     lookup = {f: i for i, f in enumerate(frame_ids)}
     out = []
     for item in spec.split(","):

@@ -51,6 +51,8 @@ class FrameStage:
     ``select(cfg, dataset_inputs) -> bool mask (F,)`` limits the frames the stage works on (for
     example one split); unselected frames are reported as excluded.
     ``needs_reader``: the frame function reads raw files through ``inputs.reader``.
+    ``check(cfg)``: ConfigError for settings the stage cannot run with; the runner calls it for
+    every stage of a run before any output is touched.
     """
 
     name: str
@@ -62,11 +64,13 @@ class FrameStage:
     select: Callable[..., np.ndarray] | None = None
     needs_reader: bool = False
     doc: str = ""
+    check: Callable[["Config"], None] | None = None
 
 
 @dataclass(frozen=True)
 class DatasetStage:
-    """A stage run once over the whole dataset: ``run(inputs, cfg, out) -> summary dict``."""
+    """A stage run once over the whole dataset: ``run(inputs, cfg, out) -> summary dict``;
+    ``check`` as for FrameStage."""
 
     name: str
     upstream: tuple[str, ...]
@@ -75,6 +79,7 @@ class DatasetStage:
     version: int = 1
     doc: str = ""
     extra_fingerprint: Callable[["Config"], str] | None = field(default=None)
+    check: Callable[["Config"], None] | None = None
 
 
 Stage = FrameStage | DatasetStage

@@ -141,12 +141,13 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.training import rssnet_predict
     from stages.patches import point_inputs
 
-    check_generation(cfg)
+    check(cfg)
     calib, syn_store = inputs.store("calibrate"), inputs.store("synthesize")
     split = np.asarray(calib.array("split")[:])
     seq = np.asarray(calib.array("sequence")[:])
     calib_done = calib.status() == DONE
-    frames = np.flatnonzero((syn_store.status() == DONE) & (split == SPLITS.get(cfg.eval.split, 2)))
+    in_split = np.ones(len(split), bool) if cfg.eval.split == "all" else split == SPLITS[cfg.eval.split]
+    frames = np.flatnonzero((syn_store.status() == DONE) & in_split)
     if len(frames) == 0:
         from pipeline.errors import PipelineError
         raise PipelineError(f"evaluate: no synthesized frame in split '{cfg.eval.split}' "
@@ -290,5 +291,13 @@ def _figures(inputs, cfg, rows, syn_store, figs: Path, syn_pooled, real_pooled, 
     histograms(figs / "histograms.png", _sph(real_pooled), _sph(np.concatenate(syn_pooled)))
 
 
+def check(cfg: Config) -> None:
+    """ConfigError for an unknown eval.split or generation settings no frame could run with."""
+    if cfg.eval.split != "all" and cfg.eval.split not in SPLITS:
+        from pipeline.errors import ConfigError
+        raise ConfigError(f"eval.split must be one of train, val, test, all; got '{cfg.eval.split}'")
+    check_generation(cfg)
+
+
 STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize"),
-                     config_keys=CONFIG_KEYS, version=VERSION, run=run, doc=__doc__)
+                     config_keys=CONFIG_KEYS, version=VERSION, run=run, doc=__doc__, check=check)

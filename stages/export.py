@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE
 from pipeline.config import Config
+from pipeline.errors import PipelineError
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
 
@@ -58,6 +59,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
 
     syn, calib = inputs.store("synthesize"), inputs.store("calibrate")
     done = np.flatnonzero(syn.status() == DONE)
+    if len(done) == 0:
+        raise PipelineError(f"export: synthesize has no finished frame (synth.split = '{cfg.synth.split}')")
     split = np.asarray(calib.array("split")[:])
     root = Path(out.path)
     radar_root = root / "radar"

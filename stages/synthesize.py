@@ -73,6 +73,8 @@ def check_generation(cfg: Config) -> None:
         raise ConfigError(f"placement.voxel_m must be >= 0, got {cfg.placement.voxel_m}")
     if not 0.0 <= cfg.placement.map_weight <= 1.0:
         raise ConfigError(f"placement.map_weight must be in [0, 1], got {cfg.placement.map_weight}")
+    if s.split != "all" and s.split not in SPLITS:
+        raise ConfigError(f"synth.split must be one of train, val, test, all; got '{s.split}'")
 
 
 def check_checkpoints(train_dir, cfg: Config) -> None:
@@ -92,9 +94,6 @@ def select(inputs, cfg: Config) -> np.ndarray:
     split = np.asarray(inputs.store("calibrate").array("split")[:])
     if cfg.synth.split == "all":
         return np.ones(len(split), bool)
-    if cfg.synth.split not in SPLITS:
-        from pipeline.errors import ConfigError
-        raise ConfigError(f"synth.split must be one of train, val, test, all; got '{cfg.synth.split}'")
     return split == SPLITS[cfg.synth.split]
 
 
@@ -198,4 +197,5 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
 
 
 STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,
-                   outputs=outputs, process=process, select=select, version=VERSION, doc=__doc__)
+                   outputs=outputs, process=process, select=select, version=VERSION, doc=__doc__,
+                   check=check_generation)

@@ -21,7 +21,7 @@ import numpy as np
 from pipeline.cache import DONE, RaggedRows
 from pipeline.checkpoint import read_meta
 from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config
-from pipeline.errors import PipelineError
+from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
 VERSION = 2
@@ -128,10 +128,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.training import (disnet_metrics, load_disnet, load_rssnet, rssnet_metrics, train_disnet,
                                    train_rssnet)
 
+    check(cfg)
     nets = {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
-    unknown = nets - set(NETS)
-    if unknown:
-        raise PipelineError(f"train.nets: unknown net(s) {sorted(unknown)} (use {', '.join(NETS)})")
     table = frame_table(inputs)
     d_data, idx = disnet_data(inputs, table)
     if len(idx["train"]) == 0:
@@ -206,5 +204,15 @@ def _headline(s: dict) -> str:
     return "; ".join(parts) or "trained"
 
 
+def check(cfg: Config) -> None:
+    """ConfigError for train.nets or training settings the stage cannot run with."""
+    from pipeline.training import check_training
+
+    unknown = {n.strip() for n in cfg.train.nets.split(",") if n.strip()} - set(NETS)
+    if unknown:
+        raise ConfigError(f"train.nets: unknown net(s) {sorted(unknown)} (use {', '.join(NETS)})")
+    check_training(cfg)
+
+
 STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=VERSION,
-                     run=run, doc=__doc__)
+                     run=run, doc=__doc__, check=check)

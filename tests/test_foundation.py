@@ -249,6 +249,21 @@ def test_cli_help_and_errors():
     assert missing.exit_code == 2 and "--data-root" in missing.output
 
 
+def test_cli_never_generates_a_world_into_a_folder_the_user_named(tmp_path):
+    """A mistyped --data-root for the synthetic dataset is an error, not a new 240-frame world."""
+    from pipeline.cli import main
+
+    runner = CliRunner()
+    target = tmp_path / "typo"
+    out = runner.invoke(main, ["run", "calibrate", "--cache", str(tmp_path / "cache"), "--data-root", str(target)])
+    assert out.exit_code == 2 and "no synthetic world there" in out.output and "generate-world" in out.output
+    assert not target.exists()
+    for args in (["--workers", "0"], ["--wait", "-5"]):
+        bad = runner.invoke(main, ["run", "calibrate", "--cache", str(tmp_path / "cache"), *args])
+        assert bad.exit_code == 2 and args[0] in bad.output
+    assert not (tmp_path / "cache").exists()
+
+
 def test_a_stage_rebuilt_after_its_output_was_deleted_marks_downstream_stale(tmp_path, monkeypatch):
     """Deleting a stage's output by hand and running again rebuilds it under the same fingerprint;
     the outputs made from the old one must not pass as current (they did before 2026-12-01)."""
@@ -280,3 +295,83 @@ def test_force_recompute_marks_downstream_stale(tmp_path, monkeypatch):
     assert reports["calibrate"].processed == 0          # forced once, now current
     assert reports["heatmaps"].processed == len(IDS)    # recomputed from the new calibrate
     assert reports["train"].summary["message"] != "up to date"
+
+
+def test_invalid_settings_are_refused_before_any_output_is_touched(tmp_path):
+    """A stage's check runs for the whole run before any stage recreates or invalidates anything."""
+    import dataclasses
+
+    from pipeline.runner import Pipeline as P
+    from stages import all_stages
+
+    make_pipeline(tmp_path).run("train")
+
+    def refuse(cfg):
+        raise ConfigError("heatmap.sigma_px: refused by the check")
+
+    stages = [dataclasses.replace(s, check=refuse) if s.name == "heatmaps" else s for s in fake_stages.STAGES]
+    cfg = load_config("synthetic", {"heatmap.sigma_px": "11,11"}, environ={})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
+    pipe = P(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+    with pytest.raises(ConfigError, match="refused"):
+        pipe.run("train")
+    assert (pipe.env.store("heatmaps").status() == DONE).all()          # not recreated
+    assert make_pipeline(tmp_path).is_current("train")                   # not invalidated
+    # the real stages' checks: bad values name their key, with no cache at all
+    real = {"synth.placement": "foo", "placement.map_weight": "-1", "train.epochs": "-3", "eval.split": "tset",
+            "train.nets": "disnet,bogus", "train.ema_decay": "1"}
+    for key, value in real.items():
+        cfg = load_config("synthetic", {key: value}, environ={})
+        env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "none"), dataset="synthetic", data_root=str(tmp_path))
+        with pytest.raises(ConfigError, match=key.split(".")[-1]):
+            P(all_stages(), env, Executor(1), progress=False, log=lambda m: None,
+              frame_lister=lambda: list(IDS)).check_config("evaluate")
+    assert not (tmp_path / "none").exists()
+
+
+def test_a_killed_forced_rebuild_leaves_downstream_stale(tmp_path, monkeypatch):
+    """Downstream outputs are marked stale before the rebuild starts, not after it ends."""
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    make_pipeline(tmp_path).run("train")
+    log.unlink()
+    monkeypatch.setenv("FAKE_STAGE_STOP_AFTER", "3")
+    with pytest.raises(KeyboardInterrupt):
+        make_pipeline(tmp_path).run("calibrate", force=True)
+    assert not make_pipeline(tmp_path).is_current("heatmaps")
+    assert not make_pipeline(tmp_path).is_current("train")
+
+
+def test_force_on_a_dataset_stage_starts_from_scratch_and_status_follows_upstream(tmp_path):
+    pipe = make_pipeline(tmp_path)
+    pipe.run("train")
+    leftover = Path(pipe.env.dir("train").file("checkpoint.safetensors"))
+    leftover.write_bytes(b"an earlier run's state")
+    make_pipeline(tmp_path).run("train", force=True)
+    assert not leftover.exists() and (leftover.parent / "total.txt").exists()
+    # status: a stage whose upstream would be rebuilt is not current, whatever its own record says
+    changed = make_pipeline(tmp_path, **{"heatmap.sigma_px": "12,12"})
+    rows = {r["stage"]: r for r in changed.status()}
+    assert rows["calibrate"]["current"] and not rows["heatmaps"]["current"] and not rows["train"]["current"]
+
+
+def test_frames_that_select_nothing_and_bad_steps_are_errors():
+    for spec in ("999:1000", "5:1", "0:10:0", "1:2:3:4"):
+        with pytest.raises(ConfigError, match="--frames"):
+            parse_frames(spec, IDS)
+
+
+def test_unlock_refuses_a_lock_of_a_running_process(tmp_path):
+    import json
+    import socket
+
+    from pipeline.lock import remove_lock
+
+    lock = tmp_path / "x.lock"
+    lock.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "started": 0}))
+    with pytest.raises(LockError, match="still running"):
+        remove_lock(str(lock))
+    assert lock.exists()
+    lock.write_text(json.dumps({"pid": 2 ** 22 + 12345, "host": socket.gethostname(), "started": 0}))
+    assert remove_lock(str(lock)) and not lock.exists()
+    assert remove_lock(str(lock)) is False
