@@ -197,14 +197,17 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
             "placement": cfg.synth.placement,
             "train_mean_count": stats["n_bar"], "synthesize_counts": _synth_counts(syn_store, frames)}
+    missing = int((in_split & calib_done & (syn_store.status() != DONE)).sum())
+    if missing:  # a partial report must say so (e.g. after `run synthesize --frames ...`)
+        meta["frames_not_synthesized"] = f"{missing} of the split's frames are not in this report (synthesize has not finished them)"
     by_speed = speed_breakdown(np.array(speeds), np.array([len(x) for x in real_frames]), np.array(model_counts),
                                per_frame["model"])
     json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, table, distances, phys, meta,
                                       by_speed)
     model = table["model"]
     return {"report": str(md_path), "figures": str(figs),
-            "message": (f"{len(frames)} frames: model chamfer {model['chamfer_m']['mean']:.2f} m, "
-                        f"F1 {model['f1']['mean']:.3f}; report {md_path}")}
+            "message": (f"{len(frames)} frames{f' ({missing} more not synthesized yet)' if missing else ''}: "
+                        f"model chamfer {model['chamfer_m']['mean']:.2f} m, F1 {model['f1']['mean']:.3f}; report {md_path}")}
 
 
 def _sph(points5: np.ndarray) -> np.ndarray:
