@@ -266,9 +266,11 @@ class Pipeline:
                     store.mark(int(i), FAILED if code == FAILED else EXCLUDED, f"upstream stage {up} {word} for this frame")
                 todo_mask &= ~blocked
             todo_mask &= up_status == DONE
-        if stage.select is not None and todo_mask.any():
+        if stage.select is not None and (todo_mask.any() or (status == PENDING).any()):
             chosen = np.asarray(stage.select(DatasetInputs(self.env, ids), self.env.cfg), bool)
-            for i in np.flatnonzero(todo_mask & ~chosen):
+            # every pending frame the configuration leaves out, whatever --frames asked for, so
+            # that the pending count is what is left to do
+            for i in np.flatnonzero((todo_mask | (status == PENDING)) & ~chosen):
                 store.mark(int(i), EXCLUDED, "not selected by this stage's configuration")
             todo_mask &= chosen
         todo = [(int(i), ids[int(i)]) for i in np.flatnonzero(todo_mask)]

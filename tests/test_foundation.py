@@ -375,3 +375,21 @@ def test_unlock_refuses_a_lock_of_a_running_process(tmp_path):
     lock.write_text(json.dumps({"pid": 2 ** 22 + 12345, "host": socket.gethostname(), "started": 0}))
     assert remove_lock(str(lock)) and not lock.exists()
     assert remove_lock(str(lock)) is False
+
+
+def test_frames_the_configuration_leaves_out_are_excluded_whatever_frames_says(tmp_path):
+    """With --frames the pending count is still what is left to do: frames the stage's select
+    leaves out are excluded at once, not left pending."""
+    import dataclasses
+
+    from pipeline.runner import Pipeline as P
+
+    def even(inputs, cfg):
+        return np.arange(len(inputs.frame_ids)) % 2 == 0
+
+    stages = [dataclasses.replace(s, select=even) if s.name == "heatmaps" else s for s in fake_stages.STAGES]
+    cfg = load_config("synthetic", environ={})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
+    pipe = P(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+    report = pipe.run("heatmaps", frames=[0, 1])[1]
+    assert (report.done, report.excluded, report.pending) == (1, 6, 5)
