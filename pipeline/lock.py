@@ -7,6 +7,10 @@ two runs recovering the same stale lock cannot both win. The holder deletes the 
 lets go; a contender that locked a file deleted meanwhile notices (inode changed) and retries.
 On remote (fsspec) caches creation is exists-then-write, which is best effort; a lock left by a
 dead process on another host is reported with its age and can be removed with ``pipeline unlock``.
+
+Readers: a stage run holds a shared flock on its inputs' ``<stage>.lock.readers`` files (kept,
+never deleted), and a run that recreates or replaces an output (forced, or stale) takes that
+output's exclusively, so an output is not rewritten while another run reads it. Local caches only.
 """
 
 from __future__ import annotations
@@ -136,6 +140,64 @@ def stage_lock(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
             info = _read(fs, path)
             if info is not None and info.get("pid") == os.getpid() and info.get("host") == socket.gethostname():
                 fs.rm(path)
+
+
+@contextmanager
+def reading(urls: list[str], what: str, wait_s: float = 0.0) -> Iterator[None]:
+    """While the body runs, no other run may rewrite the stage outputs whose lock files are ``urls``
+    (a shared lock on each one's ``.readers`` file; see :func:`rewriting`). Local caches only: on
+    remote ones this does nothing. LockError (naming ``what``) when one is being rewritten and
+    ``wait_s`` runs out."""
+    with _readers_locks(urls, fcntl.LOCK_SH, wait_s,
+                        f"{what}: an input of it is being rewritten by another run; wait for it to finish (or "
+                        f"pass --wait SECONDS)"):
+        yield
+
+
+@contextmanager
+def rewriting(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
+    """While the body runs, the output whose lock file is ``url`` is recreated or replaced: no
+    other run may be reading it (an exclusive lock on its ``.readers`` file). Taken inside
+    stage_lock, only by a run that rewrites the output (appending frames to it needs no more)."""
+    with _readers_locks([url], fcntl.LOCK_EX, wait_s,
+                        f"{what} is being read by another run (a stage downstream of it); wait for it to finish "
+                        f"(or pass --wait SECONDS)"):
+        yield
+
+
+@contextmanager
+def _readers_locks(urls: list[str], mode: int, wait_s: float, refusal: str) -> Iterator[None]:
+    deadline = time.monotonic() + wait_s
+    held = []
+    try:
+        for url in urls:
+            fs, path = fsspec.core.url_to_fs(url)
+            if not _is_local(fs):
+                continue
+            fs.makedirs(fs._parent(path), exist_ok=True)
+            held.append(_flock_readers(path, mode, deadline, refusal))
+        yield
+    finally:
+        for fd in held:
+            os.close(fd)
+
+
+def _flock_readers(lock_path: str, mode: int, deadline: float, refusal: str) -> int:
+    """Open ``lock_path``.readers (kept, never deleted) and flock it with ``mode`` (LOCK_SH or LOCK_EX),
+    waiting until ``deadline``; the open descriptor (closing it releases the lock)."""
+    fd = os.open(lock_path + ".readers", os.O_CREAT | os.O_RDWR, 0o644)
+    while True:
+        try:
+            fcntl.flock(fd, mode | fcntl.LOCK_NB)
+            return fd
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                os.close(fd)
+                raise LockError(refusal) from None
+            time.sleep(0.2)
+        except BaseException:
+            os.close(fd)
+            raise
 
 
 def _acquire_local(path: str, payload: str, what: str, deadline: float) -> int:

@@ -10,6 +10,7 @@ marks the downstream outputs made from its old output stale.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -24,7 +25,7 @@ import numpy as np
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest, join
 from pipeline.errors import ConfigError, FrameError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
-from pipeline.lock import stage_lock
+from pipeline.lock import reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
 
 FIRST_STAGE = "calibrate"
@@ -174,23 +175,29 @@ class Pipeline:
         self.check_config(target)
         for name in self.upstream_closure(target):
             stage = self.stages[name]
-            lock_url = join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
-            with stage_lock(lock_url, f"stage '{name}' of dataset '{self.env.dataset}'", wait_s):
+            what = f"stage '{name}' of dataset '{self.env.dataset}'"
+            with stage_lock(self._lock_url(name), what, wait_s), \
+                    reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
                 t0 = time.perf_counter()
-                if (force and name == target) or not self.is_current(name):
-                    # new outputs under a fingerprint that downstream outputs may already carry:
-                    # marked stale first, so that a run killed while rebuilding leaves them stale
-                    self.invalidate_downstream(name)
-                if isinstance(stage, FrameStage):
-                    report = self._run_frames(stage, frames, strict, force and name == target, retry_failed)
-                else:
-                    report = self._run_dataset(stage, force and name == target)
+                rebuild = (force and name == target) or not self.is_current(name)
+                with rewriting(self._lock_url(name), what, wait_s) if rebuild else contextlib.nullcontext():
+                    if rebuild:
+                        # new outputs under a fingerprint that downstream outputs may already carry:
+                        # marked stale first, so that a run killed while rebuilding leaves them stale
+                        self.invalidate_downstream(name)
+                    if isinstance(stage, FrameStage):
+                        report = self._run_frames(stage, frames, strict, force and name == target, retry_failed)
+                    else:
+                        report = self._run_dataset(stage, force and name == target)
                 report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
             if strict and report.failed:
                 raise FrameError(name, "?", f"{report.failed} frame(s) failed; first: {report.failures[0]}")
         return reports
+
+    def _lock_url(self, name: str) -> str:
+        return join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
 
     def check_config(self, target: str) -> None:
         """ConfigError for settings a stage of ``target``'s run cannot work with, before any output

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -393,3 +394,39 @@ def test_frames_the_configuration_leaves_out_are_excluded_whatever_frames_says(t
     pipe = P(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
     report = pipe.run("heatmaps", frames=[0, 1])[1]
     assert (report.done, report.excluded, report.pending) == (1, 6, 5)
+
+
+def test_an_output_being_read_is_not_rewritten_and_the_other_way_round(tmp_path):
+    """A run reading a stage's output (a stage downstream of it) holds off a run that would rewrite
+    it, e.g. `run synthesize --force` while `run evaluate` reads synthesize; and a run does not read
+    an output another run is writing. Both stop with a message, or wait with --wait."""
+    import threading
+
+    from pipeline.lock import reading, rewriting
+
+    url = str(tmp_path / "locks" / "synthesize.lock")
+    with reading([url], "stage 'evaluate'"):
+        with stage_lock(url, "stage 'synthesize'"):   # checking it, or appending frames: allowed
+            with pytest.raises(LockError, match="being read by another run"):
+                with rewriting(url, "stage 'synthesize'"):
+                    pass
+        with reading([url], "stage 'export'"):   # readers share
+            pass
+    with rewriting(url, "stage 'synthesize'"):
+        with pytest.raises(LockError, match="'evaluate': an input of it is being rewritten"):
+            with reading([url], "stage 'evaluate'"):
+                pass
+    done = threading.Event()
+
+    def read_briefly():
+        with reading([url], "stage 'evaluate'"):
+            done.set()
+            time.sleep(0.6)
+
+    reader = threading.Thread(target=read_briefly)
+    reader.start()
+    done.wait(5)
+    t0 = time.monotonic()
+    with rewriting(url, "stage 'synthesize'", wait_s=10):   # waits for the reader, then rewrites
+        assert time.monotonic() - t0 > 0.3
+    reader.join()
