@@ -26,6 +26,9 @@ def _handle_errors(fn):
         except PipelineError as exc:
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
+        except OSError as exc:  # e.g. a dataset folder or index that cannot be read
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(2)
         except KeyboardInterrupt:
             click.echo("interrupted: finished frames are kept; run the same command again to resume", err=True)
             sys.exit(130)

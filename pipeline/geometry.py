@@ -16,8 +16,8 @@ from pipeline.frame import check_shape
 def invert_transform(T_dst_src: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform (4, 4): returns T_src_dst.
 
-    Raises ValueError if the rotation block is not orthonormal (|R^T R - I| > 1e-3) or the last row
-    is not [0, 0, 0, 1]: such a matrix is not a rigid transform.
+    Raises ValueError if the rotation block is not orthonormal (|R^T R - I| > 1e-3) or a mirror
+    (determinant -1), or the last row is not [0, 0, 0, 1]: such a matrix is not a rigid transform.
     """
     T = check_shape("T", np.asarray(T_dst_src, dtype=np.float64), (4, 4))
     if not np.all(np.isfinite(T)):
@@ -27,6 +27,8 @@ def invert_transform(T_dst_src: np.ndarray) -> np.ndarray:
     R = T[:3, :3]
     if np.abs(R.T @ R - np.eye(3)).max() > 1e-3:
         raise ValueError("transform rotation block is not orthonormal (not invertible as a rigid transform)")
+    if np.linalg.det(R) < 0:
+        raise ValueError("transform rotation block has determinant -1: a mirror image, not a rotation")
     out = np.eye(4)
     out[:3, :3] = R.T
     out[:3, 3] = -R.T @ T[:3, 3]

@@ -118,7 +118,11 @@ class Pipeline:
             else:
                 from pipeline.readers import get_reader
 
-                ids = get_reader(self.env.cfg, self.env.data_root).frame_ids()
+                reader = get_reader(self.env.cfg, self.env.data_root)
+                ids = reader.frame_ids()
+                skipped = {k: v for k, v in reader.report().items() if v}
+                if skipped:  # e.g. index entries without files: in no stage's status, so said here
+                    self.log("reader      " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in skipped.items()))
             if len(set(ids)) != len(ids):
                 raise PipelineError(f"dataset at {self.env.data_root}: the reader listed duplicate frame ids")
             if not ids:

@@ -79,6 +79,19 @@ def _labels_array(labels) -> np.ndarray:
     return label_rows(labels[:MAX_LABELS]).astype(np.float32)
 
 
+MIN_POINTS_TO_JUDGE = 50
+"""A sensor with at least this many points of which none lands in the camera's view points at a
+wrong calibration (mirrored, in millimetres, another sensor's matrix): the frame fails."""
+
+
+def _check_view(frame_id: str, n_lidar: int, n_lidar_kept: int, n_radar: int, n_radar_kept: int) -> None:
+    """FrameError when a sensor has points but none inside the camera's view and range."""
+    for name, n, kept in (("lidar", n_lidar, n_lidar_kept), ("radar", n_radar, n_radar_kept)):
+        if n >= MIN_POINTS_TO_JUDGE and kept == 0:
+            raise FrameError("calibrate", frame_id, f"none of the {n} {name} points lies in the camera's view "
+                                                    f"and range: the calibration is probably wrong")
+
+
 def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     """Read one frame and bring it to the working resolution and the common field of view."""
     rec = inputs.reader.read(inputs.frame_id)
@@ -97,6 +110,7 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     keep_lidar = common_fov_mask(rec.lidar_D, K_w, T_cam_radar, size, 360.0, 180.0,
                                  cfg.radar.max_range_m + cfg.lidar.range_margin_m)
     lidar = rec.lidar_D[keep_lidar]
+    _check_view(inputs.frame_id, len(rec.lidar_D), len(lidar), n, int(kept.sum()))
     cap = cfg.lidar.store_max_points
     if len(lidar) > cap:
         lidar = lidar[np.sort(inputs.rng(0, 7).choice(len(lidar), cap, replace=False))]

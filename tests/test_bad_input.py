@@ -225,3 +225,62 @@ def test_pose_that_is_not_rigid(vod):
     radar = np.fromfile(_radar(vod), "<f4").reshape(-1, 7)[:2]  # too few points: poses are needed
     radar.tofile(_radar(vod))
     _expect(_vod_reader(vod), FID, vod / "lidar/training/pose" / f"{FID}.json", "odomToCamera")
+
+
+def test_mirrored_and_doubled_calibrations_are_refused(vod, astyx):
+    """A reflection passes an orthonormality test but mirrors the lidar; two values for one key
+    leave the reader guessing (found by the 2026-12-02 audit: both gave silently wrong frames)."""
+    text = _calib(vod).read_text()
+    _calib(vod).write_text(text.replace("R0_rect: 1 0 0", "R0_rect: -1 0 0"))
+    _expect(_vod_reader(vod), FID, _calib(vod), "determinant -1")
+    tr = next(line for line in text.splitlines() if line.startswith("Tr_velo_to_cam"))
+    _calib(vod).write_text(text + "\n" + tr + "\n")
+    _expect(_vod_reader(vod), FID, _calib(vod), "'Tr_velo_to_cam' appears twice")
+    path = astyx / "calibration/000001.json"
+    calib = json.loads(path.read_text())
+    mirrored = np.asarray(calib["sensors"][1]["calib_data"]["T_to_ref_COS"])
+    mirrored[:3, 0] *= -1
+    calib["sensors"][1]["calib_data"]["T_to_ref_COS"] = mirrored.tolist()
+    path.write_text(json.dumps(calib))
+    _expect(_astyx_reader(astyx), "000001", path, "determinant -1")
+    calib["sensors"][1]["calib_data"] = None
+    path.write_text(json.dumps(calib))
+    _expect(_astyx_reader(astyx), "000001", path, "'T_to_ref_COS' of sensor 'lidar_vlp16' is missing")
+
+
+def test_astyx_radar_columns_by_name_and_doppler_span(astyx):
+    path = astyx / "radar_6455/000000.txt"
+    text = path.read_text()
+    path.write_text(text.replace("X Y Z V_r Mag", "X Y Z Mag V_r"))
+    _expect(_astyx_reader(astyx), "000000", path, "columns X Y Z Mag V_r, expected X Y Z V_r Mag")
+    lines = text.splitlines()
+    first = next(i for i, line in enumerate(lines) if line.strip() and line.split()[0] != "X")
+    values = lines[first].split()
+    values[3] = "48.0"   # a magnitude where V_r belongs
+    lines[first] = " ".join(values)
+    path.write_text("\n".join(lines) + "\n")
+    _expect(_astyx_reader(astyx), "000000", path, "outside the sensor's unambiguous span")
+
+
+def test_astyx_ground_truth_with_nan_is_refused(astyx):
+    path = next((astyx / "groundtruth_obj3d").glob("*.json"))
+    fid = path.stem
+    gt = json.loads(path.read_text())
+    gt["objects"][0]["center3d"][0] = float("nan")
+    path.write_text(json.dumps(gt))
+    _expect(_astyx_reader(astyx), fid, path, "NaN or inf")
+
+
+def test_calibrate_fails_a_frame_whose_points_all_miss_the_camera():
+    """A wrong calibration (in millimetres, another sensor's matrix) can pass every reader check and
+    put every lidar or radar point outside the camera's view: the frame fails instead of being
+    stored empty."""
+    from pipeline.errors import FrameError
+    from stages.calibrate import _check_view
+
+    _check_view("f", n_lidar=20000, n_lidar_kept=9000, n_radar=300, n_radar_kept=120)
+    _check_view("f", n_lidar=20000, n_lidar_kept=9000, n_radar=5, n_radar_kept=0)     # too few to judge
+    with pytest.raises(FrameError, match="none of the 20000 lidar points"):
+        _check_view("f", n_lidar=20000, n_lidar_kept=0, n_radar=300, n_radar_kept=120)
+    with pytest.raises(FrameError, match="none of the 300 radar points"):
+        _check_view("f", n_lidar=20000, n_lidar_kept=9000, n_radar=300, n_radar_kept=0)

@@ -238,6 +238,9 @@ def test_index_paths_cannot_leave_the_data_root(tmp_path):
     (root / "link").symlink_to(tmp_path)
     with pytest.raises(ReaderError, match="outside the dataset root"):
         inside_root(root, "link/secret.txt", "000001", root / "index.json")
+    (root / "radar" / "loop.txt").symlink_to(root / "radar" / "loop.txt")   # a file linked to itself
+    with pytest.raises(ReaderError, match="cannot be resolved"):
+        inside_root(root, "radar/loop.txt", "000001", root / "index.json")
 
 
 def test_npy_written_by_stages_loads_without_pickle(tmp_path):

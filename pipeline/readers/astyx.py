@@ -44,6 +44,8 @@ from pipeline.readers.base import (Reader, check_finite, check_intrinsics, check
                                    inside_root, read_image_rgb, require_file, split_sequences_at_gaps)
 
 KMH_TO_MPS = 1.0 / 3.6
+RADAR_COLUMNS = ("X", "Y", "Z", "V_r", "Mag")
+"""Header of an Astyx radar_6455 file, in this order."""
 
 
 def load_json(path: Path, frame: str | None, what: str, pairs_hook=None) -> object:
@@ -160,8 +162,9 @@ class _AstyxIndex(Reader):
         """(T_radar_lidar, T_radar_cam, K) from the calibration JSON; uids = (radar, lidar, camera)."""
         path = self._paths(frame_id)["calibration"]
         data = load_json(path, frame_id, "calibration")
-        sensors = {s.get("sensor_uid"): s.get("calib_data", {}) for s in data.get("sensors", [])
+        sensors = {s.get("sensor_uid"): s.get("calib_data") or {} for s in data.get("sensors", [])
                    if isinstance(s, dict)} if isinstance(data, dict) else {}
+        sensors = {uid: calib if isinstance(calib, dict) else {} for uid, calib in sensors.items()}
         T = {}
         for uid in uids:
             if uid not in sensors or "T_to_ref_COS" not in sensors[uid]:
@@ -179,6 +182,15 @@ class _AstyxIndex(Reader):
         path = self._paths(frame_id)[self.radar_uid]
         raw = read_text_table(path, 5, frame_id, "radar", "X")
         check_not_empty(raw, path, frame_id, "radar")
+        header = next(line.split() for line in path.read_text(errors="replace").splitlines() if line.strip())
+        if header != list(RADAR_COLUMNS):
+            raise ReaderError(path, f"radar: columns {' '.join(header)}, expected {' '.join(RADAR_COLUMNS)}",
+                              frame=frame_id)
+        span = self.cfg.radar.doppler_span_mps
+        if span > 0 and np.abs(raw[:, 3]).max() > 0.55 * span:
+            raise ReaderError(path, f"radar: V_r up to {np.abs(raw[:, 3]).max():.2f} m/s, outside the sensor's "
+                                    f"unambiguous span of +/-{span / 2:.2f} m/s (wrong column or unit?)",
+                              frame=frame_id)
         out = raw.astype(np.float32)
         out[:, 3] = raw[:, 3] * self.cfg.radar.doppler_sign
         return out
@@ -239,12 +251,15 @@ class AstyxReader(_AstyxIndex):
                 size = np.asarray(obj["dimension3d"], np.float64).reshape(3)
                 w, x, y, z = np.asarray(obj["orientation_quat"], np.float64).reshape(4)
                 name = str(obj["classname"])
+                track_id = int(obj.get("object_id", -1))
             except (KeyError, TypeError, ValueError):
                 raise ReaderError(path, f"object {i} lacks center3d/dimension3d/orientation_quat/classname "
                                         "or has malformed values", frame=frame_id) from None
+            if not np.all(np.isfinite(np.r_[centre, size, w, x, y, z])):
+                raise ReaderError(path, f"object {i} has NaN or inf in its box", frame=frame_id)
             yaw = float(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
             objects.append(Object3D(class_name=name, center_D=centre, size_lwh_m=size, yaw_rad=yaw,
-                                    track_id=int(obj.get("object_id", -1))))
+                                    track_id=track_id))
         return objects
 
 

@@ -75,12 +75,16 @@ def require_file(path: Path, frame: str | None, what: str) -> Path:
 
 
 def inside_root(root: Path, relative: str, frame: str | None, index_file: Path) -> Path:
-    """Resolve ``relative`` under ``root``; ReaderError if it is absolute or leaves the root."""
+    """Resolve ``relative`` under ``root``; ReaderError if it is absolute or leaves the root, also
+    through a symlink (an index may come from an untrusted source), or runs into a symlink loop."""
     rel = Path(relative)
-    target = (root / rel).resolve()
+    try:
+        target = (root / rel).resolve()
+    except (RuntimeError, OSError) as exc:  # RuntimeError: a symlink loop (Python 3.11)
+        raise ReaderError(index_file, f"index entry '{relative}' cannot be resolved ({exc})", frame=frame) from None
     if rel.is_absolute() or not target.is_relative_to(root.resolve()):
-        raise ReaderError(index_file, f"index entry '{relative}' points outside the dataset root {root}",
-                          frame=frame)
+        raise ReaderError(index_file, f"index entry '{relative}' points outside the dataset root {root} "
+                                      f"(symlinks followed)", frame=frame)
     return root / rel
 
 

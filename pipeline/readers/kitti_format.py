@@ -29,6 +29,8 @@ def parse_calib_file(path: Path, frame: str | None) -> dict[str, np.ndarray]:
         if ":" not in line:
             raise ReaderError(path, f"line {line_no} is not 'key: values': {line.strip()[:40]!r}", frame=frame)
         key, values = line.split(":", 1)
+        if key.strip() in out:  # two values for one key: which one is meant cannot be known
+            raise ReaderError(path, f"calibration key '{key.strip()}' appears twice (line {line_no})", frame=frame)
         try:
             out[key.strip()] = np.array([float(v) for v in values.split()], dtype=np.float64)
         except ValueError:
