@@ -167,6 +167,8 @@ def rewriting(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
 
 @contextmanager
 def _readers_locks(urls: list[str], mode: int, wait_s: float, refusal: str) -> Iterator[None]:
+    from pipeline.cache import cache_error
+
     deadline = time.monotonic() + wait_s
     held = []
     try:
@@ -174,8 +176,11 @@ def _readers_locks(urls: list[str], mode: int, wait_s: float, refusal: str) -> I
             fs, path = fsspec.core.url_to_fs(url)
             if not _is_local(fs):
                 continue
-            fs.makedirs(fs._parent(path), exist_ok=True)
-            held.append(_flock_readers(path, mode, deadline, refusal))
+            try:
+                fs.makedirs(fs._parent(path), exist_ok=True)
+                held.append(_flock_readers(path, mode, deadline, refusal))
+            except OSError as exc:
+                raise cache_error(exc, f"taking the lock {url}.readers") from None
         yield
     finally:
         for fd in held:
