@@ -29,6 +29,13 @@ def _handle_errors(fn):
         except OSError as exc:  # e.g. a dataset folder or index that cannot be read
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
+        except Exception as exc:
+            if not type(exc).__module__.startswith(("distributed", "dask")):
+                raise
+            # the cluster failed (scheduler lost, workers killed): one line, and what is kept
+            click.echo(f"error: the dask cluster failed ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
+                       f"finished frames are kept: run the same command again to resume", err=True)
+            sys.exit(2)
         except KeyboardInterrupt:
             click.echo("interrupted: finished frames are kept; run the same command again to resume", err=True)
             sys.exit(130)
@@ -52,11 +59,18 @@ def dataset_options(fn):
     return fn
 
 
+def _absolute(path: str) -> str:
+    """A local path made absolute (a relative one means another folder on a dask worker or in a
+    later run from elsewhere); URLs and '' unchanged."""
+    return path if not path or "://" in path else os.path.abspath(path)
+
+
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
     from pipeline.executor import RunEnv
     from pipeline.runner import default_data_root
 
     cfg = load_config(dataset, parse_set_options(sets))
+    cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
     if not data_root:
         calib = frame_store(cache_root, dataset, "calibrate")
         data_root = calib.attrs().get("data_root", "") if calib.exists() else ""
@@ -169,6 +183,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
         return
     _ensure_world(env, pipe.progress)
     frames = parse_frames(frames_spec, pipe.frame_ids())
+    pipe.executor.check_cluster(env.cache_root)
     try:
         reports = pipe.run(stage, frames=frames, strict=strict, force=force, retry_failed=retry_failed,
                            wait_s=wait_s)

@@ -158,6 +158,15 @@ def _check_outputs(stage: FrameStage, cfg: Config, specs, out: dict[str, np.ndar
             raise ValueError(f"{spec.name}: expected per-frame shape {shape}, got {value.shape}")
 
 
+def _worker_probe(cache_root: str) -> bool:
+    """Run on a cluster worker: True when the cache root exists there (the package imported, or
+    this function could not have been unpickled)."""
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(cache_root)
+    return bool(fs.exists(path))
+
+
 class Executor:
     """Maps ``process_frame`` over frames, serially or on a dask.distributed cluster.
 
@@ -182,6 +191,8 @@ class Executor:
             from distributed import Client, LocalCluster
 
             if self.scheduler:
+                # a lost scheduler is reported in one line (cli); the client's own traceback would bury it
+                logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
                 self._client = Client(self.scheduler)
             else:
                 # dask's workers trim the heap after every 64 KiB freed, which also pins glibc's mmap
@@ -193,6 +204,27 @@ class Executor:
                                                  dashboard_address=":0", silence_logs=logging.CRITICAL)
                 self._client = Client(self._cluster)
         return self._client
+
+    def check_cluster(self, cache_root: str, timeout_s: float = 60.0) -> None:
+        """With an existing cluster (``scheduler``): connect now, before any output is touched, and
+        run one probe task that imports the package and looks for the cache. PipelineError naming
+        the problem when no worker can (none connected, the package missing on the workers, the
+        cache elsewhere on their machines)."""
+        if not self.scheduler:
+            return
+        from pipeline.errors import PipelineError
+
+        try:
+            client = self.client()
+            client.wait_for_workers(1, timeout=timeout_s)
+            found = client.submit(_worker_probe, cache_root, pure=False).result(timeout=timeout_s)
+        except Exception as exc:  # connection refused, timeouts, a worker that cannot unpickle the task
+            raise PipelineError(f"dask cluster at {self.scheduler}: no worker ran a probe task within {timeout_s:.0f} s "
+                                f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); its workers "
+                                f"need this package installed and the cache at the same path") from None
+        if not found:
+            raise PipelineError(f"dask cluster at {self.scheduler}: a worker does not see the cache {cache_root}; "
+                                f"its workers need the cache at the same path (a shared filesystem or an fsspec URL)")
 
     def close(self) -> None:
         if self._client is not None:

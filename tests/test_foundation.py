@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from pipeline.cache import DONE, FAILED, PENDING, DirStore, frame_store
 from pipeline.config import load_config
-from pipeline.errors import ConfigError, FrameError, LockError
+from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import stage_lock
 from pipeline.runner import Pipeline, parse_frames
@@ -217,6 +217,9 @@ def test_dask_localcluster_over_tcp_equals_serial(tmp_path, monkeypatch):
                                   protocol="tcp", dashboard_address=None) as cluster:
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1")
         with Executor(scheduler=cluster.scheduler_address, progress=False) as ex:
+            ex.check_cluster(str(tmp_path))       # the workers run a probe task and see the cache
+            with pytest.raises(PipelineError, match="does not see the cache"):
+                ex.check_cluster(str(tmp_path / "elsewhere"))
             dist = make_pipeline(tmp_path / "dist", executor=ex)
             dist.run("heatmaps")
     a, b = read_all(serial), read_all(dist)
@@ -263,6 +266,9 @@ def test_cli_never_generates_a_world_into_a_folder_the_user_named(tmp_path):
         bad = runner.invoke(main, ["run", "calibrate", "--cache", str(tmp_path / "cache"), *args])
         assert bad.exit_code == 2 and args[0] in bad.output
     assert not (tmp_path / "cache").exists()
+    from pipeline.cli import _absolute   # a relative cache would be another folder on a dask worker
+    assert _absolute("cache") == os.path.join(os.getcwd(), "cache")
+    assert _absolute("s3://bucket/cache") == "s3://bucket/cache" and _absolute("") == ""
 
 
 def test_a_stage_rebuilt_after_its_output_was_deleted_marks_downstream_stale(tmp_path, monkeypatch):
