@@ -162,9 +162,8 @@ class _AstyxIndex(Reader):
         """(T_radar_lidar, T_radar_cam, K) from the calibration JSON; uids = (radar, lidar, camera)."""
         path = self._paths(frame_id)["calibration"]
         data = load_json(path, frame_id, "calibration")
-        sensors = {s.get("sensor_uid"): s.get("calib_data") or {} for s in data.get("sensors", [])
-                   if isinstance(s, dict)} if isinstance(data, dict) else {}
-        sensors = {uid: calib if isinstance(calib, dict) else {} for uid, calib in sensors.items()}
+        sensors = {s.get("sensor_uid"): s["calib_data"] if isinstance(s.get("calib_data"), dict) else {}
+                   for s in data.get("sensors", []) if isinstance(s, dict)} if isinstance(data, dict) else {}
         T = {}
         for uid in uids:
             if uid not in sensors or "T_to_ref_COS" not in sensors[uid]:
