@@ -192,7 +192,7 @@ class Pipeline:
                     if isinstance(stage, FrameStage):
                         report = self._run_frames(stage, frames, strict, force and name == target, retry_failed)
                     else:
-                        report = self._run_dataset(stage, force and name == target)
+                        report = self._run_dataset(stage, force and name == target, rebuild)
                 report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
@@ -300,11 +300,12 @@ class Pipeline:
         report.excluded = int((final == EXCLUDED).sum())
         return report
 
-    def _run_dataset(self, stage: DatasetStage, force: bool) -> StageReport:
+    def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:
+        """Run a dataset stage when ``rebuild`` (forced or not current, as run() found), else report it current."""
         out = self.env.dir(stage.name)
         fp = self.fingerprint(stage.name)
         report = StageReport(stage.name, "dataset")
-        if not force and self.is_current(stage.name):
+        if not rebuild:
             report.summary = {**out.summary(), "message": "up to date"}
             return report
         frames = self.frames_read(stage.name)

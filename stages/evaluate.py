@@ -22,7 +22,7 @@ from pipeline.cache import DONE
 from pipeline.config import Config
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
-from stages.synthesize import SPLITS, check_generation, generate, models
+from stages.synthesize import check_generation, check_split, generate, models, split_mask
 
 NOMINAL_FRAME_PERIOD_S = 0.1
 """Frame period assumed by the previous-frame baseline where timestamps do not give one (10 Hz)."""
@@ -146,8 +146,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     split = np.asarray(calib.array("split")[:])
     seq = np.asarray(calib.array("sequence")[:])
     calib_done = calib.status() == DONE
-    in_split = np.ones(len(split), bool) if cfg.eval.split == "all" else split == SPLITS[cfg.eval.split]
-    frames = np.flatnonzero((syn_store.status() == DONE) & in_split)
+    in_split = split_mask(split, cfg.eval.split)
+    syn_done = syn_store.status() == DONE
+    frames = np.flatnonzero(syn_done & in_split)
     if len(frames) == 0:
         from pipeline.errors import PipelineError
         raise PipelineError(f"evaluate: no synthesized frame in split '{cfg.eval.split}' "
@@ -197,7 +198,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
             "placement": cfg.synth.placement,
             "train_mean_count": stats["n_bar"], "synthesize_counts": _synth_counts(syn_store, frames)}
-    missing = int((in_split & calib_done & (syn_store.status() != DONE)).sum())
+    missing = int((in_split & calib_done & ~syn_done).sum())
     if missing:  # a partial report must say so (e.g. after `run synthesize --frames ...`)
         meta["frames_not_synthesized"] = f"{missing} of the split's frames are not in this report (synthesize has not finished them)"
     by_speed = speed_breakdown(np.array(speeds), np.array([len(x) for x in real_frames]), np.array(model_counts),
@@ -296,9 +297,7 @@ def _figures(inputs, cfg, rows, syn_store, figs: Path, syn_pooled, real_pooled, 
 
 def check(cfg: Config) -> None:
     """ConfigError for an unknown eval.split or generation settings no frame could run with."""
-    if cfg.eval.split != "all" and cfg.eval.split not in SPLITS:
-        from pipeline.errors import ConfigError
-        raise ConfigError(f"eval.split must be one of train, val, test, all; got '{cfg.eval.split}'")
+    check_split("eval.split", cfg.eval.split)
     check_generation(cfg)
 
 

@@ -36,6 +36,18 @@ CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synt
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
                "patches.patch_size_px")
 SPLITS = {"train": 0, "val": 1, "test": 2}
+
+
+def check_split(key: str, name: str) -> None:
+    """ConfigError unless ``name`` (the value of config key ``key``) names a split or 'all'."""
+    if name != "all" and name not in SPLITS:
+        from pipeline.errors import ConfigError
+        raise ConfigError(f"{key} must be one of train, val, test, all; got '{name}'")
+
+
+def split_mask(split: np.ndarray, name: str) -> np.ndarray:
+    """(F,) bool: the frames of split codes ``split`` (F,) in split ``name`` ('all': every frame)."""
+    return np.ones(len(split), bool) if name == "all" else np.asarray(split) == SPLITS[name]
 VERSION = 3
 """2: refill rounds oversample (pipeline.synthesis.REFILL_OVERSAMPLE), so the points differ from version 1's.
 3: lidar placement (synth.placement)."""
@@ -73,8 +85,7 @@ def check_generation(cfg: Config) -> None:
         raise ConfigError(f"placement.voxel_m must be >= 0, got {cfg.placement.voxel_m}")
     if not 0.0 <= cfg.placement.map_weight <= 1.0:
         raise ConfigError(f"placement.map_weight must be in [0, 1], got {cfg.placement.map_weight}")
-    if s.split != "all" and s.split not in SPLITS:
-        raise ConfigError(f"synth.split must be one of train, val, test, all; got '{s.split}'")
+    check_split("synth.split", s.split)
 
 
 def check_checkpoints(train_dir, cfg: Config) -> None:
@@ -91,10 +102,7 @@ def check_checkpoints(train_dir, cfg: Config) -> None:
 def select(inputs, cfg: Config) -> np.ndarray:
     check_generation(cfg)
     check_checkpoints(inputs.dir("train"), cfg)
-    split = np.asarray(inputs.store("calibrate").array("split")[:])
-    if cfg.synth.split == "all":
-        return np.ones(len(split), bool)
-    return split == SPLITS[cfg.synth.split]
+    return split_mask(inputs.store("calibrate").array("split")[:], cfg.synth.split)
 
 
 class Nets(NamedTuple):

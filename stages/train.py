@@ -129,7 +129,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                                    train_rssnet)
 
     check(cfg)
-    nets = {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
+    nets = _nets(cfg)
     table = frame_table(inputs)
     d_data, idx = disnet_data(inputs, table)
     if len(idx["train"]) == 0:
@@ -204,11 +204,16 @@ def _headline(s: dict) -> str:
     return "; ".join(parts) or "trained"
 
 
+def _nets(cfg: Config) -> set[str]:
+    """The nets train.nets names."""
+    return {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
+
+
 def check(cfg: Config) -> None:
     """ConfigError for train.nets or training settings the stage cannot run with."""
     from pipeline.training import check_training
 
-    unknown = {n.strip() for n in cfg.train.nets.split(",") if n.strip()} - set(NETS)
+    unknown = _nets(cfg) - set(NETS)
     if unknown:
         raise ConfigError(f"train.nets: unknown net(s) {sorted(unknown)} (use {', '.join(NETS)})")
     check_training(cfg)
