@@ -9,8 +9,11 @@ from __future__ import annotations
 import ctypes
 import functools
 import logging
+import queue
 import sys
+import time
 import traceback
+import uuid
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator
 
@@ -26,6 +29,13 @@ from pipeline.stage import FrameStage
 
 # glibc heap settings for local dask workers: arrays under 64 MiB come from a reused heap.
 WORKER_MALLOC = {"MALLOC_MMAP_THRESHOLD_": 64 << 20, "MALLOC_TRIM_THRESHOLD_": 128 << 20}
+
+# A run on a dask cluster that has had no worker this long stops (as long as check_cluster waits
+# for the first one): dask itself would wait for a worker forever.
+NO_WORKER_TIMEOUT_S = 60.0
+# While no frame comes back, a run on a cluster asks the scheduler this often how many workers it
+# has (one small request; never more often than a quarter of the no-worker timeout).
+WORKER_CHECK_S = 5.0
 
 
 @functools.cache
@@ -172,13 +182,17 @@ class Executor:
 
     ``workers`` == 1 and no ``scheduler``: in-process serial loop. Otherwise a LocalCluster of
     ``workers`` processes (started on first use, reused for every stage of the run) or the
-    existing cluster at ``scheduler``.
+    existing cluster at ``scheduler``. A cluster that has had no worker for
+    ``no_worker_timeout_s`` while frames are left stops the run with a PipelineError (the frames
+    finished so far are kept).
     """
 
-    def __init__(self, workers: int = 2, scheduler: str | None = None, progress: bool | None = None) -> None:
+    def __init__(self, workers: int = 2, scheduler: str | None = None, progress: bool | None = None,
+                 no_worker_timeout_s: float = NO_WORKER_TIMEOUT_S) -> None:
         self.workers = max(1, int(workers))
         self.scheduler = scheduler
         self.progress = sys.stderr.isatty() if progress is None else progress
+        self.no_worker_timeout_s = float(no_worker_timeout_s)
         self._client = None
         self._cluster = None
 
@@ -262,20 +276,52 @@ class Executor:
                     if strict and result[1] == FAILED:
                         return
             return
-        from distributed import as_completed
-
         client = self.client()
+        # keys unique to this call: a key submitted again (another run from this process, another
+        # client with the same id()) would be joined to the old task and get its result
+        token = uuid.uuid4().hex[:12]
         futures = [client.submit(process_frames, stage, env, batch, strict, pure=False,
-                                 key=f"{stage.name}-{batch[0][0]}-{id(self)}")
+                                 key=f"{stage.name}-{batch[0][0]}-{token}")
                    for batch in _batches(todo, self._slots(client))]
+        finished: queue.SimpleQueue = queue.SimpleQueue()
+        for fut in futures:  # in the order they finish, like as_completed, but with a wake-up
+            fut.add_done_callback(finished.put)
         try:
-            for fut in as_completed(futures):
+            for _ in futures:
+                fut = self._next_finished(client, finished)
                 for result in fut.result():
                     yield result
                     if strict and result[1] == FAILED:
                         return
         finally:
             client.cancel([f for f in futures if not f.done()])
+
+    def _next_finished(self, client, finished: queue.SimpleQueue):
+        """The next future to finish. While none does, ask the scheduler every few seconds whether
+        it still has a worker: PipelineError once it has had none for ``no_worker_timeout_s``
+        (dask would keep the tasks waiting for one forever)."""
+        wake = max(0.1, min(WORKER_CHECK_S, self.no_worker_timeout_s / 4))
+        none_since = None
+        while True:
+            try:
+                return finished.get(timeout=wake)
+            except queue.Empty:
+                pass
+            if self._worker_count(client) > 0:
+                none_since = None
+            elif none_since is None:
+                none_since = time.monotonic()
+            elif time.monotonic() - none_since >= self.no_worker_timeout_s:
+                where = self.scheduler or f"{self._cluster.scheduler_address} (the local cluster)"
+                raise PipelineError(f"dask cluster at {where} has had no worker for {self.no_worker_timeout_s:g} s; "
+                                    f"finished frames are kept: run the same command again to resume "
+                                    f"(once the cluster has workers)")
+
+    @staticmethod
+    def _worker_count(client) -> int:
+        """Workers the scheduler knows now (one request that lists at most one of them)."""
+        info = client.scheduler_info(n_workers=1)
+        return int(info.get("n_workers", len(info.get("workers", {}))))
 
     def _slots(self, client) -> int:
         """Worker threads of the cluster (the local cluster's size without asking it)."""
@@ -286,14 +332,32 @@ class Executor:
 
 def process_frames(stage: FrameStage, env: RunEnv, batch: list[tuple[int, str]],
                    strict: bool = False) -> list[tuple[int, int, str]]:
-    """``process_frame`` over a batch of frames (one dask task); with ``strict`` stop at a failure."""
+    """``process_frame`` over a batch of frames (one dask task); with ``strict`` stop at a failure.
+
+    A batch whose task was cancelled (the run stopped: --strict, Ctrl-C, the client gone) stops
+    before its next frame: dask cannot stop a running task, it only drops its result."""
     results = []
     with one_blas_thread():
         for index, frame_id in batch:
+            if _task_cancelled():
+                break
             results.append(process_frame(stage, env, index, frame_id))
             if strict and results[-1][1] == FAILED:
                 break
     return results
+
+
+def _task_cancelled() -> bool:
+    """True in a dask task that its worker has been told to forget (its client cancelled it or
+    went away); False outside a dask worker."""
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+        ts = worker.state.tasks.get(worker.get_current_task())
+    except Exception:  # not in a dask task (or a distributed without these): never cancelled
+        return False
+    return ts is not None and ts.state == "cancelled"
 
 
 def one_blas_thread() -> threadpool_limits:
