@@ -29,6 +29,8 @@ from pipeline.lock import reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
 
 FIRST_STAGE = "calibrate"
+NAME_WIDTH = 15
+"""Width of the stage-name column of progress lines (the longest name, evaluate-frames)."""
 
 
 @dataclass
@@ -66,13 +68,14 @@ class StageReport:
     excluded: int = 0
     processed: int = 0
     seconds: float = 0.0
-    failures: list[str] = field(default_factory=list)
+    failures: list[tuple[int, str]] = field(default_factory=list)
+    """(frame index, reason) of the frames that failed in this run."""
     summary: dict[str, Any] = field(default_factory=dict)
 
     def line(self) -> str:
         if self.action == "dataset":
-            return f"{self.stage:<11} {self.summary.get('message', 'done')} ({self.seconds:.1f} s)"
-        return (f"{self.stage:<11} processed {self.processed} frame(s) in {self.seconds:.1f} s; "
+            return f"{self.stage:<{NAME_WIDTH}} {self.summary.get('message', 'done')} ({self.seconds:.1f} s)"
+        return (f"{self.stage:<{NAME_WIDTH}} processed {self.processed} frame(s) in {self.seconds:.1f} s; "
                 f"done {self.done}, failed {self.failed}, pending {self.pending}, excluded {self.excluded}")
 
 
@@ -122,7 +125,7 @@ class Pipeline:
                 ids = reader.frame_ids()
                 skipped = {k: v for k, v in reader.report().items() if v}
                 if skipped:  # e.g. index entries without files: in no stage's status, so said here
-                    self.log("reader      " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in skipped.items()))
+                    self.log(f"{'reader':<{NAME_WIDTH}} " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in skipped.items()))
             if len(set(ids)) != len(ids):
                 raise PipelineError(f"dataset at {self.env.data_root}: the reader listed duplicate frame ids")
             if not ids:
@@ -183,22 +186,35 @@ class Pipeline:
             with stage_lock(self._lock_url(name), what, wait_s), \
                     reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
                 t0 = time.perf_counter()
-                rebuild = (force and name == target) or not self.is_current(name)
+                forced = force and (name == target or getattr(stage, "part_of", "") == target)
+                rebuild = forced or not self.is_current(name)
                 with rewriting(self._lock_url(name), what, wait_s) if rebuild else contextlib.nullcontext():
                     if rebuild:
                         # new outputs under a fingerprint that downstream outputs may already carry:
                         # marked stale first, so that a run killed while rebuilding leaves them stale
                         self.invalidate_downstream(name)
                     if isinstance(stage, FrameStage):
-                        report = self._run_frames(stage, frames, strict, force and name == target, retry_failed)
+                        report = self._run_frames(stage, frames, strict, forced, retry_failed)
                     else:
-                        report = self._run_dataset(stage, force and name == target, rebuild)
+                        report = self._run_dataset(stage, forced, rebuild)
                 report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
             if strict and report.failed:
-                raise FrameError(name, "?", f"{report.failed} frame(s) failed; first: {report.failures[0]}")
+                raise self._strict_error(name, report)
         return reports
+
+    def _strict_error(self, name: str, report: StageReport) -> FrameError:
+        """The error --strict stops with: the first frame that failed in this run (or, when every
+        failure is from an earlier run, the first one recorded), named by its id."""
+        if report.failures:
+            index, reason = report.failures[0]
+        else:
+            index, reason = next(iter(self.env.store(name).reasons().items()))
+        frame = self.frame_ids()[index]
+        prefix = f"stage {name}, frame {frame}: "
+        problem = reason[len(prefix):] if reason.startswith(prefix) else reason
+        return FrameError(name, frame, f"{problem} (--strict: stopped; {report.failed} frame(s) of the stage failed)")
 
     def _lock_url(self, name: str) -> str:
         return join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
@@ -229,7 +245,7 @@ class Pipeline:
             store = self.env.store(other) if isinstance(stage, FrameStage) else self.env.dir(other)
             if store.fingerprint() == self.fingerprint(other):  # would pass as current; others are stale already
                 store.invalidate()
-                self.log(f"{other:<11} marked stale (upstream {name} was recomputed)")
+                self.log(f"{other:<{NAME_WIDTH}} marked stale (upstream {name} was recomputed)")
 
     def _ensure_created(self, stage: FrameStage, force: bool) -> bool:
         store = self.env.store(stage.name)
@@ -288,7 +304,7 @@ class Pipeline:
         for index, code, reason in self.executor.map(stage, self.env, todo, strict):
             report.processed += 1
             if code == FAILED:
-                report.failures.append(reason)
+                report.failures.append((index, reason))
                 self.log(f"  failed: {reason}")
                 if strict:
                     break
@@ -310,7 +326,7 @@ class Pipeline:
             return report
         frames = self.frames_read(stage.name)
         if not force and out.fingerprint() == fp:
-            self.log(f"{stage.name:<11} recomputing: its per-frame inputs finished other frames since it ran")
+            self.log(f"{stage.name:<{NAME_WIDTH}} recomputing: its per-frame inputs finished other frames since it ran")
         if force:
             out.clear()  # from scratch: nothing of the last run is reused (train's checkpoints included)
         out.ensure()

@@ -7,7 +7,8 @@ this library never imports ``stages``.
 
 Two kinds:
 - ``FrameStage``: maps a pure function over frames; outputs are zarr arrays with one chunk per
-  frame under ``<cache>/<dataset>/<stage>.zarr``.
+  frame under ``<cache>/<dataset>/<stage>.zarr``. A dataset stage's per-frame work can be one too
+  (``part_of``), so that it is resumable and runs on the executor.
 - ``DatasetStage``: one function over the whole dataset (training, evaluation); writes files into
   ``<cache>/<dataset>/<stage>/``.
 """
@@ -53,6 +54,8 @@ class FrameStage:
     ``needs_reader``: the frame function reads raw files through ``inputs.reader``.
     ``check(cfg)``: ConfigError for settings the stage cannot run with; the runner calls it for
     every stage of a run before any output is touched.
+    ``part_of``: the dataset stage whose per-frame part this is (evaluate's per-frame metrics,
+    which the report then reads): ``--force`` on that stage recomputes this one too.
     """
 
     name: str
@@ -65,6 +68,7 @@ class FrameStage:
     needs_reader: bool = False
     doc: str = ""
     check: Callable[["Config"], None] | None = None
+    part_of: str = ""
 
 
 @dataclass(frozen=True)

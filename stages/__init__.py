@@ -1,4 +1,5 @@
-"""The pipeline's stages, in execution order. Each module declares one stage (``STAGE``)."""
+"""The pipeline's stages, in execution order. Each module declares one stage (``STAGE``); evaluate
+also its per-frame part (``FRAMES``, evaluate-frames)."""
 
 from __future__ import annotations
 
@@ -8,4 +9,4 @@ def all_stages() -> list:
     from stages import calibrate, evaluate, export, heatmaps, patches, synthesize, train
 
     return [calibrate.STAGE, heatmaps.STAGE, patches.STAGE, train.STAGE, synthesize.STAGE, export.STAGE,
-            evaluate.STAGE]
+            evaluate.FRAMES, evaluate.STAGE]

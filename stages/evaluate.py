@@ -1,13 +1,28 @@
 """evaluate: fidelity of the synthesized radar against the real one, next to the baselines.
 
-Reads: synthesize (points, pred_map, n_hat), calibrate (real radar, lidar, image, labels, ego
-velocity, split, sequence, timestamp), heatmaps (real heatmap, count), train (mean training
-heatmap, training count and RSS statistics, RSS-Net).
-Writes (evaluate/): report.json, report.md (one table: model and baselines, mean and median over
-frames; Wasserstein distances; the model by ego speed; physics checks), figures/fig8.png,
-figures/bev.png, figures/histograms.png.
+Two declarations, run in this order:
+
+- ``evaluate-frames`` (FRAMES, a frame stage: resumable, on the executor like any frame stage)
+  reads synthesize (points, pred_map, n_hat), calibrate (real radar, lidar, image, labels, ego
+  velocity, sequence, timestamp; the previous frame's radar for ``previous-frame``), heatmaps
+  (real heatmap, count) and train (mean training heatmap, training count and RSS statistics,
+  RSS-Net, PlaceNet), and writes per frame of eval.split that synthesize finished (evaluate-frames.zarr):
+  metrics (len(METHODS), len(FRAME_METRICS)) float64, every method's per-frame metrics (rows in
+  pipeline.baselines.METHODS order, columns pipeline.metrics.FRAME_METRICS; NaN where absent);
+  present (len(METHODS),) bool, whether the method has a result on the frame (``previous-frame``
+  needs a previous frame of the same sequence); count (len(METHODS),) float64, the count each
+  method decided; ego_speed () m/s; points (ragged, 7 columns) float64, every method's points and
+  the real ones in spherical coordinates [method row (-1: real), range m, azimuth rad, elevation
+  rad, range rate m/s, RSS] for the distribution distances and histograms; abs_dr (ragged, 5) m
+  and abs_dv (ragged) m/s, the physics checks' per-point residuals (no learning).
+- ``evaluate`` (STAGE, a dataset stage) reads evaluate-frames (and synthesize, calibrate for the
+  figures) and writes (evaluate/) report.json, report.md (one table: model and baselines, mean and
+  median over frames; Wasserstein distances; the model by ego speed; physics checks),
+  figures/fig8.png, figures/bev.png, figures/histograms.png.
+
 Config: eval.*, synth.* (baselines use the same generation steps), radar.*.
-Every method is evaluated on the same frames: those of eval.split that synthesize finished.
+Every method is evaluated on the same frames: those of eval.split that evaluate-frames finished
+(``previous-frame`` on those of them with a previous frame).
 """
 
 from __future__ import annotations
@@ -18,31 +33,39 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from pipeline.cache import DONE
+from pipeline.cache import DONE, FAILED
 from pipeline.config import Config
+from pipeline.errors import PipelineError
+from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
-from pipeline.stage import DatasetStage
-from stages.synthesize import check_generation, check_split, generate, models, split_mask
+from pipeline.stage import ArraySpec, DatasetStage, FrameStage
+from stages.synthesize import capacity, check_generation, check_split, generate, models, split_mask
 
 NOMINAL_FRAME_PERIOD_S = 0.1
 """Frame period assumed by the previous-frame baseline where timestamps do not give one (10 Hz)."""
 MAX_FRAME_GAP_S = 1.0
 """Consecutive frames further apart than this (or going backwards) use the nominal period."""
 
-VERSION = 7
+VERSION = 8
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
 random stream per method; 3: no-points row; 4: the model by ego speed; 5: physics checks with the
 share within 1 m and the best-lidar-point oracle; 6: the baselines follow synth.placement; 7: the
-baselines sample their maps at full weight, pipeline.baselines.generation_config)."""
+baselines sample their maps at full weight, pipeline.baselines.generation_config; 8: per-frame
+results in evaluate-frames.zarr)."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
 measured range (the matched-F1 gate's default)."""
+RANGE_ESTIMATORS = ("mean", "nearest", "median", "min")
+"""Range rules of the physics check (a); a fifth column, 'best', is the oracle (the window's lidar
+point closest to the measured range)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
                "synth.placement", "placement.voxel_m", "placement.map_weight", "heatmap.sigma_px",
                "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
+FRAME_KEYS = tuple(k for k in CONFIG_KEYS if k != "eval.figure_frames")
+"""Configuration of the per-frame results (the figures are the report's)."""
 
 
 def _train_stats(inputs, cfg: Config) -> dict:
@@ -58,6 +81,17 @@ def _train_stats(inputs, cfg: Config) -> dict:
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)
     return {"n_bar": int(round(counts[train].mean())) if len(train) else 0, "mean_map": mean_map,
             "train_rss": rss_values, "rss_median": float(np.median(rss_values)) if len(rss_values) else 0.0}
+
+
+def _shared(inputs: FrameInputs, cfg: Config) -> tuple[dict, list[str]]:
+    """The training statistics and the frame ids, computed once per process and train run (the
+    key holds the train stage's finishing time: a retrained net under the same fingerprint is
+    another run)."""
+    train = inputs.env.dir("train")
+    meta = train.meta() or {}
+    key = ("evaluate-shared", train.url, meta.get("fingerprint"), meta.get("finished"),
+           inputs.env.store("calibrate").fingerprint(), inputs.env.store("patches").fingerprint())
+    return process_memo(key, lambda: (_train_stats(inputs.env, cfg), inputs.env.store("calibrate").frame_ids()))
 
 
 def _real(f) -> np.ndarray:
@@ -80,24 +114,28 @@ def _static_mask(real: np.ndarray, labels: np.ndarray) -> np.ndarray:
     return np.linalg.norm(vel, axis=1) < 0.5
 
 
-def _previous_index(i: int, inputs, seq: np.ndarray, done: np.ndarray) -> int | None:
-    j = i - 1
-    return j if j >= 0 and seq[j] == seq[i] and done[j] else None
+def _previous(f: FrameInputs, frame_ids: list[str]) -> FrameInputs | None:
+    """The frame before ``f`` when calibrate finished it and it is of the same sequence, else None."""
+    j = f.index - 1
+    if j < 0 or f.env.store("calibrate").array("status")[j] != DONE:
+        return None
+    prev = FrameInputs(f.env, j, frame_ids[j])
+    return prev if prev.get("calibrate", "sequence") == f.get("calibrate", "sequence") else None
 
 
-def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, nets, prev,
+def _methods_for_frame(f: FrameInputs, cfg: Config, stats: dict, nets, prev: FrameInputs | None,
                        real_map: np.ndarray) -> dict[str, tuple[np.ndarray, float, np.ndarray | None]]:
-    """(points (N, 5), decided count, map or None) of every method on frame ``i``; ``real_map`` is
-    the frame's real heatmap (H, W)."""
+    """(points (N, 5), decided count, map or None) of every method on frame ``f``; ``real_map`` is
+    the frame's real heatmap (H, W); ``prev`` the previous frame of its sequence (or None)."""
     from pipeline.baselines import METHODS, choose_count, choose_map, choose_rss, ego_motion_transform, \
         generation_config, lidar_subsample, previous_frame
 
     out = {}
     n_true = int(f.get("heatmaps", "count"))
-    pred_map = syn_store.read("pred_map", i)
-    n_hat = float(syn_store.read("n_hat", i))
+    pred_map = f.get("synthesize", "pred_map")
+    n_hat = float(f.get("synthesize", "n_hat"))
     size = tuple(cfg.camera.working_size)
-    out["model"] = (_syn5(syn_store.read("points", i)), n_hat, pred_map)
+    out["model"] = (_syn5(f.get("synthesize", "points")), n_hat, pred_map)
     for spec in METHODS:
         if spec.name == "model":
             continue
@@ -122,150 +160,200 @@ def _methods_for_frame(i, f, inputs, cfg, stats, syn_store, nets, prev,
                                   rss_value=stats["rss_median"], doppler_span_mps=cfg.radar.doppler_span_mps)
             out[spec.name] = (np.asarray(pts, np.float64), float(stats["n_bar"]), None)
         elif spec.kind == "previous-frame" and prev is not None:
-            pf = inputs.frame(prev)
-            dt = float(f.get("calibrate", "timestamp") - pf.get("calibrate", "timestamp"))
+            dt = float(f.get("calibrate", "timestamp") - prev.get("calibrate", "timestamp"))
             if not 0.0 < dt <= MAX_FRAME_GAP_S:  # clock wrap (Astyx: lidar µs past the hour) or a gap
                 dt = NOMINAL_FRAME_PERIOD_S
-            T = ego_motion_transform(pf.get("calibrate", "ego_velocity"), dt)
-            pts = np.asarray(previous_frame(_real(pf), T), np.float64)
+            T = ego_motion_transform(prev.get("calibrate", "ego_velocity"), dt)
+            pts = np.asarray(previous_frame(_real(prev), T), np.float64)
             out[spec.name] = (pts, float(len(pts)), None)
         elif spec.kind == "empty":
             out[spec.name] = (np.zeros((0, 5)), 0.0, None)
     return out
 
 
-def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
-    from pipeline.figures import bev, fig8, histograms
-    from pipeline.metrics import distribution_distances, frame_metrics
-    from pipeline.report import aggregate, speed_breakdown, write_report
+def frame_outputs(cfg: Config) -> tuple[ArraySpec, ...]:
+    """evaluate-frames' arrays (module docstring)."""
+    from pipeline.baselines import METHODS
+    from pipeline.metrics import FRAME_METRICS
+
+    m, real_cap = len(METHODS), cfg.radar.store_max_points
+    points_cap = m * max(capacity(cfg), real_cap) + real_cap
+    return (ArraySpec("metrics", (m, len(FRAME_METRICS)), "float64", "rows: METHODS, columns: FRAME_METRICS",
+                      fill=np.nan),
+            ArraySpec("present", (m,), "bool", "the method has a result on this frame", fill=False),
+            ArraySpec("count", (m,), "float64", "points the method decided on", fill=np.nan),
+            ArraySpec("ego_speed", (), "float64", "m/s", fill=np.nan),
+            ArraySpec("points", (points_cap, 6), "float64",
+                      "method row (-1 real), range m, azimuth rad, elevation rad, range rate m/s, rss",
+                      fill=np.nan, ragged=True),
+            ArraySpec("abs_dr", (real_cap, len(RANGE_ESTIMATORS) + 1), "float64",
+                      f"m, |lidar range - radar range| per real point, rules {', '.join(RANGE_ESTIMATORS)}, best "
+                      f"(NaN: no lidar support)", fill=np.nan, ragged=True),
+            ArraySpec("abs_dv", (real_cap,), "float64", "m/s, |predicted - measured| Doppler of static real points",
+                      fill=np.nan, ragged=True))
+
+
+def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
+    """Every method's metrics, points and the physics residuals of one frame (FRAMES' arrays)."""
+    from pipeline.baselines import METHODS
+    from pipeline.metrics import FRAME_METRICS, frame_metrics, to_spherical
     from pipeline.training import rssnet_predict
     from stages.patches import point_inputs
 
-    check(cfg)
-    calib, syn_store = inputs.store("calibrate"), inputs.store("synthesize")
-    split = np.asarray(calib.array("split")[:])
-    seq = np.asarray(calib.array("sequence")[:])
-    calib_done = calib.status() == DONE
-    in_split = split_mask(split, cfg.eval.split)
-    syn_done = syn_store.status() == DONE
-    frames = np.flatnonzero(syn_done & in_split)
-    if len(frames) == 0:
-        from pipeline.errors import PipelineError
-        raise PipelineError(f"evaluate: no synthesized frame in split '{cfg.eval.split}' "
-                            f"(synth.split = '{cfg.synth.split}')")
-    stats = _train_stats(inputs, cfg)
-    nets = models(inputs.frame(int(frames[0])), cfg)
+    stats, frame_ids = _shared(f, cfg)
+    nets = models(f, cfg)
     r = cfg.radar
-    per_frame: dict[str, list] = {}
-    pooled: dict[str, list] = {}
-    real_frames: list[np.ndarray] = []
-    speeds, model_counts = [], []
-    figure_rows = []
-    for i in tqdm(frames, desc="evaluate", unit="frame", disable=not inputs.progress):
-        i = int(i)
-        f = inputs.frame(i)
-        real = _real(f)
-        real_frames.append(real)
-        target = f.get("heatmaps", "heatmap")
-        rss_err = float("nan")
-        if len(real):
-            patches, ranges = point_inputs(f.get("calibrate", "image"), f.get("calibrate", "K"),
-                                           f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"),
-                                           real[:, :3], cfg)
-            pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
-            rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
-        prev = _previous_index(i, inputs, seq, calib_done)
-        methods = _methods_for_frame(i, f, inputs, cfg, stats, syn_store, nets, prev, target)
-        speeds.append(float(np.linalg.norm(f.get("calibrate", "ego_velocity"))))
-        model_counts.append(methods["model"][1])
-        for name, (pts, n, prob) in methods.items():
-            m = frame_metrics(pts, real, n_hat=n, target_map=target if prob is not None and len(real) else None,
-                              pred_map=prob, rss_err=rss_err if name == "model" else float("nan"),
-                              gate_m=cfg.eval.gate_m, gate_rss=cfg.eval.gate_rss,
-                              gate_doppler=cfg.eval.gate_doppler_mps, doppler_span_mps=r.doppler_span_mps)
-            per_frame.setdefault(name, []).append(m)
-            pooled.setdefault(name, []).append(pts)
-        if len(figure_rows) < cfg.eval.figure_frames:
-            figure_rows.append((i, methods["model"][0], real))
-    pooled_real = np.concatenate(real_frames)
-    distances = {name: distribution_distances(_sph(np.concatenate(p)), _sph(pooled_real))
-                 for name, p in pooled.items() if sum(len(x) for x in p)}
-    phys = physics_checks(inputs, cfg, frames)
-    root = Path(out.path)
-    figs = root / "figures"
-    _figures(inputs, cfg, figure_rows, syn_store, figs, pooled["model"], pooled_real, fig8, bev, histograms)
-    table = aggregate(per_frame)
-    meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
-            "placement": cfg.synth.placement,
-            "train_mean_count": stats["n_bar"], "synthesize_counts": _synth_counts(syn_store, frames)}
-    missing = int((in_split & calib_done & ~syn_done).sum())
-    if missing:  # a partial report must say so (e.g. after `run synthesize --frames ...`)
-        meta["frames_not_synthesized"] = f"{missing} of the split's frames are not in this report (synthesize has not finished them)"
-    by_speed = speed_breakdown(np.array(speeds), np.array([len(x) for x in real_frames]), np.array(model_counts),
-                               per_frame["model"])
-    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, table, distances, phys, meta,
-                                      by_speed)
-    model = table["model"]
-    return {"report": str(md_path), "figures": str(figs),
-            "message": (f"{len(frames)} frames{f' ({missing} more not synthesized yet)' if missing else ''}: "
-                        f"model chamfer {model['chamfer_m']['mean']:.2f} m, F1 {model['f1']['mean']:.3f}; report {md_path}")}
+    real = _real(f)
+    target = f.get("heatmaps", "heatmap")
+    rss_err = float("nan")
+    if len(real):
+        patches, ranges = point_inputs(f.get("calibrate", "image"), f.get("calibrate", "K"),
+                                       f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"), real[:, :3], cfg)
+        pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
+        rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
+    methods = _methods_for_frame(f, cfg, stats, nets, _previous(f, frame_ids), target)
+    table = np.full((len(METHODS), len(FRAME_METRICS)), np.nan)
+    present, count = np.zeros(len(METHODS), bool), np.full(len(METHODS), np.nan)
+    points = [np.column_stack([np.full(len(real), -1.0), to_spherical(real)])]
+    for row, spec in enumerate(METHODS):
+        if spec.name not in methods:
+            continue
+        pts, n, prob = methods[spec.name]
+        m = frame_metrics(pts, real, n_hat=n, target_map=target if prob is not None and len(real) else None,
+                          pred_map=prob, rss_err=rss_err if spec.name == "model" else float("nan"),
+                          gate_m=cfg.eval.gate_m, gate_rss=cfg.eval.gate_rss,
+                          gate_doppler=cfg.eval.gate_doppler_mps, doppler_span_mps=r.doppler_span_mps)
+        table[row] = [m[k] for k in FRAME_METRICS]
+        present[row], count[row] = True, n
+        points.append(np.column_stack([np.full(len(pts), float(row)), to_spherical(pts)]))
+    abs_dr, abs_dv = physics_frame(f, cfg)
+    return {"metrics": table, "present": present, "count": count,
+            "ego_speed": np.float64(np.linalg.norm(f.get("calibrate", "ego_velocity"))),
+            "points": np.concatenate(points), "abs_dr": abs_dr, "abs_dv": abs_dv}
 
 
-def _sph(points5: np.ndarray) -> np.ndarray:
-    from pipeline.metrics import to_spherical
-
-    return to_spherical(points5)
-
-
-def physics_checks(inputs, cfg: Config, frames) -> dict:
-    """Physics checks on real frames (no learning): (a) lidar range at each real radar point's
-    angles vs its measured range, for the paper's mean rule and every other estimator, and for the
-    window's lidar point closest to the measured range (an oracle: how often some lidar point of
-    the window is right); (b) Doppler of static real points predicted from the ego velocity vs
-    measured. Reads calibrate only."""
+def physics_frame(f: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+    """Physics checks of one real frame (no learning; reads calibrate only): abs_dr (M, 5) m, for
+    each real radar point |lidar range at its angles - measured range| by each of RANGE_ESTIMATORS
+    and by the window's lidar point closest to the measured range (an oracle: how often some lidar
+    point of the window is right), NaN without lidar support; abs_dv (S,) m/s, |Doppler predicted
+    from the ego velocity - measured| of the S static real points."""
     from pipeline.metrics import doppler_check, range_check
     from pipeline.synthesis import LidarAngularIndex
 
     r = cfg.radar
-    estimators = ("mean", "nearest", "median", "min")
-    physics: dict[str, list] = {"abs_dr_" + e: [] for e in (*estimators, "best")}
-    physics["abs_dv"] = []
-    for i in frames:
-        f = inputs.frame(int(i))
-        real = _real(f)
-        lidar = f.get("calibrate", "lidar")
-        index = LidarAngularIndex(lidar)
-        for est in estimators:
-            check = range_check(real[:, :3], lidar, lambda az, el, e=est: index.estimate_range(
-                az, el, np.radians(r.az_res_deg), np.radians(r.el_res_deg), e, "drop"))
-            physics["abs_dr_" + est].append(check["abs_dr"])
-        ranges = np.linalg.norm(real[:, :3].astype(np.float64), axis=1)
-        check = range_check(real[:, :3], lidar, lambda az, el: index.closest_range_in_window(
-            az, el, ranges, np.radians(r.az_res_deg), np.radians(r.el_res_deg)))
-        physics["abs_dr_best"].append(check["abs_dr"])
-        dv = doppler_check(real[:, :3], real[:, 3], f.get("calibrate", "ego_velocity"),
-                           _static_mask(real, f.get("calibrate", "labels")), r.doppler_span_mps)
-        physics["abs_dv"].append(dv["abs_dv"])
-    return _physics_summary(physics)
+    az_res, el_res = np.radians(r.az_res_deg), np.radians(r.el_res_deg)
+    real = _real(f)
+    lidar = f.get("calibrate", "lidar")
+    index = LidarAngularIndex(lidar)
+    columns = [range_check(real[:, :3], lidar, lambda az, el, e=est: index.estimate_range(
+        az, el, az_res, el_res, e, "drop"))["abs_dr"] for est in RANGE_ESTIMATORS]
+    ranges = np.linalg.norm(real[:, :3], axis=1)
+    columns.append(range_check(real[:, :3], lidar, lambda az, el: index.closest_range_in_window(
+        az, el, ranges, az_res, el_res))["abs_dr"])
+    dv = doppler_check(real[:, :3], real[:, 3], f.get("calibrate", "ego_velocity"),
+                       _static_mask(real, f.get("calibrate", "labels")), r.doppler_span_mps)
+    return np.column_stack(columns).reshape(len(real), len(columns)), np.asarray(dv["abs_dv"], np.float64)
 
 
-def _physics_summary(physics: dict[str, list]) -> dict:
+def physics_checks(inputs, cfg: Config, frames) -> dict:
+    """The physics checks over ``frames`` (indices of calibrated frames): :func:`physics_frame`
+    pooled and summarised (``pipeline check-physics``)."""
+    rows = [physics_frame(inputs.frame(int(i)), cfg) for i in frames]
+    width = len(RANGE_ESTIMATORS) + 1
+    return _physics_summary(np.concatenate([a for a, _ in rows]) if rows else np.zeros((0, width)),
+                            np.concatenate([b for _, b in rows]) if rows else np.zeros(0))
+
+
+def _physics_summary(abs_dr: np.ndarray, abs_dv: np.ndarray) -> dict:
+    """The report's physics section from pooled residuals abs_dr (M, 5) m and abs_dv (S,) m/s."""
     out = {}
-    for key, values in physics.items():
-        v = np.concatenate(values) if values else np.zeros(0)
-        if key.startswith("abs_dr_"):
-            ok = np.isfinite(v)
-            within = float(np.mean(v[ok] <= RANGE_CHECK_TOLERANCE_M)) if ok.any() else float("nan")
-            name = "best lidar point in the window, an oracle" if key == "abs_dr_best" else f"{key[7:]} rule"
-            out[f"range ({name})"] = {
-                "median_abs_dr_m": float(np.median(v[ok])) if ok.any() else float("nan"),
-                "p90_abs_dr_m": float(np.percentile(v[ok], 90)) if ok.any() else float("nan"),
-                f"within_{RANGE_CHECK_TOLERANCE_M:g}m_share": within,
-                "no_support_share": float(1 - ok.mean()) if len(v) else float("nan"), "points": int(len(v))}
-        elif key == "abs_dv":
-            out["doppler (static points)"] = {"median_abs_dv_mps": float(np.median(v)) if len(v) else float("nan"),
-                                              "points": int(len(v))}
+    for k, key in enumerate((*RANGE_ESTIMATORS, "best")):
+        v = abs_dr[:, k]
+        ok = np.isfinite(v)
+        within = float(np.mean(v[ok] <= RANGE_CHECK_TOLERANCE_M)) if ok.any() else float("nan")
+        name = "best lidar point in the window, an oracle" if key == "best" else f"{key} rule"
+        out[f"range ({name})"] = {
+            "median_abs_dr_m": float(np.median(v[ok])) if ok.any() else float("nan"),
+            "p90_abs_dr_m": float(np.percentile(v[ok], 90)) if ok.any() else float("nan"),
+            f"within_{RANGE_CHECK_TOLERANCE_M:g}m_share": within,
+            "no_support_share": float(1 - ok.mean()) if len(v) else float("nan"), "points": int(len(v))}
+    out["doppler (static points)"] = {"median_abs_dv_mps": float(np.median(abs_dv)) if len(abs_dv) else float("nan"),
+                                      "points": int(len(abs_dv))}
     return out
+
+
+def select_frames(inputs, cfg: Config) -> np.ndarray:
+    """evaluate-frames works on the frames of eval.split."""
+    return split_mask(inputs.store("calibrate").array("split")[:], cfg.eval.split)
+
+
+def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
+    """The report over the frames evaluate-frames finished (module docstring)."""
+    from pipeline.baselines import METHODS
+    from pipeline.figures import bev, fig8, histograms
+    from pipeline.metrics import FRAME_METRICS, distribution_distances
+    from pipeline.report import aggregate, speed_breakdown, write_report
+
+    check(cfg)
+    calib, syn_store, part = inputs.store("calibrate"), inputs.store("synthesize"), inputs.store(FRAMES.name)
+    in_split = split_mask(np.asarray(calib.array("split")[:]), cfg.eval.split)
+    calib_done, syn_done, part_status = calib.status() == DONE, syn_store.status() == DONE, part.status()
+    frames = np.flatnonzero((part_status == DONE) & in_split)
+    failed = int((in_split & (part_status == FAILED)).sum())
+    if len(frames) == 0:
+        why = f"; {failed} failed (`pipeline status` lists why)" if failed else ""
+        raise PipelineError(f"evaluate: no evaluated frame in split '{cfg.eval.split}' "
+                            f"(synth.split = '{cfg.synth.split}'{why})")
+    table, present, count, speeds, real_counts, points, abs_dr, abs_dv = _read_results(part, frames, inputs.progress)
+    per_frame = {spec.name: [dict(zip(FRAME_METRICS, table[k, row])) for k in np.flatnonzero(present[:, row])]
+                 for row, spec in enumerate(METHODS) if present[:, row].any()}
+    real = points[points[:, 0] == -1, 1:]
+    sph = {spec.name: points[points[:, 0] == row, 1:] for row, spec in enumerate(METHODS) if spec.name in per_frame}
+    distances = {name: distribution_distances(p, real) for name, p in sph.items() if len(p)}
+    root = Path(out.path)
+    figs = root / "figures"
+    _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, sph["model"], real, fig8, bev, histograms)
+    stats = _train_stats(inputs, cfg)
+    meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
+            "placement": cfg.synth.placement,
+            "train_mean_count": stats["n_bar"], "synthesize_counts": _synth_counts(syn_store, frames)}
+    not_synthesized = int((in_split & calib_done & ~syn_done).sum())
+    not_evaluated = int((in_split & syn_done & (part_status != DONE)).sum())
+    left_out = []
+    if not_synthesized:  # a partial report must say so (e.g. after `run synthesize --frames ...`)
+        meta["frames_not_synthesized"] = (f"{not_synthesized} of the split's frames are not in this report "
+                                          f"(synthesize has not finished them)")
+        left_out.append(f"{not_synthesized} more not synthesized yet")
+    if not_evaluated:
+        meta["frames_not_evaluated"] = (f"{not_evaluated} of the split's synthesized frames are not in this report "
+                                        f"({failed} failed in evaluate-frames, the rest not run yet)")
+        left_out.append(f"{not_evaluated} more not evaluated" + (f", {failed} of them failed" if failed else ""))
+    model_row = [s.name for s in METHODS].index("model")
+    by_speed = speed_breakdown(speeds, real_counts, count[:, model_row], per_frame["model"])
+    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, aggregate(per_frame), distances,
+                                      _physics_summary(abs_dr, abs_dv), meta, by_speed)
+    model = aggregate({"model": per_frame["model"]})["model"]
+    tail = f" ({'; '.join(left_out)})" if left_out else ""
+    return {"report": str(md_path), "figures": str(figs),
+            "message": (f"{len(frames)} frames{tail}: model chamfer {model['chamfer_m']['mean']:.2f} m, "
+                        f"F1 {model['f1']['mean']:.3f}; report {md_path}")}
+
+
+def _read_results(part, frames: np.ndarray, progress: bool) -> tuple[np.ndarray, ...]:
+    """evaluate-frames' arrays of ``frames`` (F,): metrics (F, methods, metrics), present (F,
+    methods), count (F, methods), ego_speed (F,), real points per frame (F,) and the pooled points
+    (P, 6), abs_dr (M, 5), abs_dv (S,)."""
+    table = np.asarray(part.array("metrics").oindex[frames])
+    present = np.asarray(part.array("present").oindex[frames], bool)
+    count = np.asarray(part.array("count").oindex[frames])
+    speeds = np.asarray(part.array("ego_speed").oindex[frames])
+    pooled = {"points": [], "abs_dr": [], "abs_dv": []}
+    for i in tqdm(frames, desc="evaluate (report)", unit="frame", disable=not progress):
+        for name, values in pooled.items():
+            values.append(part.read(name, int(i)))
+    real_counts = np.array([np.count_nonzero(p[:, 0] == -1) for p in pooled["points"]], np.float64)
+    return (table, present, count, speeds, real_counts, *(np.concatenate(v) for v in pooled.values()))
 
 
 def _synth_counts(syn_store, frames) -> dict:
@@ -274,25 +362,28 @@ def _synth_counts(syn_store, frames) -> dict:
     return {k: int(v) for k, v in zip(names, counts)}
 
 
-def _figures(inputs, cfg, rows, syn_store, figs: Path, syn_pooled, real_pooled, fig8, bev, histograms) -> None:
+def _figures(inputs, cfg, frames, figs: Path, syn_sph, real_sph, fig8, bev, histograms) -> None:
+    """Fig. 8 and bird's-eye views of ``frames`` (the model's points and the real ones), and the
+    histograms of the pooled spherical points ``syn_sph`` and ``real_sph`` (N, 5)."""
     figs.mkdir(parents=True, exist_ok=True)
     f8, bv = [], []
-    for i, syn, real in rows:
-        f = inputs.frame(i)
+    for i in frames:
+        f = inputs.frame(int(i))
+        syn, real = _syn5(f.get("synthesize", "points")), _real(f)
         image = f.get("calibrate", "image")
         T_cam_radar = invert_transform(f.get("calibrate", "T_radar_cam"))
         size = (image.shape[1], image.shape[0])
         K = f.get("calibrate", "K")
         ruv, _, rv = project_to_image(real[:, :3], K, T_cam_radar, size)
         suv, _, sv = project_to_image(syn[:, :3], K, T_cam_radar, size)
-        title = f"frame {inputs.frame_ids[i]}: {len(real)} real, {len(syn)} synthetic"
-        f8.append({"image": image, "prob_map": syn_store.read("pred_map", i), "real_uv": ruv[rv], "syn_uv": suv[sv],
+        title = f"frame {f.frame_id}: {len(real)} real, {len(syn)} synthetic"
+        f8.append({"image": image, "prob_map": f.get("synthesize", "pred_map"), "real_uv": ruv[rv], "syn_uv": suv[sv],
                    "title": title})
         bv.append({"real_points_D": real, "syn_points_D": syn, "title": title})
     if f8:
         fig8(figs / "fig8.png", f8)
         bev(figs / "bev.png", bv, cfg.radar.max_range_m)
-    histograms(figs / "histograms.png", _sph(real_pooled), _sph(np.concatenate(syn_pooled)))
+    histograms(figs / "histograms.png", real_sph, syn_sph)
 
 
 def check(cfg: Config) -> None:
@@ -301,5 +392,8 @@ def check(cfg: Config) -> None:
     check_generation(cfg)
 
 
-STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize"),
+FRAMES = FrameStage(name="evaluate-frames", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize"),
+                    config_keys=FRAME_KEYS, outputs=frame_outputs, process=evaluate_frame, select=select_frames,
+                    version=VERSION, doc=__doc__, check=check, part_of="evaluate")
+STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize", FRAMES.name),
                      config_keys=CONFIG_KEYS, version=VERSION, run=run, doc=__doc__, check=check)

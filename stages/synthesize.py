@@ -115,13 +115,15 @@ class Nets(NamedTuple):
 
 def models(inputs: FrameInputs, cfg: Config) -> Nets:
     """Best Dis-Net, RSS-Net and (lidar placement) PlaceNet of the train stage, loaded once per
-    process (CPU)."""
+    process (CPU) and train run: the key holds the run's finishing time, since nets retrained under
+    the same fingerprint (``--force``) are other nets (a cluster's workers outlive a run)."""
     import torch
 
     from pipeline.training import load_disnet, load_placenet, load_rssnet
 
     out = inputs.env.dir("train")
-    key = ("models", out.url, out.fingerprint(), cfg.synth.placement)
+    meta = out.meta() or {}
+    key = ("models", out.url, meta.get("fingerprint"), meta.get("finished"), cfg.synth.placement)
 
     def build():
         torch.set_num_threads(max(1, cfg.train.threads // max(1, cfg.run.workers)))

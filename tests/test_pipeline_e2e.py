@@ -22,7 +22,7 @@ from stages import all_stages
 TINY = {"train.epochs": "1", "placement.epochs": "1", "disnet.width": "8", "patches.points_per_frame": "16",
         "split.rule": "random", "synth.split": "all", "eval.split": "all", "eval.figure_frames": "2",
         "train.threads": "1"}
-FRAME_STAGES = ("calibrate", "heatmaps", "patches", "synthesize")
+FRAME_STAGES = ("calibrate", "heatmaps", "patches", "synthesize", "evaluate-frames")
 
 
 @pytest.fixture(scope="module")

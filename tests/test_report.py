@@ -176,9 +176,10 @@ def test_placement_sentence_compares_the_oracle_count_rows_like_for_like():
 def test_physics_summary_rows_and_share_within_tolerance():
     from stages.evaluate import RANGE_CHECK_TOLERANCE_M, _physics_summary
 
-    out = _physics_summary({"abs_dr_nearest": [np.array([0.5, 2.0, np.nan]), np.array([1.0])],
-                            "abs_dr_best": [np.array([0.1, 0.2, np.nan]), np.array([3.0])],
-                            "abs_dv": [np.array([0.1, 0.3])]})
+    abs_dr = np.full((4, 5), np.nan)  # columns: mean, nearest, median, min rules, best (oracle)
+    abs_dr[:, 1] = [0.5, 2.0, np.nan, 1.0]
+    abs_dr[:, 4] = [0.1, 0.2, np.nan, 3.0]
+    out = _physics_summary(abs_dr, np.array([0.1, 0.3]))
     key = f"within_{RANGE_CHECK_TOLERANCE_M:g}m_share"
     near = out["range (nearest rule)"]
     assert near[key] == pytest.approx(2 / 3)  # 0.5 and 1.0 of the three supported values
@@ -187,5 +188,6 @@ def test_physics_summary_rows_and_share_within_tolerance():
     best = out["range (best lidar point in the window, an oracle)"]
     assert best[key] == pytest.approx(2 / 3) and best["median_abs_dr_m"] == pytest.approx(0.2)
     assert out["doppler (static points)"]["median_abs_dv_mps"] == pytest.approx(0.2)
-    empty = _physics_summary({"abs_dr_mean": [np.full(2, np.nan)]})["range (mean rule)"]
-    assert np.isnan(empty[key]) and empty["no_support_share"] == 1.0
+    empty = _physics_summary(np.full((2, 5), np.nan), np.zeros(0))
+    assert np.isnan(empty["range (mean rule)"][key]) and empty["range (mean rule)"]["no_support_share"] == 1.0
+    assert np.isnan(empty["doppler (static points)"]["median_abs_dv_mps"])

@@ -1,0 +1,124 @@
+"""evaluate's per-frame part (evaluate-frames): resumable like any frame stage, recomputed when
+what it read was recomputed, a failed frame left out of the report and said so."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.cache import DONE, FAILED, PENDING
+from pipeline.config import load_config
+from pipeline.executor import Executor, RunEnv
+from pipeline.runner import Pipeline
+from pipeline.world import generate
+from stages import all_stages, evaluate
+
+TINY = {"train.epochs": "1", "placement.epochs": "1", "disnet.width": "8", "patches.points_per_frame": "16",
+        "split.rule": "random", "synth.split": "all", "eval.split": "all", "eval.figure_frames": "1",
+        "train.threads": "1"}
+FRAMES = 8
+
+
+@pytest.fixture(scope="module")
+def synthesized(tmp_path_factory) -> tuple[Path, Path]:
+    """A tiny world and a cache with every stage up to synthesize done (trained once per module)."""
+    root = tmp_path_factory.mktemp("eval-frames")
+    world, cache = root / "world", root / "cache"
+    generate(world, frames=FRAMES, seed=7, resolution_wh=(640, 384), sequence_len=FRAMES)
+    _pipeline(world, cache).run("synthesize")
+    return world, cache
+
+
+def _pipeline(world: Path, cache: Path) -> Pipeline:
+    env = RunEnv(load_config("synthetic", TINY, environ={}), str(cache), "synthetic", str(world))
+    return Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
+
+
+def _copy(synthesized, tmp_path) -> Pipeline:
+    world, cache = synthesized
+    shutil.copytree(cache, tmp_path / "cache")
+    return _pipeline(world, tmp_path / "cache")
+
+
+def _report(pipe: Pipeline) -> dict:
+    return json.loads((Path(pipe.env.cache_root) / "synthetic" / "evaluate" / "report.json").read_text())
+
+
+def test_a_run_stopped_part_way_resumes_and_gives_the_same_report(synthesized, tmp_path):
+    pipe = _copy(synthesized, tmp_path)
+    first = {r.stage: r for r in pipe.run("evaluate", frames=[0, 1, 2])}
+    assert first["evaluate-frames"].processed == 3
+    status = pipe.env.store("evaluate-frames").status()
+    assert list(status[:3]) == [DONE] * 3 and np.all(status[3:] == PENDING)
+    partial = _report(pipe)
+    assert partial["meta"]["frames"] == 3 and "5 of the split's synthesized frames" in partial["meta"]["frames_not_evaluated"]
+    assert "5 more not evaluated" in first["evaluate"].summary["message"]
+    second = {r.stage: r for r in _pipeline(*synthesized[:1], tmp_path / "cache").run("evaluate")}
+    assert second["evaluate-frames"].processed == FRAMES - 3   # only the frames left
+    resumed = _report(pipe)
+    assert resumed["meta"]["frames"] == FRAMES and "frames_not_evaluated" not in resumed["meta"]
+    whole = _copy(synthesized, tmp_path / "whole")
+    assert {r.stage: r for r in whole.run("evaluate")}["evaluate-frames"].processed == FRAMES
+    assert resumed == _report(whole)
+    # up to date: no frame is evaluated again
+    again = {r.stage: r for r in pipe.run("evaluate")}
+    assert again["evaluate-frames"].processed == 0 and again["evaluate"].summary["message"] == "up to date"
+
+
+def test_recomputed_inputs_and_force_recompute_every_frame(synthesized, tmp_path):
+    pipe = _copy(synthesized, tmp_path)
+    pipe.run("evaluate")
+    # synthesize forced under the same fingerprint: the stored per-frame results were made from its
+    # old points, so none of them may be reused
+    pipe.run("synthesize", force=True)
+    reports = {r.stage: r for r in pipe.run("evaluate")}
+    assert reports["evaluate-frames"].processed == FRAMES
+    # --force on evaluate recomputes its per-frame part too
+    reports = {r.stage: r for r in pipe.run("evaluate", force=True)}
+    assert reports["evaluate-frames"].processed == FRAMES
+
+
+def test_a_failed_frame_is_left_out_and_said(synthesized, tmp_path, monkeypatch):
+    pipe = _copy(synthesized, tmp_path)
+    physics = evaluate.physics_frame
+
+    def broken(f, cfg):
+        if f.index == 4:
+            raise ValueError("lidar of frame 4 is broken")
+        return physics(f, cfg)
+
+    monkeypatch.setattr(evaluate, "physics_frame", broken)
+    reports = {r.stage: r for r in pipe.run("evaluate")}
+    assert reports["evaluate-frames"].failed == 1
+    status = pipe.env.store("evaluate-frames").status()
+    assert status[4] == FAILED and np.sum(status == DONE) == FRAMES - 1
+    assert "lidar of frame 4 is broken" in pipe.env.store("evaluate-frames").reasons()[4]
+    report = _report(pipe)
+    assert report["meta"]["frames"] == FRAMES - 1 and "1 failed" in report["meta"]["frames_not_evaluated"]
+    assert "1 of them failed" in reports["evaluate"].summary["message"]
+    with pytest.raises(Exception, match=r"stage evaluate-frames, frame \S+: ValueError: lidar of frame 4"):
+        pipe.run("evaluate", strict=True)
+    monkeypatch.setattr(evaluate, "physics_frame", physics)
+    reports = {r.stage: r for r in pipe.run("evaluate", retry_failed=True)}
+    assert reports["evaluate-frames"].processed == 1 and _report(pipe)["meta"]["frames"] == FRAMES
+
+
+def test_nets_retrained_under_the_same_fingerprint_are_loaded_again(synthesized, tmp_path):
+    """The per-process memo of the trained nets (synthesize, evaluate-frames) is keyed by the train
+    run, not only its fingerprint: after `train --force` a process (a cluster's worker, or this one)
+    must not go on with the old nets."""
+    from pipeline.executor import FrameInputs
+    from stages.synthesize import models
+
+    pipe = _copy(synthesized, tmp_path)
+    frame = FrameInputs(pipe.env, 0, pipe.frame_ids()[0])
+    before = models(frame, pipe.env.cfg)
+    assert models(frame, pipe.env.cfg) is before
+    fingerprint = pipe.env.dir("train").fingerprint()
+    pipe.run("train", force=True)
+    assert pipe.env.dir("train").fingerprint() == fingerprint
+    assert models(frame, pipe.env.cfg) is not before
