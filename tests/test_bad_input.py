@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -172,6 +174,50 @@ def test_astyx_missing_files_are_skipped_and_counted(astyx):
 def test_duplicate_frame_id_jpg_and_png(vod):
     write_image(_image(vod).with_suffix(".png"), (64, 48))
     _expect(_vod_reader(vod), FID, _image(vod), "duplicate frame id")
+
+
+def test_frame_ids_differing_only_by_leading_zeros_are_one_refused_frame(vod):
+    """`11.bin` beside `00011.bin`: one frame number with two sets of files. It is listed once
+    (not as two frames), counted in report(), and refused naming both files."""
+    for path in list(vod.rglob(f"{FID}.*")):
+        shutil.copy(path, path.with_name("11" + path.suffix))
+    reader = _vod_reader(vod)
+    assert reader.frame_ids() == ["00010", FID, "00012"]
+    assert reader.report()["frame_ids_differing_by_leading_zeros"] == 1
+    err = _expect(reader, FID, _radar(vod), "frame number 11 has a second set of files")
+    assert str(_radar(vod, "11")) in str(err)
+    with pytest.raises(ReaderError, match=re.escape(str(_radar(vod, FID)))):
+        reader.read("11")  # the other name is refused too, naming the listed one
+    for path in vod.rglob("11.*"):  # a stray point file alone is enough to make the frame ambiguous
+        if path.parent.name != "velodyne" or path.parent.parent.parent.name != "lidar":
+            path.unlink()
+    reader = _vod_reader(vod)
+    assert reader.frame_ids() == ["00010", FID, "00012"]
+    assert str(_lidar(vod, "11")) in str(_expect(reader, FID, _radar(vod), "second set of files"))
+    _lidar(vod, "11").unlink()
+    _vod_reader(vod).read(FID)  # one set of files again: read as before
+
+
+def test_negative_box_size_in_a_label_is_refused(vod):
+    path = vod / "lidar/training/label_2" / f"{FID}.txt"
+    line = path.read_text().splitlines()[0]
+    parts = line.split()
+    for column, name in ((8, "h"), (9, "w"), (10, "l")):
+        bad = parts.copy()
+        bad[column] = "-" + bad[column]
+        path.write_text(line + "\n\n" + " ".join(bad) + "\n")  # the blank line still counts
+        _expect(_vod_reader(vod), FID, path, f"label line 3 has a negative box {name} (-{float(parts[column]):g} m)")
+    # KITTI's DontCare lines carry -1 sizes: not an error
+    path.write_text(line + "\nDontCare -1 -1 -10 1 1 2 2 -1 -1 -1 -1000 -1000 -1000 -10\n")
+    assert len(_vod_reader(vod).read(FID).labels) == 2
+    # a neighbour's label file is read for the object velocities: its bad line is named too
+    path.write_text(line + "\n")
+    neighbour = vod / "lidar/training/label_2" / "00012.txt"
+    parts = neighbour.read_text().split()
+    parts[8] = "-2"
+    neighbour.write_text(" ".join(parts) + "\n")
+    with pytest.raises(ReaderError, match=re.escape(f"{neighbour}: label line 1 has a negative box h (-2 m)")):
+        _vod_reader(vod).read(FID)
 
 
 def test_duplicate_index_entries(astyx):

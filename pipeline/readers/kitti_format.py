@@ -93,7 +93,8 @@ class KittiLabel:
 
 
 def parse_label_file(path: Path, frame: str | None) -> list[KittiLabel]:
-    """Parse a KITTI label file (15 or 16 columns per line); ReaderError on a malformed line."""
+    """Parse a KITTI label file (15 or 16 columns per line); ReaderError on a malformed line or a
+    negative box size (h, w, l m; ``DontCare`` lines, which KITTI writes with -1, excepted)."""
     labels = []
     for line_no, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
         parts = line.split()
@@ -107,6 +108,11 @@ def parse_label_file(path: Path, frame: str | None) -> list[KittiLabel]:
             raise ReaderError(path, f"label line {line_no} has non-numeric values", frame=frame) from None
         if not np.all(np.isfinite(values)):
             raise ReaderError(path, f"label line {line_no} has non-finite values", frame=frame)
+        negative = np.flatnonzero(values[7:10] < 0)
+        if len(negative) and parts[0] != "DontCare":  # KITTI writes DontCare boxes with -1 sizes
+            axis = negative[0]
+            raise ReaderError(path, f"label line {line_no} has a negative box {'hwl'[axis]} ({values[7 + axis]:g} m)",
+                              frame=frame)
         labels.append(KittiLabel(parts[0], int(values[0]), values[7:10], values[10:13], float(values[13])))
     return labels
 

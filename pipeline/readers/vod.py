@@ -1,6 +1,8 @@
 """View-of-Delft reader (KITTI layout with ``radar/`` and ``lidar/`` trees) and the synthetic world.
 
-Layout under the data root (frame ids are the file stems, e.g. ``00549``):
+Layout under the data root (frame ids are the file stems, e.g. ``00549``; stems that differ only
+by leading zeros, ``549`` beside ``00549``, are one frame number with two sets of files: the frame
+is listed once, under the first of its complete ids, and refused on read naming both files):
 
 - ``<radar_folder>/training/velodyne/ID.bin``: 7 float32 per point: x, y, z (m, radar frame =
   {D}), RCS (dBsm), v_r (range rate, m/s), v_r_compensated, time (0 current scan; -1, -2 ... in
@@ -14,7 +16,8 @@ Layout under the data root (frame ids are the file stems, e.g. ``00549``):
   world, row-major 4x4), ``mapToCamera``, ``UTMToCamera``; an optional ``{"timestamp": s}`` line
   gives the frame time, else time = frame number / 10 Hz.
 - ``lidar/training/label_2/ID.txt`` (optional): KITTI labels; column 2 is the track id in the
-  tracking release (it is treated as a track id only where it is unique within the frame).
+  tracking release (it is treated as a track id only where it is unique within the frame). A
+  negative box size is refused, except on ``DontCare`` lines (KITTI gives them -1).
 - ``ImageSets/sequences.txt`` (optional): ``name first last`` per line (inclusive frame numbers);
   without it sequences are split where frame numbers jump.
 - Synthetic world only: ``radar/training/meta/ID.bin``: int32 pairs (object_id, material_id) per
@@ -93,6 +96,11 @@ class VodReader(Reader):
                 return found
         return []
 
+    def _velodyne_file(self, fid: str) -> Path:
+        """The radar point file of ``fid``, else its lidar one (the files that list a frame id)."""
+        radar = self._radar_bin(fid)
+        return radar if radar.is_file() else self._lidar_bin(fid)
+
     def _required(self, fid: str) -> list[Path]:
         return [self._radar_bin(fid), self._lidar_bin(fid), self._calib(self.radar_folder, fid),
                 self._calib("lidar", fid)]
@@ -100,19 +108,29 @@ class VodReader(Reader):
     # -- index ---------------------------------------------------------------------------------
 
     @cached_property
-    def _index(self) -> tuple[list[str], dict[str, str]]:
-        """(sorted frame ids with all required files, {id: sequence name})."""
+    def _index(self) -> tuple[list[str], dict[str, str], dict[int, list[str]]]:
+        """(sorted frame ids with all required files, {id: sequence name}, {frame number: its stems}
+        for the numbers with several, e.g. 549: ['00549', '549']). Such a number is listed once,
+        under its first complete stem (counted in ``frame_ids_differing_by_leading_zeros``)."""
         stems: set[str] = set()
         for folder in (self._radar_bin("x").parent, self._lidar_bin("x").parent):
             if folder.is_dir():
                 stems |= {p.stem for p in folder.glob("*.bin") if p.stem.isdigit()}
-        ids = []
+        by_number: dict[int, list[str]] = {}
         for fid in sorted(stems, key=lambda s: (int(s), s)):
-            if all(p.is_file() for p in self._required(fid)) and self._image_candidates(fid):
-                ids.append(fid)
-            else:
-                self._counts["skipped_missing"] += 1
-        return ids, self._sequences(ids)
+            by_number.setdefault(int(fid), []).append(fid)
+        ids, clashes = [], {}
+        for group in by_number.values():
+            complete = [fid for fid in group
+                        if all(p.is_file() for p in self._required(fid)) and self._image_candidates(fid)]
+            if not complete:
+                self._counts["skipped_missing"] += len(group)
+                continue
+            ids.append(complete[0])
+            if len(group) > 1:
+                clashes[int(complete[0])] = group
+                self._counts["frame_ids_differing_by_leading_zeros"] += len(group) - 1
+        return ids, self._sequences(ids), clashes
 
     def _sequences(self, ids: list[str]) -> dict[str, str]:
         listing = self.root / "ImageSets" / "sequences.txt"
@@ -154,6 +172,13 @@ class VodReader(Reader):
     def read(self, frame_id: str) -> FrameRecord:
         for path in self._required(frame_id):
             require_file(path, frame_id, "required")
+        others = [fid for fid in self._index[2].get(int(frame_id), []) if fid != frame_id]
+        if others:
+            files = ", ".join(str(self._velodyne_file(other)) for other in others)
+            raise ReaderError(self._radar_bin(frame_id), f"frame number {int(frame_id)} has a second set of files, "
+                                                         f"named with other leading zeros ({files}): which set is "
+                                                         f"the frame is ambiguous; remove or rename one",
+                              frame=frame_id)
         images = self._image_candidates(frame_id)
         if not images:
             raise ReaderError(self.root / "lidar" / "training" / "image_2" / f"{frame_id}.jpg",
