@@ -10,6 +10,10 @@ Layout under the cache root (a local folder or any fsspec URL)::
 Frame status codes: PENDING 0, DONE 1, FAILED 2, EXCLUDED 3. A frame's arrays are written first,
 its status last, so a process killed at any instant leaves either a complete frame or a frame
 that will be redone.
+
+A damaged chunk (one that cannot be decoded, fails its checksum, or is missing from a done frame)
+raises ChunkError naming the array, the frame and the file: it fails only the frame reading it.
+A frame whose ``status`` chunk is deleted counts as pending (the fill value) and is recomputed.
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import errno
 import hashlib
 import json
 import time
-from collections.abc import Awaitable, Iterable
+from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,13 +31,29 @@ import fsspec
 import numpy as np
 import zarr
 import zarr.api.asynchronous as zarr_async
+from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from pipeline.errors import CacheError
+from pipeline.errors import CacheError, ChunkError
 from pipeline.stage import ArraySpec
 
 PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
 STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed", EXCLUDED: "excluded"}
+
+EVERY_CHUNK = "every_chunk_written"
+"""Group attribute: a finished frame has every chunk written, even one equal to the fill value
+(which zarr skips by default), so a missing chunk of a done frame is damage, not a fill value.
+Outputs created before 2026-12-03 lack it: there a missing chunk still reads as the fill value."""
+
+COMPRESSOR = ZstdCodec(level=0, checksum=True)
+"""zarr's default compressor plus zstd's content checksum: a flipped bit in a chunk is then an
+error when read instead of a silently wrong value (outputs created before 2026-12-03 have none)."""
+
+DECODE_ERRORS = (RuntimeError, ValueError, MemoryError)
+"""What zarr 3.1.6 raises reading a damaged chunk: RuntimeError from zstd for truncated, empty or
+random bytes, or a checksum mismatch; without the checksum also ValueError (UnicodeDecodeError)
+for bytes that decompress to the wrong size or text, and MemoryError from the string codec for a
+wrong length prefix."""
 
 
 def join(root: str, *parts: str) -> str:
@@ -79,14 +99,14 @@ class FrameStore:
             for spec in specs:
                 shape = shapes[spec.name]
                 g.create_array(spec.name, shape=(n, *shape), chunks=(1, *shape), dtype=spec.dtype,
-                               fill_value=spec.fill, attributes={"units": spec.units})
+                               fill_value=spec.fill, compressors=COMPRESSOR, attributes={"units": spec.units})
                 if spec.ragged:
                     g.create_array(f"{spec.name}_count", shape=(n,), chunks=(1,), dtype="int32",
-                                   fill_value=0, attributes={"units": "rows"})
+                                   fill_value=0, compressors=COMPRESSOR, attributes={"units": "rows"})
             g.create_array("status", shape=(n,), chunks=(1,), dtype="uint8", fill_value=PENDING,
-                           attributes={"codes": STATUS_NAMES})
-            g.create_array("reason", shape=(n,), chunks=(1,), dtype=str, fill_value="")
-            g.attrs.update({**attrs, "frame_ids": list(frame_ids), "created": time.time()})
+                           compressors=COMPRESSOR, attributes={"codes": STATUS_NAMES})
+            g.create_array("reason", shape=(n,), chunks=(1,), dtype=str, fill_value="", compressors=COMPRESSOR)
+            g.attrs.update({**attrs, "frame_ids": list(frame_ids), "created": time.time(), EVERY_CHUNK: True})
             # The fingerprint goes last: a group without it counts as absent.
             g.attrs["fingerprint"] = fingerprint
         except OSError as exc:
@@ -104,8 +124,12 @@ class FrameStore:
         return list(self._group("r").attrs["frame_ids"])
 
     def status(self) -> np.ndarray:
-        """(F,) uint8 status codes."""
-        return np.asarray(self._group("r")["status"][:])
+        """(F,) uint8 status codes; ChunkError naming the lowest damaged chunk when one is."""
+        arr = self._member(self._group("r"), "status")
+        try:
+            return np.asarray(arr[:])
+        except DECODE_ERRORS as exc:
+            raise self.damaged("status", np.arange(arr.shape[0]), exc) from None
 
     def done_digest(self) -> str:
         """A short digest of which frames are done ('absent' without an output): what a dataset
@@ -113,10 +137,18 @@ class FrameStore:
         return done_digest(self.status()) if self.exists() else "absent"
 
     def reasons(self) -> dict[int, str]:
-        """Failure reason per failed frame index."""
+        """Failure reason per failed frame index (a damaged reason chunk gives a reason saying so)."""
         status = self.status()
-        arr = self._group("r")["reason"]
-        return {int(i): str(arr[int(i)]) for i in np.flatnonzero(status == FAILED)}
+        g = self._group("r")
+        arr = self._member(g, "reason")
+        out = {}
+        for i in np.flatnonzero(status == FAILED):
+            try:
+                out[int(i)] = str(self._decode(g, arr, int(i)))
+            except ChunkError as exc:  # only words: a retry rewrites them
+                out[int(i)] = (f"(the frame failed; its reason cannot be read: chunk {exc.chunk} {exc.problem}; "
+                               f"--retry-failed runs the frame again)")
+        return out
 
     def write_frame(self, index: int, arrays: dict[str, np.ndarray], specs: tuple[ArraySpec, ...]) -> None:
         """Write one frame's arrays, then mark it done (the marker last).
@@ -145,20 +177,158 @@ class FrameStore:
             raise cache_error(exc, f"recording frame {index} of {self.url}") from None
 
     def read(self, name: str, index: int) -> np.ndarray:
-        """One frame of an array; ragged arrays are trimmed to the frame's row count."""
+        """One frame of an array; ragged arrays are trimmed to the frame's row count.
+
+        ChunkError when a chunk it reads cannot be decoded, or is missing while the frame is done.
+        """
         g = self._group("r")
-        value = np.asarray(g[name][index])
+        value = self._checked(g, self._member(g, name), index)
         if f"{name}_count" in g:
-            value = value[: int(g[f"{name}_count"][index])]
+            value = value[: int(self._checked(g, self._member(g, f"{name}_count"), index))]
         return value
 
-    def array(self, name: str) -> zarr.Array:
-        """The whole zarr array (lazy; index it)."""
-        return self._group("r")[name]
+    def array(self, name: str) -> "CheckedArray":
+        """The whole array (lazy; index it like a zarr array); a read that meets a damaged chunk
+        raises ChunkError naming it."""
+        return CheckedArray(self, self._member(self._group("r"), name))
+
+    def damaged(self, name: str, frames: np.ndarray, exc: BaseException) -> BaseException:
+        """After a read of frame indices ``frames`` (F',) of array ``name`` raised ``exc``: the
+        ChunkError of the lowest of them whose chunk cannot be decoded, or ``exc`` itself when each
+        decodes alone (it was then no damaged chunk). Reads the frames concurrently."""
+        frames = np.unique(np.asarray(frames, dtype=np.int64))
+
+        async def results() -> list[Any]:
+            arr = await (await zarr_async.open_group(self.url, mode="r")).getitem(name)
+            return await asyncio.gather(*(arr.getitem(int(i)) for i in frames), return_exceptions=True)
+
+        for index, result in zip(frames, sync(results())):
+            if isinstance(result, DECODE_ERRORS):
+                g = self._group("r")
+                problem = f"cannot be decoded ({_one_line(result)})"
+                return self._chunk_error(g, self._member(g, name), int(index), problem)
+        return exc
+
+    def _member(self, g: zarr.Group, name: str) -> zarr.Array:
+        """Array ``name`` of group ``g``; CacheError naming its metadata file when that is damaged
+        (every frame of the array is then unreadable)."""
+        try:
+            return g[name]
+        except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
+            meta = join(self.url, name, "zarr.json")
+            raise CacheError(f"{meta}: the metadata of array {name} cannot be read ({_one_line(exc)}); recompute "
+                             f"the stage: delete {self.url} or run it with --force") from None
+
+    def _decode(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
+        """Frame ``index`` of ``arr`` (an array of group ``g``); ChunkError when its chunk cannot
+        be decoded."""
+        try:
+            return np.asarray(arr[index])
+        except DECODE_ERRORS as exc:
+            raise self._chunk_error(g, arr, index, f"cannot be decoded ({_one_line(exc)})") from None
+
+    def _checked(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
+        """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
+        although the frame is done and the group has every chunk written (:data:`EVERY_CHUNK`).
+        The file system is asked only for a value that is all fill."""
+        value = self._decode(g, arr, index)
+        if g.attrs.get(EVERY_CHUNK) and _all_fill(value, arr.fill_value) \
+                and not sync(arr.store.exists(f"{arr.path}/{_chunk_key(arr, index)}")) \
+                and int(self._decode(g, self._member(g, "status"), index)) == DONE:
+            raise self._chunk_error(g, arr, index, "is missing although the frame is done (zarr would read the fill "
+                                                   "value in its place)")
+        return value
+
+    def _chunk_error(self, g: zarr.Group, arr: zarr.Array, index: int, problem: str) -> ChunkError:
+        """ChunkError for frame ``index`` of ``arr`` (of group ``g``), with the command that
+        recomputes the frame."""
+        chunk = join(self.url, arr.path, _chunk_key(arr, index))
+        ids = g.attrs.get("frame_ids", [])
+        frame = str(ids[index]) if 0 <= index < len(ids) else None
+        folder = self.url.rstrip("/").rsplit("/", 1)[-1]
+        stage = folder.removesuffix(".zarr")
+        remedy = (f"recompute the frame with `pipeline run {stage} --force --frames {frame if frame else index}` "
+                  f"(the frames made from it are recomputed too)")
+        return ChunkError(f"{folder}/{arr.basename}", index, frame, chunk, problem, remedy)
 
     def attrs(self) -> dict[str, Any]:
         """Group attributes."""
         return dict(self._group("r").attrs)
+
+
+class CheckedArray:
+    """A FrameStore's zarr array: index it (``[sel]``, ``oindex[sel]``) like the zarr array, whose
+    other attributes it passes on; a read that meets a damaged chunk raises the ChunkError of the
+    lowest damaged frame it read instead of the codec's error."""
+
+    def __init__(self, store: FrameStore, array: zarr.Array) -> None:
+        self._store = store
+        self._array = array
+
+    def __getitem__(self, selection: Any) -> Any:
+        return self._read(lambda: self._array[selection], selection)
+
+    @property
+    def oindex(self) -> "_CheckedOIndex":
+        return _CheckedOIndex(self)
+
+    def __len__(self) -> int:
+        return len(self._array)
+
+    def __array__(self, dtype: Any = None, copy: bool | None = None) -> np.ndarray:
+        """The whole array read (np.asarray of it), as a zarr array allows."""
+        return np.asarray(self[...], dtype=dtype)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):  # e.g. while unpickling, before __init__ set them
+            raise AttributeError(name)
+        return getattr(self._array, name)
+
+    def _read(self, read: Callable[[], Any], selection: Any) -> Any:
+        """``read()`` of ``selection``; on a decoding error, the ChunkError of the lowest damaged
+        frame the selection reads (its first item selects the frames)."""
+        try:
+            return read()
+        except DECODE_ERRORS as exc:
+            first = selection[0] if isinstance(selection, tuple) else selection
+            try:
+                frames = np.arange(self._array.shape[0])[first]
+            except (IndexError, TypeError, ValueError):  # not a frame selection: no chunk to blame
+                raise exc from None
+            raise self._store.damaged(self._array.basename, frames, exc) from None
+
+
+class _CheckedOIndex:
+    """``CheckedArray.oindex``: orthogonal selection with the same error translation."""
+
+    def __init__(self, checked: CheckedArray) -> None:
+        self._checked = checked
+
+    def __getitem__(self, selection: Any) -> Any:
+        return self._checked._read(lambda: self._checked._array.oindex[selection], selection)
+
+
+def _chunk_key(arr: zarr.Array, index: int) -> str:
+    """Key, under the array's path, of frame ``index``'s chunk (one chunk per frame)."""
+    return arr.metadata.encode_chunk_key((index,) + (0,) * (arr.ndim - 1))
+
+
+def _all_fill(value: np.ndarray, fill: Any) -> bool:
+    """True when every element of ``value`` equals the fill value (NaN equals NaN); most values
+    are told apart by their first element."""
+    value = np.asarray(value).reshape(-1)
+    nan = isinstance(fill, (float, np.floating)) and bool(np.isnan(fill))
+
+    def same(v: np.ndarray) -> np.ndarray:
+        return np.isnan(v) if nan else v == fill
+
+    return value.size == 0 or (bool(same(value[:1]).all()) and bool(same(value).all()))
+
+
+def _one_line(exc: BaseException) -> str:
+    """'Type: first line of the message' (at most 200 characters)."""
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    return f"{type(exc).__name__}: {text}"[:200]
 
 
 def done_digest(status: np.ndarray) -> str:
@@ -263,7 +433,9 @@ async def _write_frame_async(url: str, index: int, specs: tuple[ArraySpec, ...],
     """Write ``values`` into row ``index`` of the group's arrays concurrently, then the status."""
     group = await zarr_async.open_group(url, mode="r+")
     names = [name for name, _ in values] + ["reason", "status"]
-    targets = dict(zip(names, await _gather_all(group.getitem(name) for name in names)))
+    # every chunk written, a fill-valued one too (EVERY_CHUNK): a missing chunk is then damage
+    targets = {name: arr.with_config({"write_empty_chunks": True})
+               for name, arr in zip(names, await _gather_all(group.getitem(name) for name in names))}
     ragged = {spec.name: spec.fill for spec in specs if spec.ragged}
 
     def row(name: str, value: Any) -> np.ndarray:

@@ -41,3 +41,25 @@ class LockError(PipelineError):
 
 class CacheError(PipelineError):
     """The cache cannot be read or written (read-only, disk full, corrupt layout)."""
+
+
+class ChunkError(PipelineError):
+    """A chunk of a cached array is damaged: it cannot be decoded, or a finished frame's chunk is
+    missing. It concerns one frame: a frame computation that reads it fails alone, the run goes on.
+
+    The message names the array (``<stage>.zarr/<array>``), the frame, the chunk file, what is
+    wrong and what recomputes it.
+    """
+
+    def __init__(self, array: str, index: int, frame: str | None, chunk: str, problem: str, remedy: str) -> None:
+        self.array = array
+        self.index = index
+        self.frame = frame
+        self.chunk = chunk
+        self.problem = problem
+        self.remedy = remedy
+        frame_id = f" ({frame})" if frame is not None and frame != str(index) else ""
+        super().__init__(f"{array}, frame {index}{frame_id}: chunk {chunk} {problem}; {remedy}")
+
+    def __reduce__(self):  # picklable (raised on dask workers)
+        return type(self), (self.array, self.index, self.frame, self.chunk, self.problem, self.remedy)

@@ -23,7 +23,7 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest, join
-from pipeline.errors import ConfigError, FrameError, PipelineError
+from pipeline.errors import ChunkError, ConfigError, FrameError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
@@ -175,7 +175,9 @@ class Pipeline:
         """Bring ``target`` and its upstream stages up to date; returns one report per stage.
 
         ``frames``: restrict per-frame work to these frame indices. ``force``: recompute ``target``
-        even if current. With ``strict`` the first failed frame raises FrameError.
+        even if current; with ``frames``, a current frame stage recomputes only those frames (and
+        the same frames of the frame stages after it, the dataset stages after it marked stale).
+        With ``strict`` the first failed frame raises FrameError.
         """
         reports = []
         self._done.clear()
@@ -187,14 +189,18 @@ class Pipeline:
                     reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
                 t0 = time.perf_counter()
                 forced = force and (name == target or getattr(stage, "part_of", "") == target)
-                rebuild = forced or not self.is_current(name)
-                with rewriting(self._lock_url(name), what, wait_s) if rebuild else contextlib.nullcontext():
-                    if rebuild:
+                current = self.is_current(name)
+                redo = forced and frames is not None and isinstance(stage, FrameStage) and current
+                rebuild = (forced and not redo) or not current
+                with rewriting(self._lock_url(name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
+                    if redo:
+                        self.redo_frames(name, frames)
+                    elif rebuild:
                         # new outputs under a fingerprint that downstream outputs may already carry:
                         # marked stale first, so that a run killed while rebuilding leaves them stale
                         self.invalidate_downstream(name)
                     if isinstance(stage, FrameStage):
-                        report = self._run_frames(stage, frames, strict, forced, retry_failed)
+                        report = self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
                     else:
                         report = self._run_dataset(stage, forced, rebuild)
                 report.seconds = time.perf_counter() - t0
@@ -246,6 +252,31 @@ class Pipeline:
             if store.fingerprint() == self.fingerprint(other):  # would pass as current; others are stale already
                 store.invalidate()
                 self.log(f"{other:<{NAME_WIDTH}} marked stale (upstream {name} was recomputed)")
+
+    def redo_frames(self, name: str, frames: list[int]) -> None:
+        """Mark ``frames`` of frame stage ``name`` pending, to be recomputed in place (``--force
+        --frames``), and the same frames of every frame stage after it, which were made from them
+        (their excluded frames stay excluded); the dataset stages after it are marked stale. The
+        stages after it go first, so that a run killed half-way leaves them to be recomputed."""
+        for other in [*self.downstream(name), name]:
+            if isinstance(self.stages[other], DatasetStage):
+                folder = self.env.dir(other)
+                if folder.fingerprint() == self.fingerprint(other):
+                    folder.invalidate()
+                    self.log(f"{other:<{NAME_WIDTH}} marked stale (frames of upstream {name} are recomputed)")
+                continue
+            store = self.env.store(other)
+            if not store.exists():
+                continue
+            try:
+                status = store.status()
+                redo = [i for i in frames if 0 <= i < len(status) and status[i] in (DONE, FAILED)]
+            except ChunkError:  # a damaged status chunk: marking the frames rewrites it
+                redo = [i for i in frames if 0 <= i < len(self.frame_ids())]
+            for i in redo:
+                store.mark(i, PENDING)
+            if redo and other != name:
+                self.log(f"{other:<{NAME_WIDTH}} {len(redo)} frame(s) to recompute (upstream {name} recomputes them)")
 
     def _ensure_created(self, stage: FrameStage, force: bool) -> bool:
         store = self.env.store(stage.name)

@@ -304,6 +304,42 @@ def test_force_recompute_marks_downstream_stale(tmp_path, monkeypatch):
     assert reports["train"].summary["message"] != "up to date"
 
 
+def test_force_with_frames_recomputes_those_frames_in_place(tmp_path, monkeypatch):
+    """--force --frames on a current frame stage: only those frames are recomputed (the others
+    stay done), the same frames of the frame stages after it are to be recomputed, and the dataset
+    stages after it are stale; a killed such run leaves them so."""
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    make_pipeline(tmp_path).run("train")
+    before = read_all(make_pipeline(tmp_path))
+    log.unlink()
+    reports = {r.stage: r for r in make_pipeline(tmp_path).run("calibrate", frames=[2, 5], force=True)}
+    assert log.read_text().split() == ["calibrate", IDS[2], "calibrate", IDS[5]]
+    assert reports["calibrate"].done == len(IDS)
+    pipe = make_pipeline(tmp_path)
+    heat = pipe.env.store("heatmaps").status()
+    assert list(np.flatnonzero(heat == PENDING)) == [2, 5] and pipe.is_current("heatmaps")
+    assert not pipe.is_current("train")
+    log.unlink()
+    reports = {r.stage: r for r in make_pipeline(tmp_path).run("train")}
+    assert reports["heatmaps"].processed == 2 and reports["train"].summary["message"] != "up to date"
+    assert sorted(log.read_text().split()[1::2]) == [IDS[2], IDS[5]]
+    after = read_all(make_pipeline(tmp_path))
+    for key in before:
+        np.testing.assert_array_equal(before[key], after[key], err_msg=key)
+    # killed after the first recomputed frame: the stages after it still have both frames to redo
+    log.unlink()
+    monkeypatch.setenv("FAKE_STAGE_STOP_AFTER", "1")
+    with pytest.raises(KeyboardInterrupt):
+        make_pipeline(tmp_path).run("calibrate", frames=[2, 5], force=True)
+    monkeypatch.delenv("FAKE_STAGE_STOP_AFTER")
+    pipe = make_pipeline(tmp_path)
+    assert list(np.flatnonzero(pipe.env.store("heatmaps").status() == PENDING)) == [2, 5]
+    assert not pipe.is_current("train")
+    pipe.run("train")
+    assert (pipe.env.store("calibrate").status() == DONE).all() and (pipe.env.store("heatmaps").status() == DONE).all()
+
+
 def test_invalid_settings_are_refused_before_any_output_is_touched(tmp_path):
     """A stage's check runs for the whole run before any stage recreates or invalidates anything."""
     import dataclasses

@@ -1,0 +1,252 @@
+"""Damaged cache chunks: a chunk file truncated, overwritten with garbage, emptied, bit-flipped or
+deleted fails the frame that reads it with a reason naming the array, the frame, the file and
+how to recompute it; the other frames finish. A damaged status chunk, and the dataset-level read
+paths (`pipeline status`), give one line naming the file. Small pipelines of tests/fake_stages.py.
+"""
+
+from __future__ import annotations
+
+import pickle
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import pipeline.cli as cli
+from pipeline.cache import DONE, EVERY_CHUNK, FAILED, PENDING, FrameStore
+from pipeline.config import load_config
+from pipeline.errors import CacheError, ChunkError
+from pipeline.executor import Executor, RunEnv
+from pipeline.runner import Pipeline
+from tests import fake_stages
+
+IDS = [f"f{i:03d}" for i in range(8)]
+
+
+def _flip_middle_bit(data: bytes) -> bytes:
+    mid = len(data) // 2
+    return data[:mid] + bytes([data[mid] ^ 0x10]) + data[mid + 1:]
+
+
+DAMAGES = {
+    "truncated": lambda data: data[: len(data) // 2],
+    "random bytes": lambda data: np.random.default_rng(0).bytes(len(data)),
+    "empty": lambda data: b"",
+    "one bit flipped": _flip_middle_bit,  # still a zstd frame: caught by the checksum only
+}
+
+
+def _pipe(tmp_path: Path, name: str = "cache") -> Pipeline:
+    cfg = load_config("synthetic", {}, environ={})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / name), dataset="fake", data_root=str(tmp_path))
+    return Pipeline(fake_stages.STAGES, env, Executor(1), progress=False, log=lambda m: None,
+                    frame_lister=lambda: list(IDS))
+
+
+def _chunk(pipe: Pipeline, stage: str, key: str) -> Path:
+    return Path(pipe.env.cache_root) / "fake" / f"{stage}.zarr" / key
+
+
+def _damage(path: Path, how: str) -> None:
+    path.write_bytes(DAMAGES[how](path.read_bytes()))
+
+
+@pytest.mark.parametrize("how", list(DAMAGES))
+def test_damaged_upstream_chunk_fails_only_its_frame_naming_array_frame_and_file(tmp_path, how):
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    chunk = _chunk(pipe, "calibrate", "points/c/3/0/0")
+    _damage(chunk, how)
+    report = pipe.run("heatmaps")[-1]
+    heat = pipe.env.store("heatmaps")
+    status = heat.status()
+    assert status[3] == FAILED and report.failed == 1
+    assert (np.delete(status, 3) == DONE).all()  # frames 0 (value = fill 0), 5 and 7 (no points) included
+    reason = heat.reasons()[3]
+    assert reason.startswith("stage heatmaps, frame f003: calibrate.zarr/points, frame 3 (f003): ")
+    assert f"chunk {chunk} cannot be decoded (RuntimeError: Zstd decompression error" in reason
+    assert "internal error" not in reason and "\n" not in reason
+    if how == "one bit flipped":
+        assert "doesn't match checksum" in reason
+    assert reason.endswith("recompute the frame with `pipeline run calibrate --force --frames f003` (the frames "
+                           "made from it are recomputed too)")
+
+
+def _follow(pipe: Pipeline, message: str) -> None:
+    """Run the `pipeline run STAGE --force --frames ID` that a ChunkError's message gives."""
+    from pipeline.runner import parse_frames
+
+    stage, frame = re.search(r"`pipeline run (\S+) --force --frames (\S+)`", message).groups()
+    pipe.run(stage, frames=parse_frames(frame, pipe.frame_ids()), force=True)
+
+
+def test_following_the_message_recomputes_the_frame(tmp_path, monkeypatch):
+    """The command the reason gives recomputes the damaged frame in place, and the frame of the
+    stage that failed on it runs again without --retry-failed (once each); the result equals a
+    run that was never damaged."""
+    calls = tmp_path / "calls.log"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(calls))
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    _damage(_chunk(pipe, "calibrate", "points/c/3/0/0"), "truncated")
+    pipe.run("heatmaps")
+    calls.write_text("")
+    _follow(pipe, pipe.env.store("heatmaps").reasons()[3])
+    assert pipe.env.store("heatmaps").status()[3] == PENDING  # made from the damaged frame: to redo
+    pipe.run("heatmaps")
+    assert calls.read_text().split("\n")[:-1] == ["calibrate f003", "heatmaps f003"]
+    monkeypatch.delenv(fake_stages.CALLS_FILE_ENV)
+    ref = _pipe(tmp_path, "ref")
+    ref.run("heatmaps")
+    for stage, name in (("calibrate", "points"), ("heatmaps", "total")):
+        np.testing.assert_array_equal(pipe.env.store(stage).read(name, 3), ref.env.store(stage).read(name, 3))
+    assert (pipe.env.store("heatmaps").status() == DONE).all()
+
+
+def test_missing_chunk_of_a_done_frame_is_an_error_not_the_fill_value(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    calib = pipe.env.store("calibrate")
+    assert calib.read("value", 0) == 0.0  # equal to the fill value, yet written: not taken as missing
+    assert calib.read("points", 5).shape == (0, 3)  # no rows (an all-NaN chunk, a count of 0)
+    _chunk(pipe, "calibrate", "value/c/2").unlink()
+    _chunk(pipe, "calibrate", "points_count/c/6").unlink()
+    pipe.run("heatmaps")
+    reasons = pipe.env.store("heatmaps").reasons()
+    assert sorted(reasons) == [2, 6]
+    assert "calibrate.zarr/value, frame 2 (f002): chunk " in reasons[2]
+    assert "calibrate.zarr/points_count, frame 6 (f006): chunk " in reasons[6]
+    for i in (2, 6):
+        assert "is missing although the frame is done" in reasons[i] and "--force --frames" in reasons[i]
+
+
+def test_missing_chunk_reads_as_fill_value_in_an_output_without_the_marker(tmp_path):
+    """Outputs created before every chunk was written (no EVERY_CHUNK attribute) cannot tell a
+    deleted chunk from a fill value: zarr reads the fill value, as it always did."""
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    calib = pipe.env.store("calibrate")
+    calib._group("r+").attrs.pop(EVERY_CHUNK)  # zarr's Attributes: removes the key from zarr.json
+    assert EVERY_CHUNK not in calib.attrs()
+    _chunk(pipe, "calibrate", "value/c/2").unlink()
+    assert calib.read("value", 2) == 0.0
+
+
+def test_whole_array_reads_name_the_first_damaged_frame(tmp_path):
+    """FrameStore.array (what dataset stages index) raises ChunkError for the frames it reads."""
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    calib = pipe.env.store("calibrate")
+    _damage(_chunk(pipe, "calibrate", "points/c/4/0/0"), "random bytes")
+    _damage(_chunk(pipe, "calibrate", "points/c/6/0/0"), "random bytes")
+    points = calib.array("points")
+    assert points.shape == (8, 8, 3) and np.asarray(points.oindex[[0, 1, 7]]).shape == (3, 8, 3)
+    for read in (lambda: points[:], lambda: points[3:], lambda: points.oindex[[6, 4]], lambda: points[4, :2],
+                 lambda: np.asarray(points)):
+        with pytest.raises(ChunkError, match=r"^calibrate\.zarr/points, frame 4 \(f004\): chunk .*points/c/4/0/0 "):
+            read()
+    with pytest.raises(ChunkError, match="frame 6 "):
+        points.oindex[[5, 6]]
+    again = pickle.loads(pickle.dumps(points))  # like a zarr array, it travels to dask workers
+    assert np.asarray(again[0]).shape == (8, 3)
+    np.testing.assert_array_equal(np.asarray(calib.array("value")), np.arange(8.0))
+
+
+def test_damaged_chunk_read_by_a_dataset_stage_stops_it_with_the_chunk_named(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("heatmaps")
+    _damage(_chunk(pipe, "heatmaps", "total/c/5"), "empty")
+    with pytest.raises(ChunkError, match=r"^heatmaps\.zarr/total, frame 5 \(f005\): chunk "):
+        pipe.run("train")
+
+
+def test_damaged_status_chunk_stops_the_run_naming_the_file(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    chunk = _chunk(pipe, "calibrate", "status/c/3")
+    _damage(chunk, "random bytes")
+    with pytest.raises(ChunkError) as info:
+        pipe.run("heatmaps")
+    message = str(info.value)
+    assert message.startswith(f"calibrate.zarr/status, frame 3 (f003): chunk {chunk} cannot be decoded (")
+    assert message.endswith("`pipeline run calibrate --force --frames f003` (the frames made from it are "
+                            "recomputed too)")
+    assert not pipe.env.store("heatmaps").exists()  # stopped before any downstream output
+    _follow(pipe, message)
+    pipe.run("heatmaps")
+    assert (pipe.env.store("heatmaps").status() == DONE).all()
+
+
+def test_damaged_reason_chunk_gives_a_reason_saying_so(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    _damage(_chunk(pipe, "calibrate", "points/c/3/0/0"), "truncated")
+    pipe.run("heatmaps")
+    chunk = _chunk(pipe, "heatmaps", "reason/c/3")
+    _damage(chunk, "truncated")
+    reason = pipe.env.store("heatmaps").reasons()[3]
+    assert reason.startswith(f"(the frame failed; its reason cannot be read: chunk {chunk} cannot be decoded (")
+    assert pipe.run("heatmaps")[-1].failed == 1  # the runner reads it too: the frame stays failed
+
+
+def test_damaged_array_metadata_is_a_cache_error_naming_its_file(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    meta = _chunk(pipe, "calibrate", "points/zarr.json")
+    _damage(meta, "truncated")
+    with pytest.raises(CacheError, match=re.escape(f"{meta}: the metadata of array points cannot be read (")):
+        pipe.run("heatmaps")
+
+
+def test_chunk_error_survives_pickling():
+    err = ChunkError("a.zarr/x", 3, "f003", "/c/a.zarr/x/c/3", "cannot be decoded (E: e)", "do this")
+    again = pickle.loads(pickle.dumps(err))
+    assert str(again) == str(err) == "a.zarr/x, frame 3 (f003): chunk /c/a.zarr/x/c/3 cannot be decoded (E: e); do this"
+    assert (again.array, again.index, again.chunk) == ("a.zarr/x", 3, "/c/a.zarr/x/c/3")
+
+
+# ------------------------------------------------------------------------------------- the CLI
+
+
+@pytest.fixture
+def fake_cli(monkeypatch):
+    """The real CLI (options, error handling) on the fake stages and frames."""
+    def _pipeline(env, workers, scheduler, progress=None):
+        return Pipeline(fake_stages.STAGES, env, Executor(workers, scheduler, progress), progress,
+                        frame_lister=lambda: list(IDS))
+
+    monkeypatch.setattr(cli, "_pipeline", _pipeline)
+    monkeypatch.setattr(cli, "_ensure_world", lambda env, progress: None)
+
+    def invoke(tmp_path: Path, *args: str):
+        return CliRunner().invoke(cli.main, [*args, "--dataset", "synthetic", "--cache", str(tmp_path / "cache"),
+                                             "--data-root", str(tmp_path)])
+    return invoke
+
+
+def test_cli_damaged_status_chunk_is_one_line(tmp_path, fake_cli):
+    assert fake_cli(tmp_path, "run", "calibrate", "--workers", "1").exit_code == 0
+    chunk = tmp_path / "cache" / "synthetic" / "calibrate.zarr" / "status" / "c" / "3"
+    _damage(chunk, "truncated")
+    for args in (("status",), ("run", "heatmaps", "--workers", "1"), ("run", "heatmaps", "--dry-run")):
+        out = fake_cli(tmp_path, *args)
+        assert out.exit_code == 2, out.output
+        lines = out.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in out.output
+        assert lines[0].startswith(f"error: calibrate.zarr/status, frame 3 (f003): chunk {chunk} cannot be decoded")
+
+
+def test_cli_run_and_status_report_the_damaged_chunk_per_frame(tmp_path, fake_cli):
+    assert fake_cli(tmp_path, "run", "calibrate", "--workers", "1").exit_code == 0
+    _damage(tmp_path / "cache" / "synthetic" / "calibrate.zarr" / "points" / "c" / "3" / "0" / "0", "empty")
+    run = fake_cli(tmp_path, "run", "heatmaps", "--workers", "1")
+    assert run.exit_code == 0, run.output
+    failed = [line for line in run.stderr.splitlines() if line.startswith("  failed: ")]
+    assert len(failed) == 1 and failed[0].startswith("  failed: stage heatmaps, frame f003: calibrate.zarr/points, "
+                                                     "frame 3 (f003): chunk ")
+    status = fake_cli(tmp_path, "status")
+    assert status.exit_code == 0
+    assert re.search(r"heatmaps .* done +7  failed +1", status.stdout)
+    assert "frame 3: stage heatmaps, frame f003: calibrate.zarr/points, frame 3 (f003): chunk " in status.stdout
