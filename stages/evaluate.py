@@ -348,10 +348,12 @@ def _read_results(part, frames: np.ndarray, progress: bool) -> tuple[np.ndarray,
     present = np.asarray(part.array("present").oindex[frames], bool)
     count = np.asarray(part.array("count").oindex[frames])
     speeds = np.asarray(part.array("ego_speed").oindex[frames])
-    pooled = {"points": [], "abs_dr": [], "abs_dv": []}
-    for i in tqdm(frames, desc="evaluate (report)", unit="frame", disable=not progress):
-        for name, values in pooled.items():
-            values.append(part.read(name, int(i)))
+    ragged = {name: (part.array(name), np.asarray(part.array(f"{name}_count").oindex[frames]))
+              for name in ("points", "abs_dr", "abs_dv")}
+    pooled: dict[str, list] = {name: [] for name in ragged}
+    for k, i in enumerate(tqdm(frames, desc="evaluate (report)", unit="frame", disable=not progress)):
+        for name, (array, rows) in ragged.items():
+            pooled[name].append(np.asarray(array[int(i), :int(rows[k])]))
     real_counts = np.array([np.count_nonzero(p[:, 0] == -1) for p in pooled["points"]], np.float64)
     return (table, present, count, speeds, real_counts, *(np.concatenate(v) for v in pooled.values()))
 
