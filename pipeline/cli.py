@@ -14,6 +14,7 @@ import click
 from pipeline.cache import frame_store, join
 from pipeline.config import load_config, parse_set_options, profile_names
 from pipeline.errors import ConfigError, PipelineError
+from pipeline.runner import NAME_WIDTH
 
 DEFAULT_CACHE = "cache"
 
@@ -201,13 +202,13 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
 def _print_status_row(row: dict) -> None:
     current = {True: "current", False: "stale or missing", None: "unknown"}[row.get("current")]
     if "done" in row:
-        click.echo(f"{row['stage']:<11} {current:<17} done {row['done']:>6}  failed {row['failed']:>5}  "
+        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} done {row['done']:>6}  failed {row['failed']:>5}  "
                    f"pending {row['pending']:>6}  excluded {row['excluded']:>5}")
     else:
         state = "finished" if row.get("exists") else "not run"
-        click.echo(f"{row['stage']:<11} {current:<17} {state}")
+        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} {state}")
     if row.get("note"):
-        click.echo(f"{'':<11} note: {row['note']}")
+        click.echo(f"{'':<{NAME_WIDTH}} note: {row['note']}")
 
 
 @main.command()
@@ -227,7 +228,7 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
     for row in rows:
         _print_status_row(row)
         for i, why in list(row.get("reasons", {}).items())[:reasons]:
-            click.echo(f"{'':<11} frame {i}: {why}")
+            click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
 
 
 @main.command()
