@@ -15,6 +15,7 @@ from pipeline.cache import frame_store, join
 from pipeline.config import load_config, parse_set_options, profile_names
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.runner import NAME_WIDTH
+from pipeline.stage import FrameStage
 
 DEFAULT_CACHE = "cache"
 
@@ -154,7 +155,8 @@ def main() -> None:
               help="Limit per-frame work to START:STOP[:STEP] frame indices or a comma list of frame ids.")
 @click.option("--strict", is_flag=True, help="Stop at the first failed frame with a non-zero exit code.")
 @click.option("--force", is_flag=True, help="Recompute STAGE from scratch even if its output is current (train: "
-              "its checkpoints are discarded and the nets trained again).")
+              "its checkpoints are discarded and the nets trained again); with --frames, only those frames, in "
+              "place (and the same frames of the stages after it).")
 @click.option("--retry-failed", is_flag=True, help="Also re-run frames recorded as failed.")
 @click.option("--wait", "wait_s", type=click.FloatRange(min=0.0), default=0.0, metavar="SECONDS",
               help="If another run holds a stage's lock, wait up to this long instead of stopping.")
@@ -177,7 +179,11 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
         rows = {r["stage"]: r for r in pipe.status()}
         for name in closure:
             _print_status_row(rows[name])
-        if force:
+        if force and frames_spec and isinstance(pipe.stages[stage], FrameStage):
+            click.echo(f"--force --frames {frames_spec}: those frames of {stage} would be recomputed in place, "
+                       f"the same frames of the frame stages after it marked to recompute, the dataset stages "
+                       f"after it marked stale")
+        elif force:
             click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
         if frames_spec:
             click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames")

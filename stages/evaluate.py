@@ -305,8 +305,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         why = f"; {failed} failed (`pipeline status` lists why)" if failed else ""
         raise PipelineError(f"evaluate: no evaluated frame in split '{cfg.eval.split}' "
                             f"(synth.split = '{cfg.synth.split}'{why})")
-    table, present, count, speeds, real_counts, points, abs_dr, abs_dv = _read_results(part, frames, inputs.progress)
-    per_frame = {spec.name: [dict(zip(FRAME_METRICS, table[k, row])) for k in np.flatnonzero(present[:, row])]
+    metrics, present, count, speeds, real_counts, points, abs_dr, abs_dv = _read_results(part, frames, inputs.progress)
+    per_frame = {spec.name: [dict(zip(FRAME_METRICS, metrics[k, row])) for k in np.flatnonzero(present[:, row])]
                  for row, spec in enumerate(METHODS) if present[:, row].any()}
     real = points[points[:, 0] == -1, 1:]
     sph = {spec.name: points[points[:, 0] == row, 1:] for row, spec in enumerate(METHODS) if spec.name in per_frame}
@@ -314,30 +314,38 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     root = Path(out.path)
     figs = root / "figures"
     _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, sph["model"], real, fig8, bev, histograms)
-    stats = _train_stats(inputs, cfg)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
-            "placement": cfg.synth.placement,
-            "train_mean_count": stats["n_bar"], "synthesize_counts": _synth_counts(syn_store, frames)}
-    not_synthesized = int((in_split & calib_done & ~syn_done).sum())
-    not_evaluated = int((in_split & syn_done & (part_status != DONE)).sum())
-    left_out = []
-    if not_synthesized:  # a partial report must say so (e.g. after `run synthesize --frames ...`)
-        meta["frames_not_synthesized"] = (f"{not_synthesized} of the split's frames are not in this report "
-                                          f"(synthesize has not finished them)")
-        left_out.append(f"{not_synthesized} more not synthesized yet")
-    if not_evaluated:
-        meta["frames_not_evaluated"] = (f"{not_evaluated} of the split's synthesized frames are not in this report "
-                                        f"({failed} failed in evaluate-frames, the rest not run yet)")
-        left_out.append(f"{not_evaluated} more not evaluated" + (f", {failed} of them failed" if failed else ""))
+            "placement": cfg.synth.placement, "train_mean_count": _train_stats(inputs, cfg)["n_bar"],
+            "synthesize_counts": _synth_counts(syn_store, frames)}
+    left_out = _left_out(meta, in_split & calib_done & ~syn_done, in_split & syn_done & (part_status != DONE),
+                         failed)
     model_row = [s.name for s in METHODS].index("model")
     by_speed = speed_breakdown(speeds, real_counts, count[:, model_row], per_frame["model"])
-    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, aggregate(per_frame), distances,
+    table = aggregate(per_frame)
+    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, table, distances,
                                       _physics_summary(abs_dr, abs_dv), meta, by_speed)
-    model = aggregate({"model": per_frame["model"]})["model"]
+    model = table["model"]
     tail = f" ({'; '.join(left_out)})" if left_out else ""
     return {"report": str(md_path), "figures": str(figs),
             "message": (f"{len(frames)} frames{tail}: model chamfer {model['chamfer_m']['mean']:.2f} m, "
                         f"F1 {model['f1']['mean']:.3f}; report {md_path}")}
+
+
+def _left_out(meta: dict, not_synthesized: np.ndarray, not_evaluated: np.ndarray, failed: int) -> list[str]:
+    """A report over part of its split says so (e.g. after `run evaluate --frames ...`): the
+    split's frames (F,) bool that synthesize or evaluate-frames has not finished, ``failed`` of
+    them failed in evaluate-frames, said in ``meta`` and returned for the summary line."""
+    left_out = []
+    if not_synthesized.any():
+        n = int(not_synthesized.sum())
+        meta["frames_not_synthesized"] = f"{n} of the split's frames are not in this report (synthesize has not finished them)"
+        left_out.append(f"{n} more not synthesized yet")
+    if not_evaluated.any():
+        n = int(not_evaluated.sum())
+        meta["frames_not_evaluated"] = (f"{n} of the split's synthesized frames are not in this report ({failed} failed "
+                                        f"in evaluate-frames, the rest not run yet)")
+        left_out.append(f"{n} more not evaluated" + (f", {failed} of them failed" if failed else ""))
+    return left_out
 
 
 def _read_results(part, frames: np.ndarray, progress: bool) -> tuple[np.ndarray, ...]:
