@@ -71,8 +71,13 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     from pipeline.executor import RunEnv
     from pipeline.runner import default_data_root
 
-    cfg = load_config(dataset, parse_set_options(sets))
+    from pipeline.transfer import with_nets_from
+
+    overrides = parse_set_options(sets)
+    cfg = load_config(dataset, overrides)
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
+    explicit = set(overrides) | {".".join(v.split("__")[1:3]).lower() for v in os.environ if v.startswith("PIPELINE__")}
+    cfg = with_nets_from(cfg, cache_root, explicit)  # another dataset's nets bring their radar's settings
     if not data_root:
         calib = frame_store(cache_root, dataset, "calibrate")
         data_root = calib.attrs().get("data_root", "") if calib.exists() else ""

@@ -227,6 +227,11 @@ class TrainSection:
 
     nets: str = "disnet,rssnet,placenet"
     """Comma-separated nets to train (placenet: needed by synth.placement = 'lidar')."""
+    nets_from: str = ""
+    """Another dataset under the same cache root whose trained nets this one uses instead of
+    training its own (e.g. 'astyx' for KITTI, which has no radar): the train stage takes its
+    checkpoints, and its radar and RSS-Net input settings replace this profile's
+    (pipeline.transfer). '' (default): train on this dataset."""
     epochs: int = 20
     """Epochs per net."""
     lr: float = 1e-4

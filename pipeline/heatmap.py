@@ -316,3 +316,19 @@ def sigma_from_frames(frames: Iterable[FrameRecord], grow_m: float = 0.5, min_po
     for frame in frames:
         per_object.extend(object_points_uv(frame, grow_m))
     return estimate_sigma_px(per_object, min_points=min_points)
+
+
+def resize_distribution(prob_hw: np.ndarray, size_wh: Sequence[int]) -> np.ndarray:
+    """A per-pixel probability map (h, w) >= 0 at another size (W, H): float32 (H, W) summing to 1
+    (all zeros when ``prob_hw`` has no mass). Area-averaged where it shrinks, bilinear where it
+    grows (a map predicted at another dataset's working size, train.nets_from)."""
+    import cv2
+
+    prob = check_shape("prob_hw", np.asarray(prob_hw, np.float32), (None, None))
+    w, h = int(size_wh[0]), int(size_wh[1])
+    if prob.shape == (h, w):
+        return prob
+    shrink = h * w < prob.size
+    out = np.maximum(cv2.resize(prob, (w, h), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR), 0.0)
+    total = float(out.sum(dtype=np.float64))
+    return (out / total).astype(np.float32) if total > 0 else np.zeros((h, w), np.float32)

@@ -146,7 +146,7 @@ class Pipeline:
                 parts["data_root"] = os.path.abspath(self.env.data_root) if "://" not in self.env.data_root else self.env.data_root
                 parts["frames"] = hashlib.sha256("\n".join(self.frame_ids()).encode()).hexdigest()
             if isinstance(stage, DatasetStage) and stage.extra_fingerprint:
-                parts["extra"] = stage.extra_fingerprint(self.env.cfg)
+                parts["extra"] = stage.extra_fingerprint(self.env.cfg, self.env)
             text = json.dumps(parts, sort_keys=True)
             self._fp[name] = hashlib.sha256(text.encode()).hexdigest()[:16]
         return self._fp[name]

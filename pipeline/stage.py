@@ -74,7 +74,8 @@ class FrameStage:
 @dataclass(frozen=True)
 class DatasetStage:
     """A stage run once over the whole dataset: ``run(inputs, cfg, out) -> summary dict``;
-    ``check`` as for FrameStage."""
+    ``check`` as for FrameStage. ``extra_fingerprint(cfg, env)``: what else the output depends on
+    (e.g. another dataset's train stage, for train.nets_from), a string in its fingerprint."""
 
     name: str
     upstream: tuple[str, ...]
@@ -82,7 +83,7 @@ class DatasetStage:
     run: Callable[..., dict[str, Any]]
     version: int = 1
     doc: str = ""
-    extra_fingerprint: Callable[["Config"], str] | None = field(default=None)
+    extra_fingerprint: Callable[["Config", Any], str] | None = field(default=None)
     check: Callable[["Config"], None] | None = None
 
 

@@ -40,6 +40,7 @@ from pipeline.errors import ConfigError
 from pipeline.models.disnet import COUNT_PRIOR_KNOTS, DisNet, build_disnet, disnet_kwargs
 from pipeline.models.losses import count_loss, kl_loss, poisson_loss, rss_loss
 from pipeline.models.placenet import PlaceNet, build_placenet, placenet_kwargs
+from pipeline.models.resnet import resnet18_backbone
 from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
 
 log = logging.getLogger(__name__)
@@ -754,23 +755,38 @@ def _load_into(model: nn.Module, arch: dict[str, Any], path: str | Path, device:
     return model.to(device).eval()
 
 
-def load_disnet(cfg, path: str | Path, device: str | None = None) -> DisNet:
-    """Dis-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``)."""
-    model = build_disnet(cfg, load_backbone=False)
-    arch = _jsonable_arch(disnet_kwargs(cfg))
+def _arch(cfg, kwargs, path: str | Path, saved: bool) -> dict[str, Any]:
+    """A net's constructor arguments: ``kwargs(cfg)``, or with ``saved`` those its checkpoint
+    ``path`` was written with (nets trained on another dataset, train.nets_from)."""
+    if not saved:
+        return _jsonable_arch(kwargs(cfg))
+    arch = ckpt.read_meta(path).get("arch")
+    if not isinstance(arch, dict):
+        raise ConfigError(f"{path}: the checkpoint records no architecture (written by an older version?)")
+    return arch
+
+
+def load_disnet(cfg, path: str | Path, device: str | None = None, saved_arch: bool = False) -> DisNet:
+    """Dis-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``);
+    ``saved_arch``: built as the checkpoint says, not as ``cfg`` (its map then has the size it was
+    trained at, the working size of its dataset)."""
+    arch = _arch(cfg, disnet_kwargs, path, saved_arch)
+    model = DisNet(backbone=resnet18_backbone(None, width=arch["width"]), **arch)
     return _load_into(model, arch, path, select_device(device or cfg.train.device))
 
 
-def load_rssnet(cfg, path: str | Path, device: str | None = None) -> RSSNet:
-    """RSS-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``)."""
-    model = build_rssnet(cfg)
-    return _load_into(model, _jsonable_arch(rssnet_kwargs(cfg)), path, select_device(device or cfg.train.device))
+def load_rssnet(cfg, path: str | Path, device: str | None = None, saved_arch: bool = False) -> RSSNet:
+    """RSS-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``);
+    ``saved_arch`` as for :func:`load_disnet`."""
+    arch = _arch(cfg, rssnet_kwargs, path, saved_arch)
+    return _load_into(RSSNet(**arch), arch, path, select_device(device or cfg.train.device))
 
 
-def load_placenet(cfg, path: str | Path, device: str | None = None) -> PlaceNet:
-    """PlaceNet from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``)."""
-    model = build_placenet(cfg)
-    return _load_into(model, _jsonable_arch(placenet_kwargs(cfg)), path, select_device(device or cfg.train.device))
+def load_placenet(cfg, path: str | Path, device: str | None = None, saved_arch: bool = False) -> PlaceNet:
+    """PlaceNet from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``);
+    ``saved_arch`` as for :func:`load_disnet`."""
+    arch = _arch(cfg, placenet_kwargs, path, saved_arch)
+    return _load_into(PlaceNet(**arch), arch, path, select_device(device or cfg.train.device))
 
 
 def _device_of(model: nn.Module) -> torch.device:

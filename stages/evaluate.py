@@ -284,8 +284,10 @@ def _physics_summary(abs_dr: np.ndarray, abs_dv: np.ndarray) -> dict:
 
 
 def select_frames(inputs, cfg: Config) -> np.ndarray:
-    """evaluate-frames works on the frames of eval.split."""
-    return split_mask(inputs.store("calibrate").array("split")[:], cfg.eval.split)
+    """evaluate-frames works on the frames of eval.split that record radar (a camera + lidar
+    dataset, e.g. KITTI with train.nets_from, has nothing to compare the synthetic radar with)."""
+    calib = inputs.store("calibrate")
+    return split_mask(calib.array("split")[:], cfg.eval.split) & np.asarray(calib.array("has_radar")[:], bool)
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
@@ -297,11 +299,15 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
 
     check(cfg)
     calib, syn_store, part = inputs.store("calibrate"), inputs.store("synthesize"), inputs.store(FRAMES.name)
-    in_split = split_mask(np.asarray(calib.array("split")[:]), cfg.eval.split)
+    has_radar = np.asarray(calib.array("has_radar")[:], bool)
+    in_split = split_mask(np.asarray(calib.array("split")[:]), cfg.eval.split) & has_radar
     calib_done, syn_done, part_status = calib.status() == DONE, syn_store.status() == DONE, part.status()
     frames = np.flatnonzero((part_status == DONE) & in_split)
     failed = int((in_split & (part_status == FAILED)).sum())
     if len(frames) == 0:
+        if not (in_split & calib_done).any():
+            raise PipelineError(f"evaluate: dataset {inputs.env.dataset} records no radar in split '{cfg.eval.split}': "
+                                f"there is no real radar to compare the synthetic one with")
         why = f"; {failed} failed (`pipeline status` lists why)" if failed else ""
         raise PipelineError(f"evaluate: no evaluated frame in split '{cfg.eval.split}' "
                             f"(synth.split = '{cfg.synth.split}'{why})")

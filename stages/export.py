@@ -109,8 +109,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     write_image_sets(radar_root, lists)
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
             "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root}"
-                       + ("" if lists["train"] else f"; no frame of the train split (synth.split = '{cfg.synth.split}': "
-                                                    f"--set synth.split=all exports every frame)")}
+                       + ("" if lists["train"] or cfg.synth.split == "all" else
+                          f"; no frame of the train split (synth.split = '{cfg.synth.split}': --set synth.split=all "
+                          f"exports every frame)")}
 
 
 STAGE = DatasetStage(name="export", upstream=("calibrate", "synthesize"), config_keys=CONFIG_KEYS, run=run,

@@ -71,7 +71,10 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     patches, ranges = point_inputs(inputs.get("calibrate", "image"), inputs.get("calibrate", "K"),
                                    inputs.get("calibrate", "T_radar_cam"), inputs.get("calibrate", "lidar"),
                                    chosen[:, :3].astype(np.float64), cfg)
-    features, counts = placement_rows(inputs, cfg, inputs.rng(cfg.patches.seed, 12))
+    if inputs.get("calibrate", "has_radar"):
+        features, counts = placement_rows(inputs, cfg, inputs.rng(cfg.patches.seed, 12))
+    else:  # no radar, nothing to learn where it returns (a dataset that takes another's nets)
+        features, counts = np.zeros((0, len(FEATURES)), np.float32), np.zeros(0, np.float32)
     return {"patch": patches, "range_image": ranges, "point": chosen[:, :4].astype(np.float32),
             "rss": chosen[:, 4].astype(np.float32), "place_features": features, "place_count": counts}
 

@@ -11,7 +11,9 @@ Writes (synthesize.zarr) per frame of split synth.split:
   no lidar support, outside the field of view, beyond max range, found by widening the window]
   (with lidar placement: points without a candidate left count as without support).
 Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs),
-placement.voxel_m, placement.map_weight and heatmap.sigma_px (lidar placement).
+placement.voxel_m, placement.map_weight and heatmap.sigma_px (lidar placement); with
+train.nets_from the nets are another dataset's (pipeline.transfer): built as they were trained,
+their map resized to this dataset's working size.
 """
 
 from __future__ import annotations
@@ -123,15 +125,16 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
 
     out = inputs.env.dir("train")
     meta = out.meta() or {}
-    key = ("models", out.url, meta.get("fingerprint"), meta.get("finished"), cfg.synth.placement)
+    key = ("models", out.url, meta.get("fingerprint"), meta.get("finished"), cfg.synth.placement, cfg.train.nets_from)
 
     def build():
         torch.set_num_threads(max(1, cfg.train.threads // max(1, cfg.run.workers)))
         check_checkpoints(out, cfg)
-        placenet = (load_placenet(cfg, out.file("placenet/best.safetensors"), device="cpu")
+        saved = bool(cfg.train.nets_from)  # another dataset's nets: built as trained (pipeline.transfer)
+        placenet = (load_placenet(cfg, out.file("placenet/best.safetensors"), device="cpu", saved_arch=saved)
                     if cfg.synth.placement == "lidar" else None)
-        return Nets(load_disnet(cfg, out.file("disnet/best.safetensors"), device="cpu"),
-                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu"), placenet)
+        return Nets(load_disnet(cfg, out.file("disnet/best.safetensors"), device="cpu", saved_arch=saved),
+                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu", saved_arch=saved), placenet)
 
     return process_memo(key, build)
 
@@ -196,14 +199,16 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
 
 
 def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
+    from pipeline.heatmap import resize_distribution
     from pipeline.training import disnet_predict
 
     nets = models(inputs, cfg)
     speed = np.float32(np.linalg.norm(inputs.get("calibrate", "ego_velocity")))
     maps, n_hat = disnet_predict(nets.disnet, inputs.get("calibrate", "image")[None], np.array([speed], np.float32))
+    pred_map = resize_distribution(maps[0], cfg.camera.working_size)  # nets of another dataset: its map size
     n = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else float(n_hat[0])
-    out = generate(inputs, cfg, maps[0], min(n, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
-    return {"points": out["points"], "pred_map": maps[0], "n_hat": np.float32(n_hat[0]), "counts": out["counts"]}
+    out = generate(inputs, cfg, pred_map, min(n, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
+    return {"points": out["points"], "pred_map": pred_map, "n_hat": np.float32(n_hat[0]), "counts": out["counts"]}
 
 
 STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,

@@ -14,10 +14,13 @@ Dis-Net and PlaceNet training and counted in the summary.
 from __future__ import annotations
 
 import json
+import shutil
+import time
 from pathlib import Path
 
 import numpy as np
 
+from pipeline import transfer
 from pipeline.cache import DONE, RaggedRows
 from pipeline.checkpoint import read_meta
 from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config
@@ -30,7 +33,9 @@ VERSION = 2
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
 CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING_KEYS["common"])
-                                  + ("train.nets", *EPOCHS_KEYS.values())))
+                                  + ("train.nets", "train.nets_from", *EPOCHS_KEYS.values())))
+COPIED = tuple(f"{net}/best.safetensors" for net in NETS)
+"""What train.nets_from takes from the other dataset's train output (those of them it has)."""
 
 
 def frame_table(inputs) -> dict[str, np.ndarray]:
@@ -129,15 +134,18 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                                    train_rssnet)
 
     check(cfg)
+    if cfg.train.nets_from:
+        return _take_nets(inputs, cfg, out)
     nets = _nets(cfg)
     table = frame_table(inputs)
     d_data, idx = disnet_data(inputs, table)
     if len(idx["train"]) == 0:
-        raise PipelineError("train: no usable training frame (all failed, or no radar point in the train split)")
+        raise PipelineError("train: no usable training frame (all failed, or no radar point in the train split); a "
+                            "dataset without radar takes the nets of another: --set train.nets_from=DATASET")
     root = Path(out.path)
     summary: dict = {"frames": {k: int(len(v)) for k, v in idx.items()},
                      "frames_without_radar_points": int((table["ok"] & (table["count"] == 0)).sum()),
-                     "checkpoints": str(root)}
+                     "checkpoints": str(root), "settings": transfer.settings(cfg)}
     summary["baselines_test"] = _baselines(inputs, table, idx, cfg)
     if "disnet" in nets:
         res = train_disnet(cfg, d_data, root / "disnet", progress=inputs.progress,
@@ -162,6 +170,56 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     (root / "metrics.json").write_text(json.dumps(summary, indent=2, default=float))
     summary["message"] = _headline(summary)
     return summary
+
+
+def _take_nets(inputs, cfg: Config, out) -> dict:
+    """train.nets_from: the checkpoints and mean training map of the other dataset's finished train
+    stage, copied (so that this cache keeps what its synthesis used), after checking that this
+    configuration has the settings they were trained with (pipeline.transfer)."""
+    source = cfg.train.nets_from
+    trained = transfer.trained_settings(inputs.env.cache_root, source)
+    wrong = transfer.mismatches(cfg, trained)
+    if wrong:
+        raise ConfigError(f"train.nets_from = '{source}': this configuration lacks settings the nets were trained "
+                          f"with: {'; '.join(wrong)} (the CLI sets them itself; set them with --set)")
+    src = transfer.source_train(inputs.env.cache_root, source)
+    root = Path(out.path)
+    taken = [name for name in COPIED if (Path(src.path) / name).is_file()]
+    for name in taken:
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(Path(src.path) / name, root / name)
+    _save_mean_map(inputs, root)
+    meta = src.meta() or {}
+    record = {"nets_from": source, "source": src.path, "source_fingerprint": meta.get("fingerprint"),
+              "source_finished": meta.get("finished"), "taken": taken, "settings": trained,
+              "source_metrics": meta.get("summary", {})}
+    (root / "metrics.json").write_text(json.dumps(record, indent=2, default=float))
+    nets = [n for n in NETS if f"{n}/best.safetensors" in taken]
+    when = time.strftime("%Y-%m-%d %H:%M", time.gmtime(meta["finished"])) if meta.get("finished") else "?"
+    return {"checkpoints": str(root), "nets_from": source, "settings": trained,
+            "message": f"the nets of dataset {source} ({', '.join(nets)}; trained {when} UTC): "
+                       f"radar {trained.get('radar.name', '?')}"}
+
+
+def _save_mean_map(inputs, root: Path) -> None:
+    """The mean training heatmap of this dataset, for evaluate's baselines, where its train split has
+    radar (a dataset without radar has nothing to evaluate against)."""
+    from pipeline.training import mean_map_baseline
+
+    table = frame_table(inputs)
+    train = np.flatnonzero(table["ok"] & (table["count"] > 0) & (table["split"] == 0))
+    if len(train):
+        mean_map = mean_map_baseline(inputs.store("heatmaps").array("heatmap"), train).astype(np.float32)
+        np.save(root / "mean_heatmap.npy", mean_map, allow_pickle=False)
+
+
+def nets_from_fingerprint(cfg: Config, env) -> str:
+    """train.nets_from: the other dataset's train output (fingerprint and finishing time), so that
+    retraining it makes this train stage, and what was synthesized with its nets, stale."""
+    if not cfg.train.nets_from:
+        return ""
+    meta = transfer.source_train(env.cache_root, cfg.train.nets_from).meta()
+    return f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else "absent"
 
 
 def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
@@ -216,8 +274,11 @@ def check(cfg: Config) -> None:
     unknown = _nets(cfg) - set(NETS)
     if unknown:
         raise ConfigError(f"train.nets: unknown net(s) {sorted(unknown)} (use {', '.join(NETS)})")
+    if cfg.train.nets_from == cfg.profile:
+        raise ConfigError(f"train.nets_from = '{cfg.train.nets_from}' names this dataset itself; leave it empty to "
+                          f"train here")
     check_training(cfg)
 
 
 STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=VERSION,
-                     run=run, doc=__doc__, check=check)
+                     run=run, doc=__doc__, check=check, extra_fingerprint=nets_from_fingerprint)
