@@ -145,8 +145,10 @@ class Pipeline:
             if name == FIRST_STAGE:
                 parts["data_root"] = os.path.abspath(self.env.data_root) if "://" not in self.env.data_root else self.env.data_root
                 parts["frames"] = hashlib.sha256("\n".join(self.frame_ids()).encode()).hexdigest()
-            if isinstance(stage, DatasetStage) and stage.extra_fingerprint:
-                parts["extra"] = stage.extra_fingerprint(self.env.cfg, self.env)
+            extra = stage.extra_fingerprint(self.env.cfg, self.env) if isinstance(stage, DatasetStage) and \
+                stage.extra_fingerprint else ""
+            if extra:  # absent when empty: outputs made before a stage had one stay current
+                parts["extra"] = extra
             text = json.dumps(parts, sort_keys=True)
             self._fp[name] = hashlib.sha256(text.encode()).hexdigest()[:16]
         return self._fp[name]

@@ -75,7 +75,8 @@ class FrameStage:
 class DatasetStage:
     """A stage run once over the whole dataset: ``run(inputs, cfg, out) -> summary dict``;
     ``check`` as for FrameStage. ``extra_fingerprint(cfg, env)``: what else the output depends on
-    (e.g. another dataset's train stage, for train.nets_from), a string in its fingerprint."""
+    (e.g. another dataset's train stage, for train.nets_from), a string in its fingerprint ('' adds
+    nothing)."""
 
     name: str
     upstream: tuple[str, ...]

@@ -33,7 +33,7 @@ VERSION = 2
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
 CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING_KEYS["common"])
-                                  + ("train.nets", "train.nets_from", *EPOCHS_KEYS.values())))
+                                  + ("train.nets", *EPOCHS_KEYS.values())))
 COPIED = tuple(f"{net}/best.safetensors" for net in NETS)
 """What train.nets_from takes from the other dataset's train output (those of them it has)."""
 
@@ -214,12 +214,13 @@ def _save_mean_map(inputs, root: Path) -> None:
 
 
 def nets_from_fingerprint(cfg: Config, env) -> str:
-    """train.nets_from: the other dataset's train output (fingerprint and finishing time), so that
-    retraining it makes this train stage, and what was synthesized with its nets, stale."""
+    """train.nets_from: its value and the other dataset's train output (fingerprint and finishing
+    time), so that retraining that one makes this train stage, and what was synthesized with its
+    nets, stale; '' without (not a config key: train outputs made before it stay current)."""
     if not cfg.train.nets_from:
         return ""
     meta = transfer.source_train(env.cache_root, cfg.train.nets_from).meta()
-    return f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else "absent"
+    return f"{cfg.train.nets_from}:" + (f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else "absent")
 
 
 def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
