@@ -7,6 +7,8 @@ training curves (CSV, JSON, PNG) per net, metrics.json: held-out test metrics of
 next to the baselines (mean training map, training mean count, training median RSS, constant
 PlaceNet intensity).
 Config: disnet.*, rssnet.*, placement.* (PlaceNet), train.*, radar.max_points / rss_min / rss_max.
+With train.nets_from = DATASET it trains nothing: it copies that dataset's best checkpoints (from
+the same cache) and writes metrics.json with where they came from (pipeline.transfer).
 Frames without a projected radar point have no defined heatmap target: they are left out of
 Dis-Net and PlaceNet training and counted in the summary.
 """
@@ -173,9 +175,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
 
 
 def _take_nets(inputs, cfg: Config, out) -> dict:
-    """train.nets_from: the checkpoints and mean training map of the other dataset's finished train
-    stage, copied (so that this cache keeps what its synthesis used), after checking that this
-    configuration has the settings they were trained with (pipeline.transfer)."""
+    """train.nets_from: the checkpoints of the other dataset's finished train stage, copied (so that
+    this cache keeps what its synthesis used), after checking that this configuration has the
+    settings they were trained with (pipeline.transfer); this dataset's mean training map."""
     source = cfg.train.nets_from
     trained = transfer.trained_settings(inputs.env.cache_root, source)
     wrong = transfer.mismatches(cfg, trained)
