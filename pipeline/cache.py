@@ -114,10 +114,16 @@ class FrameStore:
 
     def invalidate(self) -> None:
         """Make the stored fingerprint match nothing: the next run recomputes the output."""
+        self.set_fingerprint("stale")
+
+    def set_fingerprint(self, fingerprint: str, **attrs: Any) -> None:
+        """Store another fingerprint (and ``attrs``) for the output as it is (stale, or relocated)."""
         try:
-            self._group("r+").attrs["fingerprint"] = "stale"
+            group = self._group("r+")
+            group.attrs.update(attrs)
+            group.attrs["fingerprint"] = fingerprint
         except OSError as exc:
-            raise cache_error(exc, f"invalidating {self.url}") from None
+            raise cache_error(exc, f"updating the fingerprint of {self.url}") from None
 
     def frame_ids(self) -> list[str]:
         """Frame ids, in frame-index order."""
@@ -418,6 +424,13 @@ class DirStore:
                 self.fs.rm(self.path, recursive=True)
         except OSError as exc:
             raise cache_error(exc, f"removing {self.url}") from None
+
+    def set_fingerprint(self, fingerprint: str, **_: Any) -> None:
+        """Store another fingerprint for the finished output as it is (relocated data); its other
+        fields are kept."""
+        meta = self.meta()
+        if meta is not None:
+            self.write_text("_stage.json", json.dumps({**meta, "fingerprint": fingerprint}, indent=2, default=str))
 
     def invalidate(self) -> None:
         """Forget completion (the files stay; the stage decides what to reuse)."""

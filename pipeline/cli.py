@@ -347,6 +347,26 @@ def check_physics(dataset, data_root, cache_root, sets, workers):
 
 
 @main.command()
+@dataset_options
+@click.option("--check-frames", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Frames recomputed from the new place and compared with the cache first.")
+@_handle_errors
+def relocate(dataset, data_root, cache_root, sets, check_frames):
+    """Point the cache at the new place of its data (--data-root), keeping every output.
+
+    Some frames are computed from the new place first and must equal the cached ones; then the
+    outputs made from the old place become current for the new one (nothing is recomputed).
+    """
+    if not data_root:
+        raise ConfigError("relocate needs --data-root PATH: the new place of the dataset's raw files")
+    env = _context(dataset, data_root, cache_root, sets)
+    result = _pipeline(env, 1, None, progress=False).relocate(check_frames)
+    click.echo(f"relocated dataset {dataset} from {result['from']} to {result['to']}: frames "
+               f"{', '.join(result['checked_frames'])} identical; {len(result['stages'])} output(s) kept "
+               f"({', '.join(result['stages'])})")
+
+
+@main.command()
 @click.argument("stage")
 @dataset_options
 @_handle_errors

@@ -16,7 +16,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -143,7 +143,7 @@ class Pipeline:
                 "upstream": [self.fingerprint(u) for u in stage.upstream],
             }
             if name == FIRST_STAGE:
-                parts["data_root"] = os.path.abspath(self.env.data_root) if "://" not in self.env.data_root else self.env.data_root
+                parts["data_root"] = _root(self.env.data_root)
                 parts["frames"] = hashlib.sha256("\n".join(self.frame_ids()).encode()).hexdigest()
             extra = stage.extra_fingerprint(self.env.cfg, self.env) if isinstance(stage, DatasetStage) and \
                 stage.extra_fingerprint else ""
@@ -184,6 +184,9 @@ class Pipeline:
         reports = []
         self._done.clear()
         self.check_config(target)
+        old = self.moved_from()
+        if old and not (force and target == FIRST_STAGE):
+            raise PipelineError(self._moved_message(old))
         for name in self.upstream_closure(target):
             stage = self.stages[name]
             what = f"stage '{name}' of dataset '{self.env.dataset}'"
@@ -211,6 +214,78 @@ class Pipeline:
             if strict and report.failed:
                 raise self._strict_error(name, report)
         return reports
+
+    def moved_from(self) -> str | None:
+        """The data root the first stage's output was made from, when this run's is another and
+        nothing else keeps that output from being current (the same frames, the same settings):
+        the data moved, or this run names other data at another place. Else None."""
+        store = self.env.store(FIRST_STAGE)
+        if not store.exists():
+            return None
+        old = store.attrs().get("data_root") or ""
+        if not old or _root(old) == _root(self.env.data_root):
+            return None
+        return old if store.fingerprint() == self._at(old).fingerprint(FIRST_STAGE) else None
+
+    def _moved_message(self, old: str) -> str:
+        new = _root(self.env.data_root)
+        return (f"dataset '{self.env.dataset}': its cache was made from the data at {old}; the data root {new} lists "
+                f"the same frames, and would make every stage recompute, training included. The same data moved: "
+                f"`pipeline relocate --dataset {self.env.dataset} --data-root {new}` checks some of its frames and "
+                f"keeps every output. Other data: `pipeline run {FIRST_STAGE} --force --data-root {new}` recomputes "
+                f"everything from it (or use another --cache)")
+
+    def _at(self, data_root: str) -> "Pipeline":
+        """This pipeline reading its frames (as listed here) at ``data_root``."""
+        return Pipeline(list(self.stages.values()), replace(self.env, data_root=data_root), self.executor,
+                        progress=False, log=self.log, frame_lister=self.frame_ids)
+
+    def relocate(self, check_frames: int = 3, wait_s: float = 0.0) -> dict[str, Any]:
+        """Make the outputs made from the data at its old place (:meth:`moved_from`) current for this
+        data root: first ``check_frames`` finished frames of the first stage, spread over the
+        dataset, are computed from it and must equal the cached ones (PipelineError naming the frame
+        and array otherwise); then every output current for the old place gets the fingerprint it
+        has here, the first stage last, so that a relocation stopped half-way can be run again."""
+        old = self.moved_from()
+        if old is None:
+            raise PipelineError(f"dataset '{self.env.dataset}': nothing to relocate (no output made from data at "
+                                f"another place with the same frames; `pipeline status` shows what is current)")
+        checked = self._same_data(check_frames)
+        before = self._at(old)
+        moved = []
+        with contextlib.ExitStack() as locks:
+            for name in self.order:
+                what = f"stage '{name}' of dataset '{self.env.dataset}'"
+                locks.enter_context(stage_lock(self._lock_url(name), what, wait_s))
+                locks.enter_context(rewriting(self._lock_url(name), what, wait_s))
+            for name in [*self.order[1:][::-1], FIRST_STAGE]:
+                out = self.env.store(name) if isinstance(self.stages[name], FrameStage) else self.env.dir(name)
+                if out.fingerprint() == before.fingerprint(name):
+                    out.set_fingerprint(self.fingerprint(name), data_root=self.env.data_root)
+                    moved.append(name)
+        return {"from": old, "to": _root(self.env.data_root), "checked_frames": checked, "stages": moved[::-1]}
+
+    def _same_data(self, n: int) -> list[str]:
+        """The ids of up to ``n`` finished frames of the first stage (spread over the dataset) that
+        the data here gives exactly as cached; PipelineError naming the frame and array otherwise."""
+        from pipeline.executor import one_blas_thread
+
+        stage, store, ids = self.stages[FIRST_STAGE], self.env.store(FIRST_STAGE), self.frame_ids()
+        done = np.flatnonzero(store.status() == DONE)
+        picks = done[np.unique(np.linspace(0, len(done) - 1, min(n, len(done))).round().astype(int))] if len(done) else []
+        for i in picks:
+            with one_blas_thread():  # as the executor computed them
+                out = stage.process(FrameInputs(self.env, int(i), ids[i]), self.env.cfg)
+            for spec in stage.outputs(self.env.cfg):
+                cached = store.read(spec.name, int(i))
+                new = np.asarray(out[spec.name]).astype(cached.dtype, copy=False)
+                same = new.shape == cached.shape and (np.array_equal(new, cached, equal_nan=True)
+                                                      if cached.dtype.kind in "fc" else np.array_equal(new, cached))
+                if not same:
+                    raise PipelineError(f"dataset '{self.env.dataset}': the data at {_root(self.env.data_root)} is not "
+                                        f"the data the cache was made from: frame {ids[i]} gives another "
+                                        f"'{spec.name}' than cached; nothing was changed")
+        return [ids[int(i)] for i in picks]
 
     def _strict_error(self, name: str, report: StageReport) -> FrameError:
         """The error --strict stops with: the first frame that failed in this run (or, when every
@@ -398,6 +473,8 @@ class Pipeline:
                 folder = self.env.dir(name)
                 row["exists"] = folder.meta() is not None
                 row["summary"] = folder.summary()
+            if name == FIRST_STAGE and row.get("exists") and (old := self.moved_from()):
+                row["note"] = self._moved_message(old)
             upstream_current = all(current_of.get(u) for u in stage.upstream)
             row["current"] = (current and upstream_current) if row["exists"] else False
             current_of[name] = row["current"]
@@ -434,6 +511,11 @@ def parse_frames(spec: str | None, frame_ids: list[str]) -> list[int] | None:
         else:
             raise ConfigError(f"--frames: no frame '{item}' in this dataset ({len(frame_ids)} frames)")
     return out
+
+
+def _root(data_root: str) -> str:
+    """A data root as fingerprints hold it: local paths absolute, URLs as they are."""
+    return data_root if "://" in data_root else os.path.abspath(data_root)
 
 
 def _jsonable(value: Any) -> Any:

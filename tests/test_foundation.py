@@ -340,6 +340,47 @@ def test_force_with_frames_recomputes_those_frames_in_place(tmp_path, monkeypatc
     assert (pipe.env.store("calibrate").status() == DONE).all() and (pipe.env.store("heatmaps").status() == DONE).all()
 
 
+def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, monkeypatch):
+    """The same frames at another data root would recompute everything: the run stops and says how
+    to relocate; relocate checks frames computed from the new place against the cache (other data
+    is refused, nothing changed) and keeps every output current."""
+    import dataclasses
+
+    def at(root: Path, stages=fake_stages.STAGES) -> Pipeline:
+        env = RunEnv(cfg=load_config("synthetic", {}, environ={}), cache_root=str(tmp_path / "cache"),
+                     dataset="fake", data_root=str(root))
+        return Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    make_pipeline(tmp_path).run("train")
+    moved = tmp_path / "moved"
+    with pytest.raises(PipelineError, match=f"pipeline relocate --dataset fake --data-root {moved}`"):
+        at(moved).run("train")
+    assert "pipeline relocate" in {r["stage"]: r for r in at(moved).status()}["calibrate"]["note"]
+
+    def other_data(inputs, cfg):
+        return {**fake_stages.first(inputs, cfg), "value": np.float64(-1.0)}
+
+    other = [dataclasses.replace(fake_stages.STAGES[0], process=other_data), *fake_stages.STAGES[1:]]
+    with pytest.raises(PipelineError, match=r"not the data the cache was made from: frame f000 gives another 'value'"):
+        at(moved, other).relocate()
+    assert make_pipeline(tmp_path).is_current("train")  # nothing changed
+    result = at(moved).relocate()
+    assert result["stages"] == ["calibrate", "heatmaps", "train"] and result["checked_frames"] == [IDS[0], IDS[6], IDS[-1]]
+    log.unlink()
+    reports = {r.stage: r for r in at(moved).run("train")}
+    assert reports["heatmaps"].processed == 0 and reports["train"].summary["message"] == "up to date"
+    assert not log.exists()  # no frame computed again
+    with pytest.raises(PipelineError, match="nothing to relocate"):
+        at(moved).relocate()
+    # going back is a move too; forcing the first stage instead recomputes from the named place
+    with pytest.raises(PipelineError, match="pipeline relocate"):
+        make_pipeline(tmp_path).run("train")
+    reports = {r.stage: r for r in make_pipeline(tmp_path).run("calibrate", force=True)}
+    assert reports["calibrate"].processed == len(IDS) and not make_pipeline(tmp_path).is_current("heatmaps")
+
+
 def test_invalid_settings_are_refused_before_any_output_is_touched(tmp_path):
     """A stage's check runs for the whole run before any stage recreates or invalidates anything."""
     import dataclasses
