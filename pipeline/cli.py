@@ -81,6 +81,12 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     if not data_root:
         calib = frame_store(cache_root, dataset, "calibrate")
         data_root = calib.attrs().get("data_root", "") if calib.exists() else ""
+        if data_root and "://" not in data_root and not os.path.exists(data_root) and need_root:
+            world = join(cache_root, dataset, "world")
+            hint = f" (the synthetic world moved with the cache: --data-root {world})" if os.path.isdir(world) else ""
+            raise ConfigError(f"dataset '{dataset}': the cache was made from the data at {data_root}, which is not "
+                              f"there any more; if it moved, `pipeline relocate --dataset {dataset} --data-root "
+                              f"NEW_PLACE`{hint}")
     if not data_root:
         data_root = default_data_root(cfg, cache_root, dataset)
     if not data_root and need_root:
