@@ -250,3 +250,20 @@ def test_cli_run_and_status_report_the_damaged_chunk_per_frame(tmp_path, fake_cl
     assert status.exit_code == 0
     assert re.search(r"heatmaps .* done +7  failed +1", status.stdout)
     assert "frame 3: stage heatmaps, frame f003: calibrate.zarr/points, frame 3 (f003): chunk " in status.stdout
+
+
+def test_cli_names_relocate_when_the_recorded_data_root_is_gone(tmp_path, fake_cli, monkeypatch):
+    """Without --data-root the CLI reads the data where the cache was made; when that place is
+    gone it says so and names relocate, instead of a reader error."""
+    data = tmp_path / "data"
+    data.mkdir()
+    assert fake_cli(data.parent, "run", "calibrate", "--workers", "1").exit_code == 0   # --data-root tmp_path
+    from pipeline.cache import frame_store
+
+    store = frame_store(str(tmp_path / "cache"), "synthetic", "calibrate")
+    store.set_fingerprint(store.fingerprint(), data_root=str(data))   # as if made from tmp_path/data
+    data.rmdir()
+    out = CliRunner().invoke(cli.main, ["run", "heatmaps", "--dataset", "synthetic", "--cache", str(tmp_path / "cache")])
+    assert out.exit_code == 2
+    assert f"the cache was made from the data at {data}, which is not there any more" in out.stderr
+    assert "`pipeline relocate --dataset synthetic --data-root NEW_PLACE`" in out.stderr
