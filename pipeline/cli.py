@@ -12,7 +12,7 @@ from pathlib import Path
 import click
 
 from pipeline.cache import frame_store, join
-from pipeline.config import load_config, parse_set_options, profile_names
+from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.runner import NAME_WIDTH
 from pipeline.stage import FrameStage
@@ -76,7 +76,7 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     overrides = parse_set_options(sets)
     cfg = load_config(dataset, overrides)
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
-    explicit = set(overrides) | {".".join(v.split("__")[1:3]).lower() for v in os.environ if v.startswith("PIPELINE__")}
+    explicit = set(overrides) | set(env_overrides(dict(os.environ)))
     cfg = with_nets_from(cfg, cache_root, explicit)  # another dataset's nets bring their radar's settings
     if not data_root:
         calib = frame_store(cache_root, dataset, "calibrate")

@@ -512,13 +512,19 @@ def load_config(profile: str, overrides: dict[str, str] | None = None,
             raise ConfigError(f"profile {profile}.toml: top-level key '{section}' is not a [section]")
         for name, value in values.items():
             flat[f"{section}.{name}"] = value
-    env = os.environ if environ is None else environ
-    for var, value in env.items():
-        if var.startswith("PIPELINE__") and var.count("__") >= 2:
-            _, section, name = var.split("__", 2)
-            flat[f"{section.lower()}.{name.lower()}"] = value
+    flat.update(env_overrides(os.environ if environ is None else environ))
     flat.update(overrides or {})
     return cfg.with_overrides(flat)
+
+
+def env_overrides(environ: dict[str, str]) -> dict[str, str]:
+    """``{'section.key': value}`` of the PIPELINE__SECTION__KEY variables in ``environ``."""
+    out = {}
+    for var, value in environ.items():
+        if var.startswith("PIPELINE__") and var.count("__") >= 2:
+            _, section, name = var.split("__", 2)
+            out[f"{section.lower()}.{name.lower()}"] = value
+    return out
 
 
 def parse_set_options(items: tuple[str, ...] | list[str]) -> dict[str, str]:

@@ -68,18 +68,28 @@ FRAME_KEYS = tuple(k for k in CONFIG_KEYS if k != "eval.figure_frames")
 """Configuration of the per-frame results (the figures are the report's)."""
 
 
-def _train_stats(inputs, cfg: Config) -> dict:
-    """Training-split statistics the baselines use: mean count, mean map, RSS values."""
-    calib, heat, patches = inputs.store("calibrate"), inputs.store("heatmaps"), inputs.store("patches")
+def _train_counts(inputs) -> tuple[np.ndarray, np.ndarray]:
+    """The training frames with radar points in the image (indices) and every frame's count."""
+    calib, heat = inputs.store("calibrate"), inputs.store("heatmaps")
     split = np.asarray(calib.array("split")[:])
     ok = (calib.status() == DONE) & (heat.status() == DONE)
     counts = np.asarray(heat.array("count")[:])
-    train = np.flatnonzero(ok & (split == 0) & (counts > 0))
+    return np.flatnonzero(ok & (split == 0) & (counts > 0)), counts
+
+
+def _mean_count(train: np.ndarray, counts: np.ndarray) -> int:
+    return int(round(counts[train].mean())) if len(train) else 0
+
+
+def _train_stats(inputs, cfg: Config) -> dict:
+    """Training-split statistics the baselines use: mean count, mean map, RSS values."""
+    patches = inputs.store("patches")
+    train, counts = _train_counts(inputs)
     mean_map = np.load(Path(inputs.dir("train").path) / "mean_heatmap.npy", allow_pickle=False)
     pc = np.asarray(patches.array("rss_count")[:])
     rss = np.asarray(patches.array("rss").oindex[train])
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)
-    return {"n_bar": int(round(counts[train].mean())) if len(train) else 0, "mean_map": mean_map,
+    return {"n_bar": _mean_count(train, counts), "mean_map": mean_map,
             "train_rss": rss_values, "rss_median": float(np.median(rss_values)) if len(rss_values) else 0.0}
 
 
@@ -321,7 +331,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     figs = root / "figures"
     _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, sph["model"], real, fig8, bev, histograms)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
-            "placement": cfg.synth.placement, "train_mean_count": _train_stats(inputs, cfg)["n_bar"],
+            "placement": cfg.synth.placement, "train_mean_count": _mean_count(*_train_counts(inputs)),
             "synthesize_counts": _synth_counts(syn_store, frames)}
     left_out = _left_out(meta, in_split & calib_done & ~syn_done, in_split & syn_done & (part_status != DONE),
                          failed)
