@@ -14,6 +14,8 @@ that will be redone.
 A damaged chunk (one that cannot be decoded, fails its checksum, or is missing from a done frame)
 raises ChunkError naming the array, the frame and the file: it fails only the frame reading it.
 A frame whose ``status`` chunk is deleted counts as pending (the fill value) and is recomputed.
+A group ``zarr.json`` that cannot be read, or is gone while the arrays are there, raises
+MetadataError: the output is not taken for absent (and recomputed, its frames lost) unless forced.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ import zarr.api.asynchronous as zarr_async
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from pipeline.errors import CacheError, ChunkError
+from pipeline.errors import CacheError, ChunkError, MetadataError
 from pipeline.stage import ArraySpec
 
 PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
@@ -77,11 +79,44 @@ class FrameStore:
     url: str
 
     def exists(self) -> bool:
-        """True when the group has been created."""
+        """True when the group has been created (its fingerprint is written last). MetadataError
+        when the group's ``zarr.json`` cannot be read, or is gone while its arrays are there: the
+        output would otherwise count as absent and be recomputed, its finished frames lost."""
         try:
-            return "fingerprint" in self._group("r").attrs
-        except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, ValueError):
+            attrs = self._group("r").attrs
+        except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError):
+            if self._has_status_array():
+                raise self._damaged_group("is missing") from None
             return False
+        except (ValueError, TypeError) as exc:  # json.JSONDecodeError, UnicodeDecodeError, a JSON list
+            raise self._damaged_group(f"cannot be read ({_one_line(exc)})") from None
+        return "fingerprint" in attrs
+
+    @property
+    def stage(self) -> str:
+        """The stage's name, from the folder's (``<stage>.zarr``)."""
+        return self.url.rstrip("/").rsplit("/", 1)[-1].removesuffix(".zarr")
+
+    def _has_status_array(self) -> bool:
+        fs, path = fsspec.core.url_to_fs(self.url)
+        try:
+            return fs.exists(join(path, "status", "zarr.json"))
+        except OSError:
+            return False
+
+    def _damaged_group(self, problem: str) -> MetadataError:
+        """MetadataError for the group's ``zarr.json``, with how many frames its status array
+        says are finished (what recomputing would lose) when that array can be read."""
+        try:
+            status = np.asarray(zarr.open_array(join(self.url, "status"), mode="r")[:])
+            finished = f" (its status array records {int((status == DONE).sum())} of {len(status)} frames finished)"
+        except Exception:  # noqa: BLE001 - only words: the status array may be damaged too
+            finished = ""
+        return MetadataError(
+            f"{join(self.url, 'zarr.json')}: the metadata of stage output {self.stage} {problem}, so the settings "
+            f"and frame ids its arrays were made with are unknown{finished}. Restore the file (from a backup or "
+            f"another copy of the cache), or recompute the stage from scratch with `pipeline run {self.stage} "
+            f"--force`")
 
     def _group(self, mode: str) -> zarr.Group:
         return _open_group(self.url, mode)
@@ -222,7 +257,7 @@ class FrameStore:
             return g[name]
         except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
             meta = join(self.url, name, "zarr.json")
-            raise CacheError(f"{meta}: the metadata of array {name} cannot be read ({_one_line(exc)}); recompute "
+            raise MetadataError(f"{meta}: the metadata of array {name} cannot be read ({_one_line(exc)}); recompute "
                              f"the stage: delete {self.url} or run it with --force") from None
 
     def _decode(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
@@ -252,8 +287,7 @@ class FrameStore:
         ids = g.attrs.get("frame_ids", [])
         frame = str(ids[index]) if 0 <= index < len(ids) else None
         folder = self.url.rstrip("/").rsplit("/", 1)[-1]
-        stage = folder.removesuffix(".zarr")
-        remedy = (f"recompute the frame with `pipeline run {stage} --force --frames {frame if frame else index}` "
+        remedy = (f"recompute the frame with `pipeline run {self.stage} --force --frames {frame if frame else index}` "
                   f"(the frames made from it are recomputed too)")
         return ChunkError(f"{folder}/{arr.basename}", index, frame, chunk, problem, remedy)
 

@@ -13,7 +13,7 @@ import click
 
 from pipeline.cache import frame_store, join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import ConfigError, MetadataError, PipelineError
 from pipeline.runner import NAME_WIDTH
 from pipeline.stage import FrameStage
 
@@ -80,7 +80,10 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     cfg = with_nets_from(cfg, cache_root, explicit)  # another dataset's nets bring their radar's settings
     if not data_root:
         calib = frame_store(cache_root, dataset, "calibrate")
-        data_root = calib.attrs().get("data_root", "") if calib.exists() else ""
+        try:
+            data_root = calib.attrs().get("data_root", "") if calib.exists() else ""
+        except MetadataError:  # nothing recorded to read: the default, or --data-root is needed
+            data_root = ""
         if data_root and "://" not in data_root and not os.path.exists(data_root) and need_root:
             world = join(cache_root, dataset, "world")
             hint = f" (the synthetic world moved with the cache: --data-root {world})" if os.path.isdir(world) else ""
@@ -198,6 +201,8 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
             click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
         if frames_spec:
             click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames")
+        rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
+        _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
         return
     _ensure_world(env, pipe.progress)
     frames = parse_frames(frames_spec, pipe.frame_ids())
@@ -221,6 +226,8 @@ def _print_status_row(row: dict) -> None:
     if "done" in row:
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} done {row['done']:>6}  failed {row['failed']:>5}  "
                    f"pending {row['pending']:>6}  excluded {row['excluded']:>5}")
+    elif row.get("damaged"):
+        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} damaged: {row['damaged']}")
     else:
         state = "finished" if row.get("exists") else "not run"
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} {state}")
@@ -234,18 +241,29 @@ def _print_status_row(row: dict) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON.")
 @_handle_errors
 def status(dataset, data_root, cache_root, sets, reasons, as_json):
-    """Per stage: frames done / failed / pending / excluded, and whether its fingerprint is current."""
+    """Per stage: frames done / failed / pending / excluded, and whether its fingerprint is current.
+    Exit code 2 when a stage's output is damaged (every stage is still listed)."""
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
     pipe = _pipeline(env, 1, None, progress=False)
     rows = pipe.status()
     if as_json:
         click.echo(json.dumps(rows, indent=2, default=str))
-        return
-    click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}  data {env.data_root or '(none)'}")
-    for row in rows:
-        _print_status_row(row)
-        for i, why in list(row.get("reasons", {}).items())[:reasons]:
-            click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
+    else:
+        click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}  data {env.data_root or '(none)'}")
+        for row in rows:
+            _print_status_row(row)
+            for i, why in list(row.get("reasons", {}).items())[:reasons]:
+                click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
+    _exit_if_damaged(rows)
+
+
+def _exit_if_damaged(rows: list[dict]) -> None:
+    """After the rows are printed: the first damaged stage output as the error line, exit code 2."""
+    damaged = [row["damaged"] for row in rows if row.get("damaged")]
+    if damaged:
+        more = f" (and {len(damaged) - 1} more damaged stage output(s) above)" if len(damaged) > 1 else ""
+        click.echo(f"error: {damaged[0]}{more}", err=True)
+        sys.exit(2)
 
 
 @main.command()

@@ -43,6 +43,12 @@ class CacheError(PipelineError):
     """The cache cannot be read or written (read-only, disk full, corrupt layout)."""
 
 
+class MetadataError(CacheError):
+    """The metadata of a stage output (a ``zarr.json``) is damaged or missing while its arrays are
+    there: the output cannot be read, and recomputing it from scratch would lose its finished
+    frames, so the run stops instead. The message names the file and the two ways out."""
+
+
 class ChunkError(PipelineError):
     """A chunk of a cached array is damaged: it cannot be decoded, or a finished frame's chunk is
     missing. It concerns one frame: a frame computation that reads it fails alone, the run goes on.

@@ -23,7 +23,7 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest, join
-from pipeline.errors import ChunkError, ConfigError, FrameError, PipelineError
+from pipeline.errors import CacheError, ChunkError, ConfigError, FrameError, MetadataError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
@@ -194,7 +194,12 @@ class Pipeline:
                     reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
                 t0 = time.perf_counter()
                 forced = force and (name == target or getattr(stage, "part_of", "") == target)
-                current = self.is_current(name)
+                try:
+                    current = self.is_current(name)
+                except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
+                    if not forced or frames is not None:
+                        raise
+                    current = False
                 redo = forced and frames is not None and isinstance(stage, FrameStage) and current
                 rebuild = (forced and not redo) or not current
                 with rewriting(self._lock_url(name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
@@ -220,7 +225,10 @@ class Pipeline:
         nothing else keeps that output from being current (the same frames, the same settings):
         the data moved, or this run names other data at another place. Else None."""
         store = self.env.store(FIRST_STAGE)
-        if not store.exists():
+        try:
+            if not store.exists():
+                return None
+        except MetadataError:  # nothing recorded to compare: the run stops on it, or rebuilds it when forced
             return None
         old = store.attrs().get("data_root") or ""
         if not old or _root(old) == _root(self.env.data_root):
@@ -326,7 +334,11 @@ class Pipeline:
         for other in self.downstream(name):
             stage = self.stages[other]
             store = self.env.store(other) if isinstance(stage, FrameStage) else self.env.dir(other)
-            if store.fingerprint() == self.fingerprint(other):  # would pass as current; others are stale already
+            try:
+                recorded = store.fingerprint()
+            except MetadataError:  # cannot pass as current: a run of it stops and says why
+                continue
+            if recorded == self.fingerprint(other):  # would pass as current; others are stale already
                 store.invalidate()
                 self.log(f"{other:<{NAME_WIDTH}} marked stale (upstream {name} was recomputed)")
 
@@ -449,7 +461,9 @@ class Pipeline:
 
     def status(self) -> list[dict[str, Any]]:
         """Per stage: done / failed / pending / excluded counts and whether it is current (which
-        needs its upstream stages current too: a run would rebuild it after them)."""
+        needs its upstream stages current too: a run would rebuild it after them; None: unknown).
+        A frame stage whose output cannot be read (damaged metadata or status chunk) gets
+        ``damaged``, the error's message, and the other stages are still listed."""
         rows = []
         current_of: dict[str, bool | None] = {}
         for name in self.order:
@@ -462,24 +476,31 @@ class Pipeline:
                 row["note"] = str(exc)
             if isinstance(stage, FrameStage):
                 store = self.env.store(name)
-                if store.exists():
-                    st = store.status()
-                    row.update({STATUS_NAMES[c]: int((st == c).sum()) for c in STATUS_NAMES})
-                    row["reasons"] = store.reasons()
-                    row["exists"] = True
-                else:
-                    row["exists"] = False
+                try:
+                    row["exists"] = store.exists()
+                    if row["exists"]:
+                        st = store.status()
+                        row.update({STATUS_NAMES[c]: int((st == c).sum()) for c in STATUS_NAMES})
+                        row["reasons"] = store.reasons()
+                except (CacheError, ChunkError) as exc:
+                    row.update(exists=True, damaged=str(exc))
+                    row.pop("note", None)  # the same error, from is_current
+                    current = None
             else:
                 folder = self.env.dir(name)
                 row["exists"] = folder.meta() is not None
                 row["summary"] = folder.summary()
             if name == FIRST_STAGE and row.get("exists") and (old := self.moved_from()):
                 row["note"] = self._moved_message(old)
-            upstream_current = all(current_of.get(u) for u in stage.upstream)
-            row["current"] = (current and upstream_current) if row["exists"] else False
+            row["current"] = _all_of([current, *(current_of.get(u) for u in stage.upstream)]) if row["exists"] else False
             current_of[name] = row["current"]
             rows.append(row)
         return rows
+
+
+def _all_of(values: list[bool | None]) -> bool | None:
+    """Three-valued AND: False if any is False, else None if any is unknown, else True."""
+    return False if any(v is False for v in values) else None if any(v is None for v in values) else True
 
 
 def parse_frames(spec: str | None, frame_ids: list[str]) -> list[int] | None:

@@ -17,7 +17,7 @@ from click.testing import CliRunner
 import pipeline.cli as cli
 from pipeline.cache import DONE, EVERY_CHUNK, FAILED, PENDING, FrameStore
 from pipeline.config import load_config
-from pipeline.errors import CacheError, ChunkError
+from pipeline.errors import CacheError, ChunkError, MetadataError
 from pipeline.executor import Executor, RunEnv
 from pipeline.runner import Pipeline
 from tests import fake_stages
@@ -200,6 +200,67 @@ def test_damaged_array_metadata_is_a_cache_error_naming_its_file(tmp_path):
         pipe.run("heatmaps")
 
 
+GROUP_DAMAGES = {**{k: v for k, v in DAMAGES.items() if k != "one bit flipped"},  # JSON has no checksum
+                 "a JSON list": lambda data: b"[1, 2]"}
+
+
+@pytest.mark.parametrize("how", [*GROUP_DAMAGES, "deleted"])
+def test_damaged_group_metadata_stops_the_run_instead_of_recomputing(tmp_path, how):
+    """A group zarr.json that cannot be read (or is gone, the arrays still there) stops every run
+    that reads the output, naming the file, what recomputing would lose and the two ways out;
+    the arrays are left alone. --force then recomputes it."""
+    pipe = _pipe(tmp_path)
+    pipe.run("heatmaps")
+    meta = _chunk(pipe, "heatmaps", "zarr.json")
+    saved = meta.read_bytes()
+    if how == "deleted":
+        meta.unlink()
+    else:
+        meta.write_bytes(GROUP_DAMAGES[how](saved))
+    chunks = sorted(p.name for p in _chunk(pipe, "heatmaps", "total/c").iterdir())
+    problem = "is missing" if how == "deleted" else "cannot be read ("
+    for target in ("heatmaps", "train"):
+        with pytest.raises(MetadataError) as info:
+            pipe.run(target)
+        message = str(info.value)
+        assert message.startswith(f"{meta}: the metadata of stage output heatmaps {problem}"), message
+        assert "(its status array records 8 of 8 frames finished)" in message
+        assert message.endswith("Restore the file (from a backup or another copy of the cache), or recompute the "
+                                "stage from scratch with `pipeline run heatmaps --force`")
+    assert sorted(p.name for p in _chunk(pipe, "heatmaps", "total/c").iterdir()) == chunks  # nothing erased
+    assert not pipe.env.store("train").exists() and pipe.env.dir("train").meta() is None
+    with pytest.raises(MetadataError):
+        pipe.run("heatmaps", frames=[2], force=True)  # in place needs the metadata: only the whole stage
+    meta.write_bytes(saved)  # restored: everything is there again, nothing recomputed
+    assert pipe.run("heatmaps")[-1].processed == 0
+    _damage(meta, "truncated")
+    report = pipe.run("heatmaps", force=True)[-1]
+    assert report.processed == 8 and (pipe.env.store("heatmaps").status() == DONE).all()
+
+
+def test_damaged_first_stage_metadata_is_rebuilt_by_force(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("heatmaps")
+    _damage(_chunk(pipe, "calibrate", "zarr.json"), "empty")
+    with pytest.raises(MetadataError, match="`pipeline run calibrate --force`$"):
+        pipe.run("calibrate")
+    pipe.run("calibrate", force=True)
+    assert (pipe.env.store("calibrate").status() == DONE).all()
+    assert not pipe.is_current("heatmaps")  # made from the outputs the forced run replaced
+    assert pipe.run("heatmaps")[-1].processed == 8
+
+
+def test_status_lists_every_stage_around_a_damaged_one(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("train")
+    _damage(_chunk(pipe, "heatmaps", "zarr.json"), "truncated")
+    rows = {row["stage"]: row for row in pipe.status()}
+    assert rows["calibrate"]["done"] == 8 and rows["calibrate"]["current"] is True
+    assert rows["heatmaps"]["damaged"].startswith(f"{_chunk(pipe, 'heatmaps', 'zarr.json')}: the metadata")
+    assert rows["heatmaps"]["exists"] and rows["heatmaps"]["current"] is None
+    assert rows["train"]["exists"] and rows["train"]["current"] is None  # unknown until heatmaps is readable
+
+
 def test_chunk_error_survives_pickling():
     err = ChunkError("a.zarr/x", 3, "f003", "/c/a.zarr/x/c/3", "cannot be decoded (E: e)", "do this")
     again = pickle.loads(pickle.dumps(err))
@@ -227,7 +288,7 @@ def fake_cli(monkeypatch):
 
 
 def test_cli_damaged_status_chunk_is_one_line(tmp_path, fake_cli):
-    assert fake_cli(tmp_path, "run", "calibrate", "--workers", "1").exit_code == 0
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
     chunk = tmp_path / "cache" / "synthetic" / "calibrate.zarr" / "status" / "c" / "3"
     _damage(chunk, "truncated")
     for args in (("status",), ("run", "heatmaps", "--workers", "1"), ("run", "heatmaps", "--dry-run")):
@@ -236,6 +297,22 @@ def test_cli_damaged_status_chunk_is_one_line(tmp_path, fake_cli):
         lines = out.stderr.strip().splitlines()
         assert len(lines) == 1 and "Traceback" not in out.output
         assert lines[0].startswith(f"error: calibrate.zarr/status, frame 3 (f003): chunk {chunk} cannot be decoded")
+    status = fake_cli(tmp_path, "status").stdout  # the table still lists every stage
+    assert re.search(r"^calibrate +unknown +damaged: calibrate.zarr/status, frame 3 ", status, re.M), status
+    assert re.search(r"^heatmaps +unknown +done +8 ", status, re.M) and re.search(r"^train +.* not run$", status, re.M)
+
+
+def test_cli_damaged_group_metadata_names_the_file_and_force(tmp_path, fake_cli):
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
+    meta = tmp_path / "cache" / "synthetic" / "heatmaps.zarr" / "zarr.json"
+    _damage(meta, "truncated")
+    for args in (("status",), ("run", "train", "--workers", "1")):
+        out = fake_cli(tmp_path, *args)
+        assert out.exit_code == 2 and "Traceback" not in out.output, out.output
+        errors = [line for line in out.stderr.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and errors[0].startswith(f"error: {meta}: the metadata of stage output heatmaps ")
+    assert fake_cli(tmp_path, "run", "heatmaps", "--force", "--workers", "1").exit_code == 0
+    assert fake_cli(tmp_path, "status").exit_code == 0
 
 
 def test_cli_run_and_status_report_the_damaged_chunk_per_frame(tmp_path, fake_cli):
