@@ -291,6 +291,70 @@ class FrameStore:
                   f"(the frames made from it are recomputed too)")
         return ChunkError(f"{folder}/{arr.basename}", index, frame, chunk, problem, remedy)
 
+    def verify(self, progress: Callable[[int, int], None] | None = None,
+               block_bytes: int = 64 << 20) -> tuple[np.ndarray, dict[int, ChunkError]]:
+        """Read every chunk the output holds for its frames: (status (F,) uint8, {frame index: the
+        first ChunkError met in that frame}). A done frame's chunks of every array are decoded
+        (checksums included) and, where the group has every chunk written, must exist; a failed
+        frame's reason chunk must decode; every status chunk must (a frame whose status chunk is
+        damaged reads as pending in the status returned). Arrays are read in blocks of about
+        ``block_bytes``; a block that fails is read frame by frame to name the damaged frames.
+        ``progress(n, total)`` after each block of n frames of one array (total: frames times
+        arrays). MetadataError when the group's or an array's metadata cannot be read."""
+        if not self.exists():
+            raise CacheError(f"{self.url}: no output to verify")
+        g = self._group("r")
+        names = sorted(set(g.array_keys()) - {"status", "reason"})
+        total = self._member(g, "status").shape[0] * (2 + len(names))
+        progress = (lambda n: None) if progress is None else (lambda n, _p=progress: _p(n, total))
+        errors: dict[int, ChunkError] = {}
+        status = self._scan(g, "status", None, errors, progress, block_bytes)
+        status = np.where(np.isin(np.arange(len(status)), list(errors)), PENDING, status).astype(np.uint8)
+        self._scan(g, "reason", status == FAILED, errors, progress, block_bytes, "failed")
+        done = status == DONE
+        for name in names:
+            self._scan(g, name, done, errors, progress, block_bytes, "is done")
+        return status, dict(sorted(errors.items()))
+
+    def _scan(self, g: zarr.Group, name: str, frames: np.ndarray | None, errors: dict[int, ChunkError],
+              progress: Callable[[int], None], block_bytes: int, state: str = "") -> np.ndarray | None:
+        """Decode array ``name`` in blocks, recording in ``errors`` a ChunkError for each frame of
+        mask ``frames`` (every frame: None) whose chunk cannot be decoded or, the group having every
+        chunk written, is missing (the frames being in ``state``); the values when ``frames`` is None
+        (the status array)."""
+        arr = self._member(g, name)
+        n = arr.shape[0]
+        wanted = np.ones(n, bool) if frames is None else frames
+        per_frame = max(1, int(np.prod(arr.shape[1:], dtype=np.int64)) * arr.dtype.itemsize)
+        step = max(1, block_bytes // per_frame)
+        values = np.empty(n, arr.dtype) if frames is None else None
+        for start in range(0, n, step):
+            stop = min(n, start + step)
+            if not wanted[start:stop].any():
+                progress(stop - start)
+                continue
+            try:
+                block = np.asarray(arr[start:stop])
+            except DECODE_ERRORS:  # find the damaged frames of the block
+                block = None
+                for i in range(start, stop):
+                    try:
+                        value = self._decode(g, arr, i)
+                        if values is not None:
+                            values[i] = value
+                    except ChunkError as exc:
+                        if wanted[i]:
+                            errors.setdefault(i, exc)
+            if block is not None and values is not None:
+                values[start:stop] = block
+            progress(stop - start)
+        if g.attrs.get(EVERY_CHUNK) and frames is not None:
+            present = set(sync(_keys(arr.store, f"{arr.path}/c/")))
+            for i in np.flatnonzero(wanted):
+                if i not in errors and f"{arr.path}/{_chunk_key(arr, int(i))}" not in present:
+                    errors[int(i)] = self._chunk_error(g, arr, int(i), f"is missing although the frame {state}")
+        return values
+
     def attrs(self) -> dict[str, Any]:
         """Group attributes."""
         return dict(self._group("r").attrs)
@@ -346,6 +410,10 @@ class _CheckedOIndex:
 
     def __getitem__(self, selection: Any) -> Any:
         return self._checked._read(lambda: self._checked._array.oindex[selection], selection)
+
+
+async def _keys(store: Any, prefix: str) -> list[str]:
+    return [key async for key in store.list_prefix(prefix)]
 
 
 def _chunk_key(arr: zarr.Array, index: int) -> str:

@@ -391,6 +391,64 @@ def relocate(dataset, data_root, cache_root, sets, check_frames):
 
 
 @main.command()
+@dataset_options
+@click.option("--stage", "stages", multiple=True, metavar="STAGE",
+              help="Verify only this stage's output (repeatable; default: every output there is).")
+@click.option("--wait", "wait_s", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="Seconds to wait for a run rewriting an output.")
+@_handle_errors
+def verify(dataset, data_root, cache_root, sets, stages, wait_s):
+    """Read every chunk of the finished frames of each stage output, and every checkpoint: the
+    damaged frames, by stage, with the command that recomputes them (e.g. after copying a cache).
+    Exit code 2 when anything is damaged."""
+    from tqdm import tqdm
+
+    env = _context(dataset, data_root, cache_root, sets, need_root=False)
+    pipe = _pipeline(env, 1, None, progress=False)
+    unknown = [s for s in stages if s not in pipe.stages]
+    if unknown:
+        raise ConfigError(f"--stage {unknown[0]}: no such stage (one of {', '.join(pipe.order)})")
+    bars: dict[str, tqdm] = {}
+
+    def progress(stage: str, n: int, total: int) -> None:
+        if stage not in bars:
+            bars[stage] = tqdm(total=total, desc=stage, unit="chunk", leave=False, file=sys.stderr,
+                               disable=not sys.stderr.isatty())
+        bars[stage].update(n)
+
+    rows = pipe.verify(list(stages) or None, progress, wait_s)
+    for bar in bars.values():
+        bar.close()
+    click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")
+    bad = 0
+    for row in rows:
+        name = row["stage"]
+        if "problem" in row:
+            bad += 1
+            click.echo(f"{name:<{NAME_WIDTH}} cannot be read: {row['problem']}")
+        elif "checkpoints" in row:
+            click.echo(f"{name:<{NAME_WIDTH}} " + (f"{row['checkpoints']} checkpoint(s) read" if row["checkpoints"]
+                                                    else "finished (its files are not checked)"))
+        elif row["damaged"]:
+            bad += 1
+            ids = row["frame_ids_damaged"]
+            click.echo(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: {len(ids)} damaged")
+            for message in list(row["damaged"].values())[:5]:
+                click.echo(f"{'':<{NAME_WIDTH}} {message}")
+            if len(ids) > 5:
+                click.echo(f"{'':<{NAME_WIDTH}} ... and {len(ids) - 5} more")
+            click.echo(f"{'':<{NAME_WIDTH}} recompute them: pipeline run {name} --dataset {dataset} --force "
+                       f"--frames {','.join(ids)}")
+        else:
+            click.echo(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: every chunk intact")
+    if not rows:
+        click.echo("no stage output to verify")
+    if bad:
+        click.echo(f"error: {bad} stage output(s) damaged (above)", err=True)
+        sys.exit(2)
+
+
+@main.command()
 @click.argument("stage")
 @dataset_options
 @_handle_errors

@@ -457,6 +457,41 @@ class Pipeline:
         report.summary = summary
         return report
 
+    # ---- verify ---------------------------------------------------------------------------
+
+    def verify(self, names: list[str] | None = None, progress: Callable[[str, int, int], None] | None = None,
+               wait_s: float = 0.0) -> list[dict[str, Any]]:
+        """Read every chunk of the frame stage outputs (and every checkpoint under the dataset
+        stage folders) of ``names`` (default: every stage with an output), holding them against
+        rewriting meanwhile. Per stage: ``frames`` (frame ids by index), ``checked`` (done frames
+        read), ``damaged`` ({frame index: message}), ``frame_ids_damaged``, ``problem`` (the
+        output cannot be read at all), ``checkpoints`` (read). ``progress(stage, n, total)``."""
+        rows = []
+        for name in names or self.order:
+            stage, row = self.stages[name], {"stage": name}
+            with reading([self._lock_url(name)], f"verify of stage '{name}'", wait_s):
+                if isinstance(stage, FrameStage):
+                    store = self.env.store(name)
+                    try:
+                        if not store.exists():
+                            continue
+                        ids = store.frame_ids()
+                        status, errors = store.verify(progress and (lambda n, total, _name=name: progress(_name, n, total)))
+                    except (CacheError, ChunkError) as exc:  # metadata: nothing of it can be read
+                        rows.append({**row, "problem": str(exc)})
+                        continue
+                    row.update(checked=int((status == DONE).sum()), damaged={i: str(e) for i, e in errors.items()},
+                               frame_ids_damaged=[ids[i] for i in errors])
+                else:
+                    folder = self.env.dir(name)
+                    if folder.meta() is None:
+                        continue
+                    row["checkpoints"], problems = _checkpoints_read(folder)
+                    if problems:
+                        row["problem"] = "; ".join(problems)
+            rows.append(row)
+        return rows
+
     # ---- status ---------------------------------------------------------------------------
 
     def status(self) -> list[dict[str, Any]]:
@@ -496,6 +531,20 @@ class Pipeline:
             current_of[name] = row["current"]
             rows.append(row)
         return rows
+
+
+def _checkpoints_read(folder) -> tuple[int, list[str]]:
+    """(checkpoints read, the problem of each that cannot be) under a dataset stage's folder."""
+    from pipeline.checkpoint import load_checkpoint
+
+    paths = sorted(Path(folder.path).rglob("*.safetensors")) if "://" not in folder.url else []
+    problems = []
+    for path in paths:
+        try:
+            load_checkpoint(path)
+        except CacheError as exc:
+            problems.append(str(exc))
+    return len(paths), problems
 
 
 def _all_of(values: list[bool | None]) -> bool | None:

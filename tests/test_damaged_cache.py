@@ -261,6 +261,85 @@ def test_status_lists_every_stage_around_a_damaged_one(tmp_path):
     assert rows["train"]["exists"] and rows["train"]["current"] is None  # unknown until heatmaps is readable
 
 
+# ------------------------------------------------------------------------------ pipeline verify
+
+
+def test_verify_names_every_damaged_frame_and_nothing_else(tmp_path):
+    """verify reads every chunk: the damaged frames of each output, whatever the damage (including
+    a deleted chunk of a done frame and a damaged status chunk), and no false alarm."""
+    pipe = _pipe(tmp_path)
+    pipe.run("train")
+    assert [(r["stage"], r.get("checked"), r.get("damaged")) for r in pipe.verify()] == \
+        [("calibrate", 8, {}), ("heatmaps", 8, {}), ("train", None, None)]
+    for i, how in enumerate(DAMAGES):
+        _damage(_chunk(pipe, "calibrate", f"points/c/{i}/0/0"), how)
+    _chunk(pipe, "calibrate", "value/c/5").unlink()
+    _damage(_chunk(pipe, "heatmaps", "status/c/6"), "random bytes")
+    rows = {r["stage"]: r for r in pipe.verify() if "checked" in r}
+    assert list(rows["calibrate"]["damaged"]) == [0, 1, 2, 3, 5]
+    assert rows["calibrate"]["frame_ids_damaged"] == ["f000", "f001", "f002", "f003", "f005"]
+    assert rows["calibrate"]["damaged"][5].startswith("calibrate.zarr/value, frame 5 (f005): chunk ")
+    assert "is missing although the frame is done" in rows["calibrate"]["damaged"][5]
+    assert rows["calibrate"]["damaged"][3].endswith("`pipeline run calibrate --force --frames f003` (the frames "
+                                                    "made from it are recomputed too)")
+    assert list(rows["heatmaps"]["damaged"]) == [6] and rows["heatmaps"]["checked"] == 7
+    assert rows["heatmaps"]["damaged"][6].startswith("heatmaps.zarr/status, frame 6 (f006): chunk ")
+    # the commands it gives repair everything
+    pipe.run("calibrate", frames=[0, 1, 2, 3, 5], force=True)
+    pipe.run("heatmaps", frames=[6], force=True)
+    assert all(not r.get("damaged") for r in pipe.verify())
+
+
+def test_verify_reads_arrays_in_blocks_and_names_the_frame_inside_a_block(tmp_path):
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    _damage(_chunk(pipe, "calibrate", "points/c/6/0/0"), "one bit flipped")
+    store = pipe.env.store("calibrate")
+    seen: list[tuple[int, int]] = []
+    for block_bytes in (1, 200, 1 << 20):  # a frame per block, a few frames, everything at once
+        status, errors = store.verify(lambda n, total: seen.append((n, total)), block_bytes=block_bytes)
+        assert (status == DONE).all() and list(errors) == [6]
+        assert "checksum" in str(errors[6]).lower() or "cannot be decoded" in str(errors[6])
+    assert {total for _, total in seen} == {8 * 5}  # 8 frames x (status, reason, points, points_count, value)
+    assert sum(n for n, _ in seen) == 3 * 8 * 5
+
+
+def test_verify_reports_unreadable_metadata_and_checkpoints(tmp_path):
+    import torch
+
+    from pipeline.checkpoint import save_checkpoint
+
+    pipe = _pipe(tmp_path)
+    pipe.run("train")
+    _damage(_chunk(pipe, "heatmaps", "zarr.json"), "truncated")
+    folder = Path(pipe.env.dir("train").path)
+    save_checkpoint(folder / "net" / "best.safetensors", {"w": torch.zeros(64)}, {"epoch": 1})
+    save_checkpoint(folder / "net" / "last.safetensors", {"w": torch.zeros(64)}, {"epoch": 1})
+    _damage(folder / "net" / "last.safetensors", "truncated")
+    rows = {r["stage"]: r for r in pipe.verify()}
+    assert rows["calibrate"]["damaged"] == {}
+    assert rows["heatmaps"]["problem"].startswith(f"{_chunk(pipe, 'heatmaps', 'zarr.json')}: the metadata")
+    assert rows["train"]["checkpoints"] == 2
+    assert rows["train"]["problem"].startswith(f"{folder / 'net' / 'last.safetensors'}: unreadable checkpoint")
+    assert [r["stage"] for r in pipe.verify(["calibrate"])] == ["calibrate"]
+
+
+def test_cli_verify_prints_the_repair_command_and_exits_2(tmp_path, fake_cli):
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
+    clean = fake_cli(tmp_path, "verify")
+    assert clean.exit_code == 0 and "calibrate       8 finished frame(s) read: every chunk intact" in clean.stdout
+    _damage(tmp_path / "cache" / "synthetic" / "heatmaps.zarr" / "total" / "c" / "2", "empty")
+    out = fake_cli(tmp_path, "verify")
+    assert out.exit_code == 2 and out.stderr.strip() == "error: 1 stage output(s) damaged (above)"
+    assert "heatmaps        8 finished frame(s) read: 1 damaged" in out.stdout
+    command = re.search(r"recompute them: pipeline (run heatmaps .*)$", out.stdout, re.M).group(1)
+    assert command == "run heatmaps --dataset synthetic --force --frames f002"
+    assert fake_cli(tmp_path, *command.split()[:2], *command.split()[4:], "--workers", "1").exit_code == 0
+    assert fake_cli(tmp_path, "verify").exit_code == 0
+    bad = fake_cli(tmp_path, "verify", "--stage", "heatmap")
+    assert bad.exit_code == 2 and "--stage heatmap: no such stage" in bad.stderr
+
+
 def test_chunk_error_survives_pickling():
     err = ChunkError("a.zarr/x", 3, "f003", "/c/a.zarr/x/c/3", "cannot be decoded (E: e)", "do this")
     again = pickle.loads(pickle.dumps(err))
