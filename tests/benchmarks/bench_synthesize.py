@@ -6,7 +6,8 @@ world; weights are random (the network's speed does not depend on them). The res
 where the samples fall (samples without lidar support widen their window up to 4 times), so it is
 measured on the random network's map, on the frame's real-radar heatmap, and, after `make demo`,
 with the demo's trained networks (the stage's case); the last line is the last case with the
-paper's camera-ray placement (synth.placement = ray), which needs no lidar candidates or PlaceNet."""
+paper's camera-ray placement (synth.placement = ray), which needs no lidar candidates or PlaceNet.
+Arguments KEY=VALUE override the synthetic profile's settings, e.g. placement.candidate_cell_m=0.3."""
 
 from __future__ import annotations
 
@@ -96,7 +97,8 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
 def main() -> None:
     torch.set_num_threads(2)
     tune_heap()  # the heap settings the stage runs with (serial executor and dask workers)
-    cfg = load_config("synthetic", environ={})
+    overrides = dict(arg.split("=", 1) for arg in sys.argv[1:])
+    cfg = load_config("synthetic", overrides, environ={})
     with tempfile.TemporaryDirectory() as tmp:
         generate_world(f"{tmp}/world", frames=8, seed=3, resolution_wh=tuple(cfg.dataset.world_resolution))
         env = RunEnv(cfg, f"{tmp}/cache", "synthetic", f"{tmp}/world")
@@ -113,7 +115,7 @@ def main() -> None:
         except (CacheError, ConfigError) as exc:
             print(f"(no usable trained models under {trained}: run `make demo` to also time the trained "
                   f"networks; {str(exc).splitlines()[0]})")
-        ray = load_config("synthetic", {"synth.placement": "ray"}, environ={})
+        ray = load_config("synthetic", {**overrides, "synth.placement": "ray"}, environ={})
         size = f"{cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}"
         for (source, disnet, rssnet, placenet), c in [(run, cfg) for run in runs] + [(runs[-1], ray)]:
             t_net, t_rest, n_frames, n_points = measure(frames, c, disnet, rssnet, placenet, source)
