@@ -163,10 +163,6 @@ class PlacementSection:
     second). At the 8-12 epochs of train.epochs it was undertrained: at 32 the val NLL fell on
     both worlds and F1 rose on three of the four val and test splits (docs/EXPERIMENTS.md, "PlaceNet epochs");
     the best epoch came before 32 on both, and 64 or 128 chose the same weights."""
-    candidate_cell_m: float = 0.0
-    """Keep one lidar candidate per cube of this side, metres (pipeline.placement.thin_to_cells):
-    fewer candidates to compute features for, at training and synthesis alike (0: every lidar
-    point of the field of view is a candidate)."""
     voxel_m: float = 0.0
     """Spread the synthetic points over cubes of this side, metres: a cube gets a second point only
     once every cube holding a candidate has one (0: no spreading). Off by default: on Astyx, whose

@@ -62,7 +62,7 @@ point closest to the measured range)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
                "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
-               "synth.placement", "placement.voxel_m", "placement.candidate_cell_m", "placement.map_weight", "heatmap.sigma_px",
+               "synth.placement", "placement.voxel_m", "placement.map_weight", "heatmap.sigma_px",
                "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
 FRAME_KEYS = tuple(k for k in CONFIG_KEYS if k != "eval.figure_frames")
 """Configuration of the per-frame results (the figures are the report's)."""

@@ -31,7 +31,7 @@ from pipeline.working import scale_rc
 
 CONFIG_KEYS = ("patches.points_per_frame", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
                "patches.patch_size_px", "patches.seed", "camera.full_size", "camera.crop_rows",
-               "camera.working_size", "placement.points_per_frame", "placement.gate_m", "placement.candidate_cell_m", "radar.fov_az_deg",
+               "camera.working_size", "placement.points_per_frame", "placement.gate_m", "radar.fov_az_deg",
                "radar.fov_el_deg", "radar.max_range_m")
 VERSION = 2
 """2: PlaceNet's training rows (place_features, place_count). Not bumped when their surface normal
@@ -85,8 +85,7 @@ def candidates(inputs: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray
     r = cfg.radar
     lidar = inputs.get("calibrate", "lidar").astype(np.float64)
     idx, uv = lidar_candidates(lidar, inputs.get("calibrate", "K"), inputs.get("calibrate", "T_radar_cam"),
-                               tuple(cfg.camera.working_size), r.fov_az_deg, r.fov_el_deg, r.max_range_m,
-                               cfg.placement.candidate_cell_m)
+                               tuple(cfg.camera.working_size), r.fov_az_deg, r.fov_el_deg, r.max_range_m)
     return lidar[idx], uv
 
 

@@ -32,7 +32,7 @@ from stages.patches import point_inputs
 POINT_COLUMNS = ("x_m", "y_m", "z_m", "range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss",
                  "range_rate_mps")
 CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.count",
-               "synth.sampling", "synth.refill_rounds", "synth.placement", "placement.voxel_m", "placement.candidate_cell_m", "placement.map_weight",
+               "synth.sampling", "synth.refill_rounds", "synth.placement", "placement.voxel_m", "placement.map_weight",
                "heatmap.sigma_px", "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
                "radar.max_range_m", "radar.doppler_sign", "radar.doppler_span_mps", "radar.max_points",
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",

@@ -57,36 +57,6 @@ def test_lidar_candidates_keep_only_points_the_radar_and_camera_both_see():
         P.lidar_candidates(points[:, :2], K_SMALL, T_RADAR_CAM, (160, 80), 80.0, 20.0, 50.0)
 
 
-def test_thin_to_cells_keeps_the_point_nearest_each_cubes_mean():
-    cube_a = np.array([[0.05, 0.05, 0.05], [0.25, 0.25, 0.25], [0.12, 0.14, 0.16]])  # mean 0.14, 0.147, 0.153
-    cube_b = np.array([[1.9, -0.1, 0.1]])                                            # alone in its cube
-    cube_c = np.array([[-0.01, 0.2, 0.2], [-0.29, 0.01, 0.01], [-0.2, 0.1, 0.12]])  # x < 0: another cube
-    pts = np.vstack([cube_b, cube_a, cube_c])
-    keep = P.thin_to_cells(pts, 0.3)
-    np.testing.assert_array_equal(keep, [0, 3, 6])     # b; a's and c's middle points
-    for seed in range(5):                              # the same points whatever their order
-        perm = np.random.default_rng(seed).permutation(len(pts))
-        np.testing.assert_array_equal(np.sort(perm[P.thin_to_cells(pts[perm], 0.3)]), keep)
-    # a cube of 0.01 m keeps every point of a 0.1 m grid; 0.25 m keeps one per cube
-    grid = wall(10.0, 0.1)
-    assert len(P.thin_to_cells(grid, 0.01)) == len(grid)
-    thinned = grid[P.thin_to_cells(grid, 0.25)]
-    cells = np.floor(thinned / 0.25).astype(int)
-    assert len(np.unique(cells, axis=0)) == len(thinned) == len(np.unique(np.floor(grid / 0.25), axis=0))
-    assert P.thin_to_cells(np.zeros((0, 3)), 0.3).shape == (0,)
-    with pytest.raises(ValueError, match="cell_m"):
-        P.thin_to_cells(pts, 0.0)
-
-
-def test_lidar_candidates_thinned_to_cells():
-    dense = wall(10.0, 0.02)                              # 2 cm apart, as a lidar ring at short range
-    full, uv_full = P.lidar_candidates(dense, K_SMALL, T_RADAR_CAM, (160, 80), 80.0, 20.0, 50.0)
-    thin, uv = P.lidar_candidates(dense, K_SMALL, T_RADAR_CAM, (160, 80), 80.0, 20.0, 50.0, cell_m=0.2)
-    assert set(thin) <= set(full) and len(thin) * 50 < len(full)
-    np.testing.assert_array_equal(uv, uv_full[np.searchsorted(full, thin)])
-    np.testing.assert_array_equal(thin, full[P.thin_to_cells(dense[full], 0.2)])
-
-
 def test_candidate_features_hand_computed():
     gx, gy = np.meshgrid(np.arange(-3, 3, 0.1), np.arange(4, 6, 0.1))
     ground = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, -1.5)])
