@@ -7,7 +7,7 @@ where the samples fall (samples without lidar support widen their window up to 4
 measured on the random network's map, on the frame's real-radar heatmap, and, after `make demo`,
 with the demo's trained networks (the stage's case); the last line is the last case with the
 paper's camera-ray placement (synth.placement = ray), which needs no lidar candidates or PlaceNet.
-Arguments KEY=VALUE override the synthetic profile's settings, e.g. placement.candidate_cell_m=0.3."""
+Arguments KEY=VALUE override the synthetic profile's settings, e.g. placement.map_weight=1."""
 
 from __future__ import annotations
 
@@ -97,8 +97,14 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
 def main() -> None:
     torch.set_num_threads(2)
     tune_heap()  # the heap settings the stage runs with (serial executor and dask workers)
+    bad = [arg for arg in sys.argv[1:] if "=" not in arg]
+    if bad:
+        sys.exit(f"bench_synthesize.py: arguments are KEY=VALUE settings (e.g. placement.map_weight=1), got {bad}")
     overrides = dict(arg.split("=", 1) for arg in sys.argv[1:])
-    cfg = load_config("synthetic", overrides, environ={})
+    try:
+        cfg = load_config("synthetic", overrides, environ={})
+    except ConfigError as exc:
+        sys.exit(f"bench_synthesize.py: {exc}")
     with tempfile.TemporaryDirectory() as tmp:
         generate_world(f"{tmp}/world", frames=8, seed=3, resolution_wh=tuple(cfg.dataset.world_resolution))
         env = RunEnv(cfg, f"{tmp}/cache", "synthetic", f"{tmp}/world")
