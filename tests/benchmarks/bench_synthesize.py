@@ -21,7 +21,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from pipeline.config import load_config  # noqa: E402
+from pipeline.config import load_config, parse_set_options  # noqa: E402
 from pipeline.errors import CacheError, ConfigError  # noqa: E402
 from pipeline.executor import Executor, FrameInputs, RunEnv, tune_heap  # noqa: E402
 from pipeline.models.disnet import build_disnet  # noqa: E402
@@ -97,11 +97,8 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
 def main() -> None:
     torch.set_num_threads(2)
     tune_heap()  # the heap settings the stage runs with (serial executor and dask workers)
-    bad = [arg for arg in sys.argv[1:] if "=" not in arg]
-    if bad:
-        sys.exit(f"bench_synthesize.py: arguments are KEY=VALUE settings (e.g. placement.map_weight=1), got {bad}")
-    overrides = dict(arg.split("=", 1) for arg in sys.argv[1:])
     try:
+        overrides = parse_set_options(sys.argv[1:])
         cfg = load_config("synthetic", overrides, environ={})
     except ConfigError as exc:
         sys.exit(f"bench_synthesize.py: {exc}")
