@@ -121,7 +121,12 @@ class Pipeline:
             else:
                 from pipeline.readers import get_reader
 
-                reader = get_reader(self.env.cfg, self.env.data_root)
+                root = self.env.data_root
+                if not root:
+                    raise PipelineError(f"dataset '{self.env.dataset}': no data root given (--data-root)")
+                if "://" not in root and not os.path.isdir(root):
+                    raise PipelineError(f"dataset '{self.env.dataset}': the data root {_root(root)} is not a folder")
+                reader = get_reader(self.env.cfg, root)
                 ids = reader.frame_ids()
                 skipped = {k: v for k, v in reader.report().items() if v}
                 if skipped:  # e.g. index entries without files: in no stage's status, so said here
@@ -129,7 +134,9 @@ class Pipeline:
             if len(set(ids)) != len(ids):
                 raise PipelineError(f"dataset at {self.env.data_root}: the reader listed duplicate frame ids")
             if not ids:
-                raise PipelineError(f"dataset at {self.env.data_root}: no frames found")
+                hint = reader.layout_hint() if self._frame_lister is None else ""
+                raise PipelineError(f"dataset at {self.env.data_root}: no frames found"
+                                    + (f" (a frame needs {hint})" if hint else ""))
             self._frame_ids = list(ids)
         return self._frame_ids
 

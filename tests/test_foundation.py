@@ -253,6 +253,27 @@ def test_cli_help_and_errors():
     assert missing.exit_code == 2 and "--data-root" in missing.output
 
 
+def test_cli_says_where_it_looked_when_a_data_root_holds_no_frames(tmp_path):
+    """A wrong --data-root is one line: a missing folder is named as such, an empty one with the
+    files a frame of that dataset needs (a user pointing at the folder above the right one)."""
+    from pipeline.cli import main
+    from pipeline.readers.testing import make_vod_dataset
+
+    runner = CliRunner()
+    cache = str(tmp_path / "cache")
+    gone = runner.invoke(main, ["run", "calibrate", "--dataset", "vod", "--cache", cache,
+                                "--data-root", str(tmp_path / "nowhere")])
+    assert gone.exit_code == 2 and f"{tmp_path / 'nowhere'} is not a folder" in gone.output, gone.output
+    make_vod_dataset(tmp_path / "data" / "vod", n_frames=2)
+    for dataset, needs in (("vod", "radar/training/velodyne/ID.bin and lidar/training/velodyne/ID.bin"),
+                           ("kitti", "training/velodyne/ID.bin, training/image_2/ID.png")):
+        above = runner.invoke(main, ["run", "calibrate", "--dataset", dataset, "--cache", cache,
+                                     "--data-root", str(tmp_path / "data")])
+        assert above.exit_code == 2 and "no frames found" in above.output and needs in above.output, above.output
+        assert len(above.output.strip().splitlines()) == 1 and "Traceback" not in above.output
+    assert not (tmp_path / "cache" / "vod").exists()
+
+
 def test_cli_never_generates_a_world_into_a_folder_the_user_named(tmp_path):
     """A mistyped --data-root for the synthetic dataset is an error, not a new 240-frame world."""
     from pipeline.cli import main

@@ -137,6 +137,10 @@ class _AstyxIndex(Reader):
             raise ReaderError(index_file, f"index entry lacks {', '.join(missing)}", frame=fid)
         return {uid: inside_root(self.root, str(rel), fid, index_file) for uid, rel in entry.items()}
 
+    def layout_hint(self) -> str:
+        return (f"an entry in {self.index_name} whose {', '.join(self.required_uids)} files exist "
+                "(paths relative to the data root)")
+
     def frame_ids(self) -> list[str]:
         frames, problems = self._index
         return sorted(set(frames) | set(problems), key=lambda s: (len(s), s))

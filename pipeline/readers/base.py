@@ -53,6 +53,11 @@ class Reader:
         """Counters of what the reader skipped or dropped, e.g. ``{"skipped_missing": 3}``."""
         return dict(self._counts)
 
+    def layout_hint(self) -> str:
+        """The files one frame needs, relative to the data root (said when no frame is found);
+        empty when the reader says more itself."""
+        return ""
+
     # -- helpers shared by the subclasses -------------------------------------------------------
 
     def finish(self, record: FrameRecord, path: Path) -> FrameRecord:

@@ -44,6 +44,10 @@ class KittiReader(Reader):
         super().__init__(cfg, data_root)
         self.base = self.root / split
 
+    def layout_hint(self) -> str:
+        split = self.base.name
+        return f"{split}/velodyne/ID.bin, {split}/image_2/ID.png and {split}/calib/ID.txt"
+
     def _path(self, folder: str, fid: str, ext: str) -> Path:
         return self.base / folder / f"{fid}{ext}"
 

@@ -256,6 +256,10 @@ class MscFolderReader(MscReader):
     def frame_ids(self) -> list[str]:
         return sorted(self._index)
 
+    def layout_hint(self) -> str:
+        return ("a row of 3_RADAR/timestamp_radar.txt with its 3_RADAR/PCD/NNNNNN.pcd and, within the pairing "
+                "tolerance, a 1_IMAGE/LEFT/NNNNNN.png and a 2_LIDAR/PCD/NNNNNN.pcd (their timestamp files)")
+
     def sequence_of(self, frame_id: str) -> str:
         return self.root.name
 

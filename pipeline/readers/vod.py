@@ -66,6 +66,10 @@ class VodReader(Reader):
         self.radar_folder = radar_folder
         self.with_meta = with_meta
 
+    def layout_hint(self) -> str:
+        return (f"{self.radar_folder}/training/velodyne/ID.bin and lidar/training/velodyne/ID.bin, "
+                f"calib/ID.txt in both trees and image_2/ID.jpg or .png")
+
     # -- paths ---------------------------------------------------------------------------------
 
     def _radar_bin(self, fid: str) -> Path:
