@@ -66,7 +66,8 @@ def fig8(out_png: str | Path, frames: Sequence[Mapping[str, Any]]) -> Path:
         syn_uv = check_shape("syn_uv", np.asarray(fr["syn_uv"], np.float64).reshape(-1, 2), (None, 2))
         extent = (-0.5, w - 0.5, h - 0.5, -0.5)
         row[0].imshow(image)
-        row[0].set_title(f"{fr.get('title', '')} image", fontsize=8)
+        title = fr.get("title", "")
+        row[0].set_title(f"image ({title})" if title else "image", fontsize=8)
         row[1].imshow(np.asarray(fr["prob_map"], np.float64), cmap="magma", extent=extent, aspect="equal",
                       interpolation="nearest")
         row[1].set_title("predicted map", fontsize=8)
@@ -84,22 +85,33 @@ def fig8(out_png: str | Path, frames: Sequence[Mapping[str, Any]]) -> Path:
     return _save(fig, out_png)
 
 
-def bev(out_png: str | Path, frames: Sequence[Mapping[str, Any]], max_range_m: float = 50.0) -> Path:
+def bev(out_png: str | Path, frames: Sequence[Mapping[str, Any]], max_range_m: float = 50.0,
+        fov_az_deg: float | None = None) -> Path:
     """Bird's-eye view of real (red) and synthetic (blue) points, one panel per frame.
 
     Each frame: ``real_points_D`` (N, 3+) and ``syn_points_D`` (M, 3+) in {D} (only x, y used),
     ``title``. Drawn with x (forward) up and y (left) to the left, equal axes, x in [0, max_range_m].
+    With the radar's total azimuth field of view ``fov_az_deg`` its edges are drawn (dashed) and y
+    spans the field of view at ``max_range_m``, else +/- 0.8 max_range_m.
     Figure size (4 * panels) x 4 inches at :data:`FIG_DPI`.
     """
     if not frames:
         raise ValueError("bev: no frames to draw")
+    half_y = 0.8 * max_range_m
+    if fov_az_deg is not None:
+        half_az = np.deg2rad(min(float(fov_az_deg), 180.0)) / 2
+        half_y = 1.05 * max_range_m * max(np.sin(half_az), 0.2)
     fig, axes = _figure(4.0 * len(frames), 4.0, 1, len(frames))
     for ax, fr in zip(axes[0], frames):
         real = np.asarray(fr["real_points_D"], np.float64).reshape(-1, np.shape(fr["real_points_D"])[-1])
         syn = np.asarray(fr["syn_points_D"], np.float64).reshape(-1, np.shape(fr["syn_points_D"])[-1])
         ax.scatter(real[:, 1], real[:, 0], s=2, c="red", label=f"real ({len(real)})")
         ax.scatter(syn[:, 1], syn[:, 0], s=2, c="blue", label=f"synthetic ({len(syn)})")
-        ax.set_xlim(max_range_m * 0.8, -max_range_m * 0.8)
+        if fov_az_deg is not None:  # the field of view's edges out to max_range_m
+            for side in (1.0, -1.0):
+                ax.plot([0.0, side * max_range_m * np.sin(half_az)], [0.0, max_range_m * np.cos(half_az)],
+                        ls="--", lw=0.6, c="0.6", zorder=0)
+        ax.set_xlim(half_y, -half_y)
         ax.set_ylim(0.0, max_range_m)
         ax.set_aspect("equal", adjustable="box")
         ax.set_xlabel("y (m, left)", fontsize=7)

@@ -408,7 +408,7 @@ def _figures(inputs, cfg, frames, figs: Path, syn_sph, real_sph, fig8, bev, hist
         bv.append({"real_points_D": real, "syn_points_D": syn, "title": title})
     if f8:
         fig8(figs / "fig8.png", f8)
-        bev(figs / "bev.png", bv, cfg.radar.max_range_m)
+        bev(figs / "bev.png", bv, cfg.radar.max_range_m, cfg.radar.fov_az_deg)
     histograms(figs / "histograms.png", real_sph, syn_sph)
 
 

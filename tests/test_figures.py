@@ -74,6 +74,22 @@ def test_bev_orientation(tmp_path):
     assert _one_point_bev(tmp_path, "far.png", (45.0, 0.0, 0.0))[2] == 0
 
 
+def test_bev_spans_the_field_of_view_when_given(tmp_path):
+    """With the radar's azimuth field of view the panel's y span is the field of view at max range
+    (a point 30 m to the side of a 64 deg radar is off the panel), and its edges are drawn."""
+    def red_and_grey(name, xyz, fov):
+        frame = {"real_points_D": np.array([xyz], float), "syn_points_D": np.zeros((0, 3)), "title": ""}
+        img = cv2.imread(str(F.bev(tmp_path / name, [frame], 50.0, fov))).astype(int)
+        red = np.all(np.abs(img - [0, 0, 255]) < 60, axis=2)
+        grey = (np.ptp(img, axis=2) < 5) & (img[..., 0] > 120) & (img[..., 0] < 230)   # light neutral grey
+        return red[img.shape[0] // 2:].sum(), grey.sum()
+    red, grey_without = red_and_grey("wide.png", (10.0, 30.0, 0.0), None)
+    assert red > 0
+    assert red_and_grey("inside.png", (10.0, 25.0, 0.0), 64.0)[0] > 0
+    red, grey = red_and_grey("outside.png", (10.0, 30.0, 0.0), 64.0)
+    assert red == 0 and grey > grey_without + 250       # the two dashed edges
+
+
 def test_histograms(tmp_path):
     rng = np.random.default_rng(2)
     real = rng.normal(0, 1, (500, 5))
