@@ -280,19 +280,36 @@ def write_image_png(path: str | os.PathLike, image: np.ndarray) -> Path:
     return _write_png_bgr(path, np.ascontiguousarray(image[:, :, ::-1]))
 
 
+CALIB_KEYS = ("P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam", "Tr_imu_to_velo")
+"""KITTI calib keys in the order of KITTI's files: OpenPCDet's KITTI-style readers take P2, P3,
+R0_rect and Tr_velo_to_cam from lines 3 to 6 by position, not by key."""
+CALIB_SHAPES = {"P0": (3, 4), "P1": (3, 4), "P2": (3, 4), "P3": (3, 4), "R0_rect": (3, 3),
+                "Tr_velo_to_cam": (3, 4), "Tr_imu_to_velo": (3, 4)}
+
+
+def calib_text(matrices: Mapping[str, np.ndarray]) -> str:
+    """KITTI calib text of ``matrices`` ({key: matrix} for every key of :data:`CALIB_KEYS`, shapes
+    :data:`CALIB_SHAPES`), one ``key: values`` line each in KITTI's order."""
+    missing = [key for key in CALIB_KEYS if key not in matrices]
+    if missing:
+        raise ValueError(f"calib: missing {', '.join(missing)}")
+    lines = []
+    for key in CALIB_KEYS:
+        values = check_shape(key, np.asarray(matrices[key], dtype=np.float64), CALIB_SHAPES[key])
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"calib: {key} has non-finite values")
+        lines.append(key + ": " + " ".join(f"{v:.12e}" for v in values.ravel()))
+    return "\n".join(lines) + "\n"
+
+
 def kitti_calib_text(P2: np.ndarray, T_cam_radar: np.ndarray) -> str:
     """KITTI calib text for a frame without a calib file (VoD radar convention: ``Tr_velo_to_cam``
     maps radar {D} to the rectified camera). ``P2`` (3, 4) projection of the exported image;
     P0..P3 all set to P2, R0_rect identity, Tr_imu_to_velo identity."""
     P2 = check_shape("P2", np.asarray(P2, dtype=np.float64), (3, 4))
     T = check_shape("T_cam_radar", np.asarray(T_cam_radar, dtype=np.float64), (4, 4))
-
-    def line(key: str, values: np.ndarray) -> str:
-        return key + ": " + " ".join(f"{v:.12e}" for v in np.ravel(values))
-
-    lines = [line(f"P{i}", P2) for i in range(4)]
-    lines += [line("R0_rect", np.eye(3)), line("Tr_velo_to_cam", T[:3]), line("Tr_imu_to_velo", np.eye(4)[:3])]
-    return "\n".join(lines) + "\n"
+    return calib_text({**{f"P{i}": P2 for i in range(4)}, "R0_rect": np.eye(3), "Tr_velo_to_cam": T[:3],
+                       "Tr_imu_to_velo": np.eye(4)[:3]})
 
 
 def write_image_sets(out_root: str | os.PathLike, split: Mapping[str, Sequence[str]]) -> dict[str, Path]:

@@ -152,6 +152,11 @@ class Pipeline:
             if name == FIRST_STAGE:
                 parts["data_root"] = _root(self.env.data_root)
                 parts["frames"] = hashlib.sha256("\n".join(self.frame_ids()).encode()).hexdigest()
+                from pipeline.readers import reader_class
+
+                version = reader_class(self.env.cfg).version
+                if version != 1:  # absent at 1: outputs made before readers had versions stay current
+                    parts["reader_version"] = version
             extra = stage.extra_fingerprint(self.env.cfg, self.env) if isinstance(stage, DatasetStage) and \
                 stage.extra_fingerprint else ""
             if extra:  # absent when empty: outputs made before a stage had one stay current

@@ -1,8 +1,9 @@
 """export: synthesized radar in detector-ready layouts.
 
-Reads: synthesize (points), calibrate (image, K, T_radar_cam, ego_velocity, split), the raw
-dataset's calib, label and image files where it has VoD-layout ones (VoD, the synthetic world),
-else the reader's image.
+Reads: synthesize (points), calibrate (image, K, T_radar_cam, ego_velocity, split), and the raw
+dataset's calib, label and image files that its reader names (Reader.detector_files: VoD and the
+synthetic world their own files; KITTI its calib with the radar in the Velodyne's place, and its
+labels), else the reader's image.
 Writes (export/): radar/<subset>/velodyne/<id>.bin (7 float32: x, y, z, RCS, v_r,
 v_r_compensated, time = 0, the View-of-Delft radar layout that OpenPCDet's VoD configuration
 reads), with <subset> 'training' for frames of the train and val splits and 'testing' for the
@@ -32,28 +33,15 @@ from pipeline.stage import DatasetStage
 CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export.images", "radar.fov_az_deg",
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
-VERSION = 2
-"""2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column."""
+VERSION = 3
+"""2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
+3: KITTI's own calib (the radar in the Velodyne's place) and labels carried over."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
-def _source_file(data_root: str, *parts: str) -> Path | None:
-    path = Path(data_root, *parts)
-    return path if path.is_file() else None
-
-
-def _source_image(data_root: str, frame_id: str) -> Path | None:
-    """The frame's image in a VoD layout (radar/ then lidar/ image_2, .jpg or .png), if any."""
-    for tree in ("radar", "lidar"):
-        for ext in (".jpg", ".png"):
-            path = _source_file(data_root, tree, "training", "image_2", f"{frame_id}{ext}")
-            if path:
-                return path
-    return None
-
-
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
-    from pipeline.export import (add_uniform_noise, detector_label_text, kitti_calib_text, preview_png, vod_points,
+    from pipeline.export import (add_uniform_noise, calib_text, detector_label_text, kitti_calib_text, preview_png,
+                                 vod_points,
                                  write_image_png, write_image_sets, write_kitti_layout, write_pcd)
     from pipeline.working import full_K
 
@@ -87,15 +75,14 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         T_cam_radar = invert_transform(T_radar_cam)
         name = SPLIT_NAMES.get(int(split[i]), "test")
         subset = "testing" if name == "test" else "training"
-        data_root, c = inputs.env.data_root, cfg.camera
-        calib_src = _source_file(data_root, "radar", "training", "calib", f"{fid}.txt")
-        label_src = _source_file(data_root, "lidar", "training", "label_2", f"{fid}.txt")
-        image_src = _source_image(data_root, fid) if cfg.export.images else None
+        c, src = cfg.camera, f.reader.detector_files(fid)
+        calib_src = calib_text(src.calib) if isinstance(src.calib, dict) else src.calib
+        image_src = src.image if cfg.export.images else None
         if calib_src is None:  # the reader's image goes with the dataset's full-resolution K
             K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)
             calib_src = kitti_calib_text(np.column_stack([K_full, np.zeros(3)]), T_cam_radar)
         write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset,
-                           label=detector_label_text(label_src.read_text()) if label_src else None)
+                           label=detector_label_text(src.label.read_text()) if src.label else None)
         if cfg.export.images and image_src is None:
             write_image_png(radar_root / subset / "image_2" / f"{fid}.png", f.reader.read(fid).image)
         if cfg.export.pcd:

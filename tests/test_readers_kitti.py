@@ -72,3 +72,72 @@ def test_bad_mount_and_far_wrong_image_size(tmp_path):
         get_reader(_cfg(), tmp_path).read("000007")
     with pytest.raises(ReaderError, match="radar mount"):
         get_reader(_cfg(mount=(2, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)), tmp_path).read("000007")
+
+
+def _rotation(axis, angle_rad: float) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * k + (1 - np.cos(angle_rad)) * k @ k
+
+
+def _write_real_kitti_calib(path: Path, P2: np.ndarray, R0: np.ndarray, Tr: np.ndarray) -> None:
+    """KITTI's own form: P0..P3 differ (P2 and P3 carry camera 2's and 3's offsets from camera 0),
+    R0_rect a rotation, Tr_velo_to_cam velodyne -> unrectified camera 0, Tr_imu_to_velo set."""
+    P0 = np.column_stack([P2[:, :3], np.zeros(3)])
+    P3 = np.column_stack([P2[:, :3], P2[:, :3] @ [-0.47, 0.002, 0.003]])
+    imu = rigid(np.eye(3), np.array([-0.81, 0.32, -0.80]))[:3]
+    rows = {"P0": P0, "P1": P0, "P2": P2, "P3": P3, "R0_rect": R0, "Tr_velo_to_cam": Tr[:3], "Tr_imu_to_velo": imu}
+    path.write_text("".join(f"{k}: " + " ".join(f"{v:.12e}" for v in m.ravel()) + "\n" for k, m in rows.items()))
+
+
+def test_labels_are_in_the_rectified_camera_0_and_the_export_keeps_kitti_conventions(tmp_path):
+    """KITTI labels live in the rectified camera 0 (P2's 4th column is camera 2's offset from it,
+    about 6 cm): the reader's boxes and the exported calib (radar in the Velodyne's place) must put
+    a label where OpenPCDet's KITTI calibration does (p_lidar = (R0_rect Tr_velo_to_cam)^-1 p_rect),
+    and the exported P2 must project {D} points to the reader's pixels."""
+    from pipeline.export import CALIB_KEYS, calib_text
+    from pipeline.readers.kitti_format import calib_matrix, parse_calib_file
+
+    _make(tmp_path)
+    fid = "000007"
+    R0 = _rotation([0.3, 1.0, -0.2], np.deg2rad(0.8))
+    P2 = np.column_stack([K_FIXTURE, K_FIXTURE @ [0.0599, -0.0003, 0.0027]])
+    _write_real_kitti_calib(tmp_path / "training" / "calib" / f"{fid}.txt", P2, R0, T_CAM_VELO)
+    bottom_rect, (h, w, l), ry = np.array([1.5, 1.6, 14.0]), (1.5, 1.7, 4.0), 0.4
+    (tmp_path / "training" / "label_2" / f"{fid}.txt").write_text(
+        f"Car 0.00 0 0.1 10 10 20 20 {h} {w} {l} {' '.join(map(str, bottom_rect))} {ry}\n")
+    cfg = _cfg()
+    reader = get_reader(cfg, tmp_path)
+    rec = reader.read(fid)
+    T_radar_lidar = rec.T_radar_lidar
+    R0_4 = rigid(R0, np.zeros(3))
+    centre_rect = bottom_rect - [0.0, h / 2, 0.0]
+    centre_lidar = invert_transform(R0_4 @ T_CAM_VELO) @ np.append(centre_rect, 1.0)
+    expected_D = (T_radar_lidar @ centre_lidar)[:3]
+    np.testing.assert_allclose(rec.labels[0].center_D, expected_D, atol=1e-9)
+    # the reader's pixels come from P2 as a whole (camera 2, with its offset)
+    p_lidar = np.array([[20.0, 2.0, 0.5], [12.0, -3.0, -1.0]])
+    p_cam2 = (P2 @ np.column_stack([(R0_4 @ T_CAM_VELO @ np.column_stack([p_lidar, np.ones(2)]).T).T[:, :3], np.ones(2)]).T).T
+    uv_ref = p_cam2[:, :2] / p_cam2[:, 2:]
+    p_D = (T_radar_lidar @ np.column_stack([p_lidar, np.ones(2)]).T).T[:, :3]
+    uv, _, _ = project_to_image(p_D, rec.K, invert_transform(rec.T_radar_cam), (64, 48))
+    np.testing.assert_allclose(uv, uv_ref, atol=1e-6)
+
+    files = reader.detector_files(fid)
+    assert files.label == tmp_path / "training" / "label_2" / f"{fid}.txt" and files.image is None
+    out = tmp_path / "calib_out.txt"
+    out.write_text(calib_text(files.calib))
+    assert [line.split(":")[0] for line in out.read_text().splitlines()] == list(CALIB_KEYS)
+    parsed = parse_calib_file(out, fid)
+    Tr_new, R0_new = np.eye(4), np.eye(4)
+    Tr_new[:3] = calib_matrix(parsed, "Tr_velo_to_cam", (3, 4), out, fid)
+    R0_new[:3, :3] = calib_matrix(parsed, "R0_rect", (3, 3), out, fid)
+    P2_new = calib_matrix(parsed, "P2", (3, 4), out, fid)
+    # OpenPCDet: rect -> "lidar" (here the radar frame {D}) with (R0_rect Tr_velo_to_cam)^-1
+    np.testing.assert_allclose((invert_transform(R0_new @ Tr_new) @ np.append(centre_rect, 1.0))[:3], expected_D,
+                               atol=1e-9)
+    proj = (P2_new @ np.column_stack([(R0_new @ Tr_new @ np.column_stack([p_D, np.ones(2)]).T).T[:, :3],
+                                      np.ones(2)]).T).T
+    np.testing.assert_allclose(proj[:, :2] / proj[:, 2:], uv_ref, atol=1e-6)
+    np.testing.assert_allclose(calib_matrix(parsed, "P3", (3, 4), out, fid), P2[:, :3] @ np.column_stack(
+        [np.eye(3), [-0.47, 0.002, 0.003]]), atol=1e-9)

@@ -13,6 +13,7 @@ from pipeline.cache import DONE, EXCLUDED
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.executor import Executor, RunEnv
+from pipeline.geometry import invert_transform
 from pipeline.readers.testing import R_CAM_D, rigid, write_image, write_kitti_calib
 from pipeline.runner import Pipeline
 from pipeline.transfer import RADAR_SETTINGS, settings, trained_settings, with_nets_from
@@ -53,7 +54,13 @@ def _kitti(root: Path) -> Path:
         velo.astype("<f4").tofile(base / "velodyne" / f"{i:06d}.bin")
         write_kitti_calib(base / "calib" / f"{i:06d}.txt", K, T_cam_velo)
         write_image(base / "image_2" / f"{i:06d}.png", (1242, 375))
+    (base / "label_2").mkdir()
+    (base / "label_2" / "000000.txt").write_text(KITTI_LABEL)
     return root
+
+
+KITTI_LABEL = "Car 0.12 0 -1.58 587.0 173.3 614.1 200.1 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59\n"
+"""A KITTI label line (rectified camera 0), carried over by the export as it is."""
 
 
 def _kitti_cfg(cache: Path, **sets: str):
@@ -124,7 +131,16 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
         assert np.all((points[:, 7] >= cfg.radar.rss_min - 1e-3) & (points[:, 7] <= cfg.radar.rss_max + 1e-3))
         total += len(points)
     assert total > 0
-    assert len(list((trained / "kitti" / "export" / "radar" / "testing" / "velodyne").glob("*.bin"))) == KITTI_FRAMES
+    exported = trained / "kitti" / "export" / "radar" / "testing"
+    assert len(list((exported / "velodyne").glob("*.bin"))) == KITTI_FRAMES
+    # KITTI's calib with the radar in the Velodyne's place, and KITTI's labels as they are
+    assert (exported / "label_2" / "000000.txt").read_text() == KITTI_LABEL
+    assert not (exported / "label_2" / "000001.txt").exists()
+    calib = {line.split(":")[0]: np.array(line.split(":")[1].split(), float)
+             for line in (exported / "calib" / "000001.txt").read_text().splitlines()}
+    T_cam_radar = rigid(R_CAM_D, np.array([0.0, -0.08, -0.27])) @ invert_transform(
+        np.asarray(cfg.dataset.radar_mount_T_radar_lidar, float).reshape(4, 4))
+    np.testing.assert_allclose(calib["Tr_velo_to_cam"].reshape(3, 4), T_cam_radar[:3], atol=1e-9)
     # no radar: nothing to evaluate against, said plainly
     with pytest.raises(PipelineError, match="records no radar"):
         pipe.run("evaluate")

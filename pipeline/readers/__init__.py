@@ -24,7 +24,7 @@ _READERS = {
     "kitti": ("pipeline.readers.kitti", "KittiReader"),
 }
 
-__all__ = ["Reader", "get_reader", "reader_names"]
+__all__ = ["Reader", "get_reader", "reader_class", "reader_names"]
 
 
 def reader_names() -> list[str]:
@@ -32,13 +32,19 @@ def reader_names() -> list[str]:
     return sorted(_READERS)
 
 
-def get_reader(cfg: Config, data_root: str | Path, **options: object) -> Reader:
-    """The reader of ``cfg.dataset.reader`` over ``data_root``; ConfigError for an unknown name."""
+def reader_class(cfg: Config) -> type[Reader]:
+    """The class of the reader named by ``cfg.dataset.reader``; ConfigError for an unknown name."""
     name = cfg.dataset.reader
     if name not in _READERS:
         raise ConfigError(f"unknown dataset.reader '{name}' (known: {', '.join(reader_names())})")
     module_name, class_name = _READERS[name]
-    cls = getattr(importlib.import_module(module_name), class_name)
+    return getattr(importlib.import_module(module_name), class_name)
+
+
+def get_reader(cfg: Config, data_root: str | Path, **options: object) -> Reader:
+    """The reader of ``cfg.dataset.reader`` over ``data_root``; ConfigError for an unknown name."""
+    name = cfg.dataset.reader
+    cls = reader_class(cfg)
     if name == "msc":
         return cls.open(cfg, data_root, **options)
     return cls(cfg, data_root, **options)

@@ -8,6 +8,7 @@ message names the file, the frame and the problem; readers never return partial 
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -22,6 +23,22 @@ MAX_EGO_SPEED_MPS = 70.0
 """Ego speeds above this (252 km/h) are treated as a corrupt input, m/s."""
 
 
+@dataclass(frozen=True)
+class DetectorFiles:
+    """What the export stage carries over from the raw dataset for one frame (None: not in the
+    dataset; the export generates the calib and writes the reader's image).
+
+    ``calib``: a KITTI calib file to copy, or its matrices ({key: matrix}, the keys of
+    ``pipeline.export.CALIB_KEYS``) with ``Tr_velo_to_cam`` mapping the radar frame {D} to camera 0
+    (before R0_rect); ``label``: a KITTI label file (boxes in the rectified camera 0); ``image``:
+    the image file, when it is the reader's image as it is.
+    """
+
+    calib: Path | dict[str, np.ndarray] | None = None
+    label: Path | None = None
+    image: Path | None = None
+
+
 class Reader:
     """Base class of the dataset readers.
 
@@ -31,6 +48,9 @@ class Reader:
     """
 
     name = "base"
+    version = 1
+    """Bumped when what the reader returns for the same files changes: part of the first stage's
+    fingerprint from 2 on (so caches made by an earlier version are recomputed)."""
 
     def __init__(self, cfg: Config, data_root: str | Path) -> None:
         self.cfg = cfg
@@ -52,6 +72,10 @@ class Reader:
     def report(self) -> dict:
         """Counters of what the reader skipped or dropped, e.g. ``{"skipped_missing": 3}``."""
         return dict(self._counts)
+
+    def detector_files(self, frame_id: str) -> DetectorFiles:
+        """The frame's calib, label and image files for a detector's KITTI layout (export stage)."""
+        return DetectorFiles()
 
     def layout_hint(self) -> str:
         """The files one frame needs, relative to the data root (said when no frame is found);

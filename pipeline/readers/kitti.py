@@ -28,9 +28,9 @@ from pipeline.config import Config
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord
 from pipeline.geometry import invert_transform
-from pipeline.readers.base import (Reader, check_not_empty, check_rigid, read_float32_records, read_image_rgb,
+from pipeline.readers.base import (DetectorFiles, Reader, check_not_empty, check_rigid, read_float32_records, read_image_rgb,
                                    require_file)
-from pipeline.readers.kitti_format import camera_calib, label_to_object, parse_label_file
+from pipeline.readers.kitti_format import calib_matrix, camera_calib, label_to_object, parse_calib_file, parse_label_file
 
 SIZE_TOLERANCE_PX = 20
 
@@ -39,10 +39,33 @@ class KittiReader(Reader):
     """KITTI object layout (camera + Velodyne, no radar); see the module docstring."""
 
     name = "kitti"
+    version = 2
+    """2: labels taken in the rectified camera 0 (KITTI's label frame), not camera 2 (6 cm apart)."""
 
     def __init__(self, cfg: Config, data_root: str | Path, split: str = "training") -> None:
         super().__init__(cfg, data_root)
         self.base = self.root / split
+
+    def detector_files(self, frame_id: str) -> DetectorFiles:
+        """KITTI's own calib with the simulated radar in the Velodyne's place (Tr_velo_to_cam maps
+        {D} to camera 0: Tr_velo_to_cam @ T_lidar_radar; Tr_imu_to_velo ends in {D} too), so that
+        KITTI's labels (rectified camera 0) are carried over as they are, and the label file."""
+        path = self._path("calib", frame_id, ".txt")
+        calib = parse_calib_file(path, frame_id)
+        P2 = calib_matrix(calib, "P2", (3, 4), path, frame_id)
+        T_lidar_radar = invert_transform(self.mount())
+        Tr = np.eye(4)
+        Tr[:3] = calib_matrix(calib, "Tr_velo_to_cam", (3, 4), path, frame_id)
+        imu = np.eye(4)
+        if calib.get("Tr_imu_to_velo", np.zeros(0)).size:
+            imu[:3] = calib_matrix(calib, "Tr_imu_to_velo", (3, 4), path, frame_id)
+        matrices = {key: calib_matrix(calib, key, (3, 4), path, frame_id) if key in calib else P2
+                    for key in ("P0", "P1", "P2", "P3")}
+        matrices["R0_rect"] = calib_matrix(calib, "R0_rect", (3, 3), path, frame_id) if "R0_rect" in calib else np.eye(3)
+        matrices["Tr_velo_to_cam"] = (Tr @ T_lidar_radar)[:3]
+        matrices["Tr_imu_to_velo"] = (invert_transform(T_lidar_radar) @ imu)[:3]
+        label = self._path("label_2", frame_id, ".txt")
+        return DetectorFiles(calib=matrices, label=label if label.is_file() else None)
 
     def layout_hint(self) -> str:
         split = self.base.name
@@ -86,7 +109,8 @@ class KittiReader(Reader):
         labels = []
         label_path = self._path("label_2", frame_id, ".txt")
         if label_path.is_file():
-            labels = [label_to_object(lab, T_radar_cam, -1) for lab in parse_label_file(label_path, frame_id)
+            T_radar_rect = T_radar_cam @ calib.T_cam_rect  # labels are in the rectified camera 0
+            labels = [label_to_object(lab, T_radar_rect, -1) for lab in parse_label_file(label_path, frame_id)
                       if lab.class_name != "DontCare"]
         lidar_D = lidar[:, :3].astype(np.float64) @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
         record = FrameRecord(

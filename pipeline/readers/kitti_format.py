@@ -55,10 +55,14 @@ def calib_matrix(calib: dict[str, np.ndarray], key: str, shape: tuple[int, int],
 
 @dataclass(frozen=True)
 class CameraCalib:
-    """Intrinsics ``K`` (3, 3) and ``T_cam_sensor`` (4, 4): sensor -> rectified camera-2 frame."""
+    """Intrinsics ``K`` (3, 3), ``T_cam_sensor`` (4, 4): sensor -> rectified camera-2 frame, and
+    ``T_cam_rect`` (4, 4): the rectified reference camera (camera 0, the frame of KITTI labels) ->
+    rectified camera 2, the translation K^-1 P2[:, 3] (identity where P2 has no 4th column, as in
+    View-of-Delft)."""
 
     K: np.ndarray
     T_cam_sensor: np.ndarray
+    T_cam_rect: np.ndarray
 
 
 def camera_calib(path: Path, frame: str | None) -> CameraCalib:
@@ -78,7 +82,7 @@ def camera_calib(path: Path, frame: str | None) -> CameraCalib:
     check_rigid(R0, path, frame, "R0_rect")
     offset = np.eye(4)
     offset[:3, 3] = np.linalg.solve(K, P2[:, 3])
-    return CameraCalib(K=K, T_cam_sensor=offset @ R0 @ Tr)
+    return CameraCalib(K=K, T_cam_sensor=offset @ R0 @ Tr, T_cam_rect=offset)
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,8 @@ def parse_label_file(path: Path, frame: str | None) -> list[KittiLabel]:
 
 
 def label_to_object(label: KittiLabel, T_radar_cam: np.ndarray, track_id: int) -> Object3D:
-    """Convert a camera-frame KITTI label to an Object3D in {D}.
+    """Convert a camera-frame KITTI label to an Object3D in {D}; ``T_radar_cam`` maps the label's
+    frame, the rectified reference camera (``T_radar_cam2 @ CameraCalib.T_cam_rect``), to {D}.
 
     The box centre is the bottom centre raised by h/2 (camera y points down); the heading in the
     camera frame is (cos ry, 0, -sin ry), rotated into {D} and measured about its z axis.

@@ -43,7 +43,7 @@ from pipeline.egomotion import fit_compensation_pair
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord, Object3D
 from pipeline.geometry import invert_transform
-from pipeline.readers.base import (Reader, check_not_empty, check_rigid, read_float32_records,
+from pipeline.readers.base import (DetectorFiles, Reader, check_not_empty, check_rigid, read_float32_records,
                                    read_image_rgb, require_file, split_sequences_at_gaps)
 from pipeline.readers.kitti_format import KittiLabel, camera_calib, label_to_object, parse_label_file
 
@@ -65,6 +65,15 @@ class VodReader(Reader):
             raise ReaderError(self.root, f"radar_folder must be one of {RADAR_FOLDERS}, got '{radar_folder}'")
         self.radar_folder = radar_folder
         self.with_meta = with_meta
+
+    def detector_files(self, frame_id: str) -> DetectorFiles:
+        """The radar tree's calib (Tr_velo_to_cam: radar -> camera), the lidar tree's labels and the
+        frame's image file, those that exist."""
+        calib = self._calib(self.radar_folder, frame_id)
+        label = self.root / "lidar" / "training" / "label_2" / f"{frame_id}.txt"
+        images = self._image_candidates(frame_id)
+        return DetectorFiles(calib=calib if calib.is_file() else None, label=label if label.is_file() else None,
+                             image=images[0] if images else None)
 
     def layout_hint(self) -> str:
         return (f"{self.radar_folder}/training/velodyne/ID.bin and lidar/training/velodyne/ID.bin, "
@@ -200,7 +209,7 @@ class VodReader(Reader):
         image = read_image_rgb(images[0], frame_id, self.cfg.camera.full_size)
         timestamp = self._checked_timestamp(frame_id)
         ego = self._ego_velocity(frame_id, radar[current], radar_cal.T_cam_sensor)
-        labels = self._labels(frame_id, T_radar_cam, radar_cal.T_cam_sensor)
+        labels = self._labels(frame_id, T_radar_cam @ radar_cal.T_cam_rect, radar_cal.T_cam_sensor)
         lidar_D = (lidar[:, :3].astype(np.float64) @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3])
         record = FrameRecord(
             frame_id=frame_id, sequence_id=self.sequence_of(frame_id), timestamp_s=timestamp,
@@ -312,13 +321,15 @@ class VodReader(Reader):
         R_world_radar = (T_now @ T_cam_radar)[:3, :3]
         return R_world_radar.T @ ((p1 - p0) / (t1 - t0))
 
-    def _labels(self, fid: str, T_radar_cam: np.ndarray, T_cam_radar: np.ndarray) -> list[Object3D]:
+    def _labels(self, fid: str, T_radar_rect: np.ndarray, T_cam_radar: np.ndarray) -> list[Object3D]:
+        """The frame's labels in {D}; ``T_radar_rect`` maps their frame (the rectified reference
+        camera) to {D}, ``T_cam_radar`` {D} to the pose's camera (rotations only matter there)."""
         path = self.root / "lidar" / "training" / "label_2" / f"{fid}.txt"
         if not path.is_file():
             return []
         labels = parse_label_file(path, fid)
         tracked = self._has_track_ids(labels)
-        objects = [label_to_object(lab, T_radar_cam, lab.column2 if tracked else -1) for lab in labels]
+        objects = [label_to_object(lab, T_radar_rect, lab.column2 if tracked else -1) for lab in labels]
         if tracked:
             self._object_velocities(fid, labels, objects, T_cam_radar)
         else:
