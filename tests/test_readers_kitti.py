@@ -141,3 +141,16 @@ def test_labels_are_in_the_rectified_camera_0_and_the_export_keeps_kitti_convent
     np.testing.assert_allclose(proj[:, :2] / proj[:, 2:], uv_ref, atol=1e-6)
     np.testing.assert_allclose(calib_matrix(parsed, "P3", (3, 4), out, fid), P2[:, :3] @ np.column_stack(
         [np.eye(3), [-0.47, 0.002, 0.003]]), atol=1e-9)
+
+
+def test_the_kitti_profile_mounts_the_radar_in_the_front_bumper():
+    """The profile's radar sits ahead of and below the Velodyne (1.73 m up on KITTI's car), about
+    bumper height: the road under the Velodyne (z_velo = -1.73 m) is 0.4-0.8 m below {D}'s origin.
+    Until 2026-12-04 the translation's signs were reversed (radar behind and 1.08 m above)."""
+    from pipeline.readers.kitti import KittiReader
+
+    mount = KittiReader(load_config("kitti", environ={}), "/nonexistent").mount()
+    radar_in_velo = invert_transform(mount)[:3, 3]
+    assert radar_in_velo[0] > 0.5 and abs(radar_in_velo[1]) < 0.5
+    road_D = (mount @ [10.0, 0.0, -1.73, 1.0])[:3]
+    assert -0.8 < road_D[2] < -0.4
