@@ -104,6 +104,27 @@ def test_fixture_ego_object_velocity_and_time(tmp_path):
     assert reader.report()["ego_from_doppler_pair"] == 3
 
 
+def test_a_0_1_flag_in_the_second_label_column_is_not_taken_for_track_ids(tmp_path):
+    """VoD's detection release writes a 0 / 1 flag where the tracking release writes track ids: a
+    frame whose values are all 0 or 1 is untracked (velocity NaN) rather than given the velocity
+    between two different objects, and a track id whose class changes between frames is not the
+    same track."""
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    labels = {fid: tmp_path / "lidar/training/label_2" / f"{fid}.txt" for fid in truth.frame_ids}
+    car = {fid: path.read_text().split() for fid, path in labels.items()}
+    for k, (fid, cls) in enumerate(zip(truth.frame_ids, ("Pedestrian", "Cyclist", "Cyclist"))):
+        fields = [cls, "1", *car[fid][2:11], str(float(car[fid][11]) + 3 * k), *car[fid][12:]]
+        labels[fid].write_text(" ".join(fields) + "\n")
+    middle = get_reader(_fixture_cfg(), tmp_path).read(truth.frame_ids[1]).labels[0]
+    assert middle.track_id == -1 and np.all(np.isnan(middle.velocity_D))
+    # track id 7 (tracking release) but the class changes after the middle frame: only the earlier end counts
+    for fid, cls, dx in zip(truth.frame_ids, ("Car", "Car", "Van"), (0.0, 0.0, 5.0)):  # the Van elsewhere
+        labels[fid].write_text(" ".join([cls, "7", *car[fid][2:11], str(float(car[fid][11]) + dx), *car[fid][12:]]) + "\n")
+    middle = get_reader(_fixture_cfg(), tmp_path).read(truth.frame_ids[1]).labels[0]
+    assert middle.track_id == 7
+    np.testing.assert_allclose(middle.velocity_D, truth.object_velocity_D, atol=1e-4)  # one-sided, still exact
+
+
 def test_fixture_pose_fallback_with_too_few_radar_points(tmp_path):
     truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=7.0, n_radar=2)
     reader = get_reader(_fixture_cfg(), tmp_path)

@@ -57,6 +57,8 @@ class VodReader(Reader):
     """View-of-Delft in its KITTI layout; see the module docstring for files and conventions."""
 
     name = "vod"
+    version = 2
+    """2: a 0 / 1 flag in the second label column is not taken for track ids; a track keeps its class."""
 
     def __init__(self, cfg: Config, data_root: str | Path, radar_folder: str = "radar",
                  with_meta: bool = False) -> None:
@@ -336,13 +338,20 @@ class VodReader(Reader):
             self._counts["frames_without_track_ids"] += bool(labels)
         return objects
 
-    @staticmethod
-    def _has_track_ids(labels: list[KittiLabel]) -> bool:
+    labels_hold_track_ids = False
+    """Whether the second label column always holds track ids (the generated world). For VoD it is
+    a track id in the tracking release but a 0 / 1 flag in the detection release, so there it
+    counts as a track id only where the values are unique within the frame and one exceeds 1 (a
+    frame whose ids are all 0 or 1 is read as untracked: no object velocities rather than wrong ones)."""
+
+    def _has_track_ids(self, labels: list[KittiLabel]) -> bool:
         ids = [lab.column2 for lab in labels]
-        return len(set(ids)) == len(ids) and all(i >= 0 for i in ids)
+        unique = len(set(ids)) == len(ids) and all(i >= 0 for i in ids)
+        return unique and (self.labels_hold_track_ids or max(ids, default=0) > 1)
 
     def _track_centres_world(self, fid: str | None) -> tuple[dict[int, np.ndarray], float] | None:
-        """{track id: box centre in the odometry world frame} and the time of a neighbouring frame."""
+        """{track id: (class, box centre in the odometry world frame)} and the time of a neighbouring
+        frame."""
         if fid is None:
             return None
         path = self.root / "lidar" / "training" / "label_2" / f"{fid}.txt"
@@ -352,7 +361,7 @@ class VodReader(Reader):
         labels = parse_label_file(path, fid)
         if not self._has_track_ids(labels):
             return None
-        centres = {lab.column2: T[:3, :3] @ (lab.location_cam - [0, lab.size_hwl_m[0] / 2, 0]) + T[:3, 3]
+        centres = {lab.column2: (lab.class_name, T[:3, :3] @ (lab.location_cam - [0, lab.size_hwl_m[0] / 2, 0]) + T[:3, 3])
                    for lab in labels}
         return centres, self._timestamp(fid)
 
@@ -365,11 +374,12 @@ class VodReader(Reader):
         after = self._track_centres_world(self._neighbour(fid, 1))
         R_radar_world = ((self._T_world_cam(fid) @ T_cam_radar)[:3, :3]).T
         for lab, obj in zip(labels, objects):
-            ends = [side for side in (before, here, after) if side is not None and lab.column2 in side[0]]
+            ends = [side for side in (before, here, after)  # the same track: its id and class
+                    if side is not None and side[0].get(lab.column2, ("",))[0] == lab.class_name]
             first, last = ends[0], ends[-1]
             if first is last:
                 continue
-            v_world = (last[0][lab.column2] - first[0][lab.column2]) / (last[1] - first[1])
+            v_world = (last[0][lab.column2][1] - first[0][lab.column2][1]) / (last[1] - first[1])
             obj.velocity_D = (R_radar_world @ v_world).astype(np.float32)
 
 
@@ -377,6 +387,9 @@ class SyntheticReader(VodReader):
     """The project's generated world: VoD layout with PNG images and per-point radar meta files."""
 
     name = "synthetic"
+    version = 1
+    """The world's frames read as before VoD's version 2 (its labels always hold track ids)."""
+    labels_hold_track_ids = True
 
     def __init__(self, cfg: Config, data_root: str | Path, radar_folder: str = "radar") -> None:
         super().__init__(cfg, data_root, radar_folder=radar_folder, with_meta=True)
