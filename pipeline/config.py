@@ -340,8 +340,11 @@ class ExportSection:
     previews: bool = True
     """Write a preview PNG per frame."""
     images: bool = True
-    """Write image_2/<id> beside each frame (OpenPCDet reads the image size from it): the dataset's
-    own file where it has VoD-layout images, else the reader's image as PNG."""
+    """Write image_2/<id> beside each frame (OpenPCDet reads the image size from it)."""
+    image_format: str = "source"
+    """source: the dataset's own image file as it is (VoD .jpg, KITTI .png), else the reader's image
+    as PNG; png or jpg: that format for every frame (OpenPCDet's KITTI loader opens .png, the
+    View-of-Delft forks .jpg)."""
 
 
 @dataclass(frozen=True)

@@ -253,31 +253,54 @@ def write_kitti_layout(
     return written
 
 
-def detector_label_text(text: str) -> str:
+DONT_CARE_LINE = "DontCare -1 -1 -10 0 0 0 0 -1 -1 -1 -1000 -1000 -1000 -10"
+"""KITTI's placeholder label, written for a frame without objects: OpenPCDet's KITTI info generation
+concatenates each file's boxes and fails on an empty file."""
+
+
+def detector_label_text(text: str, track_ids: bool = False) -> str:
     """KITTI label text for a detector. The second column is KITTI's truncation (0..1); View-of-Delft's
     tracking release and the synthetic world put track ids there, which OpenPCDet would read as
-    truncation (boxes above 0.5 leave its evaluation), so values outside 0..1 become 0. Lines with
-    fewer than 15 fields are kept as they are."""
+    truncation (boxes above 0.5 leave its evaluation and its ground-truth sampling): with
+    ``track_ids`` (the reader knows the column holds them) it becomes 0 on every line, else where it
+    lies outside 0..1. Fields are joined by single spaces (OpenPCDet splits on one space), blank lines
+    dropped, lines with fewer than 15 fields kept as they are; a file without lines gets
+    :data:`DONT_CARE_LINE`."""
     lines = []
     for line in text.splitlines():
         fields = line.split()
+        if not fields:
+            continue
         if len(fields) >= 15:
             try:
                 truncation = float(fields[1])
             except ValueError:
                 truncation = -1.0
-            if not 0.0 <= truncation <= 1.0:
-                line = " ".join([fields[0], "0", *fields[2:]])
-        lines.append(line)
-    return "".join(f"{line}\n" for line in lines)
+            if track_ids or not 0.0 <= truncation <= 1.0:
+                fields[1] = "0"
+        lines.append(" ".join(fields))
+    return "".join(f"{line}\n" for line in lines or [DONT_CARE_LINE])
 
 
-def write_image_png(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write ``image`` (H, W, 3) uint8 RGB as a PNG at ``path`` (atomically)."""
+IMAGE_FORMATS = {"source": None, "png": ".png", "jpg": ".jpg"}
+"""Values of export.image_format and the suffix each writes (source: the dataset's own file as it
+is, the reader's image as PNG where there is none)."""
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write ``image`` (H, W, 3) uint8 RGB at ``path`` (atomically), PNG or JPEG (quality 95) by the
+    path's suffix."""
     image = check_shape("image", np.asarray(image), (None, None, 3))
     if image.dtype != np.uint8:
         raise ValueError(f"image: expected uint8, got {image.dtype}")
-    return _write_png_bgr(path, np.ascontiguousarray(image[:, :, ::-1]))
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".png", ".jpg", ".jpeg"):
+        raise ValueError(f"{path}: images are written as .png or .jpg")
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if suffix != ".png" else []
+    ok, encoded = cv2.imencode(suffix, np.ascontiguousarray(image[:, :, ::-1]), params)
+    if not ok:
+        raise ValueError(f"{path}: image encoding failed")
+    return write_atomic(Path(path), encoded.tobytes())
 
 
 CALIB_KEYS = ("P0", "P1", "P2", "P3", "R0_rect", "Tr_velo_to_cam", "Tr_imu_to_velo")

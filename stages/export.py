@@ -10,7 +10,7 @@ reads), with <subset> 'training' for frames of the train and val splits and 'tes
 test split (where OpenPCDet looks for them); <subset>/calib/<id>.txt carried over, or generated
 from the full-resolution K and T_radar_cam when the dataset has none; <subset>/label_2/<id>.txt
 carried over with track ids out of the truncation column (pipeline.export.detector_label_text);
-<subset>/image_2/<id> (export.images); radar/ImageSets/{train,val,test}.txt; optional
+<subset>/image_2/<id> (export.images, in export.image_format); radar/ImageSets/{train,val,test}.txt; optional
 pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range).
 Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds),
 camera.* (the full-resolution K of a generated calib).
@@ -26,23 +26,25 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE
 from pipeline.config import Config
-from pipeline.errors import PipelineError
+from pipeline.errors import ConfigError, PipelineError
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
 
-CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export.images", "radar.fov_az_deg",
+CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export.images", "export.image_format",
+               "radar.fov_az_deg",
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
 VERSION = 3
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
-3: KITTI's own calib (the radar in the Velodyne's place) and labels carried over."""
+3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
+out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
+export.image_format."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
-    from pipeline.export import (add_uniform_noise, calib_text, detector_label_text, kitti_calib_text, preview_png,
-                                 vod_points,
-                                 write_image_png, write_image_sets, write_kitti_layout, write_pcd)
+    from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_text, detector_label_text, kitti_calib_text,
+                                 preview_png, vod_points, write_image, write_image_sets, write_kitti_layout, write_pcd)
     from pipeline.working import full_K
 
     syn, calib = inputs.store("synthesize"), inputs.store("calibrate")
@@ -77,14 +79,16 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         subset = "testing" if name == "test" else "training"
         c, src = cfg.camera, f.reader.detector_files(fid)
         calib_src = calib_text(src.calib) if isinstance(src.calib, dict) else src.calib
-        image_src = src.image if cfg.export.images else None
+        suffix = IMAGE_FORMATS[cfg.export.image_format]
+        as_is = src.image is not None and suffix in (None, src.image.suffix.lower().replace(".jpeg", ".jpg"))
+        image_src = src.image if cfg.export.images and as_is else None
         if calib_src is None:  # the reader's image goes with the dataset's full-resolution K
             K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)
             calib_src = kitti_calib_text(np.column_stack([K_full, np.zeros(3)]), T_cam_radar)
-        write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset,
-                           label=detector_label_text(src.label.read_text()) if src.label else None)
-        if cfg.export.images and image_src is None:
-            write_image_png(radar_root / subset / "image_2" / f"{fid}.png", f.reader.read(fid).image)
+        label = detector_label_text(src.label.read_text(), src.label_track_ids) if src.label else None
+        write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
+        if cfg.export.images and image_src is None:  # the reader's image, in the chosen format
+            write_image(radar_root / subset / "image_2" / f"{fid}{suffix or '.png'}", f.reader.read(fid).image)
         if cfg.export.pcd:
             write_pcd(root / "pcd" / f"{fid}.pcd", pts[:, :3], pts[:, 7], pts[:, 6])
         if cfg.export.previews:
@@ -101,5 +105,13 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                           f"exports every frame)")}
 
 
+def check(cfg: Config) -> None:
+    """ConfigError for an unknown export.image_format."""
+    from pipeline.export import IMAGE_FORMATS
+
+    if cfg.export.image_format not in IMAGE_FORMATS:
+        raise ConfigError(f"export.image_format must be one of {', '.join(IMAGE_FORMATS)}; got '{cfg.export.image_format}'")
+
+
 STAGE = DatasetStage(name="export", upstream=("calibrate", "synthesize"), config_keys=CONFIG_KEYS, run=run,
-                     version=VERSION, doc=__doc__)
+                     version=VERSION, doc=__doc__, check=check)

@@ -12,8 +12,8 @@ import pytest
 
 from pipeline.errors import ReaderError
 from pipeline.export import (
-    add_uniform_noise, detector_label_text, kitti_calib_text, preview_png, read_pcd, read_vod_bin, vod_points,
-    write_image_png, write_image_sets, write_kitti_layout, write_pcd, write_vod_bin,
+    DONT_CARE_LINE, add_uniform_noise, detector_label_text, kitti_calib_text, preview_png, read_pcd, read_vod_bin, vod_points,
+    write_image, write_image_sets, write_kitti_layout, write_pcd, write_vod_bin,
 )
 from pipeline.geometry import cartesian_to_spherical
 from pipeline.synthesis import doppler_for_points
@@ -161,6 +161,15 @@ def test_detector_labels_keep_truncation_and_drop_track_ids():
     assert out.splitlines()[1].split()[:3] == ["Pedestrian", "0", "0"]
     assert out.splitlines()[1].split()[3:] == tracked.split()[3:]
     assert out.splitlines()[3] == "short line" and out.endswith("\n")
+    # the reader knows the column holds track ids: 0 everywhere (a track id of 1 is no truncation)
+    track_one = "Car 1 0 -1.7 1232.0 764.3 1357.1 941.7 1.2 0.7 2.0 2.8 2.5 12.8 -1.4\n"
+    assert detector_label_text(track_one).split()[1] == "1"
+    assert detector_label_text(track_one, track_ids=True).split()[1] == "0"
+    # one space between fields (OpenPCDet splits on ' '), no blank lines, never an empty file
+    assert detector_label_text("Car  0 0 -1.7 1 2 3 4 1.2 0.7 2.0 2.8 2.5 12.8 -1.4\n\n") == \
+        "Car 0 0 -1.7 1 2 3 4 1.2 0.7 2.0 2.8 2.5 12.8 -1.4\n"
+    assert detector_label_text("") == detector_label_text("\n \n") == DONT_CARE_LINE + "\n"
+    assert len(DONT_CARE_LINE.split(" ")) == 15
 
 
 def test_exported_files_are_readable_by_others(tmp_path: Path):
@@ -169,6 +178,12 @@ def test_exported_files_are_readable_by_others(tmp_path: Path):
     os.umask(mask)
     image = np.zeros((4, 6, 3), np.uint8)
     image[1, 2] = (255, 0, 0)
-    path = write_image_png(tmp_path / "image_2" / "00001.png", image)
+    path = write_image(tmp_path / "image_2" / "00001.png", image)
     assert path.stat().st_mode & 0o777 == 0o666 & ~mask
     np.testing.assert_array_equal(cv2.imread(str(path))[:, :, ::-1], image)   # RGB in, RGB back
+    smooth = np.full((16, 16, 3), (200, 40, 90), np.uint8)
+    jpg = write_image(tmp_path / "image_2" / "00002.jpg", smooth)
+    assert jpg.read_bytes()[:3] == b"\xff\xd8\xff"                          # a JPEG, by its suffix
+    assert np.abs(cv2.imread(str(jpg))[:, :, ::-1].astype(int) - smooth).max() <= 3
+    with pytest.raises(ValueError, match="png or .jpg"):
+        write_image(tmp_path / "x.bmp", smooth)

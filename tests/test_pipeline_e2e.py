@@ -6,7 +6,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
+
+import cv2
 
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ import zarr
 
 from pipeline.cache import DONE, EXCLUDED, PENDING
 from pipeline.config import load_config
+from pipeline.errors import ConfigError
 from pipeline.executor import Executor, RunEnv
 from pipeline.readers.vod import VodReader
 from pipeline.runner import Pipeline
@@ -89,6 +93,16 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     for fig in ("fig8.png", "bev.png", "histograms.png"):
         assert (tmp_path / "serial" / "synthetic" / "evaluate" / "figures" / fig).stat().st_size > 10_000
     check_export_round_trip(serial, world, tmp_path / "serial")
+    # export.image_format=jpg: every image_2 file a JPEG of the frame's image
+    jpg_env = replace(serial.env, cfg=serial.env.cfg.with_overrides({"export.image_format": "jpg"}))
+    Pipeline(all_stages(), jpg_env, Executor(1, progress=False), progress=False, log=lambda m: None).run("export")
+    images = sorted((tmp_path / "serial" / "synthetic" / "export" / "radar").glob("*/image_2/*"))
+    assert len(images) == len(done) and {p.suffix for p in images} == {".jpg"}
+    source = cv2.imread(str(next((world / "lidar" / "training" / "image_2").glob(f"{images[0].stem}.*"))))
+    assert np.abs(cv2.imread(str(images[0])).astype(int) - source).mean() < 3
+    with pytest.raises(ConfigError, match="export.image_format"):
+        Pipeline(all_stages(), replace(serial.env, cfg=serial.env.cfg.with_overrides({"export.image_format": "bmp"})),
+                 Executor(1, progress=False), progress=False, log=lambda m: None).run("export")
     # a report over part of the split says so (here synthesize deleted and redone for 3 frames only)
     partial = Pipeline(all_stages(), serial.env, Executor(1, progress=False), progress=False, log=lambda m: None)
     shutil.rmtree(tmp_path / "serial" / "synthetic" / "synthesize.zarr")
@@ -123,7 +137,7 @@ def check_export_round_trip(pipe: Pipeline, world: Path, cache: Path) -> None:
         assert (frame / "image_2" / source.name).read_bytes() == source.read_bytes()
         assert (frame / "velodyne" / f"{fid}.bin").stat().st_mode & 0o777 == mode   # readable as open() makes them
         labels = [line.split() for line in (frame / "label_2" / f"{fid}.txt").read_text().splitlines()]
-        assert labels and all(0.0 <= float(fields[1]) <= 1.0 for fields in labels)  # truncation, not track ids
+        assert labels and all(fields[1] == "0" for fields in labels)  # the world's track ids are no truncation
         pts = syn.read("points", int(i))
         if len(pts) < 3:
             continue

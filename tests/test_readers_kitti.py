@@ -64,6 +64,7 @@ def test_oxts_velocity_and_image_padding(tmp_path):
     rec = reader.read("000007")
     np.testing.assert_allclose(rec.ego_velocity_D, [6.0, 0.2, 0.0])
     assert rec.image.shape == (48, 64, 3) and reader.report()["images_padded_or_cropped"] == 1
+    assert reader.detector_files("000007").image is None  # padded: the export writes the reader's image
 
 
 def test_bad_mount_and_far_wrong_image_size(tmp_path):
@@ -124,7 +125,8 @@ def test_labels_are_in_the_rectified_camera_0_and_the_export_keeps_kitti_convent
     np.testing.assert_allclose(uv, uv_ref, atol=1e-6)
 
     files = reader.detector_files(fid)
-    assert files.label == tmp_path / "training" / "label_2" / f"{fid}.txt" and files.image is None
+    assert files.label == tmp_path / "training" / "label_2" / f"{fid}.txt"
+    assert files.image == tmp_path / "training" / "image_2" / f"{fid}.png"  # used as it is: copied as it is
     out = tmp_path / "calib_out.txt"
     out.write_text(calib_text(files.calib))
     assert [line.split(":")[0] for line in out.read_text().splitlines()] == list(CALIB_KEYS)

@@ -136,6 +136,7 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
     # KITTI's calib with the radar in the Velodyne's place, and KITTI's labels as they are
     assert (exported / "label_2" / "000000.txt").read_text() == KITTI_LABEL
     assert not (exported / "label_2" / "000001.txt").exists()
+    assert (exported / "image_2" / "000001.png").read_bytes() == (kitti / "training/image_2/000001.png").read_bytes()
     calib = {line.split(":")[0]: np.array(line.split(":")[1].split(), float)
              for line in (exported / "calib" / "000001.txt").read_text().splitlines()}
     T_cam_radar = rigid(R_CAM_D, np.array([0.0, -0.08, -0.27])) @ invert_transform(

@@ -31,12 +31,14 @@ class DetectorFiles:
     ``calib``: a KITTI calib file to copy, or its matrices ({key: matrix}, the keys of
     ``pipeline.export.CALIB_KEYS``) with ``Tr_velo_to_cam`` mapping the radar frame {D} to camera 0
     (before R0_rect); ``label``: a KITTI label file (boxes in the rectified camera 0); ``image``:
-    the image file, when it is the reader's image as it is.
+    the image file, when it is the reader's image as it is; ``label_track_ids``: the label's second
+    column holds track ids, not KITTI's truncation.
     """
 
     calib: Path | dict[str, np.ndarray] | None = None
     label: Path | None = None
     image: Path | None = None
+    label_track_ids: bool = False
 
 
 class Reader:

@@ -49,7 +49,8 @@ class KittiReader(Reader):
     def detector_files(self, frame_id: str) -> DetectorFiles:
         """KITTI's own calib with the simulated radar in the Velodyne's place (Tr_velo_to_cam maps
         {D} to camera 0: Tr_velo_to_cam @ T_lidar_radar; Tr_imu_to_velo ends in {D} too), so that
-        KITTI's labels (rectified camera 0) are carried over as they are, and the label file."""
+        KITTI's labels (rectified camera 0) are carried over as they are; the label file; the image
+        file where the reader uses it as it is (not padded or cropped to camera.full_size)."""
         path = self._path("calib", frame_id, ".txt")
         calib = parse_calib_file(path, frame_id)
         P2 = calib_matrix(calib, "P2", (3, 4), path, frame_id)
@@ -65,7 +66,10 @@ class KittiReader(Reader):
         matrices["Tr_velo_to_cam"] = (Tr @ T_lidar_radar)[:3]
         matrices["Tr_imu_to_velo"] = (invert_transform(T_lidar_radar) @ imu)[:3]
         label = self._path("label_2", frame_id, ".txt")
-        return DetectorFiles(calib=matrices, label=label if label.is_file() else None)
+        image = self._path("image_2", frame_id, ".png")
+        shape = read_image_rgb(image, frame_id, None).shape if image.is_file() else None
+        as_is = shape is not None and (shape[1], shape[0]) == tuple(self.cfg.camera.full_size)
+        return DetectorFiles(calib=matrices, label=label if label.is_file() else None, image=image if as_is else None)
 
     def layout_hint(self) -> str:
         split = self.base.name

@@ -69,13 +69,15 @@ class VodReader(Reader):
         self.with_meta = with_meta
 
     def detector_files(self, frame_id: str) -> DetectorFiles:
-        """The radar tree's calib (Tr_velo_to_cam: radar -> camera), the lidar tree's labels and the
-        frame's image file, those that exist."""
+        """The radar tree's calib (Tr_velo_to_cam: radar -> camera), the lidar tree's labels (whether
+        they hold track ids as :meth:`_has_track_ids` decides) and the frame's image file, those that
+        exist."""
         calib = self._calib(self.radar_folder, frame_id)
         label = self.root / "lidar" / "training" / "label_2" / f"{frame_id}.txt"
         images = self._image_candidates(frame_id)
+        tracked = label.is_file() and self._has_track_ids(parse_label_file(label, frame_id))
         return DetectorFiles(calib=calib if calib.is_file() else None, label=label if label.is_file() else None,
-                             image=images[0] if images else None)
+                             image=images[0] if images else None, label_track_ids=tracked)
 
     def layout_hint(self) -> str:
         return (f"{self.radar_folder}/training/velodyne/ID.bin and lidar/training/velodyne/ID.bin, "
