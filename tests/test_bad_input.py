@@ -207,9 +207,9 @@ def test_negative_box_size_in_a_label_is_refused(vod):
         bad[column] = "-" + bad[column]
         path.write_text(line + "\n\n" + " ".join(bad) + "\n")  # the blank line still counts
         _expect(_vod_reader(vod), FID, path, f"label line 3 has a negative box {name} (-{float(parts[column]):g} m)")
-    # KITTI's DontCare lines carry -1 sizes: not an error
+    # KITTI's DontCare lines carry -1 sizes: not an error, and no object
     path.write_text(line + "\nDontCare -1 -1 -10 1 1 2 2 -1 -1 -1 -1000 -1000 -1000 -10\n")
-    assert len(_vod_reader(vod).read(FID).labels) == 2
+    assert [o.class_name for o in _vod_reader(vod).read(FID).labels] == [parts[0]]
     # a neighbour's label file is read for the object velocities: its bad line is named too
     path.write_text(line + "\n")
     neighbour = vod / "lidar/training/label_2" / "00012.txt"

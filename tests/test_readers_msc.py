@@ -133,8 +133,28 @@ def test_folder_rejects_radar_not_in_native_frame(tmp_path):
     rows = _radar_native(np.random.default_rng(5))
     rows[:, 2] *= -1
     PointCloud.from_points(rows, RADAR_FIELDS, [np.float32] * 10).save(tmp_path / "3_RADAR/PCD/000000.pcd")
-    with pytest.raises(ReaderError, match="median forward"):
+    with pytest.raises(ReaderError, match="no clear forward axis"):
         get_reader(_cfg(), tmp_path).read("000000")
+
+
+def test_folder_reads_radar_points_in_the_lidars_axes_and_refuses_them_moved(tmp_path):
+    """MSC-Rad4R's page says the published x, y, z are in the lidar's axes (forward-left-up), not
+    the Oculii's right-down-forward: either order gives the same {D} points (counted per order);
+    points moved into another sensor's frame (their distance no longer their range) are refused."""
+    truth = make_folder(tmp_path)
+    native = truth["radar"][2]
+    expected = get_reader(_cfg(), tmp_path).read("000002").radar_D
+    flu = native.copy()
+    flu[:, :3] = np.stack([native[:, 2], -native[:, 0], -native[:, 1]], 1)
+    PointCloud.from_points(flu, RADAR_FIELDS, [np.float32] * 10).save(tmp_path / "3_RADAR/PCD/000002.pcd")
+    reader = get_reader(_cfg(), tmp_path)
+    np.testing.assert_array_equal(reader.read("000002").radar_D, expected)
+    assert reader.report()["radar_axes_flu"] == 1
+    moved = flu.copy()
+    moved[:, :3] += [1.5, 0.0, 1.0]          # e.g. radar -> lidar origin
+    PointCloud.from_points(moved, RADAR_FIELDS, [np.float32] * 10).save(tmp_path / "3_RADAR/PCD/000002.pcd")
+    with pytest.raises(ReaderError, match="not centred on the radar"):
+        get_reader(_cfg(), tmp_path).read("000002")
 
 
 def test_folder_non_monotonic_radar_timestamps(tmp_path):

@@ -136,3 +136,22 @@ def label_to_object(label: KittiLabel, T_radar_cam: np.ndarray, track_id: int) -
     return Object3D(class_name=label.class_name, center_D=centre_D.astype(np.float64),
                     size_lwh_m=np.array([l, w, h], dtype=np.float64),
                     yaw_rad=float(np.arctan2(heading_D[1], heading_D[0])), track_id=track_id)
+
+
+def lidar_box_label_to_object(label: KittiLabel, T_radar_rect: np.ndarray, T_radar_lidar: np.ndarray,
+                              track_id: int) -> Object3D:
+    """Convert a label of a box annotated in the lidar frame and written in KITTI's camera form (View-of-Delft)
+    to an Object3D in {D}, as the View-of-Delft devkit reads it: the bottom centre ``location``
+    (camera frame, mapped by ``T_radar_rect``) raised by h/2 along the lidar's z axis, the heading at
+    yaw -(rotation_y + pi/2) about the lidar's z axis (``T_radar_lidar``). Where the camera is level
+    with the lidar this is :func:`label_to_object`; VoD's camera is pitched about 7 deg, which moves a
+    box centre about 0.06 h along the camera's axis."""
+    h, w, l = label.size_hwl_m
+    R_radar_lidar = T_radar_lidar[:3, :3]
+    bottom_D = T_radar_rect[:3, :3] @ label.location_cam + T_radar_rect[:3, 3]
+    centre_D = bottom_D + R_radar_lidar @ np.array([0.0, 0.0, h / 2.0])
+    yaw_lidar = -(label.rotation_y + np.pi / 2.0)
+    heading_D = R_radar_lidar @ np.array([np.cos(yaw_lidar), np.sin(yaw_lidar), 0.0])
+    return Object3D(class_name=label.class_name, center_D=centre_D.astype(np.float64),
+                    size_lwh_m=np.array([l, w, h], dtype=np.float64),
+                    yaw_rad=float(np.arctan2(heading_D[1], heading_D[0])), track_id=track_id)

@@ -7,8 +7,11 @@ extrinsics as a rotation block after a line containing ``attitude`` or ``rotatio
 translation after ``translation``, p_cam = R p_sensor + t, metres -- values above 20 are read as
 millimetres and counted), the timestamp files ``frame sec nsec``, the wheel files ``frame sec nsec
 linear_velocity angular_velocity``, the bag topic names and message types, the radar's axes
-(taken as the sensor's native right-down-forward frame and checked on load: median forward
-coordinate > 0), the sign of ``doppler`` (taken as range rate, ``radar.doppler_sign`` = +1) and
+(MSC-Rad4R's data page says x, y, z were changed from the Oculii's right-down-forward frame to the
+lidar's forward-left-up axes; each frame's order is told from its points, :func:`radar_axes`, and
+counted, and points whose distance is not their own ``range`` field are refused), which radar frame
+``CALIBRATION_CAMERA_RADAR`` refers to (taken as the native right-down-forward one), the sign of
+``doppler`` (taken as range rate, ``radar.doppler_sign`` = +1) and
 that the radar boresight is the vehicle's forward axis (ego velocity = (speed, 0, 0) in {D}, speed
 from the wheels or /vel, yaw-rate lever arm ignored).
 
@@ -46,6 +49,25 @@ from pipeline.readers.base import (Reader, check_finite, check_intrinsics, check
 
 R_NATIVE_D = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 """Rotation {D} (x fwd, y left, z up) -> the radar's native right-down-forward frame."""
+RANGE_TOLERANCE_M = 0.5
+"""Largest median difference between |x, y, z| and the radar's own range field, metres."""
+FORWARD_DOMINANCE = 2.0
+"""The forward axis's median must be positive and this many times the other two medians' magnitudes."""
+
+
+def radar_axes(xyz: np.ndarray, path: Path, frame: str | None) -> str:
+    """'rdf' or 'flu': the axis order of an Oculii point cloud (M, 3). The sensor's native frame is
+    right-down-forward; MSC-Rad4R's data page says its x, y, z were changed to the lidar's axes
+    (forward-left-up) for ROS viewing. A forward-looking radar's points lie ahead, so the forward
+    axis is the one whose median is positive and dominates the other two (lateral and vertical);
+    ReaderError when no axis does (the points are in neither order)."""
+    med = np.median(xyz, axis=0)
+    for axes, fwd, others in (("rdf", 2, [0, 1]), ("flu", 0, [1, 2])):
+        if med[fwd] > 0 and med[fwd] >= FORWARD_DOMINANCE * np.max(np.abs(med[others])):
+            return axes
+    raise ReaderError(path, f"radar points have no clear forward axis (median x, y, z = {med[0]:.2f}, {med[1]:.2f}, "
+                            f"{med[2]:.2f} m): neither right-down-forward (z ahead) nor forward-left-up (x ahead)",
+                      frame=frame)
 RADAR_TOPIC = "/oculii_radar/point_cloud"
 LIDAR_TOPIC = "/ouster/points"
 IMAGE_TOPIC = "/camera_array/left/image_raw"
@@ -161,20 +183,26 @@ class MscReader(Reader):
         return K, dist, T_radar_cam, T_radar_cam @ T_cam_lidar
 
     def _radar_D(self, fields: dict[str, np.ndarray], path: Path, fid: str) -> np.ndarray:
-        """(M, 5) float32 in {D} from the radar fields (native RDF xyz, doppler, power)."""
+        """(M, 5) float32 in {D} from the radar fields (xyz in either axis order, doppler, power)."""
         missing = [k for k in ("x", "y", "z", "doppler", "power") if k not in fields]
         if missing:
             raise ReaderError(path, f"radar point fields {missing} are missing", frame=fid)
-        native = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float64)
-        out = np.zeros((native.shape[0], 5), np.float32)
-        out[:, :3] = native @ R_NATIVE_D  # = (R_NATIVE_D.T @ p)^T
+        xyz = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float64)
+        out = np.zeros((xyz.shape[0], 5), np.float32)
         out[:, 3] = np.asarray(fields["doppler"], np.float64) * self.cfg.radar.doppler_sign
         out[:, 4] = fields["power"]
         check_finite(out, path, fid, "radar")
         check_not_empty(out, path, fid, "radar")
-        if np.median(native[:, 2]) <= 0:
-            raise ReaderError(path, "radar median forward (native z) coordinate is not positive: the points "
-                                    "are not in the right-down-forward frame", frame=fid)
+        check_finite(xyz, path, fid, "radar")
+        axes = radar_axes(xyz, path, fid)
+        self._counts[f"radar_axes_{axes}"] += 1
+        out[:, :3] = xyz @ R_NATIVE_D if axes == "rdf" else xyz  # rdf: = (R_NATIVE_D.T @ p)^T
+        if "range" in fields:  # xyz must be centred on the radar, not moved into another sensor's frame
+            off = float(np.median(np.abs(np.linalg.norm(xyz, axis=1) - np.asarray(fields["range"], np.float64))))
+            if off > RANGE_TOLERANCE_M:
+                raise ReaderError(path, f"radar x, y, z are not centred on the radar: their distance differs from "
+                                        f"the range field by {off:.2f} m (median); points in another sensor's frame "
+                                        "are not supported", frame=fid)
         return out
 
     def _record(self, fid: str, seq: str, t: float, image_bgr: np.ndarray, image_path: Path,

@@ -45,7 +45,8 @@ from pipeline.frame import FrameRecord, Object3D
 from pipeline.geometry import invert_transform
 from pipeline.readers.base import (DetectorFiles, Reader, check_not_empty, check_rigid, read_float32_records,
                                    read_image_rgb, require_file, split_sequences_at_gaps)
-from pipeline.readers.kitti_format import KittiLabel, camera_calib, label_to_object, parse_label_file
+from pipeline.readers.kitti_format import (KittiLabel, camera_calib, label_to_object, lidar_box_label_to_object,
+                                           parse_label_file)
 
 RADAR_FOLDERS = ("radar", "radar_3frames", "radar_5frames")
 FRAME_RATE_HZ = 10.0
@@ -58,7 +59,8 @@ class VodReader(Reader):
 
     name = "vod"
     version = 2
-    """2: a 0 / 1 flag in the second label column is not taken for track ids; a track keeps its class."""
+    """2: a 0 / 1 flag in the second label column is not taken for track ids; a track keeps its class;
+    boxes upright in the lidar frame, as the devkit reads them (centres moved 6-12 cm)."""
 
     def __init__(self, cfg: Config, data_root: str | Path, radar_folder: str = "radar",
                  with_meta: bool = False) -> None:
@@ -75,7 +77,8 @@ class VodReader(Reader):
         calib = self._calib(self.radar_folder, frame_id)
         label = self.root / "lidar" / "training" / "label_2" / f"{frame_id}.txt"
         images = self._image_candidates(frame_id)
-        tracked = label.is_file() and self._has_track_ids(parse_label_file(label, frame_id))
+        tracked = label.is_file() and self._has_track_ids(
+            [lab for lab in parse_label_file(label, frame_id) if lab.class_name != "DontCare"])
         return DetectorFiles(calib=calib if calib.is_file() else None, label=label if label.is_file() else None,
                              image=images[0] if images else None, label_track_ids=tracked)
 
@@ -213,7 +216,7 @@ class VodReader(Reader):
         image = read_image_rgb(images[0], frame_id, self.cfg.camera.full_size)
         timestamp = self._checked_timestamp(frame_id)
         ego = self._ego_velocity(frame_id, radar[current], radar_cal.T_cam_sensor)
-        labels = self._labels(frame_id, T_radar_cam @ radar_cal.T_cam_rect, radar_cal.T_cam_sensor)
+        labels = self._labels(frame_id, T_radar_cam @ radar_cal.T_cam_rect, radar_cal.T_cam_sensor, T_radar_lidar)
         lidar_D = (lidar[:, :3].astype(np.float64) @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3])
         record = FrameRecord(
             frame_id=frame_id, sequence_id=self.sequence_of(frame_id), timestamp_s=timestamp,
@@ -325,21 +328,30 @@ class VodReader(Reader):
         R_world_radar = (T_now @ T_cam_radar)[:3, :3]
         return R_world_radar.T @ ((p1 - p0) / (t1 - t0))
 
-    def _labels(self, fid: str, T_radar_rect: np.ndarray, T_cam_radar: np.ndarray) -> list[Object3D]:
+    def _labels(self, fid: str, T_radar_rect: np.ndarray, T_cam_radar: np.ndarray,
+                T_radar_lidar: np.ndarray) -> list[Object3D]:
         """The frame's labels in {D}; ``T_radar_rect`` maps their frame (the rectified reference
-        camera) to {D}, ``T_cam_radar`` {D} to the pose's camera (rotations only matter there)."""
+        camera) to {D}, ``T_cam_radar`` {D} to the pose's camera (rotations only matter there);
+        boxes upright in the lidar frame (``T_radar_lidar``) where :attr:`labels_lidar_boxes`."""
         path = self.root / "lidar" / "training" / "label_2" / f"{fid}.txt"
         if not path.is_file():
             return []
-        labels = parse_label_file(path, fid)
+        labels = [lab for lab in parse_label_file(path, fid) if lab.class_name != "DontCare"]  # placeholders, no box
         tracked = self._has_track_ids(labels)
-        objects = [label_to_object(lab, T_radar_rect, lab.column2 if tracked else -1) for lab in labels]
+        if self.labels_lidar_boxes:
+            objects = [lidar_box_label_to_object(lab, T_radar_rect, T_radar_lidar, lab.column2 if tracked else -1)
+                       for lab in labels]
+        else:
+            objects = [label_to_object(lab, T_radar_rect, lab.column2 if tracked else -1) for lab in labels]
         if tracked:
             self._object_velocities(fid, labels, objects, T_cam_radar)
         else:
             self._counts["frames_without_track_ids"] += bool(labels)
         return objects
 
+    labels_lidar_boxes = True
+    """View-of-Delft's boxes are annotated upright in the lidar frame and read as its devkit reads
+    them (:func:`lidar_box_label_to_object`); the generated world's are upright in its level camera."""
     labels_hold_track_ids = False
     """Whether the second label column always holds track ids (the generated world). For VoD it is
     a track id in the tracking release but a 0 / 1 flag in the detection release, so there it
@@ -360,7 +372,7 @@ class VodReader(Reader):
         T = self._T_world_cam(fid)
         if T is None or not path.is_file():
             return None
-        labels = parse_label_file(path, fid)
+        labels = [lab for lab in parse_label_file(path, fid) if lab.class_name != "DontCare"]
         if not self._has_track_ids(labels):
             return None
         centres = {lab.column2: (lab.class_name, T[:3, :3] @ (lab.location_cam - [0, lab.size_hwl_m[0] / 2, 0]) + T[:3, 3])
@@ -390,8 +402,10 @@ class SyntheticReader(VodReader):
 
     name = "synthetic"
     version = 1
-    """The world's frames read as before VoD's version 2 (its labels always hold track ids)."""
+    """The world's frames read as before VoD's version 2 (its labels always hold track ids and are
+    upright in its level camera)."""
     labels_hold_track_ids = True
+    labels_lidar_boxes = False
 
     def __init__(self, cfg: Config, data_root: str | Path, radar_folder: str = "radar") -> None:
         super().__init__(cfg, data_root, radar_folder=radar_folder, with_meta=True)
