@@ -31,7 +31,7 @@ from pypcd4 import PointCloud
 
 from pipeline.errors import ReaderError
 from pipeline.fileio import atomic_path, write_atomic
-from pipeline.frame import check_shape
+from pipeline.frame import Object3D, check_shape
 from pipeline.geometry import spherical_to_cartesian
 
 VOD_COLUMNS = ("x_m", "y_m", "z_m", "rcs", "v_r_mps", "v_r_compensated_mps", "time_s")
@@ -279,6 +279,45 @@ def detector_label_text(text: str, track_ids: bool = False) -> str:
             if track_ids or not 0.0 <= truncation <= 1.0:
                 fields[1] = "0"
         lines.append(" ".join(fields))
+    return "".join(f"{line}\n" for line in lines or [DONT_CARE_LINE])
+
+
+def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np.ndarray,
+                     image_wh: tuple[int, int]) -> str:
+    """KITTI label lines of boxes in {D} for a calib whose rectified camera is the camera of
+    ``T_cam_radar`` (4, 4) and ``K`` (3, 3), R0_rect identity (:func:`kitti_calib_text`), written so
+    that OpenPCDet's reading gives the boxes back: ``location`` the bottom centre (the box centre
+    lowered by h/2 along {D}'s z) in the camera frame, rotation_y = -(yaw + pi/2) (its
+    ``boxes3d_kitti_camera_to_lidar``). alpha = rotation_y - atan2(x, z); the 2D box is the
+    projection of the 8 corners clipped to the image ``image_wh`` (W, H), truncation the share of it
+    outside the image; occlusion 0 (not known). Boxes with a corner at or behind the camera plane
+    or wholly outside the image are left out (KITTI labels what the camera sees); spaces in class
+    names become '_'. A frame without boxes gets :data:`DONT_CARE_LINE`."""
+    T = check_shape("T_cam_radar", np.asarray(T_cam_radar, np.float64), (4, 4))
+    K = check_shape("K", np.asarray(K, np.float64), (3, 3))
+    w_img, h_img = image_wh
+    lines = []
+    for obj in objects:
+        length, width, height = (float(v) for v in obj.size_lwh_m)
+        c, s = np.cos(obj.yaw_rad), np.sin(obj.yaw_rad)
+        dx, dy, dz = np.meshgrid([-length / 2, length / 2], [-width / 2, width / 2], [-height / 2, height / 2],
+                                 indexing="ij")
+        corners_D = np.asarray(obj.center_D, np.float64) + np.stack(
+            [c * dx.ravel() - s * dy.ravel(), s * dx.ravel() + c * dy.ravel(), dz.ravel()], axis=1)
+        corners_cam = corners_D @ T[:3, :3].T + T[:3, 3]
+        if np.any(corners_cam[:, 2] <= 0.1):
+            continue
+        uv = (corners_cam @ K.T)[:, :2] / corners_cam[:, 2:3]
+        (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
+        cu0, cv0, cu1, cv1 = max(u0, 0.0), max(v0, 0.0), min(u1, w_img - 1.0), min(v1, h_img - 1.0)
+        if cu1 <= cu0 or cv1 <= cv0:
+            continue
+        truncation = 1.0 - (cu1 - cu0) * (cv1 - cv0) / max((u1 - u0) * (v1 - v0), 1e-9)
+        bottom_cam = T[:3, :3] @ (np.asarray(obj.center_D, np.float64) - [0.0, 0.0, height / 2]) + T[:3, 3]
+        ry = float(np.angle(np.exp(-1j * (obj.yaw_rad + np.pi / 2))))
+        alpha = float(np.angle(np.exp(1j * (ry - np.arctan2(bottom_cam[0], bottom_cam[2])))))
+        values = [truncation, 0, alpha, cu0, cv0, cu1, cv1, height, width, length, *bottom_cam, ry]
+        lines.append(" ".join([obj.class_name.replace(" ", "_"), *(f"{v:.6g}" for v in values)]))
     return "".join(f"{line}\n" for line in lines or [DONT_CARE_LINE])
 
 

@@ -3,14 +3,16 @@
 Reads: synthesize (points), calibrate (image, K, T_radar_cam, ego_velocity, split), and the raw
 dataset's calib, label and image files that its reader names (Reader.detector_files: VoD and the
 synthetic world their own files; KITTI its calib with the radar in the Velodyne's place, and its
-labels), else the reader's image.
+labels), else the reader's image and (Astyx) its annotated objects.
 Writes (export/): radar/<subset>/velodyne/<id>.bin (7 float32: x, y, z, RCS, v_r,
 v_r_compensated, time = 0, the View-of-Delft radar layout that OpenPCDet's VoD configuration
 reads), with <subset> 'training' for frames of the train and val splits and 'testing' for the
 test split (where OpenPCDet looks for them); <subset>/calib/<id>.txt carried over, or generated
 from the full-resolution K and T_radar_cam when the dataset has none; <subset>/label_2/<id>.txt
-carried over with track ids out of the truncation column (pipeline.export.detector_label_text);
-<subset>/image_2/<id> (export.images, in export.image_format); radar/ImageSets/{train,val,test}.txt; optional
+carried over with track ids out of the truncation column (pipeline.export.detector_label_text),
+or written from the reader's objects for the generated calib (pipeline.export.kitti_label_text);
+<subset>/image_2/<id> (export.images, in export.image_format); radar/ImageSets/{train,val,test}.txt;
+optional
 pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range).
 Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds),
 camera.* (the full-resolution K of a generated calib).
@@ -38,13 +40,13 @@ VERSION = 3
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
 3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
 out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
-export.image_format."""
+export.image_format; Astyx's annotations as KITTI labels (pipeline.export.kitti_label_text)."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_text, detector_label_text, kitti_calib_text,
-                                 preview_png, vod_points, write_image, write_image_sets, write_kitti_layout, write_pcd)
+                                 kitti_label_text, preview_png, vod_points, write_image, write_image_sets, write_kitti_layout, write_pcd)
     from pipeline.working import full_K
 
     syn, calib = inputs.store("synthesize"), inputs.store("calibrate")
@@ -85,10 +87,17 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         if calib_src is None:  # the reader's image goes with the dataset's full-resolution K
             K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)
             calib_src = kitti_calib_text(np.column_stack([K_full, np.zeros(3)]), T_cam_radar)
-        label = detector_label_text(src.label.read_text(), src.label_track_ids) if src.label else None
+        generated = src.calib is None and src.label is None and src.objects_labelled
+        record = f.reader.read(fid) if generated or (cfg.export.images and image_src is None) else None
+        if src.label is not None:
+            label = detector_label_text(src.label.read_text(), src.label_track_ids)
+        elif generated:  # the dataset's own annotation, for the generated calib's camera
+            label = kitti_label_text(record.labels, T_cam_radar, K_full, tuple(c.full_size))
+        else:
+            label = None
         write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
         if cfg.export.images and image_src is None:  # the reader's image, in the chosen format
-            write_image(radar_root / subset / "image_2" / f"{fid}{suffix or '.png'}", f.reader.read(fid).image)
+            write_image(radar_root / subset / "image_2" / f"{fid}{suffix or '.png'}", record.image)
         if cfg.export.pcd:
             write_pcd(root / "pcd" / f"{fid}.pcd", pts[:, :3], pts[:, 7], pts[:, 6])
         if cfg.export.previews:

@@ -15,7 +15,7 @@ from pipeline.export import (
     DONT_CARE_LINE, add_uniform_noise, detector_label_text, kitti_calib_text, preview_png, read_pcd, read_vod_bin, vod_points,
     write_image, write_image_sets, write_kitti_layout, write_pcd, write_vod_bin,
 )
-from pipeline.geometry import cartesian_to_spherical
+from pipeline.geometry import cartesian_to_spherical, invert_transform, project_to_image
 from pipeline.synthesis import doppler_for_points
 
 
@@ -187,3 +187,37 @@ def test_exported_files_are_readable_by_others(tmp_path: Path):
     assert np.abs(cv2.imread(str(jpg))[:, :, ::-1].astype(int) - smooth).max() <= 3
     with pytest.raises(ValueError, match="png or .jpg"):
         write_image(tmp_path / "x.bmp", smooth)
+
+
+def test_kitti_label_text_round_trips_through_openpcdets_reading(tmp_path: Path):
+    """Boxes in {D} written as KITTI labels for a generated calib come back, read the way OpenPCDet
+    reads them (bottom centre raised along the point cloud's z, yaw = -(rotation_y + pi/2)), to
+    the same centres, sizes and yaws; their 2D boxes enclose the projected centres; a box behind the
+    camera is left out; a frame without boxes gets DontCare."""
+    from pipeline.export import kitti_label_text
+    from pipeline.frame import Object3D
+    from pipeline.readers.kitti_format import lidar_box_label_to_object, parse_label_file
+    from pipeline.readers.testing import R_CAM_D, rigid
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 200], [0, 0, 1]])
+    T_cam_radar = rigid(R_CAM_D, np.array([0.05, 0.8, -0.4])) @ rigid(
+        np.array([[1, 0, 0], [0, np.cos(0.05), -np.sin(0.05)], [0, np.sin(0.05), np.cos(0.05)]]), np.zeros(3))
+    objects = [Object3D("Car", np.array([15.0, 2.0, 0.3]), np.array([4.2, 1.8, 1.5]), 0.4),
+               Object3D("Towed Object", np.array([30.0, -4.0, 0.5]), np.array([3.0, 2.0, 2.5]), -2.9),
+               Object3D("Person", np.array([6.0, 3.5, 0.4]), np.array([0.6, 0.6, 1.8]), 3.0),   # half out of view
+               Object3D("Car", np.array([-8.0, 0.0, 0.3]), np.array([4.0, 1.8, 1.5]), 0.0)]     # behind
+    path = tmp_path / "label.txt"
+    path.write_text(kitti_label_text(objects, T_cam_radar, K, (640, 400)))
+    labels = parse_label_file(path, "x")
+    assert [lab.class_name for lab in labels] == ["Car", "Towed_Object", "Person"]
+    lines = [line.split() for line in path.read_text().splitlines()]
+    for obj, lab, fields in zip(objects, labels, lines):
+        back = lidar_box_label_to_object(lab, invert_transform(T_cam_radar), np.eye(4), -1)
+        np.testing.assert_allclose(back.center_D, obj.center_D, atol=1e-4)
+        np.testing.assert_allclose(back.size_lwh_m, obj.size_lwh_m, atol=1e-5)
+        assert abs(np.angle(np.exp(1j * (back.yaw_rad - obj.yaw_rad)))) < 1e-5
+        u0, v0, u1, v1 = map(float, fields[4:8])
+        uv, _, _ = project_to_image(obj.center_D[None], K, T_cam_radar, (640, 400))
+        assert 0 <= u0 < u1 <= 639 and 0 <= v0 < v1 <= 399 and (u0 <= uv[0, 0] <= u1 or obj.class_name == "Person")
+    assert float(lines[0][1]) == 0.0 and 0.05 < float(lines[2][1]) < 0.95    # truncation: in view, partly out
+    assert kitti_label_text([objects[3]], T_cam_radar, K, (640, 400)) == DONT_CARE_LINE + "\n"

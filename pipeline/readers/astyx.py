@@ -40,8 +40,8 @@ from pipeline.egomotion import EgoFit, estimate_ego_velocity
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord, Object3D
 from pipeline.geometry import invert_transform
-from pipeline.readers.base import (Reader, check_finite, check_intrinsics, check_not_empty, check_rigid,
-                                   inside_root, read_image_rgb, require_file, split_sequences_at_gaps)
+from pipeline.readers.base import (DetectorFiles, Reader, check_finite, check_intrinsics, check_not_empty,
+                                   check_rigid, inside_root, read_image_rgb, require_file, split_sequences_at_gaps)
 
 KMH_TO_MPS = 1.0 / 3.6
 RADAR_COLUMNS = ("X", "Y", "Z", "V_r", "Mag")
@@ -221,6 +221,11 @@ class AstyxReader(_AstyxIndex):
     name = "astyx"
     required_uids = ("radar_6455", "lidar_vlp16", "camera_front", "calibration")
     calib_uids = ("radar_6455", "lidar_vlp16", "camera_front")
+
+    def detector_files(self, frame_id: str) -> DetectorFiles:
+        """No KITTI files; the frame's objects are its annotation where its ground-truth file exists."""
+        path = self._paths(frame_id).get("groundtruth_obj3d")
+        return DetectorFiles(objects_labelled=path is not None and path.is_file())
 
     def read(self, frame_id: str) -> FrameRecord:
         paths = self._paths(frame_id)

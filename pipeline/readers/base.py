@@ -32,13 +32,16 @@ class DetectorFiles:
     ``pipeline.export.CALIB_KEYS``) with ``Tr_velo_to_cam`` mapping the radar frame {D} to camera 0
     (before R0_rect); ``label``: a KITTI label file (boxes in the rectified camera 0); ``image``:
     the image file, when it is the reader's image as it is; ``label_track_ids``: the label's second
-    column holds track ids, not KITTI's truncation.
+    column holds track ids, not KITTI's truncation; ``objects_labelled``: without a label file, the
+    frame's annotation is the reader's ``labels`` (its own format: the export writes them as KITTI
+    labels for the generated calib).
     """
 
     calib: Path | dict[str, np.ndarray] | None = None
     label: Path | None = None
     image: Path | None = None
     label_track_ids: bool = False
+    objects_labelled: bool = False
 
 
 class Reader:
