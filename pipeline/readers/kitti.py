@@ -28,9 +28,10 @@ from pipeline.config import Config
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord
 from pipeline.geometry import invert_transform
-from pipeline.readers.base import (DetectorFiles, Reader, check_not_empty, check_rigid, read_float32_records, read_image_rgb,
-                                   require_file)
-from pipeline.readers.kitti_format import calib_matrix, camera_calib, label_to_object, parse_calib_file, parse_label_file
+from pipeline.readers.base import (DetectorFiles, Reader, check_not_empty, check_rigid, read_float32_records,
+                                   read_image_rgb, require_file)
+from pipeline.readers.kitti_format import (calib_matrix, camera_calib, label_to_object, parse_calib_file,
+                                           parse_label_file)
 
 SIZE_TOLERANCE_PX = 20
 
