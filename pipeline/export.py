@@ -32,7 +32,7 @@ from pypcd4 import PointCloud
 from pipeline.errors import ReaderError
 from pipeline.fileio import atomic_path, write_atomic
 from pipeline.frame import Object3D, check_shape
-from pipeline.geometry import spherical_to_cartesian
+from pipeline.geometry import spherical_to_cartesian, wrap_doppler
 
 VOD_COLUMNS = ("x_m", "y_m", "z_m", "rcs", "v_r_mps", "v_r_compensated_mps", "time_s")
 """Columns of a VoD radar .bin point (7 float32, 28 bytes)."""
@@ -45,11 +45,14 @@ PCD_FIELDS = ("x", "y", "z", "rss", "doppler")
 
 
 def vod_points(
-    points_D: np.ndarray, rss: np.ndarray, doppler_rangerate: np.ndarray, ego_velocity_D: np.ndarray
+    points_D: np.ndarray, rss: np.ndarray, doppler_rangerate: np.ndarray, ego_velocity_D: np.ndarray,
+    doppler_span_mps: float = 0.0,
 ) -> np.ndarray:
     """(n, 7) float32 VoD rows from points (n, 3) m in {D}, RSS (n,), range rate (n,) m/s
     (positive receding; convert an Astyx-convention Doppler with its sign first) and the radar's
-    ego velocity (3,) m/s in {D}. v_r_compensated = v_r + (u . v_ego); time = 0."""
+    ego velocity (3,) m/s in {D}. v_r_compensated = v_r + (u . v_ego), wrapped into the span of a
+    radar that aliases (``doppler_span_mps`` > 0: its v_r is wrapped, so a static point would
+    otherwise get a multiple of the span instead of 0); time = 0."""
     points = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
     n = points.shape[0]
     rss = check_shape("rss", np.asarray(rss, dtype=np.float64), (n,))
@@ -57,7 +60,7 @@ def vod_points(
     ego = check_shape("ego_velocity_D", np.asarray(ego_velocity_D, dtype=np.float64), (3,))
     norm = np.linalg.norm(points, axis=1, keepdims=True)
     unit = points / np.where(norm > 0, norm, 1.0)
-    v_comp = v_r + unit @ ego
+    v_comp = wrap_doppler(v_r + unit @ ego, doppler_span_mps)
     return np.column_stack([points, rss, v_r, v_comp, np.zeros(n)]).astype(np.float32)
 
 
@@ -92,13 +95,14 @@ def add_uniform_noise(
     points: np.ndarray, fraction: float, rng: np.random.Generator, *,
     fov_az_deg: float, fov_el_deg: float, max_range_m: float,
     rss_range: tuple[float, float], doppler_range_mps: tuple[float, float],
-    min_range_m: float = 0.5, ego_velocity_D: np.ndarray | None = None,
+    min_range_m: float = 0.5, ego_velocity_D: np.ndarray | None = None, doppler_span_mps: float = 0.0,
 ) -> np.ndarray:
     """Append round(fraction * n) uniform noise points to VoD rows (n, 7) (paper Table IV: 5%).
 
     Noise is uniform in range [min_range_m, max_range_m], azimuth and elevation within the TOTAL
     fields of view ``fov_*_deg`` (symmetric about x), RSS in ``rss_range`` and v_r (range rate) in
-    ``doppler_range_mps``; v_r_compensated follows from ``ego_velocity_D`` (0 when None); time 0.
+    ``doppler_range_mps``; v_r_compensated follows from ``ego_velocity_D`` (0 when None), wrapped
+    into ``doppler_span_mps`` as in :func:`vod_points`; time 0.
     Returns (n + round(fraction * n), 7) float32, the input rows first.
     """
     rows = check_shape("points", np.asarray(points, dtype=np.float32), (None, 7))
@@ -115,7 +119,7 @@ def add_uniform_noise(
     ])
     noise = vod_points(
         spherical_to_cartesian(rae), rng.uniform(*rss_range, k), rng.uniform(*doppler_range_mps, k),
-        np.zeros(3) if ego_velocity_D is None else ego_velocity_D,
+        np.zeros(3) if ego_velocity_D is None else ego_velocity_D, doppler_span_mps,
     )
     return np.concatenate([rows, noise], axis=0)
 

@@ -14,7 +14,8 @@ or written from the reader's objects for the generated calib (pipeline.export.ki
 <subset>/image_2/<id> (export.images, in export.image_format); radar/ImageSets/{train,val,test}.txt;
 optional
 pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range).
-Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds),
+Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds, the
+Doppler span that v_r and v_r_compensated lie in),
 camera.* (the full-resolution K of a generated calib).
 """
 
@@ -35,12 +36,14 @@ from pipeline.stage import DatasetStage
 CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export.images", "export.image_format",
                "radar.fov_az_deg",
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
+               "radar.doppler_span_mps",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
 VERSION = 3
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
 3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
 out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
-export.image_format; Astyx's annotations as KITTI labels (pipeline.export.kitti_label_text)."""
+export.image_format; Astyx's annotations as KITTI labels (pipeline.export.kitti_label_text);
+v_r_compensated wrapped into an aliasing radar's span (Astyx: 56% of its points had +-10.4 m/s)."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
@@ -66,14 +69,16 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         f = inputs.frame(i)
         pts = syn.read("points", i)
         ego = f.get("calibrate", "ego_velocity")
-        rows = vod_points(pts[:, :3], pts[:, 7], pts[:, 8], ego)
+        span = cfg.radar.doppler_span_mps
+        rows = vod_points(pts[:, :3], pts[:, 7], pts[:, 8], ego, span)
         if cfg.export.noise_fraction > 0:
             r = cfg.radar
             before = len(rows)
             rows = add_uniform_noise(rows, cfg.export.noise_fraction, f.rng(cfg.synth.seed, 31),
                                      fov_az_deg=r.fov_az_deg, fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m,
-                                     rss_range=(r.rss_min, r.rss_max), doppler_range_mps=(-15.0, 15.0),
-                                     ego_velocity_D=ego)
+                                     rss_range=(r.rss_min, r.rss_max),
+                                     doppler_range_mps=(-span / 2, span / 2) if span > 0 else (-15.0, 15.0),
+                                     ego_velocity_D=ego, doppler_span_mps=span)
             n_noise += len(rows) - before
         K, T_radar_cam = f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam")
         T_cam_radar = invert_transform(T_radar_cam)

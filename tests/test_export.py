@@ -63,6 +63,26 @@ def test_vod_bin_empty_and_bad_files(tmp_path: Path):
         write_vod_bin(tmp_path / "x.bin", np.zeros((3, 3)), np.zeros(2), np.zeros(3), np.zeros(3))
 
 
+def test_v_r_compensated_of_an_aliasing_radar_is_wrapped_into_its_span():
+    """Astyx's radar wraps v_r into 10.39 m/s: a static point's compensated velocity is 0, not a
+    multiple of the span (56% of the Astyx export's points had +10.4 m/s before); a moving one keeps
+    its own while it lies within the span; noise points too."""
+    from pipeline.geometry import wrap_doppler
+
+    span, ego = 10.3936, np.array([12.0, 0.5, 0.0])
+    rng = np.random.default_rng(3)
+    points = rng.uniform([5, -20, -1], [60, 20, 2], (300, 3))
+    unit = points / np.linalg.norm(points, axis=1, keepdims=True)
+    own = np.where(np.arange(300) < 200, 0.0, rng.uniform(-4.5, 4.5, 300))   # static, then movers
+    v_r = wrap_doppler(own - unit @ ego, span)                                 # what the radar reports
+    rows = vod_points(points, np.zeros(300), v_r, ego, span)
+    np.testing.assert_allclose(rows[:, 5], own, atol=1e-4)
+    assert np.abs(vod_points(points, np.zeros(300), v_r, ego)[:200, 5]).max() > 5   # unwrapped: off by the span
+    noisy = add_uniform_noise(rows, 0.5, rng, fov_az_deg=110, fov_el_deg=39, max_range_m=100, rss_range=(45, 95),
+                              doppler_range_mps=(-span / 2, span / 2), ego_velocity_D=ego, doppler_span_mps=span)
+    assert np.all(np.abs(noisy[:, 4:6]) <= span / 2 + 1e-4)
+
+
 def test_uniform_noise_count_and_bounds():
     points, rss, v_r = random_points(200)
     ego = np.array([3.0, 0.0, 0.0])
