@@ -38,20 +38,26 @@ from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
+from pipeline.metrics import region_mask
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
 from stages.synthesize import capacity, check_generation, check_split, generate, models, split_mask
 
-NOMINAL_FRAME_PERIOD_S = 0.1
-"""Frame period assumed by the previous-frame baseline where timestamps do not give one (10 Hz)."""
 MAX_FRAME_GAP_S = 1.0
-"""Consecutive frames further apart than this (or going backwards) use the nominal period."""
+"""The previous-frame baseline needs consecutive frames: a previous frame further back than this
+(Astyx's subset skips seconds to a minute between many neighbouring ids) gives it no points for
+the frame (absent, like a first frame)."""
+CLOCK_WRAP_S = 3600.0
+"""Timestamps that wrap (Astyx: the lidar's microseconds past the hour): a negative gap is taken
+modulo this."""
 
-VERSION = 8
+VERSION = 9
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
 random stream per method; 3: no-points row; 4: the model by ego speed; 5: physics checks with the
 share within 1 m and the best-lidar-point oracle; 6: the baselines follow synth.placement; 7: the
 baselines sample their maps at full weight, pipeline.baselines.generation_config; 8: per-frame
-results in evaluate-frames.zarr)."""
+results in evaluate-frames.zarr; 9: previous-frame only from consecutive frames (gap <= 1 s) and
+restricted to the evaluated region; the static-point Doppler check leaves out points in boxes of
+unknown velocity)."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
@@ -115,13 +121,32 @@ def _syn5(points9: np.ndarray) -> np.ndarray:
 
 
 def _static_mask(real: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """Real points outside every labelled box that moves faster than 0.5 m/s."""
-    from pipeline.synthesis import object_velocities_for_points
+    """Real points outside every labelled box that moves faster than 0.5 m/s or whose velocity is
+    unknown (Astyx labels have none: its objects may move)."""
+    from pipeline.synthesis import label_boxes, object_velocities_for_points
 
     if len(real) == 0:
         return np.zeros(0, bool)
-    vel = object_velocities_for_points(real[:, :3], labels)
+    rows = label_boxes(labels).copy()
+    unknown = ~np.all(np.isfinite(rows[:, 7:10]), axis=1)
+    rows[unknown, 7:10] = [1e6, 0.0, 0.0]   # any point inside such a box is not taken for static
+    vel = object_velocities_for_points(real[:, :3], rows)
     return np.linalg.norm(vel, axis=1) < 0.5
+
+
+def moved_previous_frame(prev_real: np.ndarray, prev_ego_velocity_D: np.ndarray, dt_s: float,
+                         in_region) -> np.ndarray | None:
+    """The previous-frame baseline: the previous frame's real points (M, 5) [x, y, z, range rate,
+    rss], moved by the ego motion over ``dt_s`` (its ego velocity (3,) m/s) and kept where
+    ``in_region`` ((N, 3) -> (N,) bool: the evaluated region, as the real points are); None when the
+    frames are not consecutive (more than MAX_FRAME_GAP_S apart, after a clock wrap)."""
+    from pipeline.baselines import ego_motion_transform, previous_frame
+
+    dt = dt_s % CLOCK_WRAP_S if dt_s <= 0 else dt_s
+    if not 0.0 < dt <= MAX_FRAME_GAP_S:
+        return None
+    pts = np.asarray(previous_frame(prev_real, ego_motion_transform(prev_ego_velocity_D, dt)), np.float64)
+    return pts[in_region(pts[:, :3])]
 
 
 def _previous(f: FrameInputs, frame_ids: list[str]) -> FrameInputs | None:
@@ -137,8 +162,7 @@ def _methods_for_frame(f: FrameInputs, cfg: Config, stats: dict, nets, prev: Fra
                        real_map: np.ndarray) -> dict[str, tuple[np.ndarray, float, np.ndarray | None]]:
     """(points (N, 5), decided count, map or None) of every method on frame ``f``; ``real_map`` is
     the frame's real heatmap (H, W); ``prev`` the previous frame of its sequence (or None)."""
-    from pipeline.baselines import METHODS, choose_count, choose_map, choose_rss, ego_motion_transform, \
-        generation_config, lidar_subsample, previous_frame
+    from pipeline.baselines import METHODS, choose_count, choose_map, choose_rss, generation_config, lidar_subsample
 
     out = {}
     n_true = int(f.get("heatmaps", "count"))
@@ -170,12 +194,14 @@ def _methods_for_frame(f: FrameInputs, cfg: Config, stats: dict, nets, prev: Fra
                                   rss_value=stats["rss_median"], doppler_span_mps=cfg.radar.doppler_span_mps)
             out[spec.name] = (np.asarray(pts, np.float64), float(stats["n_bar"]), None)
         elif spec.kind == "previous-frame" and prev is not None:
-            dt = float(f.get("calibrate", "timestamp") - prev.get("calibrate", "timestamp"))
-            if not 0.0 < dt <= MAX_FRAME_GAP_S:  # clock wrap (Astyx: lidar µs past the hour) or a gap
-                dt = NOMINAL_FRAME_PERIOD_S
-            T = ego_motion_transform(prev.get("calibrate", "ego_velocity"), dt)
-            pts = np.asarray(previous_frame(_real(prev), T), np.float64)
-            out[spec.name] = (pts, float(len(pts)), None)
+            pts = moved_previous_frame(
+                _real(prev), prev.get("calibrate", "ego_velocity"),
+                float(f.get("calibrate", "timestamp") - prev.get("calibrate", "timestamp")),
+                lambda xyz: region_mask(xyz, cfg.radar.fov_az_deg, cfg.radar.fov_el_deg, cfg.radar.max_range_m,
+                                        f.get("calibrate", "K"), invert_transform(f.get("calibrate", "T_radar_cam")),
+                                        size))
+            if pts is not None:
+                out[spec.name] = (pts, float(len(pts)), None)
         elif spec.kind == "empty":
             out[spec.name] = (np.zeros((0, 5)), 0.0, None)
     return out

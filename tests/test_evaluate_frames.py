@@ -122,3 +122,38 @@ def test_nets_retrained_under_the_same_fingerprint_are_loaded_again(synthesized,
     pipe.run("train", force=True)
     assert pipe.env.dir("train").fingerprint() == fingerprint
     assert models(frame, pipe.env.cfg) is not before
+
+
+def test_previous_frame_needs_consecutive_frames_and_keeps_to_the_evaluated_region():
+    """EVALUATION.md: previous-frame 'where consecutive frames exist'. A previous frame 5 s back
+    (Astyx's subset skips seconds between neighbouring ids) gives no points rather than points moved
+    by 0.1 s of ego motion; a clock that wraps at the hour still counts as 0.1 s; moved points
+    outside the evaluated region are dropped, as the real points were."""
+    prev = np.array([[10.0, 0.0, 0.0, -5.0, 1.0], [20.0, 9.5, 0.0, -4.0, 2.0]])
+    ego = np.array([5.0, 0.0, 0.0])
+    everything = lambda xyz: np.ones(len(xyz), bool)                               # noqa: E731
+    assert evaluate.moved_previous_frame(prev, ego, 5.0, everything) is None
+    assert evaluate.moved_previous_frame(prev, ego, -1.0, everything) is None     # backwards, no wrap
+    moved = evaluate.moved_previous_frame(prev, ego, 0.1, everything)
+    np.testing.assert_allclose(moved[:, :3], prev[:, :3] - [0.5, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_array_equal(moved[:, 3:], prev[:, 3:])                       # Doppler and RSS as measured
+    wrapped = evaluate.moved_previous_frame(prev, ego, 0.1 - evaluate.CLOCK_WRAP_S, everything)
+    np.testing.assert_allclose(wrapped, moved, atol=1e-6)
+    within_25deg = lambda xyz: np.abs(np.arctan2(xyz[:, 1], xyz[:, 0])) <= np.deg2rad(25)   # noqa: E731
+    np.testing.assert_allclose(evaluate.moved_previous_frame(prev, ego, 0.1, within_25deg), moved[:1])
+
+
+def test_static_points_leave_out_boxes_of_unknown_velocity():
+    """Astyx labels carry no velocity: points inside its boxes may move and are no static points
+    for the Doppler check (they counted as static, a quarter of Astyx's points, before)."""
+    from pipeline.frame import Object3D, label_rows
+
+    real = np.array([[10.0, 0.0, 0.0, 0.0, 0.0], [30.0, 5.0, 0.0, 0.0, 0.0], [20.0, -3.0, 0.0, 0.0, 0.0]])
+    unknown = Object3D("Car", np.array([10.0, 0.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0)
+    parked = Object3D("Car", np.array([30.0, 5.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0,
+                      velocity_D=np.zeros(3, np.float32))
+    moving = Object3D("Car", np.array([20.0, -3.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0,
+                      velocity_D=np.array([3.0, 0.0, 0.0], np.float32))
+    np.testing.assert_array_equal(evaluate._static_mask(real, label_rows([unknown, parked, moving])),
+                                  [False, True, False])
+    np.testing.assert_array_equal(evaluate._static_mask(real, label_rows([])), [True, True, True])
