@@ -418,15 +418,16 @@ def label_boxes(labels: Sequence[Object3D] | np.ndarray) -> np.ndarray:
 
 
 def object_velocities_for_points(
-    points_D: np.ndarray, labels: Sequence[Object3D] | np.ndarray, margin_m: float = 0.3
+    points_D: np.ndarray, labels: Sequence[Object3D] | np.ndarray, margin_m: float = 0.3, unknown: float = 0.0
 ) -> np.ndarray:
     """Velocity over ground (n, 3) m/s in {D} of the labelled object containing each point.
 
     ``labels``: Object3D objects or calibrate's label rows (see ``label_boxes``). A point belongs
     to a box when it lies inside the oriented box (centre, yaw about z, size l/w/h) grown by
     ``margin_m`` on every face; where boxes overlap, the one with the nearest centre wins. Points
-    in no box (the static world) get 0. Labels whose velocity is unknown (NaN) count as static
-    (0): a dataset without velocities gives a static-world Doppler for its objects.
+    in no box (the static world) get 0. Labels whose velocity is unknown (NaN) give their points
+    ``unknown`` (0: static, so a dataset without velocities gives a static-world Doppler for its
+    objects; NaN marks them as not known).
     """
     points = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
     out = np.zeros((points.shape[0], 3))
@@ -434,7 +435,7 @@ def object_velocities_for_points(
     if points.shape[0] == 0 or len(boxes) == 0:
         return out
     centres, half, yaw = boxes[:, 0:3], boxes[:, 3:6] / 2 + margin_m, boxes[:, 6]     # (L, 3), (L, 3), (L,)
-    vel = np.nan_to_num(boxes[:, 7:10], nan=0.0)
+    vel = np.where(np.isnan(boxes[:, 7:10]), unknown, boxes[:, 7:10])
     # A point inside box l lies within its x extent |dx| <= hypot(half_x, half_y): each box tests
     # only the points of that slice of the points sorted by x (one loop step per box, not per point).
     order = np.argsort(points[:, 0], kind="stable")

@@ -123,15 +123,12 @@ def _syn5(points9: np.ndarray) -> np.ndarray:
 def _static_mask(real: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Real points outside every labelled box that moves faster than 0.5 m/s or whose velocity is
     unknown (Astyx labels have none: its objects may move)."""
-    from pipeline.synthesis import label_boxes, object_velocities_for_points
+    from pipeline.synthesis import object_velocities_for_points
 
     if len(real) == 0:
         return np.zeros(0, bool)
-    rows = label_boxes(labels).copy()
-    unknown = ~np.all(np.isfinite(rows[:, 7:10]), axis=1)
-    rows[unknown, 7:10] = [1e6, 0.0, 0.0]   # any point inside such a box is not taken for static
-    vel = object_velocities_for_points(real[:, :3], rows)
-    return np.linalg.norm(vel, axis=1) < 0.5
+    vel = object_velocities_for_points(real[:, :3], labels, unknown=np.nan)
+    return np.linalg.norm(vel, axis=1) < 0.5   # False for NaN: inside a box of unknown velocity
 
 
 def moved_previous_frame(prev_real: np.ndarray, prev_ego_velocity_D: np.ndarray, dt_s: float,

@@ -89,8 +89,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         suffix = IMAGE_FORMATS[cfg.export.image_format]
         as_is = src.image is not None and suffix in (None, src.image.suffix.lower().replace(".jpeg", ".jpg"))
         image_src = src.image if cfg.export.images and as_is else None
-        if calib_src is None:  # the reader's image goes with the dataset's full-resolution K
-            K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)
+        K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)  # goes with the reader's full-size image
+        if calib_src is None:
             calib_src = kitti_calib_text(np.column_stack([K_full, np.zeros(3)]), T_cam_radar)
         generated = src.calib is None and src.label is None and src.objects_labelled
         record = f.reader.read(fid) if generated or (cfg.export.images and image_src is None) else None

@@ -53,6 +53,11 @@ RANGE_TOLERANCE_M = 0.5
 """Largest median difference between |x, y, z| and the radar's own range field, metres."""
 FORWARD_DOMINANCE = 2.0
 """The forward axis's median must be positive and this many times the other two medians' magnitudes."""
+RADAR_TOPIC = "/oculii_radar/point_cloud"
+LIDAR_TOPIC = "/ouster/points"
+IMAGE_TOPIC = "/camera_array/left/image_raw"
+VEL_TOPIC = "/vel"
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
 
 def radar_axes(xyz: np.ndarray, path: Path, frame: str | None) -> str:
@@ -68,11 +73,6 @@ def radar_axes(xyz: np.ndarray, path: Path, frame: str | None) -> str:
     raise ReaderError(path, f"radar points have no clear forward axis (median x, y, z = {med[0]:.2f}, {med[1]:.2f}, "
                             f"{med[2]:.2f} m): neither right-down-forward (z ahead) nor forward-left-up (x ahead)",
                       frame=frame)
-RADAR_TOPIC = "/oculii_radar/point_cloud"
-LIDAR_TOPIC = "/ouster/points"
-IMAGE_TOPIC = "/camera_array/left/image_raw"
-VEL_TOPIC = "/vel"
-_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
 
 # -- text formats ----------------------------------------------------------------------------------
@@ -188,15 +188,14 @@ class MscReader(Reader):
         if missing:
             raise ReaderError(path, f"radar point fields {missing} are missing", frame=fid)
         xyz = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float64)
-        out = np.zeros((xyz.shape[0], 5), np.float32)
-        out[:, 3] = np.asarray(fields["doppler"], np.float64) * self.cfg.radar.doppler_sign
-        out[:, 4] = fields["power"]
+        out = np.column_stack([xyz, np.asarray(fields["doppler"], np.float64) * self.cfg.radar.doppler_sign,
+                               fields["power"]]).astype(np.float32)
         check_finite(out, path, fid, "radar")
         check_not_empty(out, path, fid, "radar")
-        check_finite(xyz, path, fid, "radar")
         axes = radar_axes(xyz, path, fid)
         self._counts[f"radar_axes_{axes}"] += 1
-        out[:, :3] = xyz @ R_NATIVE_D if axes == "rdf" else xyz  # rdf: = (R_NATIVE_D.T @ p)^T
+        if axes == "rdf":
+            out[:, :3] = xyz @ R_NATIVE_D  # = (R_NATIVE_D.T @ p)^T
         if "range" in fields:  # xyz must be centred on the radar, not moved into another sensor's frame
             off = float(np.median(np.abs(np.linalg.norm(xyz, axis=1) - np.asarray(fields["range"], np.float64))))
             if off > RANGE_TOLERANCE_M:
