@@ -77,6 +77,8 @@ class FrameRecord:
     T_radar_lidar: (4, 4) float64, maps lidar coordinates to {D}.
     T_radar_cam: (4, 4) float64, maps camera coordinates {C} to {D}.
     ego_velocity_D: (3,) float64 m/s, radar velocity relative to the static world in {D}.
+    ego_velocity_known: False when the dataset records no motion for the frame (KITTI without
+        ``oxts``): ``ego_velocity_D`` is then zero, and every Doppler derived from it a stopped car's.
     has_radar: False for camera + lidar datasets.
     labels: annotated objects in {D} (empty when the dataset has none).
     extras: per-radar-point side information some datasets have (synthetic world: ``object_id``
@@ -95,6 +97,7 @@ class FrameRecord:
     T_radar_cam: np.ndarray
     ego_velocity_D: np.ndarray
     has_radar: bool = True
+    ego_velocity_known: bool = True
     labels: list[Object3D] = field(default_factory=list)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
 

@@ -71,6 +71,8 @@ class StageReport:
     failures: list[tuple[int, str]] = field(default_factory=list)
     """(frame index, reason) of the frames that failed in this run."""
     summary: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    """Lines printed under the stage's line (FrameStage.summarise)."""
 
     def line(self) -> str:
         if self.action == "dataset":
@@ -228,6 +230,8 @@ class Pipeline:
                 report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
+            for note in report.notes:
+                self.log(f"{'':<{NAME_WIDTH}} {note}")
             if strict and report.failed:
                 raise self._strict_error(name, report)
         return reports
@@ -446,6 +450,8 @@ class Pipeline:
         report.failed = int((final == FAILED).sum())
         report.pending = int((final == PENDING).sum())
         report.excluded = int((final == EXCLUDED).sum())
+        if stage.summarise is not None and report.processed:
+            report.notes = list(stage.summarise(store, self.env.cfg))
         return report
 
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:

@@ -56,6 +56,8 @@ class FrameStage:
     every stage of a run before any output is touched.
     ``part_of``: the dataset stage whose per-frame part this is (evaluate's per-frame metrics,
     which the report then reads): ``--force`` on that stage recomputes this one too.
+    ``summarise(store, cfg) -> lines``: what a run that processed frames prints under the stage's
+    line (e.g. points the stage dropped over all its finished frames); none when it returns none.
     """
 
     name: str
@@ -69,6 +71,7 @@ class FrameStage:
     doc: str = ""
     check: Callable[["Config"], None] | None = None
     part_of: str = ""
+    summarise: Callable[..., list[str]] | None = None
 
 
 @dataclass(frozen=True)

@@ -747,8 +747,11 @@ def _load_into(model: nn.Module, arch: dict[str, Any], path: str | Path, device:
                 if meta.get("arch", {}).get(k) != v}
         raise ConfigError(f"{path}: checkpoint architecture differs from the configuration "
                           f"(saved, configured): {diff}")
+    state = ckpt.strip_prefix(tensors, "model.")
+    for name in getattr(model, "OPTIONAL_BUFFERS", ()):  # saved by later versions only: the model's default
+        state.setdefault(name, model.state_dict()[name])
     try:
-        model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
+        model.load_state_dict(state, strict=True)
     except RuntimeError as exc:  # e.g. a checkpoint of an older version of the network
         raise ConfigError(f"{path}: the checkpoint does not fit this version's network (written by an "
                           f"older version? run the train stage again): {exc}") from exc

@@ -8,13 +8,21 @@ Those settings of the dataset that uses the nets must be the trained ones: :func
 puts them into its configuration (a value given explicitly that differs is an error), and the
 train stage checks them (:func:`mismatches`) before it takes the checkpoints. Everything else
 (camera, lidar, working resolution, splits) stays the dataset's own.
+
+Dis-Net's map follows the image it is given, except its prior, the source's mean training map:
+where the source radar's returns land in the source camera's image. On another camera (focal
+length, crop, pitch) :func:`rebase_prior` moves that prior to the same directions from the radar
+at the source radar's typical range (:func:`source_camera`, :func:`prior_in_target`).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from pipeline.cache import DirStore, dir_store, frame_store
 from pipeline.config import Config, load_config
@@ -84,9 +92,149 @@ def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = ()) -
     return cfg.with_overrides(trained)
 
 
+@dataclass(frozen=True)
+class Comparison:
+    """How the evaluate stage compares a dataset's real radar with the synthesized one: ``rss``,
+    whether RSS values are compared (the same units); ``doppler_span_mps``, the span modulo which
+    Doppler is compared (0: none); ``notes``, what the report says about it (empty when nothing is
+    left out); ``real_doppler_span_mps``, the real radar's own span (its physics check)."""
+
+    rss: bool
+    doppler_span_mps: float
+    real_doppler_span_mps: float
+    notes: tuple[str, ...] = ()
+
+
+def comparison(cfg: Config) -> Comparison:
+    """What of the dataset's real radar (its profile's: RSS unit, Doppler span) the synthesized
+    radar of ``cfg`` (another dataset's when train.nets_from names one) can be compared with.
+
+    Different RSS units: RSS is not compared (an RSS gate between dB(Mag) and dBsm matches nothing).
+    Doppler: modulo the simulated radar's span when it aliases, else modulo the real radar's, so
+    that a radar that wraps is compared with one that does not as the wrapping one measures.
+    """
+    r = cfg.radar
+    if not cfg.train.nets_from:
+        return Comparison(True, r.doppler_span_mps, r.doppler_span_mps)
+    own = load_config(cfg.profile, environ={}).radar
+    notes = []
+    rss = own.rss_unit == r.rss_unit
+    if not rss:
+        notes.append(f"RSS not compared: the real radar ({own.name}) measures {own.rss_unit}, the synthesized one "
+                     f"({r.name}, nets of '{cfg.train.nets_from}') {r.rss_unit}; matched F1 gates position and "
+                     f"Doppler only, and the RSS columns are empty")
+    span = r.doppler_span_mps or own.doppler_span_mps
+    if r.doppler_span_mps and own.doppler_span_mps and r.doppler_span_mps != own.doppler_span_mps:
+        notes.append(f"Doppler compared modulo the synthesized radar's span {r.doppler_span_mps:g} m/s; the real "
+                     f"radar's is {own.doppler_span_mps:g} m/s, so some of its wrapped values compare wrongly")
+    elif span != r.doppler_span_mps:
+        notes.append(f"Doppler compared modulo the real radar's span {span:g} m/s (the synthesized radar does not wrap)")
+    elif span != own.doppler_span_mps:
+        notes.append(f"Doppler compared modulo the synthesized radar's span {span:g} m/s (the real radar does not wrap)")
+    return Comparison(rss, float(span), float(own.doppler_span_mps), tuple(notes))
+
+
 def _json(value: Any) -> Any:
     return json.loads(json.dumps(list(value) if isinstance(value, tuple) else value))
 
 
 def _text(value: Any) -> str:
     return ",".join(str(v) for v in value) if isinstance(value, list) else str(value)
+
+
+@dataclass(frozen=True)
+class SourceCamera:
+    """The camera the nets' dataset was calibrated with: ``K_working`` (3, 3) intrinsics of its
+    working image (``working_wh`` pixels), ``T_radar_cam`` (4, 4) camera -> radar {D} (m), and
+    ``range_m``, the median range of its radar's points (where the prior's directions are taken)."""
+
+    K_working: np.ndarray
+    T_radar_cam: np.ndarray
+    working_wh: tuple[int, int]
+    range_m: float
+
+
+DEFAULT_RANGE_M = 20.0
+"""range_m of a source without radar points in its calibrate output."""
+SOURCE_CAMERA_FRAMES = 200
+"""source_camera reads the radar points of at most this many frames (evenly spaced) for range_m."""
+
+
+def source_camera(cache_root: str, dataset: str) -> SourceCamera:
+    """The typical camera of ``dataset``'s calibrate output under ``cache_root``: the element-wise
+    median intrinsics and camera position and the chordal mean rotation over its finished frames (a
+    dataset with two calibration sets, like Astyx's, gets one between them), and its radar points'
+    median range. PipelineError when that output has no finished frame."""
+    from pipeline.cache import DONE
+
+    store = frame_store(cache_root, dataset, "calibrate")
+    done = np.flatnonzero(store.status() == DONE) if store.exists() else np.zeros(0, int)
+    if not len(done):
+        raise PipelineError(f"train.nets_from = '{dataset}': its calibrate output at {store.url} has no finished "
+                            f"frame, and Dis-Net's prior needs that dataset's camera; run `pipeline run calibrate "
+                            f"--dataset {dataset} --data-root ...` with this cache")
+    K = np.median(np.asarray(store.array("K").oindex[done], np.float64), axis=0)
+    T = np.asarray(store.array("T_radar_cam").oindex[done], np.float64)
+    u, _, vt = np.linalg.svd(T[:, :3, :3].mean(0))
+    if np.linalg.det(u @ vt) < 0:
+        raise PipelineError(f"{store.url}: the camera rotations of dataset '{dataset}' do not average to a rotation")
+    some = done[np.unique(np.linspace(0, len(done) - 1, min(len(done), SOURCE_CAMERA_FRAMES)).astype(int))]
+    ranges = np.concatenate([np.linalg.norm(store.read("radar", int(i))[:, :3], axis=1) for i in some])
+    T_typical = np.eye(4)
+    T_typical[:3, :3], T_typical[:3, 3] = u @ vt, np.median(T[:, :3, 3], axis=0)
+    w, h = (int(v) for v in store.attrs().get("config", {}).get("camera.working_size", (0, 0)))
+    return SourceCamera(K, T_typical, (w, h), float(np.median(ranges)) if len(ranges) else DEFAULT_RANGE_M)
+
+
+def prior_in_target(prior_hw: np.ndarray, source: SourceCamera, K_working: np.ndarray, T_radar_cam: np.ndarray,
+                    working_wh: tuple[int, int]) -> np.ndarray:
+    """Dis-Net's prior (h, w) probability map over the source camera's working image, moved to the
+    same places around the radar in a target camera (intrinsics ``K_working`` of its working image
+    of ``working_wh`` pixels, ``T_radar_cam`` (4, 4) camera -> {D}), on an (h, w) grid over that
+    image: float64 (h, w) summing to 1.
+
+    Each target cell looks along its ray to the point at the source's radar range (``range_m``
+    from the radar: the cameras' offsets from the radar matter at radar ranges), and takes the
+    source's probability where the source camera sees that point (bilinear), times the cells of
+    the source grid one target cell covers there. Beyond the source image's edges the prior is
+    taken as at its nearest edge (the radar's field of view is wider than its camera's, and its
+    pattern does not stop at that camera's edge); behind the source camera it is the prior's
+    smallest."""
+    import cv2
+
+    prior = np.asarray(prior_hw, np.float64)
+    h, w = prior.shape
+    A_s = _grid_from_pixels((w, h), source.working_wh) @ np.asarray(source.K_working, np.float64)
+    A_t = _grid_from_pixels((w, h), working_wh) @ np.asarray(K_working, np.float64)
+    jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([jj, ii, np.ones((h, w))], -1) @ np.linalg.inv(A_t).T @ np.asarray(T_radar_cam)[:3, :3].T
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)                               # unit, in {D}
+    origin = np.asarray(T_radar_cam, np.float64)[:3, 3]                               # the camera in {D}
+    along = rays @ origin
+    reach = np.sqrt(np.maximum(along ** 2 - origin @ origin + source.range_m ** 2, 0.0)) - along
+    points_D = origin + reach[..., None] * rays                                        # range_m from the radar
+    T_cam_D = np.linalg.inv(np.asarray(source.T_radar_cam, np.float64))
+    in_source = points_D @ T_cam_D[:3, :3].T + T_cam_D[:3, 3]
+    ahead = in_source[..., 2] > 1e-3
+    at = (in_source / np.where(ahead, in_source[..., 2], 1.0)[..., None]) @ A_s.T      # source grid cells
+    sampled = cv2.remap(prior.astype(np.float32), at[..., 0].astype(np.float32), at[..., 1].astype(np.float32),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
+    (dx_di, dx_dj), (dy_di, dy_dj) = np.gradient(at[..., 0]), np.gradient(at[..., 1])
+    cells = np.abs(dx_dj * dy_di - dx_di * dy_dj)                                      # source cells per target cell
+    out = np.where(ahead, sampled * cells, prior.min())
+    return out / out.sum()
+
+
+def _grid_from_pixels(grid_wh: tuple[int, int], working_wh: tuple[int, int]) -> np.ndarray:
+    """(3, 3): working-image pixel coordinates -> coordinates on a (h, w) grid laid over the image
+    (cell centres at ((j + 0.5) W / w - 0.5, (i + 0.5) H / h - 0.5), as a resize puts them)."""
+    (w, h), (W, H) = grid_wh, (int(working_wh[0]), int(working_wh[1]))
+    return np.array([[w / W, 0.0, 0.5 * w / W - 0.5], [0.0, h / H, 0.5 * h / H - 0.5], [0.0, 0.0, 1.0]])
+
+
+def rebase_prior(prob_map_hw: np.ndarray, prior_source_hw: np.ndarray, prior_target_hw: np.ndarray) -> np.ndarray:
+    """Dis-Net's map (h, w) made with its source prior (its log added to the logits), as it would
+    be with ``prior_target_hw`` instead: proportional to map * target / source; float32 summing to 1."""
+    out = np.asarray(prob_map_hw, np.float64) * np.asarray(prior_target_hw, np.float64) / \
+        np.asarray(prior_source_hw, np.float64)
+    return (out / out.sum()).astype(np.float32)

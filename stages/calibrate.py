@@ -9,8 +9,11 @@ Writes (calibrate.zarr, one chunk per frame):
   [x, y, z m in {D}, range rate m/s, RSS]: points in the common field of view within max range;
   radar_object, radar_material (same rows, int32; -2 when the dataset has no such side data);
   labels (<= 64, 11) float32 [centre xyz, l w h, yaw, velocity xyz, track id] in {D};
-  ego_velocity (3,) float64 m/s in {D}; timestamp float64 s; sequence str; split int8
-  (0 train, 1 val, 2 test); has_radar bool.
+  ego_velocity (3,) float64 m/s in {D}; ego_velocity_known bool (False: the dataset records no
+  motion for the frame, ego_velocity is zero); timestamp float64 s; sequence str; split int8
+  (0 train, 1 val, 2 test); has_radar bool; radar_beyond_range int32, the radar points in the
+  common field of view but beyond radar.max_range_m (dropped, as the method has it; counted so
+  that a run says how many: summarise()).
 Config: dataset.*, camera.*, radar fov/range/capacity, lidar.*, split.*.
 """
 
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.cache import DONE
 from pipeline.config import Config
 from pipeline.errors import FrameError
 from pipeline.frame import LABEL_COLUMNS, label_rows
@@ -28,6 +32,9 @@ from pipeline.stage import ArraySpec, FrameStage
 from pipeline.working import common_fov_mask, crop_resize
 
 MAX_LABELS = 64
+
+VERSION = 2
+"""Bump when the outputs change for the same inputs (2: ego_velocity_known, radar_beyond_range)."""
 
 CONFIG_KEYS = (
     "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution", "dataset.world_sequence_len",
@@ -53,10 +60,13 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
         ArraySpec("radar_material", (nr,), "int32", "material id (-1 ghost/clutter, -2 unknown)", fill=-2, ragged=True),
         ArraySpec("labels", (MAX_LABELS, len(LABEL_COLUMNS)), "float32", ",".join(LABEL_COLUMNS), fill=np.nan, ragged=True),
         ArraySpec("ego_velocity", (3,), "float64", "m/s in {D}"),
+        ArraySpec("ego_velocity_known", (), "bool", "the dataset records the frame's motion", fill=False),
         ArraySpec("timestamp", (), "float64", "s"),
         ArraySpec("sequence", (), "str", "sequence id", fill=""),
         ArraySpec("split", (), "int8", "0 train, 1 val, 2 test", fill=-1),
         ArraySpec("has_radar", (), "bool", "dataset records radar", fill=False),
+        ArraySpec("radar_beyond_range", (), "int32", "radar points in the field of view beyond max range (dropped)",
+                  fill=-1),
     )
 
 
@@ -104,8 +114,8 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     fov = (cfg.radar.fov_az_deg, cfg.radar.fov_el_deg)
     size = tuple(cfg.camera.working_size)
     n = len(rec.radar_D)
-    kept = (common_fov_mask(rec.radar_D[:, :3], K_w, T_cam_radar, size, *fov, cfg.radar.max_range_m)
-            if n else np.zeros(0, bool))
+    kept, in_view = ((common_fov_mask(rec.radar_D[:, :3], K_w, T_cam_radar, size, *fov, max_range)
+                      for max_range in (cfg.radar.max_range_m, np.inf)) if n else (np.zeros(0, bool),) * 2)
     radar = rec.radar_D[kept]
     keep_lidar = common_fov_mask(rec.lidar_D, K_w, T_cam_radar, size, 360.0, 180.0,
                                  cfg.radar.max_range_m + cfg.lidar.range_margin_m)
@@ -121,10 +131,34 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
         "lidar": lidar.astype(np.float32), "radar": radar.astype(np.float32),
         "radar_object": obj.astype(np.int32), "radar_material": mat.astype(np.int32),
         "labels": _labels_array(rec.labels), "ego_velocity": np.asarray(rec.ego_velocity_D, np.float64),
+        "ego_velocity_known": np.bool_(rec.ego_velocity_known),
+        "radar_beyond_range": np.int32(in_view.sum() - kept.sum()),
         "timestamp": np.float64(rec.timestamp_s), "sequence": np.asarray(rec.sequence_id, dtype=object),
         "split": np.int8(_split_table(inputs)[inputs.frame_id]), "has_radar": np.bool_(rec.has_radar),
     }
 
 
+def summarise(store, cfg: Config) -> list[str]:
+    """What the finished frames lost or lack, one line each (none when nothing): radar points
+    dropped beyond radar.max_range_m, frames without a recorded ego motion."""
+    done = store.status() == DONE
+    n_done = int(done.sum())
+    if not n_done:
+        return []
+    beyond = np.asarray(store.array("radar_beyond_range")[:])[done].astype(np.int64)
+    kept = np.asarray(store.array("radar_count")[:])[done].astype(np.int64)
+    known = np.asarray(store.array("ego_velocity_known")[:], bool)[done]
+    lines = []
+    if beyond.sum():
+        share = beyond.sum() / (beyond.sum() + kept.sum())
+        lines.append(f"radar points beyond radar.max_range_m = {cfg.radar.max_range_m:g} m dropped: {beyond.sum():,} of "
+                     f"{beyond.sum() + kept.sum():,} in the field of view ({share:.0%}), on "
+                     f"{np.count_nonzero(beyond)} of {n_done} frames")
+    if not known.all():
+        lines.append(f"ego velocity unknown on {np.count_nonzero(~known)} of {n_done} frames (the dataset records no "
+                     f"motion for them): their Doppler is synthesized as for a stopped car")
+    return lines
+
+
 STAGE = FrameStage(name="calibrate", upstream=(), config_keys=CONFIG_KEYS, outputs=outputs, process=process,
-                   needs_reader=True, doc=__doc__)
+                   version=VERSION, needs_reader=True, doc=__doc__, summarise=summarise)

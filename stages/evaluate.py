@@ -20,7 +20,9 @@ Two declarations, run in this order:
   median over frames; Wasserstein distances; the model by ego speed; physics checks),
   figures/fig8.png, figures/bev.png, figures/histograms.png.
 
-Config: eval.*, synth.* (baselines use the same generation steps), radar.*.
+Config: eval.*, synth.* (baselines use the same generation steps), radar.*; with train.nets_from
+the real radar is compared with another dataset's as pipeline.transfer.comparison says (the report
+says what is left out).
 Every method is evaluated on the same frames: those of eval.split that evaluate-frames finished
 (``previous-frame`` on those of them with a previous frame).
 """
@@ -50,14 +52,16 @@ CLOCK_WRAP_S = 3600.0
 """Timestamps that wrap (Astyx: the lidar's microseconds past the hour): a negative gap is taken
 modulo this."""
 
-VERSION = 9
+VERSION = 10
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
 random stream per method; 3: no-points row; 4: the model by ego speed; 5: physics checks with the
 share within 1 m and the best-lidar-point oracle; 6: the baselines follow synth.placement; 7: the
 baselines sample their maps at full weight, pipeline.baselines.generation_config; 8: per-frame
 results in evaluate-frames.zarr; 9: previous-frame only from consecutive frames (gap <= 1 s) and
 restricted to the evaluated region; the static-point Doppler check leaves out points in boxes of
-unknown velocity)."""
+unknown velocity; 10: nets of another dataset (train.nets_from) compared as pipeline.transfer.comparison
+says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; the physics checks
+with the real radar's own span)."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
@@ -233,13 +237,16 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     from pipeline.training import rssnet_predict
     from stages.patches import point_inputs
 
+    from pipeline.transfer import comparison
+
     stats, frame_ids = _shared(f, cfg)
     nets = models(f, cfg)
     r = cfg.radar
+    compared = comparison(cfg)
     real = _real(f)
     target = f.get("heatmaps", "heatmap")
     rss_err = float("nan")
-    if len(real):
+    if len(real) and compared.rss:
         patches, ranges = point_inputs(f.get("calibrate", "image"), f.get("calibrate", "K"),
                                        f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"), real[:, :3], cfg)
         pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
@@ -254,8 +261,8 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
         pts, n, prob = methods[spec.name]
         m = frame_metrics(pts, real, n_hat=n, target_map=target if prob is not None and len(real) else None,
                           pred_map=prob, rss_err=rss_err if spec.name == "model" else float("nan"),
-                          gate_m=cfg.eval.gate_m, gate_rss=cfg.eval.gate_rss,
-                          gate_doppler=cfg.eval.gate_doppler_mps, doppler_span_mps=r.doppler_span_mps)
+                          gate_m=cfg.eval.gate_m, gate_rss=cfg.eval.gate_rss if compared.rss else np.inf,
+                          gate_doppler=cfg.eval.gate_doppler_mps, doppler_span_mps=compared.doppler_span_mps)
         table[row] = [m[k] for k in FRAME_METRICS]
         present[row], count[row] = True, n
         points.append(np.column_stack([np.full(len(pts), float(row)), to_spherical(pts)]))
@@ -273,6 +280,7 @@ def physics_frame(f: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
     from the ego velocity - measured| of the S static real points."""
     from pipeline.metrics import doppler_check, range_check
     from pipeline.synthesis import LidarAngularIndex
+    from pipeline.transfer import comparison
 
     r = cfg.radar
     az_res, el_res = np.radians(r.az_res_deg), np.radians(r.el_res_deg)
@@ -285,7 +293,7 @@ def physics_frame(f: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
     columns.append(range_check(real[:, :3], lidar, lambda az, el: index.closest_range_in_window(
         az, el, ranges, az_res, el_res))["abs_dr"])
     dv = doppler_check(real[:, :3], real[:, 3], f.get("calibrate", "ego_velocity"),
-                       _static_mask(real, f.get("calibrate", "labels")), r.doppler_span_mps)
+                       _static_mask(real, f.get("calibrate", "labels")), comparison(cfg).real_doppler_span_mps)
     return np.column_stack(columns).reshape(len(real), len(columns)), np.asarray(dv["abs_dv"], np.float64)
 
 
@@ -329,6 +337,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.figures import bev, fig8, histograms
     from pipeline.metrics import FRAME_METRICS, distribution_distances
     from pipeline.report import aggregate, speed_breakdown, write_report
+    from pipeline.transfer import comparison
 
     check(cfg)
     calib, syn_store, part = inputs.store("calibrate"), inputs.store("synthesize"), inputs.store(FRAMES.name)
@@ -350,12 +359,17 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     real = points[points[:, 0] == -1, 1:]
     sph = {spec.name: points[points[:, 0] == row, 1:] for row, spec in enumerate(METHODS) if spec.name in per_frame}
     distances = {name: distribution_distances(p, real) for name, p in sph.items() if len(p)}
+    compared = comparison(cfg)
+    if not compared.rss:
+        distances = {name: {**d, "rss": float("nan")} for name, d in distances.items()}
     root = Path(out.path)
     figs = root / "figures"
     _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, sph["model"], real, fig8, bev, histograms)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
             "placement": cfg.synth.placement, "train_mean_count": _mean_count(*_train_counts(inputs)),
             "synthesize_counts": _synth_counts(syn_store, frames)}
+    if compared.notes:
+        meta["compared"] = "; ".join(compared.notes)
     left_out = _left_out(meta, in_split & calib_done & ~syn_done, in_split & syn_done & (part_status != DONE),
                          failed)
     model_row = [s.name for s in METHODS].index("model")

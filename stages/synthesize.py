@@ -9,11 +9,16 @@ Writes (synthesize.zarr) per frame of split synth.split:
   radar.doppler_span_mps), rss (dataset units), range_rate (m/s, internal convention, wrapped);
   pred_map (h, w) float32 Dis-Net's distribution; n_hat float32; counts (5,) int32 [requested,
   no lidar support, outside the field of view, beyond max range, found by widening the window]
-  (with lidar placement: points without a candidate left count as without support).
+  (with lidar placement: points without a candidate left count as without support);
+  candidates int32, the frame's lidar candidates (lidar placement; 0 with the ray placement);
+  outside_training (len(FEATURES),) int32, how many of them have each PlaceNet input outside the
+  range PlaceNet was trained on (pipeline.models.placenet.RANGE_PERCENTILES): summarise() names
+  the inputs where that is far more than on the training data (nets of another dataset).
 Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs),
 placement.voxel_m, placement.map_weight and heatmap.sigma_px (lidar placement); with
 train.nets_from the nets are another dataset's (pipeline.transfer): built as they were trained,
-their map resized to this dataset's working size.
+their map resized to this dataset's working size, Dis-Net's prior (the other dataset's mean map)
+moved to the same places around the radar in this dataset's camera (transfer.prior_in_target).
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import wrap_doppler
+from pipeline.placement import FEATURES
 from pipeline.stage import ArraySpec, FrameStage
 from stages.patches import point_inputs
 
@@ -50,9 +56,15 @@ def check_split(key: str, name: str) -> None:
 def split_mask(split: np.ndarray, name: str) -> np.ndarray:
     """(F,) bool: the frames of split codes ``split`` (F,) in split ``name`` ('all': every frame)."""
     return np.ones(len(split), bool) if name == "all" else np.asarray(split) == SPLITS[name]
-VERSION = 3
+
+
+VERSION = 4
 """2: refill rounds oversample (pipeline.synthesis.REFILL_OVERSAMPLE), so the points differ from version 1's.
-3: lidar placement (synth.placement)."""
+3: lidar placement (synth.placement). 4: candidates and outside_training (the same points); with
+train.nets_from, Dis-Net's prior moved to this dataset's camera."""
+OUTSIDE_NOTE_SHARE = 0.05
+"""summarise() names a PlaceNet input outside its training range on more than this share of the
+candidates (1% by construction on the training data: RANGE_PERCENTILES)."""
 PLACEMENTS = ("lidar", "ray")
 """Values of synth.placement."""
 
@@ -67,7 +79,11 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
                       fill=np.nan, ragged=True),
             ArraySpec("pred_map", (h, w), "float32", "probability per pixel"),
             ArraySpec("n_hat", (), "float32", "predicted point count"),
-            ArraySpec("counts", (5,), "int32", "requested, no support, out of fov, beyond range, widened"))
+            ArraySpec("counts", (5,), "int32", "requested, no support, out of fov, beyond range, widened"),
+            ArraySpec("candidates", (), "int32", "lidar candidates (lidar placement)", fill=-1),
+            ArraySpec("outside_training", (len(FEATURES),), "int32",
+                      f"candidates with the PlaceNet input outside its training range: {','.join(FEATURES)}",
+                      fill=-1))
 
 
 def check_generation(cfg: Config) -> None:
@@ -148,18 +164,20 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
     from stages.heatmaps import working_sigma
     from stages.patches import candidates, features
 
-    def build() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def build() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         points, uv = candidates(inputs, cfg)
-        intensity = placenet_predict(placenet, features(inputs, points, uv)) if len(points) else np.zeros(0)
-        return points, uv, intensity
+        x = features(inputs, points, uv) if len(points) else np.zeros((0, len(FEATURES)), np.float32)
+        intensity = placenet_predict(placenet, x) if len(points) else np.zeros(0)
+        return points, uv, intensity, placenet.outside_range(x).sum(0).astype(np.int32)
 
-    points, uv, intensity = inputs.memo(("lidar-candidates", placenet), build)
-    return place_on_lidar(prob_map, float(n), points, uv, intensity, image_wh=tuple(cfg.camera.working_size),
-                          sigma_px=working_sigma(cfg), voxel_m=cfg.placement.voxel_m,
-                          map_weight=cfg.placement.map_weight,
-                          ego_velocity_D=inputs.get("calibrate", "ego_velocity"),
-                          labels=inputs.get("calibrate", "labels"), doppler_span_mps=cfg.radar.doppler_span_mps,
-                          rng=rng)
+    points, uv, intensity, outside = inputs.memo(("lidar-candidates", placenet), build)
+    placed = place_on_lidar(prob_map, float(n), points, uv, intensity, image_wh=tuple(cfg.camera.working_size),
+                            sigma_px=working_sigma(cfg), voxel_m=cfg.placement.voxel_m,
+                            map_weight=cfg.placement.map_weight,
+                            ego_velocity_D=inputs.get("calibrate", "ego_velocity"),
+                            labels=inputs.get("calibrate", "labels"), doppler_span_mps=cfg.radar.doppler_span_mps,
+                            rng=rng)
+    return {**placed, "candidates": len(points), "outside_training": outside}
 
 
 def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, nets: Nets, rng,
@@ -195,7 +213,9 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
     rows = np.column_stack([pts, np.asarray(syn["rae"], np.float64).reshape(-1, 3), doppler, values, range_rate])
     counts = np.array([syn["n_requested"], syn["n_no_support"], syn["n_out_of_fov"], syn["n_beyond_range"],
                        syn["n_widened"]], np.int32)
-    return {"points": rows.astype(np.float32), "uv": np.asarray(syn["uv"]), "counts": counts}
+    return {"points": rows.astype(np.float32), "uv": np.asarray(syn["uv"]), "counts": counts,
+            "candidates": np.int32(syn.get("candidates", 0)),
+            "outside_training": np.asarray(syn.get("outside_training", np.zeros(len(FEATURES))), np.int32)}
 
 
 def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
@@ -205,12 +225,53 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     nets = models(inputs, cfg)
     speed = np.float32(np.linalg.norm(inputs.get("calibrate", "ego_velocity")))
     maps, n_hat = disnet_predict(nets.disnet, inputs.get("calibrate", "image")[None], np.array([speed], np.float32))
-    pred_map = resize_distribution(maps[0], cfg.camera.working_size)  # nets of another dataset: its map size
+    pred_map = resize_distribution(_with_own_camera(inputs, cfg, nets.disnet, maps[0]), cfg.camera.working_size)
     n = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else float(n_hat[0])
     out = generate(inputs, cfg, pred_map, min(n, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
-    return {"points": out["points"], "pred_map": pred_map, "n_hat": np.float32(n_hat[0]), "counts": out["counts"]}
+    return {"points": out["points"], "pred_map": pred_map, "n_hat": np.float32(n_hat[0]), "counts": out["counts"],
+            "candidates": out["candidates"], "outside_training": out["outside_training"]}
+
+
+def _with_own_camera(inputs: FrameInputs, cfg: Config, disnet, prob_map: np.ndarray) -> np.ndarray:
+    """Dis-Net's map (h, w) of this frame; with another dataset's nets (train.nets_from) and a
+    prior, that prior moved from the other dataset's camera to this frame's (pipeline.transfer)."""
+    if not (cfg.train.nets_from and disnet.use_prior):
+        return prob_map
+    from pipeline import transfer
+
+    source = cfg.train.nets_from
+    calib = transfer.frame_store(inputs.env.cache_root, source, "calibrate")
+    camera = process_memo(("source-camera", calib.url, calib.fingerprint()),
+                          lambda: transfer.source_camera(inputs.env.cache_root, source))
+    prior = disnet.prior_logits.double().exp().cpu().numpy()
+    K, T = inputs.get("calibrate", "K"), inputs.get("calibrate", "T_radar_cam")
+    moved = process_memo(("prior-in-target", calib.url, calib.fingerprint(), prior.tobytes(), K.tobytes(), T.tobytes()),
+                         lambda: transfer.prior_in_target(prior, camera, K, T, tuple(cfg.camera.working_size)))
+    return transfer.rebase_prior(prob_map, prior, moved)
+
+
+def summarise(store, cfg: Config) -> list[str]:
+    """A line naming the PlaceNet inputs outside their training range on more than
+    OUTSIDE_NOTE_SHARE of the finished frames' candidates (none when none is): there PlaceNet's
+    intensity is extrapolated, as with nets of a dataset whose lidar differs (train.nets_from)."""
+    from pipeline.cache import DONE
+    from pipeline.models.placenet import RANGE_PERCENTILES
+
+    done = store.status() == DONE
+    n = int(np.asarray(store.array("candidates")[:])[done].clip(0).sum())
+    if not n:
+        return []
+    share = np.asarray(store.array("outside_training").oindex[np.flatnonzero(done)]).clip(0).sum(0) / n
+    order = [k for k in np.argsort(-share, kind="stable") if share[k] > OUTSIDE_NOTE_SHARE]
+    if not order:
+        return []
+    low, high = RANGE_PERCENTILES
+    listed = ", ".join(f"{FEATURES[k]} {share[k]:.0%}" for k in order)
+    source = f" (nets of '{cfg.train.nets_from}')" if cfg.train.nets_from else ""
+    return [f"PlaceNet inputs outside the {low:g}-{high:g} percentiles of its training data{source}, share of the "
+            f"{n:,} lidar candidates (1% there): {listed}; its intensities there are extrapolated"]
 
 
 STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,
                    outputs=outputs, process=process, select=select, version=VERSION, doc=__doc__,
-                   check=check_generation)
+                   check=check_generation, summarise=summarise)

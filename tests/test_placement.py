@@ -297,6 +297,39 @@ def test_placenet_standardisation_and_loss():
         poisson_loss(log_rate, count[:2])
 
 
+def test_placenet_training_range_and_the_inputs_outside_it():
+    """The 0.5 and 99.5 percentiles of the training features are kept; outside_range marks the
+    features of a candidate below or above them, per feature."""
+    rng = np.random.default_rng(0)
+    x = np.column_stack([rng.uniform(0, 1, 20001), rng.normal(10, 2, 20001), np.full(20001, 3.0)])
+    net = PlaceNet(n_features=3, width=4, depth=1)
+    assert not net.outside_range(np.array([[1e9, -1e9, 0.0]])).any()     # no training range yet: unbounded
+    net.set_standardisation(x)
+    np.testing.assert_allclose(net.feature_low.numpy(), [np.quantile(x[:, 0], 0.005), np.quantile(x[:, 1], 0.005), 3.0])
+    np.testing.assert_allclose(net.feature_high.numpy(), [np.quantile(x[:, 0], 0.995), np.quantile(x[:, 1], 0.995), 3.0])
+    assert net.outside_range(x).any(axis=1).mean() == pytest.approx(0.02, abs=0.002)   # 1% per varying feature
+    got = net.outside_range(np.array([[0.5, 10.0, 3.0], [1.5, 10.0, 3.0], [0.5, -5.0, 3.5]]))
+    np.testing.assert_array_equal(got, [[False, False, False], [True, False, False], [False, True, True]])
+
+
+def test_a_placenet_saved_without_its_training_range_loads_unbounded(tmp_path):
+    """Checkpoints written before the range was saved still load; nothing is marked outside."""
+    from pipeline import checkpoint as ckpt
+    from pipeline.models.placenet import placenet_kwargs
+
+    cfg = tiny_cfg()
+    net = PlaceNet(**placenet_kwargs(cfg))
+    net.set_standardisation(np.random.default_rng(0).normal(0, 1, (100, net.n_features)))
+    state = {f"model.{k}": v for k, v in net.state_dict().items() if k not in PlaceNet.OPTIONAL_BUFFERS}
+    ckpt.save_checkpoint(tmp_path / "old.safetensors", state, {"net": "placenet", "arch": T._jsonable_arch(placenet_kwargs(cfg))})
+    old = T.load_placenet(cfg, tmp_path / "old.safetensors")
+    torch.testing.assert_close(old.feature_mean, net.feature_mean)
+    assert not old.outside_range(np.full((2, net.n_features), 1e6)).any()
+    state = {f"model.{k}": v for k, v in net.state_dict().items()}
+    ckpt.save_checkpoint(tmp_path / "new.safetensors", state, {"net": "placenet", "arch": T._jsonable_arch(placenet_kwargs(cfg))})
+    assert T.load_placenet(cfg, tmp_path / "new.safetensors").outside_range(np.full((2, net.n_features), 1e6)).all()
+
+
 def make_place_data(p: int = 3000, seed: int = 0) -> T.PlaceNetData:
     """Counts ~ Poisson(exp(1.5 x0 - 1)) with x0 on a scale PlaceNet must standardise (mean 50)."""
     rng = np.random.default_rng(seed)
@@ -328,6 +361,8 @@ def test_placenet_learns_beats_the_constant_rate_and_resumes(tmp_path):
     lam = T.placenet_predict(model, data.features[:10], batch=3)
     assert lam.shape == (10,) and np.all(lam > 0)
     np.testing.assert_allclose(model.feature_mean.numpy()[0], data.features[data.train_idx, 0].mean(), rtol=1e-4)
+    np.testing.assert_allclose(model.feature_high.numpy()[0], np.percentile(data.features[data.train_idx, 0], 99.5),
+                               rtol=1e-6)   # the training range is saved with the best weights
     assert ref.epoch == 4 and len(ref.curves) == 4   # placement.epochs, not train.epochs (8 here)
     # killed after two epochs and resumed: the same weights and optimizer state as one run
     T.train_placenet(tiny_cfg(**{"placement.epochs": "2"}), data, tmp_path / "b", progress=False)

@@ -144,3 +144,32 @@ def _lidar_in_box(lidar_D: np.ndarray, obj, yaw: float) -> int:
     return int(((np.abs(d[:, 0] * c + d[:, 1] * s) <= obj.size_lwh_m[0] / 2)
                 & (np.abs(-d[:, 0] * s + d[:, 1] * c) <= obj.size_lwh_m[1] / 2)
                 & (np.abs(d[:, 2]) <= obj.size_lwh_m[2] / 2)).sum())
+
+
+def test_calibrate_counts_radar_points_beyond_max_range(tmp_path):
+    """Points dropped beyond radar.max_range_m are counted and said after the run: kept + dropped
+    at 30 m equals what a 1000 m limit keeps, and the note under calibrate's line gives both."""
+    from pipeline.executor import Executor, RunEnv
+    from pipeline.runner import Pipeline
+    from stages import calibrate
+
+    make_astyx_dataset(tmp_path / "data", n_frames=2, n_radar=400)  # ranges 3-45 m
+
+    def run(max_range: float) -> tuple[int, int, list[str]]:
+        cfg = load_config("astyx").with_overrides({"camera.full_size": "64,48", "camera.crop_rows": "0,48",
+                                                   "camera.working_size": "64,48", "radar.max_range_m": max_range})
+        lines: list[str] = []
+        env = RunEnv(cfg=cfg, cache_root=str(tmp_path / f"cache{max_range:g}"), dataset="astyx",
+                     data_root=str(tmp_path / "data"))
+        Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lines.append).run("calibrate")
+        store = env.store("calibrate")
+        kept = int(np.asarray(store.array("radar_count")[:]).sum())
+        return kept, int(np.asarray(store.array("radar_beyond_range")[:]).sum()), lines
+
+    everything, none_beyond, lines_far = run(1000.0)
+    kept, beyond, lines = run(30.0)
+    assert none_beyond == 0 and not any("dropped" in line for line in lines_far)
+    assert 0 < beyond and kept + beyond == everything
+    note = [line for line in lines if "dropped" in line]
+    assert len(note) == 1 and f"{beyond:,} of {everything:,} in the field of view" in note[0], lines
+    assert "radar.max_range_m = 30 m" in note[0] and "on 2 of 2 frames" in note[0]

@@ -46,7 +46,7 @@ def test_reads_without_radar_and_mounts_lidar(tmp_path):
     assert rec.radar_D.shape == (0, 5) and rec.has_radar is False
     np.testing.assert_allclose(rec.lidar_D, velo[:, :3] + [0.76, 0, -1.08], atol=1e-5)
     np.testing.assert_allclose(rec.ego_velocity_D, 0.0)
-    assert reader.report()["ego_velocity_unknown"] == 1
+    assert reader.report()["ego_velocity_unknown"] == 1 and rec.ego_velocity_known is False
     # T_cam_radar @ T_radar_lidar reproduces the calibration's lidar->camera transform
     np.testing.assert_allclose(invert_transform(rec.T_radar_cam) @ rec.T_radar_lidar, T_CAM_VELO, atol=1e-9)
     assert [o.class_name for o in rec.labels] == ["Car"]
@@ -63,6 +63,7 @@ def test_oxts_velocity_and_image_padding(tmp_path):
     reader = get_reader(_cfg(), tmp_path)
     rec = reader.read("000007")
     np.testing.assert_allclose(rec.ego_velocity_D, [6.0, 0.2, 0.0])
+    assert rec.ego_velocity_known is True
     assert rec.image.shape == (48, 64, 3) and reader.report()["images_padded_or_cropped"] == 1
     assert reader.detector_files("000007").image is None  # padded: the export writes the reader's image
 
@@ -156,3 +157,18 @@ def test_the_kitti_profile_mounts_the_radar_in_the_front_bumper():
     assert radar_in_velo[0] > 0.5 and abs(radar_in_velo[1]) < 0.5
     road_D = (mount @ [10.0, 0.0, -1.73, 1.0])[:3]
     assert -0.8 < road_D[2] < -0.4
+
+
+def test_calibrate_says_how_many_frames_have_no_ego_motion(tmp_path):
+    """A KITTI frame without oxts is synthesized as if stopped: the calibrate run says on how many."""
+    from pipeline.executor import Executor, RunEnv
+    from pipeline.runner import Pipeline
+    from stages import calibrate
+
+    _make(tmp_path / "data")
+    cfg = _cfg().with_overrides({"camera.crop_rows": "0,48", "camera.working_size": "64,48"})
+    lines: list[str] = []
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="kitti", data_root=str(tmp_path / "data"))
+    Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lines.append).run("calibrate")
+    assert not np.asarray(env.store("calibrate").array("ego_velocity_known")[:]).any()
+    assert any("ego velocity unknown on 1 of 1 frames" in line and "stopped car" in line for line in lines), lines

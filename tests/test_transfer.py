@@ -34,9 +34,9 @@ def trained(tmp_path_factory) -> Path:
     return root / "cache"
 
 
-def _pipeline(cfg, cache: Path, dataset: str, data: Path) -> Pipeline:
+def _pipeline(cfg, cache: Path, dataset: str, data: Path, log=lambda m: None) -> Pipeline:
     env = RunEnv(cfg, str(cache), dataset, str(data))
-    return Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
+    return Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=log)
 
 
 def _kitti(root: Path) -> Path:
@@ -110,7 +110,8 @@ def test_settings_of_a_train_output_without_the_record(trained, tmp_path):
 def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(trained, tmp_path):
     kitti = _kitti(tmp_path / "kitti")
     cfg = _kitti_cfg(trained)
-    pipe = _pipeline(cfg, trained, "kitti", kitti)
+    lines: list[str] = []
+    pipe = _pipeline(cfg, trained, "kitti", kitti, lines.append)
     reports = {r.stage: r for r in pipe.run("export")}
     assert "the nets of dataset synthetic" in reports["train"].summary["message"]
     for net in ("disnet", "rssnet", "placenet"):
@@ -131,6 +132,8 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
         assert np.all((points[:, 7] >= cfg.radar.rss_min - 1e-3) & (points[:, 7] <= cfg.radar.rss_max + 1e-3))
         total += len(points)
     assert total > 0
+    _check_inputs_outside_training(pipe, trained, reports["synthesize"].notes)
+    assert any(f"ego velocity unknown on {KITTI_FRAMES} of {KITTI_FRAMES} frames" in line for line in lines)
     exported = trained / "kitti" / "export" / "radar" / "testing"
     assert len(list((exported / "velodyne").glob("*.bin"))) == KITTI_FRAMES
     # KITTI's calib with the radar in the Velodyne's place, and KITTI's labels as they are
@@ -154,6 +157,29 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
     assert not again.is_current("train") and not again.is_current("synthesize")
 
 
+def _check_inputs_outside_training(pipe: Pipeline, cache: Path, notes: list[str]) -> None:
+    """synthesize counts, per PlaceNet input, the candidates outside the nets' training range (as
+    recomputed here for frame 0) and names those above OUTSIDE_NOTE_SHARE after the run."""
+    from pipeline.executor import FrameInputs
+    from pipeline.placement import FEATURES
+    from pipeline.training import load_placenet
+    from stages.patches import candidates, features
+    from stages.synthesize import OUTSIDE_NOTE_SHARE
+
+    syn, cfg = pipe.env.store("synthesize"), pipe.env.cfg
+    net = load_placenet(cfg, cache / "synthetic" / "train" / "placenet" / "best.safetensors", saved_arch=True)
+    f = FrameInputs(pipe.env, 0, pipe.frame_ids()[0])
+    points, uv = candidates(f, cfg)
+    assert syn.read("candidates", 0) == len(points) > 0
+    np.testing.assert_array_equal(syn.read("outside_training", 0), net.outside_range(features(f, points, uv)).sum(0))
+    share = np.sum([syn.read("outside_training", i) for i in range(KITTI_FRAMES)], 0) / \
+        sum(int(syn.read("candidates", i)) for i in range(KITTI_FRAMES))
+    named = [FEATURES[k] for k in np.flatnonzero(share > OUTSIDE_NOTE_SHARE)]
+    assert named, share   # a ground plane and a wall under a random image: unlike the world's scenes
+    assert len(notes) == 1 and "(nets of 'synthetic')" in notes[0], notes
+    assert all(f"{name} {share[FEATURES.index(name)]:.0%}" in notes[0] for name in named)
+
+
 def test_the_train_stage_refuses_settings_the_nets_were_not_trained_with(trained, tmp_path):
     kitti = _kitti(tmp_path / "kitti")
     raw = load_config("kitti", {"train.nets_from": "synthetic"}, environ={})   # not through with_nets_from
@@ -163,3 +189,106 @@ def test_the_train_stage_refuses_settings_the_nets_were_not_trained_with(trained
     no_source = load_config("kitti", {"train.nets_from": "astyx"}, environ={})
     with pytest.raises(PipelineError, match=r"no finished train stage at .*astyx/train"):
         _pipeline(no_source, trained, "kitti", kitti).run("train")
+
+
+def test_a_radar_of_other_rss_units_is_evaluated_on_position_and_doppler(trained, tmp_path):
+    """The tiny world's nets (dBsm, no Doppler wrap) evaluated on an Astyx-layout dataset (dB(Mag),
+    Doppler wrapped into 10.39 m/s): the RSS gate would match nothing, so matched F1 gates position
+    and Doppler (modulo Astyx's span) only, RSS distances are empty, and the report says so."""
+    from pipeline.executor import FrameInputs
+    from pipeline.metrics import frame_metrics
+    from pipeline.readers.testing import ASTYX_SPAN_MPS, make_astyx_dataset
+    from pipeline.transfer import Comparison, comparison
+
+    make_astyx_dataset(tmp_path / "astyx", n_frames=6, n_radar=300)
+    sets = {"camera.full_size": "64,48", "camera.crop_rows": "0,48", "camera.working_size": "64,48",
+            "split.rule": "random", "split.fractions": "0.5,0,0.5", "synth.split": "all", "eval.figure_frames": "1"}
+    cfg = with_nets_from(load_config("astyx", {"train.nets_from": "synthetic", **sets}, environ={}), str(trained),
+                         explicit=sets)
+    compared = comparison(cfg)
+    assert not compared.rss and compared.doppler_span_mps == compared.real_doppler_span_mps == ASTYX_SPAN_MPS
+    assert comparison(load_config("astyx", environ={})) == Comparison(True, ASTYX_SPAN_MPS, ASTYX_SPAN_MPS, ())
+    astyx_on_vod = load_config("vod", {"train.nets_from": "astyx"}, environ={}).with_overrides(
+        settings(load_config("astyx", environ={})))
+    got = comparison(astyx_on_vod)
+    assert (got.rss, got.doppler_span_mps, got.real_doppler_span_mps) == (False, ASTYX_SPAN_MPS, 0.0)
+    assert "synthesized radar's span 10.3936 m/s (the real radar does not wrap)" in got.notes[1]
+    pipe = _pipeline(cfg, trained, "astyx", tmp_path / "astyx")
+    pipe.run("evaluate")
+    report = json.loads((trained / "astyx" / "evaluate" / "report.json").read_text())
+    assert "RSS not compared" in report["meta"]["compared"] and "10.3936 m/s" in report["meta"]["compared"]
+    assert "RSS not compared" in (trained / "astyx" / "evaluate" / "report.md").read_text()
+    assert report["distribution_distances"]["model"]["rss"] is None and report["distribution_distances"]["model"]["range_m"] is not None
+    part = pipe.env.store("evaluate-frames")
+    test = np.flatnonzero(part.status() == DONE)
+    assert len(test)
+    f1_rss_gated, f1 = [], []
+    for i in test:
+        f = FrameInputs(pipe.env, int(i), pipe.frame_ids()[int(i)])
+        syn = f.get("synthesize", "points")[:, [0, 1, 2, 8, 7]].astype(np.float64)
+        real = f.get("calibrate", "radar").astype(np.float64)
+        ours = frame_metrics(syn, real, gate_rss=np.inf, doppler_span_mps=ASTYX_SPAN_MPS)
+        np.testing.assert_allclose(part.read("metrics", int(i))[0, -1], ours["f1"])   # model row, F1 column
+        f1.append(ours["f1"])
+        f1_rss_gated.append(frame_metrics(syn, real, doppler_span_mps=ASTYX_SPAN_MPS)["f1"])
+    assert max(f1) > 0 and max(f1_rss_gated) == 0
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    a = np.radians(deg)
+    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+def test_dis_nets_prior_moves_to_the_same_directions_in_another_camera():
+    """The source's prior, a blob in one direction from the radar, lands where that direction
+    projects in a target camera of another focal length, size and pitch; the same camera leaves
+    it as it is; its spread follows the focal length."""
+    from pipeline.transfer import SourceCamera, prior_in_target, rebase_prior
+
+    h, w = 40, 80
+    K_s = np.array([[100.0, 0, 79.5], [0, 100.0, 19.5], [0, 0, 1]])     # working 160 x 40 pixels
+    R_s = R_CAM_D.T                                                      # camera -> {D}: x fwd, y left, z up
+    source = SourceCamera(K_s, _T(R_s, np.zeros(3)), (160, 40), 20.0)
+    direction_D = np.array([1.0, 0.15, 0.05])                           # slightly left and up
+
+    def cell_of(K, R, d, size):
+        """The (h, w) grid cell over a working image of ``size`` pixels that direction d projects to."""
+        ray = K @ (R.T @ d)
+        u, v = ray[:2] / ray[2]
+        return (u + 0.5) * w / size[0] - 0.5, (v + 0.5) * h / size[1] - 0.5
+
+    cx, cy = cell_of(K_s, R_s, direction_D, (160, 40))
+    jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+    prior = np.exp(-((jj - cx) ** 2 + (ii - cy) ** 2) / (2 * 1.5 ** 2)) + 1e-9
+    prior /= prior.sum()
+    same = prior_in_target(prior, source, K_s, _T(R_s, np.zeros(3)), (160, 40))
+    np.testing.assert_allclose(same, prior, rtol=1e-4, atol=1e-12)
+    # another camera: twice the focal length, 200 x 60 pixels, pitched 4 degrees down
+    K_t = np.array([[200.0, 0, 99.5], [0, 200.0, 29.5], [0, 0, 1]])
+    R_t = R_s @ _rot_x(4.0)
+    moved = prior_in_target(prior, source, K_t, _T(R_t, np.zeros(3)), (200, 60))
+    assert moved.shape == (h, w) and moved.sum() == pytest.approx(1.0)
+    mx, my = (moved * jj).sum(), (moved * ii).sum()
+    tx, ty = cell_of(K_t, R_t, direction_D, (200, 60))
+    assert abs(mx - tx) < 0.3 and abs(my - ty) < 0.3, ((mx, my), (tx, ty))
+    assert np.hypot(tx - cx, ty - cy) > 5   # a plain resize would leave it at (cx, cy)
+    spread = np.sqrt((moved * (jj - mx) ** 2).sum())                            # focal x 2 * (80/200) / (80/160)
+    assert spread == pytest.approx(1.5 * 2 * (w / 200) / (w / 160), rel=0.1)
+    # a camera 1 m above and 1.5 m behind the radar: the blob's place 20 m from the radar (range_m)
+    # seen from there, not its direction
+    offset = np.array([-1.5, 0.0, 1.0])
+    raised = prior_in_target(prior, source, K_t, _T(R_t, offset), (200, 60))
+    far_point = 20.0 * direction_D / np.linalg.norm(direction_D)
+    tx, ty = cell_of(K_t, R_t, far_point - offset, (200, 60))
+    mx, my = (raised * jj).sum(), (raised * ii).sum()
+    assert abs(mx - tx) < 0.3 and abs(my - ty) < 0.3, ((mx, my), (tx, ty))
+    assert ty - cell_of(K_t, R_t, direction_D, (200, 60))[1] > 1.5   # lower in the image than its direction
+    # the map made with the source prior, as made with the moved one
+    rebased = rebase_prior(prior * 0 + 1.0 / prior.size, prior, moved)
+    np.testing.assert_allclose(rebased, moved / prior / (moved / prior).sum(), rtol=1e-5)

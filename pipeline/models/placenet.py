@@ -1,7 +1,9 @@
 """PlaceNet: the intensity of real radar returns at a lidar point (pipeline.placement).
 
 Input: the candidate's features (pipeline.placement.FEATURES), standardised with the training
-set's mean and standard deviation (buffers, saved with the weights). An MLP of ``depth`` hidden
+set's mean and standard deviation (buffers, saved with the weights). The training features'
+RANGE_PERCENTILES are saved too (``feature_low``, ``feature_high``): :meth:`PlaceNet.outside_range`
+says which inputs of another dataset (train.nets_from) the net never saw the like of. An MLP of ``depth`` hidden
 layers of ``width`` units (ReLU) outputs log lambda: lambda is the expected number of real radar
 points whose nearest candidate this lidar point is, trained with the Poisson negative
 log-likelihood (pipeline.models.losses.poisson_loss).
@@ -15,8 +17,14 @@ from torch import Tensor, nn
 
 from pipeline.placement import FEATURES
 
+RANGE_PERCENTILES = (0.5, 99.5)
+"""The training range of each feature: outside it lie 1% of the training candidates."""
+
 
 class PlaceNet(nn.Module):
+    OPTIONAL_BUFFERS = ("feature_low", "feature_high")
+    """Absent from checkpoints written before 2026-12-04: loaded as unbounded (no range check)."""
+
     def __init__(self, n_features: int = len(FEATURES), width: int = 64, depth: int = 2) -> None:
         super().__init__()
         if n_features < 1 or width < 1 or depth < 1:
@@ -24,20 +32,32 @@ class PlaceNet(nn.Module):
         self.n_features = n_features
         self.register_buffer("feature_mean", torch.zeros(n_features))
         self.register_buffer("feature_std", torch.ones(n_features))
+        self.register_buffer("feature_low", torch.full((n_features,), -torch.inf, dtype=torch.float64))
+        self.register_buffer("feature_high", torch.full((n_features,), torch.inf, dtype=torch.float64))
         layers: list[nn.Module] = []
         for k in range(depth):
             layers += [nn.Linear(n_features if k == 0 else width, width), nn.ReLU()]
         self.mlp = nn.Sequential(*layers, nn.Linear(width, 1))
 
     def set_standardisation(self, features: np.ndarray) -> None:
-        """Mean and standard deviation of training features (N, n_features); a constant column
-        gets std 1."""
+        """Mean and standard deviation of training features (N, n_features), a constant column
+        std 1, and their RANGE_PERCENTILES."""
         x = np.asarray(features, np.float64).reshape(-1, self.n_features)
         if len(x) == 0:
             raise ValueError("PlaceNet.set_standardisation: no training features")
         std = x.std(axis=0)
         self.feature_mean.copy_(torch.as_tensor(x.mean(axis=0)))
         self.feature_std.copy_(torch.as_tensor(np.where(std > 1e-6, std, 1.0)))
+        low, high = np.percentile(x, RANGE_PERCENTILES, axis=0)
+        self.feature_low.copy_(torch.as_tensor(low))
+        self.feature_high.copy_(torch.as_tensor(high))
+
+    def outside_range(self, features: np.ndarray) -> np.ndarray:
+        """Bool (C, n_features): which of the features (C, n_features) lie outside the training
+        range (RANGE_PERCENTILES; never for a net saved without it)."""
+        x = np.asarray(features, np.float64).reshape(-1, self.n_features)
+        low, high = self.feature_low.cpu().numpy(), self.feature_high.cpu().numpy()
+        return (x < low) | (x > high)
 
     def forward(self, features: Tensor) -> Tensor:
         """features (B, n_features) -> log intensity (B,)."""

@@ -9,8 +9,8 @@ layout's OXTS line: lat lon alt roll pitch yaw vn ve vf vl vu ...).
 There is no radar: ``radar_D`` is (0, 5) and ``has_radar`` False. The simulated radar's mounting is
 ``dataset.radar_mount_T_radar_lidar`` (row-major 4x4, lidar -> {D}).
 Ego velocity: from the OXTS forward/left/up speeds (vf, vl, vu; IMU axes taken as parallel to the
-Velodyne's, lever arm ignored) rotated into {D} when an oxts file is present, else zeros (the object
-layout records no motion) -- counted as ``ego_velocity_unknown`` in report().
+Velodyne's, lever arm ignored) rotated into {D} when an oxts file is present, else zeros with
+``ego_velocity_known`` False (the object layout records no motion; calibrate counts those frames).
 KITTI object images are not all exactly 1242x375; images within 20 pixels of ``camera.full_size``
 are cropped / zero-padded at the right and bottom (K is unchanged), larger differences are errors.
 Each object frame is its own sequence; time = frame number / 10 Hz. The raw (drive) layout is not
@@ -118,11 +118,13 @@ class KittiReader(Reader):
             labels = [label_to_object(lab, T_radar_rect, -1) for lab in parse_label_file(label_path, frame_id)
                       if lab.class_name != "DontCare"]
         lidar_D = lidar[:, :3].astype(np.float64) @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
+        ego = self._ego(frame_id, T_radar_lidar)
         record = FrameRecord(
             frame_id=frame_id, sequence_id=frame_id, timestamp_s=int(frame_id) / 10.0 if frame_id.isdigit() else 0.0,
             image=image, K=calib.K, lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar[:, 3].copy(),
             radar_D=np.zeros((0, 5), np.float32), T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam,
-            ego_velocity_D=self._ego(frame_id, T_radar_lidar), has_radar=False, labels=labels)
+            ego_velocity_D=np.zeros(3) if ego is None else ego, ego_velocity_known=ego is not None,
+            has_radar=False, labels=labels)
         return self.finish(record, self._path("velodyne", frame_id, ".bin"))
 
     def _image(self, fid: str) -> np.ndarray:
@@ -140,11 +142,12 @@ class KittiReader(Reader):
         self._counts["images_padded_or_cropped"] += 1
         return out
 
-    def _ego(self, fid: str, T_radar_lidar: np.ndarray) -> np.ndarray:
+    def _ego(self, fid: str, T_radar_lidar: np.ndarray) -> np.ndarray | None:
+        """Ego velocity (3,) m/s in {D} from the frame's oxts record, None without one."""
         path = self._path("oxts", fid, ".txt")
         if not path.is_file():
             self._counts["ego_velocity_unknown"] += 1
-            return np.zeros(3)
+            return None
         require_file(path, fid, "oxts")
         try:
             values = np.array(path.read_text().split()[:11], dtype=np.float64)
