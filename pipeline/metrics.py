@@ -254,8 +254,26 @@ def to_spherical(points: np.ndarray) -> np.ndarray:
     return np.concatenate([cartesian_to_spherical(pts[:, :3]), pts[:, 3:]], axis=1)
 
 
-def distribution_distances(syn_sph: np.ndarray, real_sph: np.ndarray) -> dict[str, float]:
-    """1-D Wasserstein distance per column of spherical point arrays (N, 5) and (M, 5).
+def circular_wasserstein(a: np.ndarray, b: np.ndarray, period: float) -> float:
+    """1-D Wasserstein distance between samples ``a`` (N,) and ``b`` (M,) of a circle of length
+    ``period`` (e.g. Doppler of a radar that wraps it): min over c of the integral over one period
+    of |F_a - F_b - c|, the minimiser a weighted median (Rabin, Delon and Gousseau, 2011)."""
+    a = np.mod(np.asarray(a, np.float64), period)
+    b = np.mod(np.asarray(b, np.float64), period)
+    knots = np.unique(np.concatenate([a, b, [0.0, period]]))
+    lengths = np.diff(knots)
+    cdf = np.searchsorted(np.sort(a), knots[:-1], side="right") / len(a) - \
+        np.searchsorted(np.sort(b), knots[:-1], side="right") / len(b)
+    order = np.argsort(cdf)
+    cum = np.cumsum(lengths[order])
+    c = cdf[order][np.searchsorted(cum, cum[-1] / 2)]
+    return float(np.sum(lengths * np.abs(cdf - c)))
+
+
+def distribution_distances(syn_sph: np.ndarray, real_sph: np.ndarray, doppler_span_mps: float = 0.0) -> dict[str, float]:
+    """1-D Wasserstein distance per column of spherical point arrays (N, 5) and (M, 5); Doppler on
+    the circle of ``doppler_span_mps`` when the radar wraps it (> 0: :func:`circular_wasserstein`,
+    so that values either side of the wrap are near).
 
     Keys are :data:`SPHERICAL_COLUMNS` (units of the column: m, rad, rad, m/s, RSS units); NaN for
     a column when either set is empty or the column has no finite value.
@@ -266,7 +284,12 @@ def distribution_distances(syn_sph: np.ndarray, real_sph: np.ndarray) -> dict[st
     for k, name in enumerate(SPHERICAL_COLUMNS):
         s, r = syn[:, k], real[:, k]
         s, r = s[np.isfinite(s)], r[np.isfinite(r)]
-        out[name] = float(wasserstein_distance(s, r)) if len(s) and len(r) else float("nan")
+        if not (len(s) and len(r)):
+            out[name] = float("nan")
+        elif name == "doppler_mps" and doppler_span_mps > 0:
+            out[name] = circular_wasserstein(s, r, doppler_span_mps)
+        else:
+            out[name] = float(wasserstein_distance(s, r))
     return out
 
 

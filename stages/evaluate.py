@@ -52,7 +52,7 @@ CLOCK_WRAP_S = 3600.0
 """Timestamps that wrap (Astyx: the lidar's microseconds past the hour): a negative gap is taken
 modulo this."""
 
-VERSION = 10
+VERSION = 11
 """Bump when the report's rows or numbers change for the same inputs (2: model-oracle-map row, one
 random stream per method; 3: no-points row; 4: the model by ego speed; 5: physics checks with the
 share within 1 m and the best-lidar-point oracle; 6: the baselines follow synth.placement; 7: the
@@ -61,7 +61,8 @@ results in evaluate-frames.zarr; 9: previous-frame only from consecutive frames 
 restricted to the evaluated region; the static-point Doppler check leaves out points in boxes of
 unknown velocity; 10: nets of another dataset (train.nets_from) compared as pipeline.transfer.comparison
 says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; the physics checks
-with the real radar's own span)."""
+with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
+wraps Doppler)."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
@@ -358,8 +359,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                  for row, spec in enumerate(METHODS) if present[:, row].any()}
     real = points[points[:, 0] == -1, 1:]
     sph = {spec.name: points[points[:, 0] == row, 1:] for row, spec in enumerate(METHODS) if spec.name in per_frame}
-    distances = {name: distribution_distances(p, real) for name, p in sph.items() if len(p)}
     compared = comparison(cfg)
+    distances = {name: distribution_distances(p, real, compared.doppler_span_mps) for name, p in sph.items() if len(p)}
     if not compared.rss:
         distances = {name: {**d, "rss": float("nan")} for name, d in distances.items()}
     root = Path(out.path)
@@ -370,6 +371,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             "synthesize_counts": _synth_counts(syn_store, frames)}
     if compared.notes:
         meta["compared"] = "; ".join(compared.notes)
+    if compared.doppler_span_mps > 0:
+        meta["doppler_distance"] = (f"Doppler's Wasserstein distance on the circle of the radar's wrap span "
+                                    f"({compared.doppler_span_mps:g} m/s)")
     left_out = _left_out(meta, in_split & calib_done & ~syn_done, in_split & syn_done & (part_status != DONE),
                          failed)
     model_row = [s.name for s in METHODS].index("model")
