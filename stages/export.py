@@ -1,6 +1,7 @@
 """export: synthesized radar in detector-ready layouts.
 
-Reads: synthesize (points), calibrate (image, K, T_radar_cam, ego_velocity, split), and the raw
+Reads: synthesize (points), calibrate (image, K, T_radar_cam, ego_velocity, ego_velocity_known,
+split), and the raw
 dataset's calib, label and image files that its reader names (Reader.detector_files: VoD and the
 synthetic world their own files; KITTI its calib with the radar in the Velodyne's place, and its
 labels), else the reader's image and (Astyx) its annotated objects.
@@ -13,7 +14,9 @@ carried over with track ids out of the truncation column (pipeline.export.detect
 or written from the reader's objects for the generated calib (pipeline.export.kitti_label_text);
 <subset>/image_2/<id> (export.images, in export.image_format); radar/ImageSets/{train,val,test}.txt;
 optional
-pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range).
+pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range);
+ego_velocity_unknown.txt, the frames whose dataset records no ego motion (their Doppler is a
+stopped car's: filter them out of Doppler-using training), absent when there are none.
 Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds, the
 Doppler span that v_r and v_r_compensated lie in),
 camera.* (the full-resolution K of a generated calib).
@@ -62,6 +65,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     for folder in ("radar", "pcd", "preview"):  # a new export replaces the last one: no frame of it is left over
         shutil.rmtree(root / folder, ignore_errors=True)
     lists: dict[str, list[str]] = {name: [] for name in SPLIT_NAMES.values()}
+    no_motion: list[str] = []   # frames whose dataset records no ego motion: Doppler as if stopped
+    (root / NO_MOTION_LIST).unlink(missing_ok=True)
     n_points = n_noise = 0
     for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
         i = int(i)
@@ -110,13 +115,25 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             uv, _, valid = project_to_image(pts[:, :3], K, T_cam_radar, (image.shape[1], image.shape[0]))
             preview_png(root / "preview" / f"{fid}.png", image, uv[valid], pts[valid, 3], cfg.radar.max_range_m)
         lists[name].append(fid)
+        if not f.get("calibrate", "ego_velocity_known"):
+            no_motion.append(fid)
         n_points += len(pts)
     write_image_sets(radar_root, lists)
+    if no_motion:
+        (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
+            "no_ego_motion": len(no_motion),
             "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root}"
+                       + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
+                          f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
                        + ("" if lists["train"] or cfg.synth.split == "all" else
                           f"; no frame of the train split (synth.split = '{cfg.synth.split}': --set synth.split=all "
                           f"exports every frame)")}
+
+
+NO_MOTION_LIST = "ego_velocity_unknown.txt"
+"""Under the export folder: the exported frames whose dataset records no ego motion (KITTI without
+oxts), one id per line; absent when there are none."""
 
 
 def check(cfg: Config) -> None:

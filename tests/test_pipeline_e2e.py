@@ -93,6 +93,7 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     for fig in ("fig8.png", "bev.png", "histograms.png"):
         assert (tmp_path / "serial" / "synthetic" / "evaluate" / "figures" / fig).stat().st_size > 10_000
     check_export_round_trip(serial, world, tmp_path / "serial")
+    assert not (tmp_path / "serial" / "synthetic" / "export" / "ego_velocity_unknown.txt").exists()  # all known
     # export.image_format=jpg: every image_2 file a JPEG of the frame's image
     jpg_env = replace(serial.env, cfg=serial.env.cfg.with_overrides({"export.image_format": "jpg"}))
     Pipeline(all_stages(), jpg_env, Executor(1, progress=False), progress=False, log=lambda m: None).run("export")

@@ -134,6 +134,8 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
     assert total > 0
     _check_inputs_outside_training(pipe, trained, reports["synthesize"].notes)
     assert any(f"ego velocity unknown on {KITTI_FRAMES} of {KITTI_FRAMES} frames" in line for line in lines)
+    assert f"; {KITTI_FRAMES} of them without a recorded ego motion" in reports["export"].summary["message"]
+    assert (trained / "kitti" / "export" / "ego_velocity_unknown.txt").read_text().split() == pipe.frame_ids()
     exported = trained / "kitti" / "export" / "radar" / "testing"
     assert len(list((exported / "velodyne").glob("*.bin"))) == KITTI_FRAMES
     # KITTI's calib with the radar in the Velodyne's place, and KITTI's labels as they are
