@@ -54,6 +54,10 @@ class Timed(torch.nn.Module):
         self.seconds += time.perf_counter() - t0
         return out
 
+    def outside_range(self, features: np.ndarray) -> np.ndarray:
+        """PlaceNet's training-range check (counted as the rest, as synthesize does it outside the net)."""
+        return self.net.outside_range(features)
+
 
 def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, float, int, int]:
     """(network s, rest s, frames, points) over 2 timed passes after a warm-up pass. ``source``:
