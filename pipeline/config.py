@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import hashlib
 import json
 import os
@@ -487,6 +488,22 @@ def _parse_value(key: str, value: Any, typ: Any) -> Any:
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"bad value {value!r} for '{key}' (expected {getattr(typ, '__name__', text_type)}): {exc}") from None
     raise ConfigError(f"'{key}': unsupported field type {text_type}")
+
+
+def own_radar(cfg: "Config") -> "RadarSection":
+    """The radar the dataset itself recorded, as its reader reads it (Doppler sign and span, field
+    of view): ``cfg.radar``, except where train.nets_from put another dataset's radar settings into
+    ``cfg`` (pipeline.transfer.with_nets_from): then the dataset profile's own (without environment
+    overrides)."""
+    if not cfg.train.nets_from:
+        return cfg.radar
+    return _profile_radar(cfg.profile)
+
+
+@functools.lru_cache(maxsize=8)
+def _profile_radar(profile: str) -> "RadarSection":
+    """The radar section of ``profile`` as shipped (readers and evaluate ask per frame)."""
+    return load_config(profile, environ={}).radar
 
 
 def profile_names() -> list[str]:

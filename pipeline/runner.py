@@ -451,7 +451,10 @@ class Pipeline:
         report.pending = int((final == PENDING).sum())
         report.excluded = int((final == EXCLUDED).sum())
         if stage.summarise is not None and report.processed:
-            report.notes = list(stage.summarise(store, self.env.cfg))
+            try:
+                report.notes = list(stage.summarise(store, self.env.cfg))
+            except (ChunkError, CacheError) as exc:  # a damaged chunk fails its frame's readers, not this run
+                report.notes = [f"summary unavailable: {exc}"]
         return report
 
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:

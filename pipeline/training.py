@@ -417,7 +417,7 @@ def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optim
             p.unlink(missing_ok=True)
         return None
     tensors, meta = ckpt.load_checkpoint(last)
-    spec.model.load_state_dict(ckpt.strip_prefix(tensors, "model."), strict=True)
+    spec.model.load_state_dict(_model_state(spec.model, tensors), strict=True)
     spec.model.to(device)
     optimizer.load_state_dict(ckpt.unflatten_optimizer(tensors, meta["optimizer"]))
     if ema is not None:
@@ -740,6 +740,15 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
 # ------------------------------------------------------------------------------- inference
 
 
+def _model_state(model: nn.Module, tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The ``model.`` tensors of a checkpoint as ``model``'s state dict; buffers that later versions
+    added (``OPTIONAL_BUFFERS``, absent from older checkpoints) keep the model's defaults."""
+    state = ckpt.strip_prefix(tensors, "model.")
+    for name in getattr(model, "OPTIONAL_BUFFERS", ()):
+        state.setdefault(name, model.state_dict()[name])
+    return state
+
+
 def _load_into(model: nn.Module, arch: dict[str, Any], path: str | Path, device: torch.device) -> nn.Module:
     tensors, meta = ckpt.load_checkpoint(path, prefix="model.")
     if meta.get("arch") != arch:
@@ -747,11 +756,8 @@ def _load_into(model: nn.Module, arch: dict[str, Any], path: str | Path, device:
                 if meta.get("arch", {}).get(k) != v}
         raise ConfigError(f"{path}: checkpoint architecture differs from the configuration "
                           f"(saved, configured): {diff}")
-    state = ckpt.strip_prefix(tensors, "model.")
-    for name in getattr(model, "OPTIONAL_BUFFERS", ()):  # saved by later versions only: the model's default
-        state.setdefault(name, model.state_dict()[name])
     try:
-        model.load_state_dict(state, strict=True)
+        model.load_state_dict(_model_state(model, tensors), strict=True)
     except RuntimeError as exc:  # e.g. a checkpoint of an older version of the network
         raise ConfigError(f"{path}: the checkpoint does not fit this version's network (written by an "
                           f"older version? run the train stage again): {exc}") from exc

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.cache import DirStore, dir_store, frame_store
-from pipeline.config import Config, load_config
+from pipeline.config import Config, load_config, own_radar
 from pipeline.errors import ConfigError, PipelineError
 
 RADAR_SETTINGS = ("radar.name", "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
@@ -116,7 +116,7 @@ def comparison(cfg: Config) -> Comparison:
     r = cfg.radar
     if not cfg.train.nets_from:
         return Comparison(True, r.doppler_span_mps, r.doppler_span_mps)
-    own = load_config(cfg.profile, environ={}).radar
+    own = own_radar(cfg)
     notes = []
     rss = own.rss_unit == r.rss_unit
     if not rss:
@@ -183,7 +183,22 @@ def source_camera(cache_root: str, dataset: str) -> SourceCamera:
     T_typical = np.eye(4)
     T_typical[:3, :3], T_typical[:3, 3] = u @ vt, np.median(T[:, :3, 3], axis=0)
     w, h = (int(v) for v in store.attrs().get("config", {}).get("camera.working_size", (0, 0)))
+    if w < 1 or h < 1:
+        raise PipelineError(f"{store.url}: records no camera.working_size; run `pipeline run calibrate --force "
+                            f"--dataset {dataset} ...` with this cache")
     return SourceCamera(K, T_typical, (w, h), float(np.median(ranges)) if len(ranges) else DEFAULT_RANGE_M)
+
+
+def camera_record(camera: SourceCamera) -> dict[str, Any]:
+    """``camera`` as JSON values (the train stage keeps it beside the nets it copies)."""
+    return {"K_working": camera.K_working.tolist(), "T_radar_cam": camera.T_radar_cam.tolist(),
+            "working_wh": list(camera.working_wh), "range_m": camera.range_m}
+
+
+def camera_from_record(record: dict[str, Any]) -> SourceCamera:
+    """Inverse of :func:`camera_record`."""
+    return SourceCamera(np.asarray(record["K_working"], np.float64), np.asarray(record["T_radar_cam"], np.float64),
+                        tuple(int(v) for v in record["working_wh"]), float(record["range_m"]))
 
 
 def prior_in_target(prior_hw: np.ndarray, source: SourceCamera, K_working: np.ndarray, T_radar_cam: np.ndarray,

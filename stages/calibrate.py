@@ -14,7 +14,8 @@ Writes (calibrate.zarr, one chunk per frame):
   (0 train, 1 val, 2 test); has_radar bool; radar_beyond_range int32, the radar points in the
   common field of view but beyond radar.max_range_m (dropped, as the method has it; counted so
   that a run says how many: summarise()).
-Config: dataset.*, camera.*, radar fov/range/capacity, lidar.*, split.*.
+Config: dataset.*, camera.*, radar fov/range/capacity and Doppler convention (the readers read the
+recorded radar with its own profile's: pipeline.config.own_radar), lidar.*, split.*.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ CONFIG_KEYS = (
     "dataset.radar_mount_T_radar_lidar",
     "camera.full_size", "camera.crop_rows", "camera.working_size",
     "radar.fov_az_deg", "radar.fov_el_deg", "radar.max_range_m", "radar.store_max_points",
+    "radar.doppler_sign", "radar.doppler_span_mps",  # how the readers of Astyx and MSC-Rad4R read Doppler
     "lidar.store_max_points", "lidar.range_margin_m",
     "split.rule", "split.fractions", "split.block_len", "split.seed",
 )

@@ -23,10 +23,12 @@ moved to the same places around the radar in this dataset's camera (transfer.pri
 
 from __future__ import annotations
 
+import hashlib
 from typing import Any, NamedTuple
 
 import numpy as np
 
+from pipeline import transfer
 from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo
@@ -129,6 +131,8 @@ class Nets(NamedTuple):
     disnet: Any
     rssnet: Any
     placenet: Any
+    source_camera: Any = None
+    """With train.nets_from: the other dataset's camera (pipeline.transfer.SourceCamera), or None."""
 
 
 def models(inputs: FrameInputs, cfg: Config) -> Nets:
@@ -149,8 +153,10 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
         saved = bool(cfg.train.nets_from)  # another dataset's nets: built as trained (pipeline.transfer)
         placenet = (load_placenet(cfg, out.file("placenet/best.safetensors"), device="cpu", saved_arch=saved)
                     if cfg.synth.placement == "lidar" else None)
+        camera = meta.get("summary", {}).get("source_camera") if saved else None
         return Nets(load_disnet(cfg, out.file("disnet/best.safetensors"), device="cpu", saved_arch=saved),
-                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu", saved_arch=saved), placenet)
+                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu", saved_arch=saved), placenet,
+                    transfer.camera_from_record(camera) if camera else None)
 
     return process_memo(key, build)
 
@@ -225,29 +231,35 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     nets = models(inputs, cfg)
     speed = np.float32(np.linalg.norm(inputs.get("calibrate", "ego_velocity")))
     maps, n_hat = disnet_predict(nets.disnet, inputs.get("calibrate", "image")[None], np.array([speed], np.float32))
-    pred_map = resize_distribution(_with_own_camera(inputs, cfg, nets.disnet, maps[0]), cfg.camera.working_size)
+    pred_map = resize_distribution(_with_own_camera(inputs, cfg, nets, maps[0]), cfg.camera.working_size)
     n = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else float(n_hat[0])
     out = generate(inputs, cfg, pred_map, min(n, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
     return {"points": out["points"], "pred_map": pred_map, "n_hat": np.float32(n_hat[0]), "counts": out["counts"],
             "candidates": out["candidates"], "outside_training": out["outside_training"]}
 
 
-def _with_own_camera(inputs: FrameInputs, cfg: Config, disnet, prob_map: np.ndarray) -> np.ndarray:
-    """Dis-Net's map (h, w) of this frame; with another dataset's nets (train.nets_from) and a
-    prior, that prior moved from the other dataset's camera to this frame's (pipeline.transfer)."""
-    if not (cfg.train.nets_from and disnet.use_prior):
+def _with_own_camera(inputs: FrameInputs, cfg: Config, nets: Nets, prob_map: np.ndarray) -> np.ndarray:
+    """Dis-Net's map (h, w) of this frame; with another dataset's nets (train.nets_from), a prior
+    and that dataset's camera (recorded by the train stage), the prior moved from that camera to
+    this frame's (pipeline.transfer.prior_in_target)."""
+    if not (cfg.train.nets_from and nets.disnet.use_prior and nets.source_camera is not None):
         return prob_map
-    from pipeline import transfer
-
-    source = cfg.train.nets_from
-    calib = transfer.frame_store(inputs.env.cache_root, source, "calibrate")
-    camera = process_memo(("source-camera", calib.url, calib.fingerprint()),
-                          lambda: transfer.source_camera(inputs.env.cache_root, source))
-    prior = disnet.prior_logits.double().exp().cpu().numpy()
+    camera = nets.source_camera
+    prior = nets.disnet.prior_logits.double().exp().cpu().numpy()
     K, T = inputs.get("calibrate", "K"), inputs.get("calibrate", "T_radar_cam")
-    moved = process_memo(("prior-in-target", calib.url, calib.fingerprint(), prior.tobytes(), K.tobytes(), T.tobytes()),
-                         lambda: transfer.prior_in_target(prior, camera, K, T, tuple(cfg.camera.working_size)))
-    return transfer.rebase_prior(prob_map, prior, moved)
+    size = tuple(cfg.camera.working_size)
+    key = (hashlib.sha1(prior.tobytes()).hexdigest(), repr(transfer.camera_record(camera)), K.tobytes(), T.tobytes(),
+           size)
+    if key not in _MOVED_PRIORS:  # a few calibrations per dataset; KITTI's differ by drive
+        while len(_MOVED_PRIORS) >= MOVED_PRIORS_KEPT:
+            _MOVED_PRIORS.pop(next(iter(_MOVED_PRIORS)))
+        _MOVED_PRIORS[key] = transfer.prior_in_target(prior, camera, K, T, size)
+    return transfer.rebase_prior(prob_map, prior, _MOVED_PRIORS[key])
+
+
+MOVED_PRIORS_KEPT = 8
+"""Moved priors a process keeps (one per distinct calibration, oldest dropped first)."""
+_MOVED_PRIORS: dict[tuple, np.ndarray] = {}
 
 
 def summarise(store, cfg: Config) -> list[str]:

@@ -177,7 +177,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
 def _take_nets(inputs, cfg: Config, out) -> dict:
     """train.nets_from: the checkpoints of the other dataset's finished train stage, copied (so that
     this cache keeps what its synthesis used), after checking that this configuration has the
-    settings they were trained with (pipeline.transfer); this dataset's mean training map."""
+    settings they were trained with (pipeline.transfer); this dataset's mean training map; the other
+    dataset's camera (transfer.source_camera; in the summary as source_camera, None with the reason
+    in the message when its calibrate output is gone), from which synthesize moves Dis-Net's prior."""
     source = cfg.train.nets_from
     trained = transfer.trained_settings(inputs.env.cache_root, source)
     wrong = transfer.mismatches(cfg, trained)
@@ -192,15 +194,19 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
         shutil.copyfile(Path(src.path) / name, root / name)
     _save_mean_map(inputs, root)
     meta = src.meta() or {}
+    try:  # where the source radar's returns lay in its camera: Dis-Net's prior is moved from there
+        camera, unmoved = transfer.camera_record(transfer.source_camera(inputs.env.cache_root, source)), ""
+    except PipelineError as exc:
+        camera, unmoved = None, f"; Dis-Net's prior is not moved to this camera: {exc}"
     record = {"nets_from": source, "source": src.path, "source_fingerprint": meta.get("fingerprint"),
               "source_finished": meta.get("finished"), "taken": taken, "settings": trained,
-              "source_metrics": meta.get("summary", {})}
+              "source_camera": camera, "source_metrics": meta.get("summary", {})}
     (root / "metrics.json").write_text(json.dumps(record, indent=2, default=float))
     nets = [n for n in NETS if f"{n}/best.safetensors" in taken]
     when = time.strftime("%Y-%m-%d %H:%M", time.gmtime(meta["finished"])) if meta.get("finished") else "?"
-    return {"checkpoints": str(root), "nets_from": source, "settings": trained,
+    return {"checkpoints": str(root), "nets_from": source, "settings": trained, "source_camera": camera,
             "message": f"the nets of dataset {source} ({', '.join(nets)}; trained {when} UTC): "
-                       f"radar {trained.get('radar.name', '?')}"}
+                       f"radar {trained.get('radar.name', '?')}{unmoved}"}
 
 
 def _save_mean_map(inputs, root: Path) -> None:

@@ -173,3 +173,14 @@ def test_calibrate_counts_radar_points_beyond_max_range(tmp_path):
     note = [line for line in lines if "dropped" in line]
     assert len(note) == 1 and f"{beyond:,} of {everything:,} in the field of view" in note[0], lines
     assert "radar.max_range_m = 30 m" in note[0] and "on 2 of 2 frames" in note[0]
+    # a damaged chunk of another frame: the summary says it cannot be made, the run goes on
+    chunk = tmp_path / "cache30" / "astyx" / "calibrate.zarr" / "radar_beyond_range" / "c" / "0"
+    chunk.write_bytes(b"garbage")
+    lines = []
+    cfg = load_config("astyx").with_overrides({"camera.full_size": "64,48", "camera.crop_rows": "0,48",
+                                               "camera.working_size": "64,48", "radar.max_range_m": 30.0})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache30"), dataset="astyx", data_root=str(tmp_path / "data"))
+    report = Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lines.append).run(
+        "calibrate", frames=[1], force=True)[0]
+    assert report.processed == 1 and report.notes[0].startswith("summary unavailable:") and "radar_beyond_range" in \
+        report.notes[0], report.notes

@@ -133,6 +133,7 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
         total += len(points)
     assert total > 0
     _check_inputs_outside_training(pipe, trained, reports["synthesize"].notes)
+    _check_prior_moved(pipe, trained, reports["train"].summary)
     assert any(f"ego velocity unknown on {KITTI_FRAMES} of {KITTI_FRAMES} frames" in line for line in lines)
     assert f"; {KITTI_FRAMES} of them without a recorded ego motion" in reports["export"].summary["message"]
     assert (trained / "kitti" / "export" / "ego_velocity_unknown.txt").read_text().split() == pipe.frame_ids()
@@ -157,6 +158,28 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
         "train", force=True)
     again = _pipeline(_kitti_cfg(trained), trained, "kitti", kitti)
     assert not again.is_current("train") and not again.is_current("synthesize")
+
+
+def _check_prior_moved(pipe: Pipeline, cache: Path, train_summary: dict) -> None:
+    """The train stage records the world's camera; synthesize's map is Dis-Net's with its prior
+    moved from that camera to KITTI's (not merely resized)."""
+    from pipeline.heatmap import resize_distribution
+    from pipeline.training import disnet_predict, load_disnet
+    from pipeline.transfer import camera_from_record, prior_in_target, rebase_prior, source_camera
+
+    camera = camera_from_record(train_summary["source_camera"])
+    expected_camera = source_camera(str(cache), "synthetic")
+    np.testing.assert_allclose(camera.T_radar_cam, expected_camera.T_radar_cam)
+    assert camera.working_wh == tuple(load_config("synthetic", TINY, environ={}).camera.working_size)
+    cfg, calib = pipe.env.cfg, pipe.env.store("calibrate")
+    net = load_disnet(cfg, cache / "kitti" / "train" / "disnet" / "best.safetensors", device="cpu", saved_arch=True)
+    maps, _ = disnet_predict(net, calib.read("image", 0)[None], np.zeros(1, np.float32))
+    prior = net.prior_logits.double().exp().numpy()
+    moved = prior_in_target(prior, camera, calib.read("K", 0), calib.read("T_radar_cam", 0), cfg.camera.working_size)
+    got = pipe.env.store("synthesize").read("pred_map", 0)
+    want = resize_distribution(rebase_prior(maps[0], prior, moved), cfg.camera.working_size)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-9)
+    assert np.abs(got - resize_distribution(maps[0], cfg.camera.working_size)).sum() > 0.05
 
 
 def _check_inputs_outside_training(pipe: Pipeline, cache: Path, notes: list[str]) -> None:
@@ -209,6 +232,13 @@ def test_a_radar_of_other_rss_units_is_evaluated_on_position_and_doppler(trained
                          explicit=sets)
     compared = comparison(cfg)
     assert not compared.rss and compared.doppler_span_mps == compared.real_doppler_span_mps == ASTYX_SPAN_MPS
+    # the recorded radar is read with Astyx's own Doppler sign and span, not the nets' radar's
+    from pipeline.readers import get_reader
+    assert cfg.radar.doppler_span_mps == 0.0
+    own, theirs = (get_reader(c, tmp_path / "astyx").read("000001")
+                   for c in (load_config("astyx", sets, environ={}), cfg))
+    np.testing.assert_array_equal(theirs.radar_D, own.radar_D)
+    np.testing.assert_allclose(theirs.ego_velocity_D, [8.0, 0.0, 0.0], atol=0.05)
     assert comparison(load_config("astyx", environ={})) == Comparison(True, ASTYX_SPAN_MPS, ASTYX_SPAN_MPS, ())
     astyx_on_vod = load_config("vod", {"train.nets_from": "astyx"}, environ={}).with_overrides(
         settings(load_config("astyx", environ={})))

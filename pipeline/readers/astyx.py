@@ -189,19 +189,19 @@ class _AstyxIndex(Reader):
         if header != list(RADAR_COLUMNS):
             raise ReaderError(path, f"radar: columns {' '.join(header)}, expected {' '.join(RADAR_COLUMNS)}",
                               frame=frame_id)
-        span = self.cfg.radar.doppler_span_mps
+        span = self.radar.doppler_span_mps
         if span > 0 and np.abs(raw[:, 3]).max() > 0.55 * span:
             raise ReaderError(path, f"radar: V_r up to {np.abs(raw[:, 3]).max():.2f} m/s, outside the sensor's "
                                     f"unambiguous span of +/-{span / 2:.2f} m/s (wrong column or unit?)",
                               frame=frame_id)
         out = raw.astype(np.float32)
-        out[:, 3] = raw[:, 3] * self.cfg.radar.doppler_sign
+        out[:, 3] = raw[:, 3] * self.radar.doppler_sign
         return out
 
     def estimate_ego(self, frame_id: str) -> EgoFit:
         """Ego velocity of the radar from the frame's own Doppler (alias-aware robust fit)."""
         radar = self.read_radar(frame_id)
-        return estimate_ego_velocity(radar[:, :3], radar[:, 3], self.cfg.radar.doppler_span_mps)
+        return estimate_ego_velocity(radar[:, :3], radar[:, 3], self.radar.doppler_span_mps)
 
 
 def _matrix(values: object, shape: tuple[int, int], path: Path, frame: str, uid: str) -> np.ndarray:
@@ -234,7 +234,7 @@ class AstyxReader(_AstyxIndex):
         lidar = read_text_table(paths["lidar_vlp16"], 6, frame_id, "lidar", "X")
         check_not_empty(lidar, paths["lidar_vlp16"], frame_id, "lidar")
         image = read_image_rgb(paths["camera_front"], frame_id, self.cfg.camera.full_size)
-        fit = estimate_ego_velocity(radar[:, :3], radar[:, 3], self.cfg.radar.doppler_span_mps)
+        fit = estimate_ego_velocity(radar[:, :3], radar[:, 3], self.radar.doppler_span_mps)
         if fit.n_used < 3:
             raise ReaderError(paths[self.radar_uid], "cannot estimate ego velocity: fewer than 3 static "
                                                      "points agree", frame=frame_id)

@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.config import Config
+from pipeline.config import Config, RadarSection, own_radar
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord
 from pipeline.geometry import cartesian_to_spherical, invert_transform
@@ -59,6 +59,8 @@ class Reader:
 
     def __init__(self, cfg: Config, data_root: str | Path) -> None:
         self.cfg = cfg
+        self.radar = own_radar(cfg)
+        """The recorded radar's settings (with train.nets_from the dataset's own, not the nets')."""
         self.root = Path(data_root)
         self._counts: Counter[str] = Counter()
 
@@ -97,7 +99,7 @@ class Reader:
             raise ReaderError(path, f"invalid frame record: {exc}", frame=record.frame_id) from None
         check_ego_speed(record.ego_velocity_D, path, record.frame_id)
         if record.has_radar:
-            check_radar_fov(record.radar_D[:, :3], self.cfg, path, record.frame_id)
+            check_radar_fov(record.radar_D[:, :3], self.radar, path, record.frame_id)
         return record
 
 
@@ -199,20 +201,20 @@ def check_ego_speed(ego_velocity_D: np.ndarray, path: Path, frame: str | None) -
         raise ReaderError(path, f"absurd ego speed {speed:.1f} m/s (> {MAX_EGO_SPEED_MPS:.0f} m/s)", frame=frame)
 
 
-def fov_mask(points_D: np.ndarray, cfg: Config) -> np.ndarray:
-    """(N,) bool: points (N, 3) in {D} inside the radar profile's azimuth/elevation FOV and range."""
+def fov_mask(points_D: np.ndarray, radar: RadarSection) -> np.ndarray:
+    """(N,) bool: points (N, 3) in {D} inside the radar's azimuth/elevation FOV and range."""
     rae = cartesian_to_spherical(points_D)
-    return ((np.abs(np.degrees(rae[:, 1])) <= cfg.radar.fov_az_deg / 2.0)
-            & (np.abs(np.degrees(rae[:, 2])) <= cfg.radar.fov_el_deg / 2.0)
-            & (rae[:, 0] <= cfg.radar.max_range_m) & (rae[:, 0] > 0))
+    return ((np.abs(np.degrees(rae[:, 1])) <= radar.fov_az_deg / 2.0)
+            & (np.abs(np.degrees(rae[:, 2])) <= radar.fov_el_deg / 2.0)
+            & (rae[:, 0] <= radar.max_range_m) & (rae[:, 0] > 0))
 
 
-def check_radar_fov(points_D: np.ndarray, cfg: Config, path: Path, frame: str | None) -> None:
-    """ReaderError if a non-empty radar frame has no point inside the profile's field of view."""
-    if points_D.shape[0] and not fov_mask(points_D, cfg).any():
+def check_radar_fov(points_D: np.ndarray, radar: RadarSection, path: Path, frame: str | None) -> None:
+    """ReaderError if a non-empty radar frame has no point inside the radar's field of view."""
+    if points_D.shape[0] and not fov_mask(points_D, radar).any():
         raise ReaderError(path, f"all {points_D.shape[0]} radar points lie outside the field of view "
-                                f"(az +/-{cfg.radar.fov_az_deg / 2:g} deg, el +/-{cfg.radar.fov_el_deg / 2:g} deg, "
-                                f"range <= {cfg.radar.max_range_m:g} m): wrong axes or units?", frame=frame)
+                                f"(az +/-{radar.fov_az_deg / 2:g} deg, el +/-{radar.fov_el_deg / 2:g} deg, "
+                                f"range <= {radar.max_range_m:g} m): wrong axes or units?", frame=frame)
 
 
 def split_sequences_at_gaps(numbers: list[int]) -> dict[int, str]:

@@ -188,7 +188,7 @@ class MscReader(Reader):
         if missing:
             raise ReaderError(path, f"radar point fields {missing} are missing", frame=fid)
         xyz = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float64)
-        out = np.column_stack([xyz, np.asarray(fields["doppler"], np.float64) * self.cfg.radar.doppler_sign,
+        out = np.column_stack([xyz, np.asarray(fields["doppler"], np.float64) * self.radar.doppler_sign,
                                fields["power"]]).astype(np.float32)
         check_finite(out, path, fid, "radar")
         check_not_empty(out, path, fid, "radar")
