@@ -12,7 +12,8 @@ Writes (synthesize.zarr) per frame of split synth.split:
   (with lidar placement: points without a candidate left count as without support);
   candidates int32, the frame's lidar candidates (lidar placement; 0 with the ray placement);
   outside_training (len(FEATURES),) int32, how many of them have each PlaceNet input outside the
-  range PlaceNet was trained on (pipeline.models.placenet.RANGE_PERCENTILES): summarise() names
+  range PlaceNet was trained on (pipeline.models.placenet.RANGE_PERCENTILES; -1 for a PlaceNet
+  saved without it): summarise() names
   the inputs where that is far more than on the training data (nets of another dataset).
 Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs),
 placement.voxel_m, placement.map_weight and heatmap.sigma_px (lidar placement); with
@@ -174,7 +175,9 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
         points, uv = candidates(inputs, cfg)
         x = features(inputs, points, uv) if len(points) else np.zeros((0, len(FEATURES)), np.float32)
         intensity = placenet_predict(placenet, x) if len(points) else np.zeros(0)
-        return points, uv, intensity, placenet.outside_range(x).sum(0).astype(np.int32)
+        known = bool(np.isfinite(placenet.feature_low.cpu().numpy()).all())
+        outside = placenet.outside_range(x).sum(0) if known else np.full(len(FEATURES), -1)  # -1: range not saved
+        return points, uv, intensity, outside.astype(np.int32)
 
     points, uv, intensity, outside = inputs.memo(("lidar-candidates", placenet), build)
     placed = place_on_lidar(prob_map, float(n), points, uv, intensity, image_wh=tuple(cfg.camera.working_size),
@@ -269,19 +272,26 @@ def summarise(store, cfg: Config) -> list[str]:
     from pipeline.cache import DONE
     from pipeline.models.placenet import RANGE_PERCENTILES
 
-    done = store.status() == DONE
-    n = int(np.asarray(store.array("candidates")[:])[done].clip(0).sum())
+    done = np.flatnonzero(store.status() == DONE)
+    candidates = np.asarray(store.array("candidates").oindex[done]).clip(0)
+    outside = np.asarray(store.array("outside_training").oindex[done]).reshape(len(done), len(FEATURES))
+    checked = (outside >= 0).all(axis=1) & (candidates > 0)
+    lines = []
+    if ((outside < 0).any(axis=1) & (candidates > 0)).any():
+        lines.append("PlaceNet's inputs not checked against its training range: its checkpoint was saved without it "
+                     "(trained before 2026-12-04)")
+    n = int(candidates[checked].sum())
     if not n:
-        return []
-    share = np.asarray(store.array("outside_training").oindex[np.flatnonzero(done)]).clip(0).sum(0) / n
+        return lines
+    share = outside[checked].sum(0) / n
     order = [k for k in np.argsort(-share, kind="stable") if share[k] > OUTSIDE_NOTE_SHARE]
     if not order:
-        return []
+        return lines
     low, high = RANGE_PERCENTILES
     listed = ", ".join(f"{FEATURES[k]} {share[k]:.0%}" for k in order)
     source = f" (nets of '{cfg.train.nets_from}')" if cfg.train.nets_from else ""
-    return [f"PlaceNet inputs outside the {low:g}-{high:g} percentiles of its training data{source}, share of the "
-            f"{n:,} lidar candidates (1% there): {listed}; its intensities there are extrapolated"]
+    return lines + [f"PlaceNet inputs outside the {low:g}-{high:g} percentiles of its training data{source}, share of "
+                    f"the {n:,} lidar candidates (1% there): {listed}; its intensities there are extrapolated"]
 
 
 STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,

@@ -516,3 +516,50 @@ def test_bad_generation_settings_are_config_errors():
                               ("placement.map_weight", "1.5", r"placement.map_weight must be in \[0, 1\]")):
         with pytest.raises(ConfigError, match=words):
             check_generation(load_config("synthetic", {key: value}, environ={}))
+
+
+class _Rows:
+    """A stage array as summarise reads it (``[:]`` and ``.oindex[indices]``)."""
+
+    def __init__(self, values: np.ndarray) -> None:
+        self.values = np.asarray(values)
+        self.oindex = self
+
+    def __getitem__(self, index):
+        return self.values[index]
+
+
+class _Store:
+    def __init__(self, status, **arrays) -> None:
+        self._status, self._arrays = np.asarray(status), {k: _Rows(v) for k, v in arrays.items()}
+
+    def status(self) -> np.ndarray:
+        return self._status
+
+    def array(self, name: str) -> _Rows:
+        return self._arrays[name]
+
+
+def test_synthesize_summary_names_the_inputs_outside_placenets_training_range():
+    """Shares over the finished frames' candidates, largest first, only above OUTSIDE_NOTE_SHARE; a
+    PlaceNet saved without its range (-1) is said to be unchecked; unfinished frames do not count."""
+    from pipeline.cache import DONE, PENDING
+    from pipeline.config import load_config
+    from pipeline.placement import FEATURES
+    from stages.synthesize import summarise
+
+    cfg = load_config("synthetic", environ={})
+    k_range, k_dist, k_z = FEATURES.index("log_range"), FEATURES.index("log_neighbour_dist"), FEATURES.index("z_m")
+    outside = np.zeros((3, len(FEATURES)), np.int32)
+    outside[0, [k_range, k_dist, k_z]] = [100, 700, 20]
+    outside[1, [k_range, k_dist, k_z]] = [300, 100, 20]
+    outside[2, :] = 999                                                         # not finished: ignored
+    store = _Store([DONE, DONE, PENDING], candidates=np.array([1000, 1000, 5]), outside_training=outside)
+    (line,) = summarise(store, cfg)
+    assert "of the 2,000 lidar candidates" in line and "log_neighbour_dist 40%, log_range 20%;" in line, line
+    assert "z_m" not in line                                                    # 2%: below the note's share
+    old = _Store([DONE, DONE], candidates=np.array([1000, 0]), outside_training=np.full((2, len(FEATURES)), -1))
+    assert summarise(old, cfg) == ["PlaceNet's inputs not checked against its training range: its checkpoint was "
+                                   "saved without it (trained before 2026-12-04)"]
+    quiet = _Store([DONE], candidates=np.array([1000]), outside_training=np.zeros((1, len(FEATURES)), np.int32))
+    assert summarise(quiet, cfg) == []
