@@ -106,3 +106,28 @@ def sample_points(rng: np.random.Generator, n_available: int, n: int) -> np.ndar
     if n_available <= n:
         return np.arange(n_available, dtype=np.int64)
     return np.sort(rng.choice(n_available, size=n, replace=False)).astype(np.int64)
+
+
+INPUT_SUMMARIES = ("range_image_occupancy", "range_m", "abs_doppler_mps", "patch_brightness")
+"""Per point: share of occupied range-image pixels, the point's range, |Doppler|, the patch's mean
+RGB (0..255)."""
+
+
+def input_summaries(patches: np.ndarray | None, range_images: np.ndarray | None,
+                    points: np.ndarray) -> np.ndarray:
+    """(N, 4) float64 :data:`INPUT_SUMMARIES` of N points' inputs: patches (N, s, s, 3) RGB 0..255,
+    range images (N, h, w) raw (pipeline.models.rssnet: 0..255 occupied), points (N, 4) [x, y, z m,
+    doppler m/s]; a column is NaN where its input is None."""
+    pts = np.asarray(points, np.float64).reshape(-1, 4)
+    out = np.full((len(pts), len(INPUT_SUMMARIES)), np.nan)
+    if len(pts) == 0:
+        return out
+    if range_images is not None:
+        r = np.asarray(range_images, np.float32).reshape(len(pts), -1)
+        with np.errstate(invalid="ignore"):
+            out[:, 0] = ((r >= 0) & (r <= 255)).mean(axis=1)
+    out[:, 1] = np.linalg.norm(pts[:, :3], axis=1)
+    out[:, 2] = np.abs(pts[:, 3])
+    if patches is not None:
+        out[:, 3] = np.asarray(patches, np.float64).reshape(len(pts), -1).mean(axis=1)
+    return out

@@ -42,6 +42,7 @@ from pipeline.models.losses import count_loss, kl_loss, poisson_loss, rss_loss
 from pipeline.models.placenet import PlaceNet, build_placenet, placenet_kwargs
 from pipeline.models.resnet import resnet18_backbone
 from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
+from pipeline.patches import input_summaries
 
 log = logging.getLogger(__name__)
 Batch = dict[str, np.ndarray]
@@ -691,15 +692,27 @@ def _rss_arrays(model: RSSNet, patches: Any, range_images: Any, point_vectors: A
     return out
 
 
+INPUT_RANGE_ROWS = 20_000
+"""Training points (evenly spaced) from which RSS-Net's input range is computed."""
+
+
 def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = True,
                  fingerprint: str | None = None) -> TrainResult:
     """Train RSS-Net with L_a (Adam, cfg.train.*, batch cfg.train.rss_batch_size); resumes."""
     _setup(cfg)
     model = build_rssnet(cfg)
     arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
+    train_idx = _checked_idx(data.train_idx, "train_idx", arrays, False)
+    if len(train_idx):
+        rows = train_idx[np.unique(np.linspace(0, len(train_idx) - 1, min(len(train_idx), INPUT_RANGE_ROWS))
+                                   .astype(np.int64))]
+        model.set_input_range(input_summaries(
+            None if data.patches is None else take_rows(data.patches, rows),
+            None if data.range_images is None else take_rows(data.range_images, rows),
+            take_rows(data.point_vectors, rows)))
     spec = _NetSpec(
         name="rssnet", model=model, arch=_jsonable_arch(rssnet_kwargs(cfg)), arrays=arrays,
-        train_idx=_checked_idx(data.train_idx, "train_idx", arrays, False),
+        train_idx=train_idx,
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.train.rss_batch_size, terms_fn=rssnet_terms, weights={"a": 1.0})
     return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress)

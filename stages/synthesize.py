@@ -14,7 +14,9 @@ Writes (synthesize.zarr) per frame of split synth.split:
   outside_training (len(FEATURES),) int32, how many of them have each PlaceNet input outside the
   range PlaceNet was trained on (pipeline.models.placenet.RANGE_PERCENTILES; -1 for a PlaceNet
   saved without it): summarise() names
-  the inputs where that is far more than on the training data (nets of another dataset).
+  the inputs where that is far more than on the training data (nets of another dataset);
+  rss_points int32 and rss_outside (len(INPUT_SUMMARIES),) int32 the same for RSS-Net's inputs
+  (pipeline.patches.input_summaries).
 Config: synth.*, radar.* (resolutions, fov, range, Doppler convention), patches.* (RSS-Net inputs),
 placement.voxel_m, placement.map_weight and heatmap.sigma_px (lidar placement); with
 train.nets_from the nets are another dataset's (pipeline.transfer): built as they were trained,
@@ -34,6 +36,7 @@ from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import wrap_doppler
+from pipeline.patches import INPUT_SUMMARIES, input_summaries
 from pipeline.placement import FEATURES
 from pipeline.stage import ArraySpec, FrameStage
 from stages.patches import point_inputs
@@ -61,13 +64,15 @@ def split_mask(split: np.ndarray, name: str) -> np.ndarray:
     return np.ones(len(split), bool) if name == "all" else np.asarray(split) == SPLITS[name]
 
 
-VERSION = 4
+VERSION = 5
 """2: refill rounds oversample (pipeline.synthesis.REFILL_OVERSAMPLE), so the points differ from version 1's.
 3: lidar placement (synth.placement). 4: candidates and outside_training (the same points); with
-train.nets_from, Dis-Net's prior moved to this dataset's camera."""
+train.nets_from, Dis-Net's prior moved to this dataset's camera. 5: rss_points and rss_outside (the
+same points)."""
 OUTSIDE_NOTE_SHARE = 0.05
-"""summarise() names a PlaceNet input outside its training range on more than this share of the
-candidates (1% by construction on the training data: RANGE_PERCENTILES)."""
+"""summarise() names a PlaceNet or RSS-Net input outside its training range on more than this share
+of the candidates or points (1% by construction on the training data: the 0.5-99.5 percentiles,
+pipeline.models.placenet.RANGE_PERCENTILES, pipeline.models.rssnet.INPUT_RANGE_PERCENTILES)."""
 PLACEMENTS = ("lidar", "ray")
 """Values of synth.placement."""
 
@@ -86,6 +91,10 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
             ArraySpec("candidates", (), "int32", "lidar candidates (lidar placement)", fill=-1),
             ArraySpec("outside_training", (len(FEATURES),), "int32",
                       f"candidates with the PlaceNet input outside its training range: {','.join(FEATURES)}",
+                      fill=-1),
+            ArraySpec("rss_points", (), "int32", "points whose RSS RSS-Net gave", fill=-1),
+            ArraySpec("rss_outside", (len(INPUT_SUMMARIES),), "int32",
+                      f"points with the RSS-Net input summary outside its training range: {','.join(INPUT_SUMMARIES)}",
                       fill=-1))
 
 
@@ -212,10 +221,15 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
                                refill_rounds=cfg.synth.refill_rounds)
     pts = np.asarray(syn["points_D"], np.float64).reshape(-1, 3)
     range_rate = np.asarray(syn["doppler"], np.float64)
+    rss_outside = np.zeros(len(INPUT_SUMMARIES), np.int32)
     if len(pts) and rss:
         patches, ranges = point_inputs(image, K, T_radar_cam, lidar, pts, cfg)
         vectors = np.column_stack([pts, range_rate]).astype(np.float32)
         values = rssnet_predict(nets.rssnet, patches, ranges, vectors)
+        if nets.rssnet.has_input_range():
+            rss_outside = nets.rssnet.outside_range(input_summaries(patches, ranges, vectors)).sum(0).astype(np.int32)
+        else:  # saved without its training range: not checked
+            rss_outside[:] = -1
     else:
         values = np.zeros(len(pts), np.float32)
     doppler = wrap_doppler(r.doppler_sign * range_rate, r.doppler_span_mps)
@@ -223,6 +237,7 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
     counts = np.array([syn["n_requested"], syn["n_no_support"], syn["n_out_of_fov"], syn["n_beyond_range"],
                        syn["n_widened"]], np.int32)
     return {"points": rows.astype(np.float32), "uv": np.asarray(syn["uv"]), "counts": counts,
+            "rss_points": np.int32(len(pts) if rss else 0), "rss_outside": rss_outside,
             "candidates": np.int32(syn.get("candidates", 0)),
             "outside_training": np.asarray(syn.get("outside_training", np.zeros(len(FEATURES))), np.int32)}
 
@@ -238,7 +253,8 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     n = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else float(n_hat[0])
     out = generate(inputs, cfg, pred_map, min(n, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
     return {"points": out["points"], "pred_map": pred_map, "n_hat": np.float32(n_hat[0]), "counts": out["counts"],
-            "candidates": out["candidates"], "outside_training": out["outside_training"]}
+            "candidates": out["candidates"], "outside_training": out["outside_training"],
+            "rss_points": out["rss_points"], "rss_outside": out["rss_outside"]}
 
 
 def _with_own_camera(inputs: FrameInputs, cfg: Config, nets: Nets, prob_map: np.ndarray) -> np.ndarray:
@@ -266,32 +282,34 @@ _MOVED_PRIORS: dict[tuple, np.ndarray] = {}
 
 
 def summarise(store, cfg: Config) -> list[str]:
-    """A line naming the PlaceNet inputs outside their training range on more than
-    OUTSIDE_NOTE_SHARE of the finished frames' candidates (none when none is): there PlaceNet's
-    intensity is extrapolated, as with nets of a dataset whose lidar differs (train.nets_from)."""
+    """Lines naming the PlaceNet and RSS-Net inputs outside their training range on more than
+    OUTSIDE_NOTE_SHARE of the finished frames' lidar candidates and synthesized points (none when
+    none is): there the nets extrapolate, as with nets of a dataset whose lidar or camera differs
+    (train.nets_from); nets saved without their range are said to be unchecked."""
     from pipeline.cache import DONE
-    from pipeline.models.placenet import RANGE_PERCENTILES
 
     done = np.flatnonzero(store.status() == DONE)
-    candidates = np.asarray(store.array("candidates").oindex[done]).clip(0)
-    outside = np.asarray(store.array("outside_training").oindex[done]).reshape(len(done), len(FEATURES))
-    checked = (outside >= 0).all(axis=1) & (candidates > 0)
-    lines = []
-    if ((outside < 0).any(axis=1) & (candidates > 0)).any():
-        lines.append("PlaceNet's inputs not checked against its training range: its checkpoint was saved without it "
-                     "(trained before 2026-12-04)")
-    n = int(candidates[checked].sum())
-    if not n:
-        return lines
-    share = outside[checked].sum(0) / n
-    order = [k for k in np.argsort(-share, kind="stable") if share[k] > OUTSIDE_NOTE_SHARE]
-    if not order:
-        return lines
-    low, high = RANGE_PERCENTILES
-    listed = ", ".join(f"{FEATURES[k]} {share[k]:.0%}" for k in order)
     source = f" (nets of '{cfg.train.nets_from}')" if cfg.train.nets_from else ""
-    return lines + [f"PlaceNet inputs outside the {low:g}-{high:g} percentiles of its training data{source}, share of "
-                    f"the {n:,} lidar candidates (1% there): {listed}; its intensities there are extrapolated"]
+    lines = []
+    for net, count, outside, names, rows, effect in (
+            ("PlaceNet", "candidates", "outside_training", FEATURES, "lidar candidates",
+             "its intensities there are extrapolated"),
+            ("RSS-Net", "rss_points", "rss_outside", INPUT_SUMMARIES, "synthesized points",
+             "its RSS there is extrapolated")):
+        n_rows = np.asarray(store.array(count).oindex[done]).clip(0)
+        out = np.asarray(store.array(outside).oindex[done]).reshape(len(done), len(names))
+        if ((out < 0).any(axis=1) & (n_rows > 0)).any():
+            lines.append(f"{net}'s inputs not checked against its training range: its checkpoint was saved without "
+                         f"it, by an earlier version (`pipeline run train --force` saves it)")
+        checked = (out >= 0).all(axis=1) & (n_rows > 0)
+        n = int(n_rows[checked].sum())
+        share = out[checked].sum(0) / max(n, 1)
+        order = [k for k in np.argsort(-share, kind="stable") if share[k] > OUTSIDE_NOTE_SHARE]
+        if n and order:
+            listed = ", ".join(f"{names[k]} {share[k]:.0%}" for k in order)
+            lines.append(f"{net} inputs outside the 0.5-99.5 percentiles of its training data{source}, share of the "
+                         f"{n:,} {rows} (1% there): {listed}; {effect}")
+    return lines
 
 
 STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,

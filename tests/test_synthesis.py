@@ -554,12 +554,19 @@ def test_synthesize_summary_names_the_inputs_outside_placenets_training_range():
     outside[0, [k_range, k_dist, k_z]] = [100, 700, 20]
     outside[1, [k_range, k_dist, k_z]] = [300, 100, 20]
     outside[2, :] = 999                                                         # not finished: ignored
-    store = _Store([DONE, DONE, PENDING], candidates=np.array([1000, 1000, 5]), outside_training=outside)
-    (line,) = summarise(store, cfg)
+    rss = np.array([[0, 30, 1, 0], [0, 0, 1, 2], [9, 9, 9, 9]], np.int32)           # of 100 + 200 points
+    store = _Store([DONE, DONE, PENDING], candidates=np.array([1000, 1000, 5]), outside_training=outside,
+                   rss_points=np.array([100, 200, 5]), rss_outside=rss)
+    line, rss_line = summarise(store, cfg)
+    assert rss_line.startswith("RSS-Net inputs outside") and "of the 300 synthesized points (1% there): range_m 10%;" \
+        in rss_line and rss_line.endswith("its RSS there is extrapolated"), rss_line
     assert "of the 2,000 lidar candidates" in line and "log_neighbour_dist 40%, log_range 20%;" in line, line
     assert "z_m" not in line                                                    # 2%: below the note's share
-    old = _Store([DONE, DONE], candidates=np.array([1000, 0]), outside_training=np.full((2, len(FEATURES)), -1))
-    assert summarise(old, cfg) == ["PlaceNet's inputs not checked against its training range: its checkpoint was "
-                                   "saved without it (trained before 2026-12-04)"]
-    quiet = _Store([DONE], candidates=np.array([1000]), outside_training=np.zeros((1, len(FEATURES)), np.int32))
+    old = _Store([DONE, DONE], candidates=np.array([1000, 0]), outside_training=np.full((2, len(FEATURES)), -1),
+                 rss_points=np.array([10, 0]), rss_outside=np.full((2, 4), -1))
+    assert summarise(old, cfg) == [f"{net}'s inputs not checked against its training range: its checkpoint was "
+                                   f"saved without it, by an earlier version (`pipeline run train --force` saves it)"
+                                   for net in ("PlaceNet", "RSS-Net")]
+    quiet = _Store([DONE], candidates=np.array([1000]), outside_training=np.zeros((1, len(FEATURES)), np.int32),
+                   rss_points=np.array([0]), rss_outside=np.zeros((1, 4), np.int32))
     assert summarise(quiet, cfg) == []

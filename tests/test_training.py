@@ -304,7 +304,7 @@ def test_checkpoints_are_safetensors_with_json_meta(tmp_path):
         header = json.loads(raw[8:8 + header_len])          # plain JSON header, then raw tensor bytes
         meta = json.loads(header["__metadata__"]["meta"])
         assert meta["net"] == "rssnet" and meta["epoch"] == 1
-        assert all(v["dtype"] in {"F32", "I64", "U8"} for k, v in header.items() if k != "__metadata__")
+        assert all(v["dtype"] in {"F32", "F64", "I64", "U8"} for k, v in header.items() if k != "__metadata__")
     sidecar = json.loads(res.last_path.with_suffix(".json").read_text())
     assert sidecar["epoch"] == 1 and "numpy_rng" in sidecar and "optimizer" in sidecar
     with pytest.raises(ValueError, match="own folder"):      # one folder per net
@@ -327,6 +327,14 @@ def test_rssnet_learns_from_zarr_and_resumes(tmp_path):
     assert pred.shape == (400,) and pred.dtype == np.float32
     assert T.rssnet_metrics(model, data, data.val_idx)["a"] == pytest.approx(
         np.mean(((pred[data.val_idx] - data.rss[:][data.val_idx]) / 70.0) ** 2), rel=1e-3)
+    # the training inputs' range is saved with the weights: point range, |Doppler|, brightness
+    train = np.asarray(data.train_idx)
+    points, patches = data.point_vectors[:][train], data.patches[:][train].astype(np.float64)
+    for k, values in ((1, np.linalg.norm(points[:, :3], axis=1)), (2, np.abs(points[:, 3])),
+                      (3, patches.reshape(len(train), -1).mean(1))):
+        np.testing.assert_allclose(model.input_high.numpy()[k], np.percentile(values, 99.5), rtol=1e-5)
+        np.testing.assert_allclose(model.input_low.numpy()[k], np.percentile(values, 0.5), rtol=1e-5, atol=1e-9)
+    assert model.input_low.numpy()[0] == model.input_high.numpy()[0] == pytest.approx(200 / (32 * 128))
 
 
 def test_rssnet_ablation_reads_only_its_inputs(tmp_path):
@@ -336,6 +344,17 @@ def test_rssnet_ablation_reads_only_its_inputs(tmp_path):
     res = T.train_rssnet(cfg, only_point, tmp_path, progress=False)
     model = T.load_rssnet(cfg, res.last_path)
     assert model.patch_branch is None and model.range_branch is None
+    # unused inputs have no range (never outside); the point's have
+    assert np.isinf(model.input_low.numpy()[[0, 3]]).all() and np.isfinite(model.input_low.numpy()[[1, 2]]).all()
+    far = np.array([[np.nan, 500.0, 1.0, np.nan], [0.9, 20.0, 1.0, 300.0]])
+    np.testing.assert_array_equal(model.outside_range(far), [[False, True, False, False], [False, False, False, False]])
+    # a checkpoint written before the range was saved loads unbounded, and says so
+    from pipeline import checkpoint as ckpt
+    tensors, meta = ckpt.load_checkpoint(res.best_path)
+    old = tmp_path / "old.safetensors"
+    ckpt.save_checkpoint(old, {k: v for k, v in tensors.items() if "input_" not in k}, meta)
+    unbounded = T.load_rssnet(cfg, old)
+    assert model.has_input_range() and not unbounded.has_input_range() and not unbounded.outside_range(far).any()
     assert T.rssnet_predict(model, None, None, data.point_vectors).shape == (100,)
     with pytest.raises(ConfigError, match="architecture"):
         T.load_rssnet(tiny_cfg(), res.last_path)

@@ -201,8 +201,17 @@ def _check_inputs_outside_training(pipe: Pipeline, cache: Path, notes: list[str]
         sum(int(syn.read("candidates", i)) for i in range(KITTI_FRAMES))
     named = [FEATURES[k] for k in np.flatnonzero(share > OUTSIDE_NOTE_SHARE)]
     assert named, share   # a ground plane and a wall under a random image: unlike the world's scenes
-    assert len(notes) == 1 and "(nets of 'synthetic')" in notes[0], notes
-    assert all(f"{name} {share[FEATURES.index(name)]:.0%}" in notes[0] for name in named)
+    place = [n for n in notes if n.startswith("PlaceNet inputs outside")]
+    assert len(place) == 1 and "(nets of 'synthetic')" in place[0], notes
+    assert all(f"{name} {share[FEATURES.index(name)]:.0%}" in place[0] for name in named)
+    # RSS-Net's inputs: KITTI without oxts gives every static point Doppler 0, below the 0.5
+    # percentile of the world's training points' |Doppler|
+    from pipeline.patches import INPUT_SUMMARIES
+    rss = np.sum([syn.read("rss_outside", i) for i in range(KITTI_FRAMES)], 0) / \
+        sum(int(syn.read("rss_points", i)) for i in range(KITTI_FRAMES))
+    assert rss[INPUT_SUMMARIES.index("abs_doppler_mps")] > OUTSIDE_NOTE_SHARE
+    (rss_note,) = [n for n in notes if n.startswith("RSS-Net inputs outside")]
+    assert f"abs_doppler_mps {rss[INPUT_SUMMARIES.index('abs_doppler_mps')]:.0%}" in rss_note
 
 
 def test_the_train_stage_refuses_settings_the_nets_were_not_trained_with(trained, tmp_path):

@@ -17,15 +17,22 @@ converts it to dataset units.
 
 Range image values: 0..255 are lidar pixels (127 = same distance as the radar point); any other
 value (negative, > 255, NaN) is an empty pixel, e.g. :data:`RANGE_IMAGE_EMPTY`.
+
+The 0.5 and 99.5 percentiles of a few summaries of the training inputs (:data:`pipeline.patches.INPUT_SUMMARIES`,
+:func:`pipeline.patches.input_summaries`) are saved with the weights (``input_low``, ``input_high``):
+:meth:`RSSNet.outside_range` says which inputs of another dataset (train.nets_from) the net never
+saw the like of, e.g. the denser local range images of a 64-line lidar.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pipeline.models.disnet import IMAGENET_MEAN, IMAGENET_STD
+from pipeline.patches import INPUT_SUMMARIES
 
 RANGE_IMAGE_EMPTY = -1.0
 """A value the range image may use for empty pixels (anything outside 0..255 counts as empty)."""
@@ -35,10 +42,15 @@ POINT_DOPPLER_SCALE_MPS = 10.0
 """Doppler enters the network divided by this, m/s."""
 FEATURE_HW = (8, 32)
 """Common feature-map size (h, w) of the patch and range-image branches."""
+INPUT_RANGE_PERCENTILES = (0.5, 99.5)
+"""The training range of each summary: outside it lie 1% of the training points."""
 
 
 class RSSNet(nn.Module):
     """RSS regressor; ``forward`` returns normalised RSS (B,) (0 = rss_min, 1 = rss_max)."""
+
+    OPTIONAL_BUFFERS = ("input_low", "input_high")
+    """Absent from checkpoints written before 2026-12-04: loaded as unbounded (no range check)."""
 
     def __init__(self, use_camera: bool = True, use_lidar: bool = True, use_radar_point: bool = True,
                  patch_size: int = 32, range_image_size: tuple[int, int] = (128, 32), *,
@@ -60,6 +72,8 @@ class RSSNet(nn.Module):
         self.fusion = _fusion(n_maps) if n_maps else None
         self.point_fc = nn.Linear(4, 128) if use_radar_point else None
         n_embed = 128 * (int(n_maps > 0) + int(use_radar_point))
+        self.register_buffer("input_low", torch.full((len(INPUT_SUMMARIES),), -torch.inf, dtype=torch.float64))
+        self.register_buffer("input_high", torch.full((len(INPUT_SUMMARIES),), torch.inf, dtype=torch.float64))
         self.head = nn.Sequential(nn.Linear(n_embed, 128), nn.ReLU(inplace=True),
                                   nn.Linear(128, 64), nn.ReLU(inplace=True), nn.Linear(64, 1))
 
@@ -80,6 +94,29 @@ class RSSNet(nn.Module):
         if self.point_fc is not None:
             embeds.append(F.relu(self.point_fc(normalise_point(_need(point, "point", (4,))))))  # (B, 128)
         return self.head(torch.cat(embeds, dim=1)).squeeze(1)                        # (B,)
+
+    def set_input_range(self, summaries: np.ndarray) -> None:
+        """INPUT_RANGE_PERCENTILES of the training points' :func:`input_summaries` (N, 4); a
+        summary with no value (its input absent) stays unbounded."""
+        x = np.asarray(summaries, np.float64).reshape(-1, len(INPUT_SUMMARIES))
+        known = np.isfinite(x).any(axis=0)
+        low, high = np.full(x.shape[1], -np.inf), np.full(x.shape[1], np.inf)
+        if known.any():
+            low[known], high[known] = np.nanpercentile(x[:, known], INPUT_RANGE_PERCENTILES, axis=0)
+        self.input_low.copy_(torch.as_tensor(low))
+        self.input_high.copy_(torch.as_tensor(high))
+
+    def has_input_range(self) -> bool:
+        """Whether the net was saved with its training range (not before 2026-12-04)."""
+        return bool(torch.isfinite(self.input_low).any())
+
+    def outside_range(self, summaries: np.ndarray) -> np.ndarray:
+        """Bool (N, 4): which :func:`input_summaries` (N, 4) lie outside the training range (NaN:
+        never)."""
+        x = np.asarray(summaries, np.float64).reshape(-1, len(INPUT_SUMMARIES))
+        low, high = self.input_low.cpu().numpy(), self.input_high.cpu().numpy()
+        with np.errstate(invalid="ignore"):
+            return (x < low) | (x > high)
 
     def to_rss(self, a_norm: Tensor) -> Tensor:
         """Normalised RSS -> dataset units (rss_min + a_norm * (rss_max - rss_min))."""
