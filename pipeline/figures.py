@@ -123,15 +123,23 @@ def bev(out_png: str | Path, frames: Sequence[Mapping[str, Any]], max_range_m: f
     return _save(fig, out_png)
 
 
+def _edges(values: np.ndarray, bins: int) -> np.ndarray:
+    """``bins`` + 1 equal bin edges over the range of ``values`` (a unit wide when they are equal)."""
+    lo, hi = float(values.min()), float(values.max())
+    return np.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1)
+
+
 def histograms(out_png: str | Path, real: np.ndarray, syn: np.ndarray,
                names: Sequence[str] = ("range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss"),
-               bins: int = 50) -> Path:
+               bins: int = 50, apart: Mapping[str, str] | None = None) -> Path:
     """Histograms (densities) of each column of real (N, C) vs synthetic (M, C) points, C = len(names).
 
     Typically spherical arrays [range_m, azimuth_rad, elevation_rad, doppler_mps, rss]
-    (pipeline.metrics.to_spherical). Shared bin edges per column over finite values of both sets.
-    Figure size (3 * C) x 3 inches at :data:`FIG_DPI`.
+    (pipeline.metrics.to_spherical). Shared bin edges per column over finite values of both sets,
+    except the columns in ``apart`` (name -> a title saying why, e.g. RSS in different units):
+    each set over its own range. Figure size (3 * C) x 3 inches at :data:`FIG_DPI`.
     """
+    apart = dict(apart or {})
     real = check_shape("real", np.asarray(real, np.float64), (None, len(names)))
     syn = check_shape("syn", np.asarray(syn, np.float64), (None, len(names)))
     fig, axes = _figure(3.0 * len(names), 3.0, 1, len(names))
@@ -139,14 +147,12 @@ def histograms(out_png: str | Path, real: np.ndarray, syn: np.ndarray,
         r, s = real[:, k][np.isfinite(real[:, k])], syn[:, k][np.isfinite(syn[:, k])]
         both = np.concatenate([r, s])
         if both.size:
-            lo, hi = float(both.min()), float(both.max())
-            edges = np.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1)
-            if r.size:
-                ax.hist(r, bins=edges, density=True, color="red", alpha=0.5, label=f"real ({r.size})")
-            if s.size:
-                ax.hist(s, bins=edges, density=True, color="blue", alpha=0.5, label=f"synthetic ({s.size})")
+            for values, colour, label in ((r, "red", "real"), (s, "blue", "synthetic")):
+                if values.size:
+                    ax.hist(values, bins=_edges(values if name in apart else both, bins), density=True, color=colour,
+                            alpha=0.5, label=f"{label} ({values.size})")
             ax.legend(fontsize=6)
-        ax.set_title(name, fontsize=8)
+        ax.set_title(f"{name}: {apart[name]}" if name in apart else name, fontsize=8 if name not in apart else 6)
         ax.tick_params(labelsize=6)
     fig.subplots_adjust(left=0.05, right=0.98, top=0.88, bottom=0.12, wspace=0.3)
     return _save(fig, out_png)

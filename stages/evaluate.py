@@ -62,7 +62,10 @@ restricted to the evaluated region; the static-point Doppler check leaves out po
 unknown velocity; 10: nets of another dataset (train.nets_from) compared as pipeline.transfer.comparison
 says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; the physics checks
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
-wraps Doppler)."""
+wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on."""
+REPORT_VERSION = 12
+"""The evaluate report's version (12: the RSS histogram bins each set apart when the units differ);
+evaluate-frames keeps VERSION."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
@@ -450,7 +453,12 @@ def _figures(inputs, cfg, frames, figs: Path, syn_sph, real_sph, fig8, bev, hist
     if f8:
         fig8(figs / "fig8.png", f8)
         bev(figs / "bev.png", bv, cfg.radar.max_range_m, cfg.radar.fov_az_deg)
-    histograms(figs / "histograms.png", real_sph, syn_sph)
+    from pipeline.config import own_radar
+    from pipeline.transfer import comparison
+
+    apart = {} if comparison(cfg).rss else {
+        "rss": f"real {own_radar(cfg).rss_unit}, synthetic {cfg.radar.rss_unit} (not comparable)"}
+    histograms(figs / "histograms.png", real_sph, syn_sph, apart=apart)
 
 
 def check(cfg: Config) -> None:
@@ -463,4 +471,4 @@ FRAMES = FrameStage(name="evaluate-frames", upstream=("calibrate", "heatmaps", "
                     config_keys=FRAME_KEYS, outputs=frame_outputs, process=evaluate_frame, select=select_frames,
                     version=VERSION, doc=__doc__, check=check, part_of="evaluate")
 STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize", FRAMES.name),
-                     config_keys=CONFIG_KEYS, version=VERSION, run=run, doc=__doc__, check=check)
+                     config_keys=CONFIG_KEYS, version=REPORT_VERSION, run=run, doc=__doc__, check=check)

@@ -100,3 +100,25 @@ def test_histograms(tmp_path):
     _check_png(path, 15.0, 3.0)
     with pytest.raises(ValueError):
         F.histograms(tmp_path / "bad.png", real, syn[:, :3])
+
+
+def test_histograms_bin_a_column_of_other_units_apart(tmp_path, monkeypatch):
+    """RSS in different units (dB(Mag) near 54, dBsm near -14): each set gets its own bins there,
+    the other columns shared ones, and the panel's title says why."""
+    from matplotlib.axes import Axes
+
+    calls, titles, original, set_title = [], [], Axes.hist, Axes.set_title
+    monkeypatch.setattr(Axes, "hist", lambda self, x, bins, **kw: calls.append((np.asarray(x), bins)) or
+                        original(self, x, bins=bins, **kw))
+    monkeypatch.setattr(Axes, "set_title", lambda self, t, **kw: titles.append(t) or set_title(self, t, **kw))
+    rng = np.random.default_rng(2)
+    real, syn = rng.normal(0, 1, (500, 5)), rng.normal(0.5, 1, (400, 5))
+    real[:, 4] += 54.0
+    syn[:, 4] -= 14.0
+    F.histograms(tmp_path / "hist.png", real, syn, apart={"rss": "real dB (Mag), synthetic dBsm (not comparable)"})
+    (real_rss, real_edges), (syn_rss, syn_edges) = calls[-2:]
+    assert real_edges[0] == real_rss.min() and real_edges[-1] == real_rss.max()
+    assert syn_edges[0] == syn_rss.min() and syn_edges[-1] == syn_rss.max()
+    np.testing.assert_array_equal(calls[0][1], calls[1][1])     # range: shared edges
+    assert calls[0][1][0] == min(real[:, 0].min(), syn[:, 0].min())
+    assert titles[-1] == "rss: real dB (Mag), synthetic dBsm (not comparable)" and titles[0] == "range_m"
