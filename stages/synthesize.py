@@ -184,8 +184,8 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
         points, uv = candidates(inputs, cfg)
         x = features(inputs, points, uv) if len(points) else np.zeros((0, len(FEATURES)), np.float32)
         intensity = placenet_predict(placenet, x) if len(points) else np.zeros(0)
-        known = bool(np.isfinite(placenet.feature_low.cpu().numpy()).all())
-        outside = placenet.outside_range(x).sum(0) if known else np.full(len(FEATURES), -1)  # -1: range not saved
+        outside = (placenet.outside_range(x).sum(0) if placenet.has_training_range()
+                   else np.full(len(FEATURES), -1))  # -1: saved without its range, not checked
         return points, uv, intensity, outside.astype(np.int32)
 
     points, uv, intensity, outside = inputs.memo(("lidar-candidates", placenet), build)

@@ -52,6 +52,10 @@ class PlaceNet(nn.Module):
         self.feature_low.copy_(torch.as_tensor(low))
         self.feature_high.copy_(torch.as_tensor(high))
 
+    def has_training_range(self) -> bool:
+        """Whether the net was saved with its training range (not before 2026-12-04)."""
+        return bool(torch.isfinite(self.feature_low).all())
+
     def outside_range(self, features: np.ndarray) -> np.ndarray:
         """Bool (C, n_features): which of the features (C, n_features) lie outside the training
         range (RANGE_PERCENTILES; never for a net saved without it)."""

@@ -54,9 +54,13 @@ class Timed(torch.nn.Module):
         self.seconds += time.perf_counter() - t0
         return out
 
-    def outside_range(self, features: np.ndarray) -> np.ndarray:
-        """PlaceNet's training-range check (counted as the rest, as synthesize does it outside the net)."""
-        return self.net.outside_range(features)
+    def __getattr__(self, name: str):
+        """Everything else is the net's (e.g. PlaceNet's training-range check, counted as the rest,
+        as synthesize does it outside the net)."""
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            return getattr(super().__getattr__("net"), name)
 
 
 def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, float, int, int]:
