@@ -131,6 +131,12 @@ def select_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def evenly_spaced(idx: np.ndarray, n: int) -> np.ndarray:
+    """At most ``n`` of the indices ``idx``, evenly spaced along it (all of them when fewer)."""
+    idx = np.asarray(idx, dtype=np.int64)
+    return idx[np.unique(np.linspace(0, len(idx) - 1, min(len(idx), n)).astype(np.int64))] if len(idx) else idx
+
+
 def take_rows(array: Any, idx: np.ndarray) -> np.ndarray:
     """Rows ``idx`` (any order, repeats allowed) of a numpy or zarr array, read with sorted indices."""
     idx = np.asarray(idx, dtype=np.int64)
@@ -704,8 +710,7 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
     arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
     train_idx = _checked_idx(data.train_idx, "train_idx", arrays, False)
     if len(train_idx):
-        rows = train_idx[np.unique(np.linspace(0, len(train_idx) - 1, min(len(train_idx), INPUT_RANGE_ROWS))
-                                   .astype(np.int64))]
+        rows = evenly_spaced(train_idx, INPUT_RANGE_ROWS)
         model.set_input_range(input_summaries(
             None if data.patches is None else take_rows(data.patches, rows),
             None if data.range_images is None else take_rows(data.range_images, rows),
@@ -740,9 +745,7 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
     model = build_placenet(cfg)
     arrays = {"features": data.features, "counts": data.counts}
     train_idx = _checked_idx(data.train_idx, "train_idx", arrays, False)
-    spaced = np.linspace(0, len(train_idx) - 1, min(len(train_idx), STANDARDISATION_ROWS)).astype(np.int64)
-    rows = train_idx[np.unique(spaced)]
-    model.set_standardisation(take_rows(data.features, rows))
+    model.set_standardisation(take_rows(data.features, evenly_spaced(train_idx, STANDARDISATION_ROWS)))
     spec = _NetSpec(
         name="placenet", model=model, arch=_jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),

@@ -27,7 +27,7 @@ from pipeline.config import Config
 from pipeline.errors import FrameError
 from pipeline.frame import LABEL_COLUMNS, label_rows
 from pipeline.executor import FrameInputs, process_memo
-from pipeline.geometry import invert_transform
+from pipeline.geometry import cartesian_to_spherical, invert_transform
 from pipeline.split import assign_split
 from pipeline.stage import ArraySpec, FrameStage
 from pipeline.working import common_fov_mask, crop_resize
@@ -116,8 +116,8 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     fov = (cfg.radar.fov_az_deg, cfg.radar.fov_el_deg)
     size = tuple(cfg.camera.working_size)
     n = len(rec.radar_D)
-    kept, in_view = ((common_fov_mask(rec.radar_D[:, :3], K_w, T_cam_radar, size, *fov, max_range)
-                      for max_range in (cfg.radar.max_range_m, np.inf)) if n else (np.zeros(0, bool),) * 2)
+    in_view = common_fov_mask(rec.radar_D[:, :3], K_w, T_cam_radar, size, *fov, np.inf) if n else np.zeros(0, bool)
+    kept = in_view & (cartesian_to_spherical(rec.radar_D[:, :3])[:, 0] <= cfg.radar.max_range_m)
     radar = rec.radar_D[kept]
     keep_lidar = common_fov_mask(rec.lidar_D, K_w, T_cam_radar, size, 360.0, 180.0,
                                  cfg.radar.max_range_m + cfg.lidar.range_margin_m)

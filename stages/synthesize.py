@@ -12,7 +12,7 @@ Writes (synthesize.zarr) per frame of split synth.split:
   (with lidar placement: points without a candidate left count as without support);
   candidates int32, the frame's lidar candidates (lidar placement; 0 with the ray placement);
   outside_training (len(FEATURES),) int32, how many of them have each PlaceNet input outside the
-  range PlaceNet was trained on (pipeline.models.placenet.RANGE_PERCENTILES; -1 for a PlaceNet
+  range PlaceNet was trained on (pipeline.input_range.RANGE_PERCENTILES; -1 for a PlaceNet
   saved without it): summarise() names
   the inputs where that is far more than on the training data (nets of another dataset);
   rss_points int32 and rss_outside (len(INPUT_SUMMARIES),) int32 the same for RSS-Net's inputs
@@ -36,6 +36,7 @@ from pipeline.config import Config
 from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import wrap_doppler
+from pipeline.input_range import RANGE_PERCENTILES
 from pipeline.patches import INPUT_SUMMARIES, input_summaries
 from pipeline.placement import FEATURES
 from pipeline.stage import ArraySpec, FrameStage
@@ -71,8 +72,8 @@ train.nets_from, Dis-Net's prior moved to this dataset's camera. 5: rss_points a
 same points)."""
 OUTSIDE_NOTE_SHARE = 0.05
 """summarise() names a PlaceNet or RSS-Net input outside its training range on more than this share
-of the candidates or points (1% by construction on the training data: the 0.5-99.5 percentiles,
-pipeline.models.placenet.RANGE_PERCENTILES, pipeline.models.rssnet.INPUT_RANGE_PERCENTILES)."""
+of the candidates or points (1% by construction on the training data:
+pipeline.input_range.RANGE_PERCENTILES)."""
 PLACEMENTS = ("lidar", "ray")
 """Values of synth.placement."""
 
@@ -288,6 +289,7 @@ def summarise(store, cfg: Config) -> list[str]:
     (train.nets_from); nets saved without their range are said to be unchecked."""
     from pipeline.cache import DONE
 
+    low, high = RANGE_PERCENTILES
     done = np.flatnonzero(store.status() == DONE)
     source = f" (nets of '{cfg.train.nets_from}')" if cfg.train.nets_from else ""
     lines = []
@@ -307,8 +309,8 @@ def summarise(store, cfg: Config) -> list[str]:
         order = [k for k in np.argsort(-share, kind="stable") if share[k] > OUTSIDE_NOTE_SHARE]
         if n and order:
             listed = ", ".join(f"{names[k]} {share[k]:.0%}" for k in order)
-            lines.append(f"{net} inputs outside the 0.5-99.5 percentiles of its training data{source}, share of the "
-                         f"{n:,} {rows} (1% there): {listed}; {effect}")
+            lines.append(f"{net} inputs outside the {low:g}-{high:g} percentiles of its training data{source}, share "
+                         f"of the {n:,} {rows} (1% there): {listed}; {effect}")
     return lines
 
 

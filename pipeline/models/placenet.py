@@ -2,7 +2,7 @@
 
 Input: the candidate's features (pipeline.placement.FEATURES), standardised with the training
 set's mean and standard deviation (buffers, saved with the weights). The training features'
-RANGE_PERCENTILES are saved too (``feature_low``, ``feature_high``): :meth:`PlaceNet.outside_range`
+pipeline.input_range.RANGE_PERCENTILES are saved too (``feature_low``, ``feature_high``): :meth:`PlaceNet.outside_range`
 says which inputs of another dataset (train.nets_from) the net never saw the like of. An MLP of ``depth`` hidden
 layers of ``width`` units (ReLU) outputs log lambda: lambda is the expected number of real radar
 points whose nearest candidate this lidar point is, trained with the Poisson negative
@@ -15,10 +15,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from pipeline.input_range import outside, training_range
 from pipeline.placement import FEATURES
 
-RANGE_PERCENTILES = (0.5, 99.5)
-"""The training range of each feature: outside it lie 1% of the training candidates."""
 
 
 class PlaceNet(nn.Module):
@@ -41,14 +40,14 @@ class PlaceNet(nn.Module):
 
     def set_standardisation(self, features: np.ndarray) -> None:
         """Mean and standard deviation of training features (N, n_features), a constant column
-        std 1, and their RANGE_PERCENTILES."""
+        std 1, and their training range (pipeline.input_range.training_range)."""
         x = np.asarray(features, np.float64).reshape(-1, self.n_features)
         if len(x) == 0:
             raise ValueError("PlaceNet.set_standardisation: no training features")
         std = x.std(axis=0)
         self.feature_mean.copy_(torch.as_tensor(x.mean(axis=0)))
         self.feature_std.copy_(torch.as_tensor(np.where(std > 1e-6, std, 1.0)))
-        low, high = np.percentile(x, RANGE_PERCENTILES, axis=0)
+        low, high = training_range(x)
         self.feature_low.copy_(torch.as_tensor(low))
         self.feature_high.copy_(torch.as_tensor(high))
 
@@ -58,10 +57,9 @@ class PlaceNet(nn.Module):
 
     def outside_range(self, features: np.ndarray) -> np.ndarray:
         """Bool (C, n_features): which of the features (C, n_features) lie outside the training
-        range (RANGE_PERCENTILES; never for a net saved without it)."""
-        x = np.asarray(features, np.float64).reshape(-1, self.n_features)
-        low, high = self.feature_low.cpu().numpy(), self.feature_high.cpu().numpy()
-        return (x < low) | (x > high)
+        range (never for a net saved without it)."""
+        return outside(np.asarray(features, np.float64).reshape(-1, self.n_features), self.feature_low.cpu().numpy(),
+                       self.feature_high.cpu().numpy())
 
     def forward(self, features: Tensor) -> Tensor:
         """features (B, n_features) -> log intensity (B,)."""

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pipeline.models.disnet import IMAGENET_MEAN, IMAGENET_STD
+from pipeline.input_range import outside, training_range
 from pipeline.patches import INPUT_SUMMARIES
 
 RANGE_IMAGE_EMPTY = -1.0
@@ -42,8 +43,6 @@ POINT_DOPPLER_SCALE_MPS = 10.0
 """Doppler enters the network divided by this, m/s."""
 FEATURE_HW = (8, 32)
 """Common feature-map size (h, w) of the patch and range-image branches."""
-INPUT_RANGE_PERCENTILES = (0.5, 99.5)
-"""The training range of each summary: outside it lie 1% of the training points."""
 
 
 class RSSNet(nn.Module):
@@ -96,13 +95,9 @@ class RSSNet(nn.Module):
         return self.head(torch.cat(embeds, dim=1)).squeeze(1)                        # (B,)
 
     def set_input_range(self, summaries: np.ndarray) -> None:
-        """INPUT_RANGE_PERCENTILES of the training points' :func:`input_summaries` (N, 4); a
+        """pipeline.input_range.RANGE_PERCENTILES of the training points' :func:`input_summaries` (N, 4); a
         summary with no value (its input absent) stays unbounded."""
-        x = np.asarray(summaries, np.float64).reshape(-1, len(INPUT_SUMMARIES))
-        known = np.isfinite(x).any(axis=0)
-        low, high = np.full(x.shape[1], -np.inf), np.full(x.shape[1], np.inf)
-        if known.any():
-            low[known], high[known] = np.nanpercentile(x[:, known], INPUT_RANGE_PERCENTILES, axis=0)
+        low, high = training_range(np.asarray(summaries, np.float64).reshape(-1, len(INPUT_SUMMARIES)))
         self.input_low.copy_(torch.as_tensor(low))
         self.input_high.copy_(torch.as_tensor(high))
 
@@ -113,10 +108,8 @@ class RSSNet(nn.Module):
     def outside_range(self, summaries: np.ndarray) -> np.ndarray:
         """Bool (N, 4): which :func:`input_summaries` (N, 4) lie outside the training range (NaN:
         never)."""
-        x = np.asarray(summaries, np.float64).reshape(-1, len(INPUT_SUMMARIES))
-        low, high = self.input_low.cpu().numpy(), self.input_high.cpu().numpy()
-        with np.errstate(invalid="ignore"):
-            return (x < low) | (x > high)
+        return outside(np.asarray(summaries, np.float64).reshape(-1, len(INPUT_SUMMARIES)),
+                       self.input_low.cpu().numpy(), self.input_high.cpu().numpy())
 
     def to_rss(self, a_norm: Tensor) -> Tensor:
         """Normalised RSS -> dataset units (rss_min + a_norm * (rss_max - rss_min))."""
