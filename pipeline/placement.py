@@ -191,7 +191,9 @@ def placement_weights(
     if map_weight == 0:  # the map's factor ** 0 is 1 everywhere: no blur needed
         return lam / lam.sum()
     (mh, mw), (w, h) = m.shape, image_wh
-    px = np.clip(np.rint(uv * [mw / w, mh / h]).astype(np.int64), 0, [mw - 1, mh - 1])
+    # the map pixel holding each candidate: pixel k of the working image covers [k - 0.5, k + 0.5)
+    # (pipeline.working), so a map of another size holds it at floor((u + 0.5) * mw / w)
+    px = np.clip(np.floor((uv + 0.5) * [mw / w, mh / h]).astype(np.int64), 0, [mw - 1, mh - 1])
     sx, sy = sigma_px[0] * mw / w, sigma_px[1] * mh / h
 
     def blur(a: np.ndarray) -> np.ndarray:  # in float32, a third of float64's time; terms are >= 0

@@ -161,9 +161,23 @@ def test_placement_weights_equal_the_sum_over_map_pixels():
     brute = lam * np.einsum("hw,hwc->c", m / (g @ lam), g)
     np.testing.assert_allclose(q, brute / brute.sum(), rtol=1e-6)
     assert q[4] == 0 and q.sum() == pytest.approx(1.0)
-    # a map at half the resolution: the candidates' pixels and the blur scale with it
+    # a map at half the resolution: the candidates' pixels (pixel centres: u' = (u + 0.5) / 2 - 0.5)
+    # and the blur scale with it
     half = P.placement_weights(m[::2, ::2], uv, lam, (2 * w, 2 * h), (2 * sigma[0], 2 * sigma[1]))
-    np.testing.assert_allclose(half, P.placement_weights(m[::2, ::2], uv / 2, lam, (w, h), sigma), rtol=1e-9)
+    np.testing.assert_allclose(half, P.placement_weights(m[::2, ::2], (uv + 0.5) / 2 - 0.5, lam, (w, h), sigma),
+                               rtol=1e-9)
+
+
+def test_placement_weights_take_each_candidate_from_its_own_pixel_of_a_smaller_map():
+    """Working pixel 3 lies in pixel 1 of a half-size map and pixel 5 in pixel 2 (pixel k covers
+    [k - 0.5, k + 0.5)): the map's mass at pixel 1 goes mostly to the candidate at working pixel 3,
+    as it does with the same map at the working size."""
+    full = np.zeros((32, 64))
+    full[10:12, 2:4] = 1.0                     # working pixels 2..3 = half-size pixel 1
+    uv = np.array([[3.0, 10.0], [5.0, 10.0]])
+    at_size = P.placement_weights(full, uv, np.ones(2), (64, 32), (1.0, 1.0))
+    half = P.placement_weights(full[::2, ::2], uv, np.ones(2), (64, 32), (1.0, 1.0))
+    assert at_size[0] > 0.85 and half[0] > 0.75
 
 
 def test_placement_weights_edge_cases():
