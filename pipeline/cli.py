@@ -319,7 +319,7 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
 @main.command()
 @dataset_options
 @click.option("--tables", default="2,3", show_default=True, help="Which of the paper's tables: 2 (Dis-Net), 3 (RSS-Net).")
-@click.option("--workers", type=int, default=None, help="dask workers for the preprocessing stages.")
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="dask workers for the preprocessing stages.")
 @_handle_errors
 def ablate(dataset, data_root, cache_root, sets, tables, workers):
     """Train the paper's ablation variants (Tables II and III) and write a table next to the paper's."""
@@ -343,7 +343,7 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
 
 @main.command("check-physics")
 @dataset_options
-@click.option("--workers", type=int, default=None, help="dask workers for calibrate.")
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="dask workers for calibrate.")
 @_handle_errors
 def check_physics(dataset, data_root, cache_root, sets, workers):
     """Physics checks on real frames, no learning: lidar range vs measured radar range per range

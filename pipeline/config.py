@@ -14,6 +14,7 @@ import difflib
 import functools
 import hashlib
 import json
+import math
 import os
 import tomllib
 from dataclasses import dataclass, field, fields, replace
@@ -429,12 +430,66 @@ class Config:
             section, name = _split_key(key)
             sec = getattr(cfg, section)
             value = _parse_value(key, text, get_type_hints(type(sec))[name])
+            check_limit(key, value)
             cfg = replace(cfg, **{section: replace(sec, **{name: value})})
         return cfg
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (JSON-able)."""
         return {s: {k: _jsonable(v) for k, v in dataclasses.asdict(getattr(self, s)).items()} for s in SECTIONS}
+
+
+LIMITS: dict[str, str] = {
+    "dataset.world_frames": ">0", "dataset.world_resolution": ">0", "dataset.world_sequence_len": ">0",
+    "radar.az_res_deg": ">0", "radar.el_res_deg": ">0", "radar.fov_az_deg": ">0", "radar.fov_el_deg": ">0",
+    "radar.max_range_m": ">0", "radar.max_points": ">0", "radar.store_max_points": ">0",
+    "radar.doppler_sign": "sign", "radar.doppler_span_mps": ">=0",
+    "camera.full_size": ">0", "camera.crop_rows": ">=0", "camera.working_size": ">0",
+    "lidar.store_max_points": ">0", "lidar.range_margin_m": ">=0",
+    "split.fractions": ">=0", "split.block_len": ">0",
+    "heatmap.sigma_px": ">0",
+    "patches.points_per_frame": ">0", "patches.r_c_px": ">0", "patches.r_l_m": ">0", "patches.range_image_size": ">0",
+    "patches.patch_size_px": ">0",
+    "placement.points_per_frame": ">0", "placement.gate_m": ">0", "placement.width": ">0", "placement.depth": ">0",
+    "placement.lr": ">0", "placement.batch_size": ">0", "placement.epochs": ">=0", "placement.voxel_m": ">=0",
+    "placement.map_weight": "[0,1]",
+    "disnet.width": ">0",
+    "train.epochs": ">=0", "train.lr": ">0", "train.batch_size": ">0", "train.rss_batch_size": ">0", "train.alpha": ">=0",
+    "train.count_grad_scale": "[0,1]", "train.count_refit_epochs": ">=0", "train.weight_decay": ">=0",
+    "train.cutmix": "[0,1]", "train.jitter": "[0,1]", "train.map_dropout": "[0,1)", "train.ema_decay": "[0,1)",
+    "train.threads": ">0",
+    "synth.refill_rounds": ">=0",
+    "export.noise_fraction": ">=0",
+    "eval.figure_frames": ">=0", "eval.gate_m": ">0", "eval.gate_rss": ">0", "eval.gate_doppler_mps": ">0",
+    "run.workers": ">0",
+}
+"""The values each numeric key may take (every item of a tuple): '>0' and '>=0' finite, '[0,1]' and
+'[0,1)' intervals, 'sign' +1 or -1. Checked wherever a value is set (profile, environment, --set),
+so that a setting no stage could run with is refused before any output is touched."""
+
+_LIMIT_TESTS: dict[str, tuple[str, Any]] = {
+    ">0": ("finite and > 0", lambda v: math.isfinite(v) and v > 0),
+    ">=0": ("finite and >= 0", lambda v: math.isfinite(v) and v >= 0),
+    "[0,1]": ("in [0, 1]", lambda v: 0 <= v <= 1),
+    "[0,1)": ("in [0, 1)", lambda v: 0 <= v < 1),
+    "sign": ("+1 or -1", lambda v: v in (1, -1)),
+}
+
+
+def check_limit(key: str, value: Any) -> None:
+    """ConfigError when ``value`` of ``key`` is outside its :data:`LIMITS` (no limit: accepted)."""
+    limit = LIMITS.get(key)
+    if limit is None:
+        return
+    text, ok = _LIMIT_TESTS[limit]
+    items = value if isinstance(value, tuple) else (value,)
+    if not all(ok(v) for v in items):
+        each = " (each value)" if isinstance(value, tuple) else ""
+        raise ConfigError(f"'{key}' must be {text}{each}, got {_text(value)}")
+
+
+def _text(value: Any) -> str:
+    return ",".join(f"{v:g}" for v in value) if isinstance(value, tuple) else f"{value:g}"
 
 
 def all_keys() -> list[str]:

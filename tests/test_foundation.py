@@ -425,13 +425,33 @@ def test_invalid_settings_are_refused_before_any_output_is_touched(tmp_path):
     # the real stages' checks: bad values name their key, with no cache at all
     real = {"synth.placement": "foo", "placement.map_weight": "-1", "train.epochs": "-3", "eval.split": "tset",
             "train.nets": "disnet,bogus", "train.ema_decay": "1"}
-    for key, value in real.items():
-        cfg = load_config("synthetic", {key: value}, environ={})
-        env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "none"), dataset="synthetic", data_root=str(tmp_path))
+    for key, value in real.items():  # refused when the configuration is built (limits) or by the stage's check
         with pytest.raises(ConfigError, match=key.split(".")[-1]):
+            cfg = load_config("synthetic", {key: value}, environ={})
+            env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "none"), dataset="synthetic", data_root=str(tmp_path))
             P(all_stages(), env, Executor(1), progress=False, log=lambda m: None,
               frame_lister=lambda: list(IDS)).check_config("evaluate")
     assert not (tmp_path / "none").exists()
+
+
+@pytest.mark.parametrize("key, value", [
+    ("camera.working_size", "0,0"), ("radar.max_range_m", "-1"), ("heatmap.sigma_px", "-5,-5"),
+    ("heatmap.sigma_px", "nan,nan"), ("patches.r_c_px", "-1"), ("patches.points_per_frame", "-1"),
+    ("placement.gate_m", "inf"), ("radar.doppler_sign", "2"), ("train.ema_decay", "1"), ("run.workers", "0")])
+def test_values_no_stage_could_run_with_are_refused_with_the_key_before_anything_runs(tmp_path, key, value):
+    """Until 2026-12-04 these were accepted: calibrate, heatmaps and patches then failed every frame
+    (exit 0), after discarding the outputs made with the old settings."""
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config("synthetic", {key: value}, environ={})
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):  # from the environment too
+        load_config("synthetic", environ={"PIPELINE__" + key.replace(".", "__").upper(): value})
+    from pipeline.cli import main
+    out = CliRunner().invoke(main, ["run", "heatmaps", "--dataset", "synthetic", "--cache", str(tmp_path / "c"),
+                                    "--set", f"{key}={value}"])
+    assert out.exit_code != 0 and key in out.output and "Traceback" not in out.output
+    assert not (tmp_path / "c").exists()
+    load_config("synthetic", {"radar.doppler_sign": "-1", "train.ema_decay": "0.99", "placement.map_weight": "0"},
+                environ={})  # values at the limits pass
 
 
 def test_a_killed_forced_rebuild_leaves_downstream_stale(tmp_path, monkeypatch):
