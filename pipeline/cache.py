@@ -250,6 +250,24 @@ class FrameStore:
                 return self._chunk_error(g, self._member(g, name), int(index), problem)
         return exc
 
+    def array_names(self) -> list[str]:
+        """Names of the output's arrays, from its folder (an array whose metadata cannot be read
+        is listed too; zarr's own listing would stop on it)."""
+        fs, path = fsspec.core.url_to_fs(self.url)
+        try:
+            entries = fs.ls(path, detail=True)
+        except OSError as exc:
+            raise cache_error(exc, f"listing {self.url}") from None
+        names = [e["name"].rstrip("/").rsplit("/", 1)[-1] for e in entries if e.get("type") == "directory"]
+        return sorted(n for n in names if fs.exists(join(path, n, "zarr.json")))
+
+    def check_metadata(self) -> None:
+        """MetadataError naming the first array whose ``zarr.json`` cannot be read (every frame of
+        it would be unreadable): a run that resumes the output, ``status`` and ``verify`` ask first."""
+        g = self._group("r")
+        for name in self.array_names():
+            self._member(g, name)
+
     def _member(self, g: zarr.Group, name: str) -> zarr.Array:
         """Array ``name`` of group ``g``; CacheError naming its metadata file when that is damaged
         (every frame of the array is then unreadable)."""
@@ -304,7 +322,7 @@ class FrameStore:
         if not self.exists():
             raise CacheError(f"{self.url}: no output to verify")
         g = self._group("r")
-        names = sorted(set(g.array_keys()) - {"status", "reason"})
+        names = sorted(set(self.array_names()) - {"status", "reason"})
         total = self._member(g, "status").shape[0] * (2 + len(names))
         progress = (lambda n: None) if progress is None else (lambda n, _p=progress: _p(n, total))
         errors: dict[int, ChunkError] = {}

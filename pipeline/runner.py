@@ -400,6 +400,8 @@ class Pipeline:
                     retry_failed: bool) -> StageReport:
         created = self._ensure_created(stage, force)
         store = self.env.store(stage.name)
+        if not created:  # resumed: an array whose metadata is damaged stops the run before any frame
+            store.check_metadata()
         ids = self.frame_ids()
         status = store.status()
         report = StageReport(stage.name, "recomputed" if created else "resumed")
@@ -535,6 +537,7 @@ class Pipeline:
                 try:
                     row["exists"] = store.exists()
                     if row["exists"]:
+                        store.check_metadata()
                         st = store.status()
                         row.update({STATUS_NAMES[c]: int((st == c).sum()) for c in STATUS_NAMES})
                         row["reasons"] = store.reasons()

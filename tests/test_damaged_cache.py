@@ -394,6 +394,23 @@ def test_cli_damaged_group_metadata_names_the_file_and_force(tmp_path, fake_cli)
     assert fake_cli(tmp_path, "status").exit_code == 0
 
 
+def test_cli_damaged_array_metadata_names_the_file_in_status_verify_and_runs(tmp_path, fake_cli):
+    """One array's zarr.json truncated (found by an audit, 2026-12-04): verify ended in a raw
+    JSONDecodeError, status called the stage current, and a resumed or per-frame forced run of the
+    stage ended in a traceback."""
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", "--frames", "0:4").exit_code == 0
+    meta = tmp_path / "cache" / "synthetic" / "heatmaps.zarr" / "total" / "zarr.json"
+    _damage(meta, "truncated")
+    expected = f"{meta}: the metadata of array total cannot be read ("
+    for args in (("status",), ("verify",), ("run", "heatmaps", "--workers", "1"),
+                 ("run", "heatmaps", "--force", "--frames", "f003", "--workers", "1")):
+        out = fake_cli(tmp_path, *args)
+        assert out.exit_code == 2 and "Traceback" not in out.output, (args, out.output)
+        assert expected in out.output, (args, out.output)
+    assert fake_cli(tmp_path, "run", "heatmaps", "--force", "--workers", "1").exit_code == 0  # the way out
+    assert fake_cli(tmp_path, "verify").exit_code == 0
+
+
 def test_cli_run_and_status_report_the_damaged_chunk_per_frame(tmp_path, fake_cli):
     assert fake_cli(tmp_path, "run", "calibrate", "--workers", "1").exit_code == 0
     _damage(tmp_path / "cache" / "synthetic" / "calibrate.zarr" / "points" / "c" / "3" / "0" / "0", "empty")
