@@ -318,3 +318,52 @@ def test_world_in_the_cache_follows_the_profile(tmp_path: Path) -> None:
     generate(own, frames=2, seed=5, resolution_wh=(64, 48))
     _ensure_world(env(4, own), progress=False)
     assert json.loads((own / "world.json").read_text())["frames"] == 2  # the user's world is left alone
+
+
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_generating_workers_exit_when_the_run_is_killed(tmp_path: Path) -> None:
+    """Until 2026-12-04 a run killed while generating the world left its two worker processes
+    generating on as orphans, holding the run's output open (a wrapper reading it hung)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = (f"from pipeline.world import generate; generate({str(tmp_path / 'w')!r}, frames=400, seed=0, "
+            f"resolution_wh=(64, 32), sequence_len=20, progress=False)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not [c for c in _children(proc.pid)
+                                                   if "spawn" in Path(f"/proc/{c}/cmdline").read_bytes().decode()]:
+            time.sleep(0.2)
+        workers = [c for c in _children(proc.pid) if "spawn" in Path(f"/proc/{c}/cmdline").read_bytes().decode()]
+        assert workers, "no generating worker started"
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and any(Path(f"/proc/{w}").exists() for w in workers):
+            time.sleep(0.2)
+        alive = [w for w in workers if Path(f"/proc/{w}").exists()
+                 and Path(f"/proc/{w}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"]
+        for w in alive:
+            os.kill(w, signal.SIGKILL)
+        assert not alive, f"workers {alive} outlived the killed run"
+    finally:
+        if proc.poll() is None:
+            proc.kill()

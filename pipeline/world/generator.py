@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -93,6 +94,21 @@ def _clear(root: Path) -> None:
             shutil.rmtree(root / sub)
 
 
+PARENT_POLL_S = 0.5
+"""How often a generating worker checks that the process that started it is still there."""
+
+
+def _watch_parent(parent_pid: int) -> None:
+    """Pool initializer: the worker exits once the process that started it is gone (killed with
+    SIGKILL or SIGTERM), instead of generating on as an orphan that holds the run's output open."""
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="watch-parent", daemon=True).start()
+
+
 def _run_jobs(jobs: list[tuple], frames: int, progress: bool) -> list[dict]:
     """Run the sequence jobs (in 2 processes when there are several); results in sequence order."""
     from tqdm import tqdm
@@ -109,7 +125,8 @@ def _run_jobs(jobs: list[tuple], frames: int, progress: bool) -> list[dict]:
 
         # spawn, not fork: forking a process that already runs threads (torch, dask, BLAS) can
         # deadlock the child on a lock some thread held at the fork
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_watch_parent,
+                                 initargs=(os.getpid(),)) as pool:
             for res in pool.map(_run_job, jobs):
                 results.append(res)
                 bar.update(res["last_frame"] - res["first_frame"] + 1)
