@@ -168,12 +168,12 @@ def _check_outputs(stage: FrameStage, cfg: Config, specs, out: dict[str, np.ndar
             raise ValueError(f"{spec.name}: expected per-frame shape {shape}, got {value.shape}")
 
 
-def _worker_probe(cache_root: str) -> bool:
-    """Run on a cluster worker: True when the cache root exists there (the package imported, or
-    this function could not have been unpickled)."""
+def _worker_probe(marker_url: str) -> bool:
+    """Run on a cluster worker: True when the marker file the client wrote into the cache exists
+    there (the package imported, or this function could not have been unpickled)."""
     import fsspec
 
-    fs, path = fsspec.core.url_to_fs(cache_root)
+    fs, path = fsspec.core.url_to_fs(marker_url)
     return bool(fs.exists(path))
 
 
@@ -228,14 +228,34 @@ class Executor:
             return
         from pipeline.errors import PipelineError
 
+        import uuid
+
+        import fsspec
+
+        from pipeline.cache import cache_error
+
+        # a marker written here that the worker must see: the cache may not exist yet (a first
+        # run), and an empty folder is no object on an object store
+        fs, path = fsspec.core.url_to_fs(cache_root)
+        marker = f"{path.rstrip('/')}/.cluster-probe-{uuid.uuid4().hex}"
+        try:
+            fs.makedirs(path, exist_ok=True)
+            fs.pipe_file(marker, b"")
+        except OSError as exc:
+            raise cache_error(exc, f"writing a probe file into the cache {cache_root}") from None
         try:
             client = self.client()
             client.wait_for_workers(1, timeout=timeout_s)
-            found = client.submit(_worker_probe, cache_root, pure=False).result(timeout=timeout_s)
+            found = client.submit(_worker_probe, fs.unstrip_protocol(marker), pure=False).result(timeout=timeout_s)
         except Exception as exc:  # connection refused, timeouts, a worker that cannot unpickle the task
             raise PipelineError(f"dask cluster at {self.scheduler}: no worker ran a probe task within {timeout_s:.0f} s "
                                 f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); its workers "
                                 f"need this package installed and the cache at the same path") from None
+        finally:
+            try:
+                fs.rm_file(marker)
+            except OSError:
+                pass
         if not found:
             raise PipelineError(f"dask cluster at {self.scheduler}: a worker does not see the cache {cache_root}; "
                                 f"its workers need the cache at the same path (a shared filesystem or an fsspec URL)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -218,13 +219,36 @@ def test_dask_localcluster_over_tcp_equals_serial(tmp_path, monkeypatch):
         assert cluster.scheduler_address.startswith("tcp://127.0.0.1")
         with Executor(scheduler=cluster.scheduler_address, progress=False) as ex:
             ex.check_cluster(str(tmp_path))       # the workers run a probe task and see the cache
-            with pytest.raises(PipelineError, match="does not see the cache"):
-                ex.check_cluster(str(tmp_path / "elsewhere"))
+            first = tmp_path / "first" / "cache"  # a first run's cache, not there yet (refused until 2026-12-04)
+            ex.check_cluster(str(first))
+            assert first.is_dir() and not list(first.iterdir())  # the probe's marker is gone
             dist = make_pipeline(tmp_path / "dist", executor=ex)
             dist.run("heatmaps")
     a, b = read_all(serial), read_all(dist)
     for key in a:
         np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_a_worker_that_does_not_see_the_probe_marker_is_named(tmp_path, monkeypatch):
+    """The probe a worker runs looks for the marker the client wrote; a worker of another machine
+    that does not share the cache misses it, and the run stops naming the cache."""
+    from pipeline import executor as E
+
+    (tmp_path / "marker").write_bytes(b"")
+    assert E._worker_probe(str(tmp_path / "marker")) and not E._worker_probe(str(tmp_path / "other"))
+
+    class Client:  # a cluster whose worker sees another filesystem
+        def wait_for_workers(self, n, timeout):
+            pass
+
+        def submit(self, fn, url, pure):
+            return types.SimpleNamespace(result=lambda timeout: fn(url.replace(str(tmp_path), str(tmp_path / "x"))))
+
+    ex = Executor(scheduler="tcp://127.0.0.1:1", progress=False)
+    monkeypatch.setattr(ex, "client", lambda: Client())
+    with pytest.raises(PipelineError, match="does not see the cache"):
+        ex.check_cluster(str(tmp_path / "cache"))
+    assert not list((tmp_path / "cache").iterdir())
 
 
 def test_second_writer_refused_and_stale_lock_recovered(tmp_path):
