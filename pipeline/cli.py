@@ -3,6 +3,7 @@ one-line message and exit code 2."""
 
 from __future__ import annotations
 
+import difflib
 import functools
 import json
 import os
@@ -67,6 +68,20 @@ def _absolute(path: str) -> str:
     return path if not path or "://" in path else os.path.abspath(path)
 
 
+def _check_url(option: str, url: str) -> None:
+    """ConfigError when fsspec cannot open ``url`` at all: an unknown protocol, or one whose
+    package is not installed (s3fs for s3://, gcsfs for gs://)."""
+    if "://" not in url:
+        return
+    import fsspec
+
+    try:
+        fsspec.core.url_to_fs(url)
+    except (ImportError, ValueError) as exc:
+        raise ConfigError(f"{option} {url}: fsspec cannot open it ({str(exc).splitlines()[0]}); install the "
+                          f"filesystem package its protocol needs (e.g. `pip install s3fs` for s3://)") from None
+
+
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
     from pipeline.executor import RunEnv
     from pipeline.runner import default_data_root
@@ -76,6 +91,7 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     overrides = parse_set_options(sets)
     cfg = load_config(dataset, overrides)
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
+    _check_url("--cache", cache_root)
     explicit = set(overrides) | set(env_overrides(dict(os.environ)))
     cfg = with_nets_from(cfg, cache_root, explicit)  # another dataset's nets bring their radar's settings
     if not data_root:
@@ -455,7 +471,14 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
 def unlock(stage, dataset, data_root, cache_root, sets):
     """Remove the lock of STAGE left by a run that died on another machine."""
     from pipeline.lock import remove_lock
+    from stages import all_stages
 
+    names = [s.name for s in all_stages()]
+    if stage not in names:
+        near = difflib.get_close_matches(stage, names, n=1)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        raise ConfigError(f"unknown stage '{stage}' (stages: {', '.join(names)}){hint}")
+    _check_url("--cache", cache_root)
     url = join(cache_root, dataset, "locks", f"{stage}.lock")
     click.echo(f"removed {url}" if remove_lock(url) else f"no lock at {url}")
 

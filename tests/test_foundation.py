@@ -478,6 +478,22 @@ def test_values_no_stage_could_run_with_are_refused_with_the_key_before_anything
                 environ={})  # values at the limits pass
 
 
+def test_cli_names_a_cache_url_fsspec_cannot_open_and_an_unknown_stage_to_unlock(tmp_path):
+    """Until 2026-12-04: a raw ImportError or ValueError traceback for the URL; `unlock heatmap`
+    (a typo) said there was no lock and exited 0."""
+    from pipeline.cli import main
+
+    for url, words in (("s3x://bucket/cache", "Protocol not known"), ("nosuchfs://b/c", "not known")):
+        for args in (["status"], ["run", "calibrate"], ["unlock", "heatmaps"]):
+            out = CliRunner().invoke(main, [*args, "--dataset", "vod", "--cache", url, "--data-root", str(tmp_path)])
+            assert out.exit_code == 2 and "Traceback" not in out.output, (args, out.output)
+            assert f"--cache {url}: fsspec cannot open it" in out.output and words in out.output
+    out = CliRunner().invoke(main, ["unlock", "heatmap", "--dataset", "synthetic", "--cache", str(tmp_path)])
+    assert out.exit_code == 2 and "did you mean 'heatmaps'" in out.output
+    out = CliRunner().invoke(main, ["unlock", "heatmaps", "--dataset", "synthetic", "--cache", str(tmp_path)])
+    assert out.exit_code == 0 and "no lock at" in out.output
+
+
 def test_a_killed_forced_rebuild_leaves_downstream_stale(tmp_path, monkeypatch):
     """Downstream outputs are marked stale before the rebuild starts, not after it ends."""
     log = tmp_path / "calls.txt"
