@@ -235,6 +235,12 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
         for key in ("report", "figures", "checkpoints", "output"):
             if key in r.summary:
                 click.echo(f"{r.stage} {key}: {r.summary[key]}")
+    nothing = [r for r in reports if r.processed and len(r.failures) == r.processed]
+    if nothing:  # a run that made nothing is no success for a script (a few failed frames are: see --strict)
+        r = nothing[0]
+        first = (r.failures[0][1] or "no reason recorded").splitlines()[0]
+        click.echo(f"error: every frame stage {r.stage} tried in this run failed ({r.processed}), e.g. {first}", err=True)
+        sys.exit(1)
 
 
 def _print_status_row(row: dict) -> None:

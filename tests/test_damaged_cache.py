@@ -440,3 +440,18 @@ def test_cli_names_relocate_when_the_recorded_data_root_is_gone(tmp_path, fake_c
     assert out.exit_code == 2
     assert f"the cache was made from the data at {data}, which is not there any more" in out.stderr
     assert "`pipeline relocate --dataset synthetic --data-root NEW_PLACE`" in out.stderr
+
+
+def test_cli_run_exits_1_when_a_stage_made_nothing(tmp_path, fake_cli, monkeypatch):
+    """Some failed frames leave the run a success (exit 0; --strict stops at the first); a stage
+    whose every frame failed made nothing, which a script must notice (until 2026-12-04: exit 0)."""
+    import sys
+
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "f001", "f002"])
+    out = fake_cli(tmp_path / "some", "run", "calibrate", "--workers", "1")
+    assert out.exit_code == 0 and "1 frame(s) failed" in out.stderr, out.output
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
+    out = fake_cli(tmp_path / "all", "run", "calibrate", "--workers", "1")
+    assert out.exit_code == 1, out.output
+    assert "error: every frame stage calibrate tried in this run failed (2), e.g. " in out.stderr
+    assert "bad000.bin is truncated" in out.stderr
