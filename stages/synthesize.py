@@ -110,12 +110,7 @@ def check_generation(cfg: Config) -> None:
                                 ("placement", s.placement, PLACEMENTS)):
         if value not in allowed:
             raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
-    if s.refill_rounds < 0:
-        raise ConfigError(f"synth.refill_rounds must be >= 0, got {s.refill_rounds}")
-    if not cfg.placement.voxel_m >= 0:
-        raise ConfigError(f"placement.voxel_m must be >= 0, got {cfg.placement.voxel_m}")
-    if not 0.0 <= cfg.placement.map_weight <= 1.0:
-        raise ConfigError(f"placement.map_weight must be in [0, 1], got {cfg.placement.map_weight}")
+    # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set
     check_split("synth.split", s.split)
 
 

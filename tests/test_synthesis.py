@@ -510,11 +510,11 @@ def test_bad_generation_settings_are_config_errors():
     for key, value, words in (("synth.sampling", "sorted", "synth.sampling must be one of iid, systematic"),
                               ("synth.range_estimator", "far", "synth.range_estimator"),
                               ("synth.no_support", "skip", "synth.no_support"),
-                              ("synth.refill_rounds", "-1", "synth.refill_rounds must be >= 0"),
+                              ("synth.refill_rounds", "-1", "synth.refill_rounds' must be finite and >= 0"),
                               ("synth.placement", "mesh", "synth.placement must be one of lidar, ray"),
-                              ("placement.voxel_m", "-1", "placement.voxel_m must be >= 0"),
-                              ("placement.map_weight", "1.5", r"placement.map_weight must be in \[0, 1\]")):
-        with pytest.raises(ConfigError, match=words):
+                              ("placement.voxel_m", "-1", "placement.voxel_m' must be finite and >= 0"),
+                              ("placement.map_weight", "1.5", r"placement.map_weight' must be in \[0, 1\]")):
+        with pytest.raises(ConfigError, match=words):  # numeric ones when the configuration is built
             check_generation(load_config("synthetic", {key: value}, environ={}))
 
 
