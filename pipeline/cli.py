@@ -134,7 +134,9 @@ def _ensure_world(env, progress: bool) -> None:
         summary = generate(env.data_root, frames=ds.world_frames, seed=ds.world_seed,
                            resolution_wh=tuple(ds.world_resolution), sequence_len=ds.world_sequence_len,
                            progress=progress)
-        click.echo(f"  done in {summary.get('seconds', 0):.1f} s", err=True)
+        kept = summary.get("resumed_sequences", 0)
+        resumed = f" ({kept} of {summary['sequences']} sequences kept from an interrupted run)" if kept else ""
+        click.echo(f"  done in {summary.get('seconds', 0):.1f} s{resumed}", err=True)
 
 
 def _world_matches(env) -> bool:

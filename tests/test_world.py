@@ -283,6 +283,40 @@ def test_failed_generation_leaves_no_world_json(tmp_path: Path, monkeypatch) -> 
     assert not (tmp_path / "world.json").exists()
 
 
+def test_an_interrupted_generation_resumes_its_finished_sequences(tmp_path: Path, monkeypatch) -> None:
+    """A run that stops keeps the sequences it finished; the next run with the same arguments makes
+    only the others, and the world is byte for byte the uninterrupted one's. Other arguments start
+    afresh. Until 2026-12-04 every run started from frame 0 (minutes lost on `make demo-large`)."""
+    import pipeline.world.generator as gen
+
+    kw = dict(frames=6, seed=4, resolution_wh=(64, 32), lidar_lines=16, sequence_len=2, scene_mix=("highway", "urban"))
+    generate(tmp_path / "whole", **kw)
+    real, calls = gen.run_sequence, []
+
+    def stop_at_third(*job):
+        calls.append(job[1])
+        if job[1] == 2 and len(calls) == 3:
+            raise KeyboardInterrupt("killed")
+        return real(*job)
+
+    monkeypatch.setattr(gen, "MAX_WORKERS", 1)  # in-process, so that the stop can be injected
+    monkeypatch.setattr(gen, "run_sequence", stop_at_third)
+    with pytest.raises(KeyboardInterrupt):
+        generate(tmp_path / "w", **kw)
+    assert not (tmp_path / "w" / "world.json").exists()
+    summary = generate(tmp_path / "w", **kw)
+    assert calls == [0, 1, 2, 2] and summary["resumed_sequences"] == 2
+    assert not (tmp_path / "w" / "partial").exists()
+    assert _hash_tree(tmp_path / "w") == _hash_tree(tmp_path / "whole")
+    # stopped again, then asked for another seed: nothing of the first is kept
+    calls.clear()
+    monkeypatch.setattr(gen, "run_sequence", lambda *job: (calls.append(job[1]), real(*job))[1])
+    (tmp_path / "w" / "world.json").unlink()
+    (tmp_path / "w" / "partial").mkdir()
+    (tmp_path / "w" / "partial" / "arguments.json").write_text("{}")
+    assert generate(tmp_path / "w", **{**kw, "seed": 5})["resumed_sequences"] == 0 and calls == [0, 1, 2]
+
+
 @pytest.mark.parametrize("kwargs", [dict(frames=0), dict(lidar_lines=32), dict(scene_mix=("moon",)),
                                     dict(sequence_len=0), dict(resolution_wh=(8, 8))])
 def test_bad_arguments_raise_config_error(tmp_path: Path, kwargs: dict) -> None:

@@ -3,7 +3,10 @@
 Frames are numbered globally 00000.. in order; a sequence is ``sequence_len`` consecutive frames of
 one scene (scene types cycle through ``scene_mix``). Sequences are independent and seeded by
 (seed, sequence index), so they run in parallel (2 processes) and the same seed gives the same
-bytes. ``world.json`` is written last (atomically): a folder without it is an incomplete world.
+bytes. ``world.json`` is written last (atomically): a folder without it is an incomplete world. A run
+that stops (killed, a crash) leaves each finished sequence's entry under ``partial/``; the next
+generate() with the same arguments keeps those sequences and makes only the others (the same bytes
+as one uninterrupted run, since sequences are independent), other arguments start afresh.
 """
 
 from __future__ import annotations
@@ -13,8 +16,9 @@ import os
 import shutil
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,12 +46,20 @@ def generate(out_dir: str | Path, frames: int, seed: int, resolution_wh: tuple[i
     _check_args(frames, resolution_wh, scene_mix, lidar_lines, sequence_len)
     start = time.perf_counter()
     root = Path(out_dir)
-    _clear(root)
+    args = {"version": GENERATOR_VERSION, "frames": int(frames), "seed": int(seed),
+            "resolution_wh": [int(resolution_wh[0]), int(resolution_wh[1])], "scene_mix": list(scene_mix),
+            "lidar_lines": int(lidar_lines), "sequence_len": int(sequence_len)}
+    finished = _finished_sequences(root, args)
+    if not finished:
+        _clear(root)
+        _write_json(root / PARTIAL / ARGS_JSON, args)
     make_dirs(root)
     jobs = [(str(root), i, first, min(sequence_len, frames - first), int(seed), scene_mix[i % len(scene_mix)],
              (int(resolution_wh[0]), int(resolution_wh[1])), int(lidar_lines))
             for i, first in enumerate(range(0, frames, sequence_len))]
-    results = _run_jobs(jobs, frames, progress)
+    results = _run_jobs([j for j in jobs if j[1] not in finished], frames, progress,
+                        sum(j[3] for j in jobs if j[1] in finished))
+    results = sorted([*finished.values(), *results], key=lambda r: r["first_frame"])
     _write_index(root, results)
     counts = [c for r in results for c in r["radar_points"]]
     summary = {
@@ -62,10 +74,10 @@ def generate(out_dir: str | Path, frames: int, seed: int, resolution_wh: tuple[i
         "classes": list(LABELLED_CLASSES), "radar": _radar_description(RadarModel()),
         "mean_radar_points": summary["mean_radar_points"], "sequences": results,
     }
-    tmp = root / (WORLD_JSON + ".tmp")
-    tmp.write_text(json.dumps(world, indent=1))
-    os.replace(tmp, root / WORLD_JSON)
+    _write_json(root / WORLD_JSON, world)
+    shutil.rmtree(root / PARTIAL)
     summary["seconds"] = time.perf_counter() - start
+    summary["resumed_sequences"] = len(finished)
     summary["out_dir"] = str(root)
     return summary
 
@@ -84,12 +96,39 @@ def _check_args(frames: int, resolution_wh: tuple[int, int], scene_mix: tuple[st
         raise ConfigError(f"lidar_lines must be one of {sorted(LIDAR_PATTERNS)}, got {lidar_lines}")
 
 
+PARTIAL = "partial"
+"""Folder of an unfinished world: its arguments and each finished sequence's entry."""
+ARGS_JSON = "arguments.json"
+
+
+def _write_json(path: Path, value: Any) -> None:
+    """Write ``value`` as JSON atomically (a temporary file renamed)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(value, indent=1))
+    os.replace(tmp, path)
+
+
+def _finished_sequences(root: Path, args: dict) -> dict[int, dict]:
+    """{sequence index: world.json entry} of the sequences an unfinished run with the same
+    ``args`` completed in ``root`` (empty: none, a finished world, or other arguments)."""
+    if (root / WORLD_JSON).exists():
+        return {}
+    try:
+        if json.loads((root / PARTIAL / ARGS_JSON).read_text()) != args:
+            return {}
+        entries = [json.loads(p.read_text()) for p in sorted((root / PARTIAL).glob("seq*.json"))]
+    except (OSError, ValueError):  # nothing to resume, or a file cut short: start afresh
+        return {}
+    return {int(e["index"]): e["entry"] for e in entries}
+
+
 def _clear(root: Path) -> None:
     """Remove a previous world's marker first, then its folders (only the ones this module writes)."""
     marker = root / WORLD_JSON
     if marker.exists():
         marker.unlink()
-    for sub in ("lidar", "radar", "ImageSets"):
+    for sub in (PARTIAL, "lidar", "radar", "ImageSets"):
         if (root / sub).exists():
             shutil.rmtree(root / sub)
 
@@ -109,17 +148,24 @@ def _watch_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="watch-parent", daemon=True).start()
 
 
-def _run_jobs(jobs: list[tuple], frames: int, progress: bool) -> list[dict]:
-    """Run the sequence jobs (in 2 processes when there are several); results in sequence order."""
+def _run_jobs(jobs: list[tuple], frames: int, progress: bool, done_frames: int = 0) -> list[dict]:
+    """Run the sequence jobs (in 2 processes when there are several); results in sequence order.
+    Each finished sequence's entry is recorded under ``partial/`` as it comes in (what a later run
+    resumes from); ``done_frames`` of the ``frames`` were made by an earlier run."""
     from tqdm import tqdm
 
-    bar = tqdm(total=frames, unit="frame", disable=not progress, desc="generate-world")
+    bar = tqdm(total=frames, initial=done_frames, unit="frame", disable=not progress, desc="generate-world")
     workers = min(MAX_WORKERS, len(jobs), os.cpu_count() or 1)
     results = []
+
+    def finished(job: tuple, res: dict) -> None:
+        _write_json(Path(job[0]) / PARTIAL / f"seq{job[1]:05d}.json", {"index": job[1], "entry": res})
+        results.append(res)
+        bar.update(res["last_frame"] - res["first_frame"] + 1)
+
     if workers <= 1:
         for job in jobs:
-            results.append(run_sequence(*job))
-            bar.update(results[-1]["last_frame"] - results[-1]["first_frame"] + 1)
+            finished(job, run_sequence(*job))
     else:
         import multiprocessing
 
@@ -127,11 +173,11 @@ def _run_jobs(jobs: list[tuple], frames: int, progress: bool) -> list[dict]:
         # deadlock the child on a lock some thread held at the fork
         with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_watch_parent,
                                  initargs=(os.getpid(),)) as pool:
-            for res in pool.map(_run_job, jobs):
-                results.append(res)
-                bar.update(res["last_frame"] - res["first_frame"] + 1)
+            futures = {pool.submit(_run_job, job): job for job in jobs}
+            for future in as_completed(futures):  # recorded in the order they finish: none waits on another
+                finished(futures[future], future.result())
     bar.close()
-    return results
+    return sorted(results, key=lambda r: r["first_frame"])
 
 
 def _run_job(job: tuple) -> dict:
