@@ -247,14 +247,16 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
 
 def _print_status_row(row: dict) -> None:
     current = {True: "current", False: "stale or missing", None: "unknown"}[row.get("current")]
+    if row.get("current") and row.get("pending"):  # the settings match, frames are left: not finished
+        current = "current, unfinished"
     if "done" in row:
-        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} done {row['done']:>6}  failed {row['failed']:>5}  "
+        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} done {row['done']:>6}  failed {row['failed']:>5}  "
                    f"pending {row['pending']:>6}  excluded {row['excluded']:>5}")
     elif row.get("damaged"):
-        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} damaged: {row['damaged']}")
+        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} damaged: {row['damaged']}")
     else:
         state = "finished" if row.get("exists") else "not run"
-        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<17} {state}")
+        click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} {state}")
     if row.get("note"):
         click.echo(f"{'':<{NAME_WIDTH}} note: {row['note']}")
 
@@ -265,8 +267,9 @@ def _print_status_row(row: dict) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON.")
 @_handle_errors
 def status(dataset, data_root, cache_root, sets, reasons, as_json):
-    """Per stage: frames done / failed / pending / excluded, and whether its fingerprint is current.
-    Exit code 2 when a stage's output is damaged (every stage is still listed)."""
+    """Per stage: frames done / failed / pending / excluded, and whether its fingerprint is current
+    ('current, unfinished': current with frames pending, as after an interrupted run). Exit code 2
+    when a stage's output is damaged (every stage is still listed)."""
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
     pipe = _pipeline(env, 1, None, progress=False)
     rows = pipe.status()

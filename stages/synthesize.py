@@ -303,9 +303,9 @@ def summarise(store, cfg: Config) -> list[str]:
         share = out[checked].sum(0) / max(n, 1)
         order = [k for k in np.argsort(-share, kind="stable") if share[k] > OUTSIDE_NOTE_SHARE]
         if n and order:
-            listed = ", ".join(f"{names[k]} {share[k]:.0%}" for k in order)
-            lines.append(f"{net} inputs outside the {low:g}-{high:g} percentiles of its training data{source}, share "
-                         f"of the {n:,} {rows} (1% there): {listed}; {effect}")
+            listed = ", ".join(f"{names[k]} on {share[k]:.0%}" for k in order)
+            lines.append(f"{net} inputs outside the {low:g}-{high:g} percentiles of its training data{source} (where "
+                         f"1% of its training rows lie): {listed} of the {n:,} {rows}; {effect}")
     return lines
 
 

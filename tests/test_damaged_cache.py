@@ -455,3 +455,11 @@ def test_cli_run_exits_1_when_a_stage_made_nothing(tmp_path, fake_cli, monkeypat
     assert out.exit_code == 1, out.output
     assert "error: every frame stage calibrate tried in this run failed (2), e.g. " in out.stderr
     assert "bad000.bin is truncated" in out.stderr
+
+
+def test_cli_status_says_unfinished_for_a_current_stage_with_frames_left(tmp_path, fake_cli):
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", "--frames", "0:4").exit_code == 0
+    status = fake_cli(tmp_path, "status").stdout
+    assert re.search(r"^heatmaps +current, unfinished +done +4 .* pending +4 ", status, re.M), status
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
+    assert re.search(r"^heatmaps +current +done +8 ", fake_cli(tmp_path, "status").stdout, re.M)

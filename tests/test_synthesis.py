@@ -558,9 +558,9 @@ def test_synthesize_summary_names_the_inputs_outside_placenets_training_range():
     store = _Store([DONE, DONE, PENDING], candidates=np.array([1000, 1000, 5]), outside_training=outside,
                    rss_points=np.array([100, 200, 5]), rss_outside=rss)
     line, rss_line = summarise(store, cfg)
-    assert rss_line.startswith("RSS-Net inputs outside") and "of the 300 synthesized points (1% there): range_m 10%;" \
-        in rss_line and rss_line.endswith("its RSS there is extrapolated"), rss_line
-    assert "of the 2,000 lidar candidates" in line and "log_neighbour_dist 40%, log_range 20%;" in line, line
+    assert rss_line.startswith("RSS-Net inputs outside") and "(where 1% of its training rows lie): range_m on 10% " \
+        "of the 300 synthesized points;" in rss_line and rss_line.endswith("its RSS there is extrapolated"), rss_line
+    assert "log_neighbour_dist on 40%, log_range on 20% of the 2,000 lidar candidates;" in line, line
     assert "z_m" not in line                                                    # 2%: below the note's share
     old = _Store([DONE, DONE], candidates=np.array([1000, 0]), outside_training=np.full((2, len(FEATURES)), -1),
                  rss_points=np.array([10, 0]), rss_outside=np.full((2, 4), -1))
