@@ -221,21 +221,23 @@ class Executor:
 
     def check_cluster(self, cache_root: str, timeout_s: float = 60.0) -> None:
         """With an existing cluster (``scheduler``): connect now, before any output is touched, and
-        run one probe task that imports the package and looks for the cache. PipelineError naming
-        the problem when no worker can (none connected, the package missing on the workers, the
-        cache elsewhere on their machines)."""
+        run one probe task that imports the package and looks for a marker file written into the
+        cache (created here if it is not there yet: a first run). PipelineError naming the problem:
+        no connection (a malformed or wrong address), no worker, the package missing on the workers,
+        the cache elsewhere on their machines."""
         if not self.scheduler:
             return
-        from pipeline.errors import PipelineError
-
         import uuid
 
         import fsspec
 
         from pipeline.cache import cache_error
+        from pipeline.errors import PipelineError
 
-        # a marker written here that the worker must see: the cache may not exist yet (a first
-        # run), and an empty folder is no object on an object store
+        def first_line(exc: BaseException) -> str:
+            return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+
+        # an empty folder is no object on an object store: a file the worker must see
         fs, path = fsspec.core.url_to_fs(cache_root)
         marker = f"{path.rstrip('/')}/.cluster-probe-{uuid.uuid4().hex}"
         try:
@@ -244,13 +246,18 @@ class Executor:
         except OSError as exc:
             raise cache_error(exc, f"writing a probe file into the cache {cache_root}") from None
         try:
-            client = self.client()
-            client.wait_for_workers(1, timeout=timeout_s)
-            found = client.submit(_worker_probe, fs.unstrip_protocol(marker), pure=False).result(timeout=timeout_s)
-        except Exception as exc:  # connection refused, timeouts, a worker that cannot unpickle the task
-            raise PipelineError(f"dask cluster at {self.scheduler}: no worker ran a probe task within {timeout_s:.0f} s "
-                                f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); its workers "
-                                f"need this package installed and the cache at the same path") from None
+            try:
+                client = self.client()
+            except Exception as exc:  # a malformed address, a refused connection
+                raise PipelineError(f"dask cluster at {self.scheduler}: cannot connect ({first_line(exc)}); give the "
+                                    f"scheduler's address, tcp://HOST:PORT") from None
+            try:
+                client.wait_for_workers(1, timeout=timeout_s)
+                found = client.submit(_worker_probe, fs.unstrip_protocol(marker), pure=False).result(timeout=timeout_s)
+            except Exception as exc:  # timeouts, a worker that cannot unpickle the task
+                raise PipelineError(f"dask cluster at {self.scheduler}: no worker ran a probe task within "
+                                    f"{timeout_s:.0f} s ({first_line(exc)}); its workers need this package installed "
+                                    f"and the cache at the same path") from None
         finally:
             try:
                 fs.rm_file(marker)

@@ -249,6 +249,10 @@ def test_a_worker_that_does_not_see_the_probe_marker_is_named(tmp_path, monkeypa
     with pytest.raises(PipelineError, match="does not see the cache"):
         ex.check_cluster(str(tmp_path / "cache"))
     assert not list((tmp_path / "cache").iterdir())
+    pytest.importorskip("distributed")
+    with pytest.raises(PipelineError, match="dask cluster at foo: cannot connect .*missing port"):
+        Executor(scheduler="foo", progress=False).check_cluster(str(tmp_path / "cache"))  # a malformed address
+    assert not list((tmp_path / "cache").iterdir())
 
 
 def test_second_writer_refused_and_stale_lock_recovered(tmp_path):
