@@ -45,6 +45,25 @@ def source_train(cache_root: str, dataset: str) -> DirStore:
     return dir_store(cache_root, dataset, "train")
 
 
+def nets_origin(cache_root: str, dataset: str) -> str:
+    """The dataset whose train stage trained the nets that ``dataset``'s train stage holds: itself,
+    or, where that one took another's (its summary's ``nets_from``), that one's origin, and so on
+    (KITTI taking View-of-Delft's nets that are Astyx's: 'astyx'). Nets are taken from the origin,
+    with its camera and settings, and retraining the origin makes every dataset down the chain
+    stale. A dataset without a finished train stage is its own origin (the train stage then says
+    it has not run). PipelineError on a loop."""
+    chain = [dataset]
+    while True:
+        meta = source_train(cache_root, chain[-1]).meta() or {}
+        taken_from = meta.get("summary", {}).get("nets_from")
+        if not taken_from:
+            return chain[-1]
+        if taken_from in chain:
+            raise PipelineError(f"train.nets_from: the datasets take their nets from each other in a loop "
+                                f"({' -> '.join([*chain, taken_from])}); train one of them on its own radar")
+        chain.append(taken_from)
+
+
 def trained_settings(cache_root: str, dataset: str) -> dict[str, Any]:
     """The :data:`RADAR_SETTINGS` the finished train stage of ``dataset`` (a profile name) under
     ``cache_root`` trained with: its record (written since 2026-12-02), else the values its
@@ -82,6 +101,7 @@ def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = ()) -
         return cfg
     if source == cfg.profile:
         raise ConfigError(f"train.nets_from = '{source}' names this dataset itself; leave it empty to train here")
+    source = nets_origin(cache_root, source)
     if source_train(cache_root, source).meta() is None:
         return cfg  # nothing trained there yet: the train stage says so when it runs
     trained = trained_settings(cache_root, source)

@@ -123,12 +123,20 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
             "no_ego_motion": len(no_motion),
-            "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root}"
+            "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root} (the RCS "
+                       f"column in {cfg.radar.rss_unit}, the unit of the simulated {cfg.radar.name})"
                        + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
                           f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
-                       + ("" if lists["train"] or cfg.synth.split == "all" else
-                          f"; no frame of the train split (synth.split = '{cfg.synth.split}': --set synth.split=all "
-                          f"exports every frame)")}
+                       + ("" if lists["train"] else _no_train_hint(cfg))}
+
+
+def _no_train_hint(cfg: Config) -> str:
+    """Why the export has no frame in ImageSets/train.txt (a detector trains on none), and the way out."""
+    if cfg.synth.split != "all":
+        return f"; no frame of the train split (synth.split = '{cfg.synth.split}': --set synth.split=all exports every frame)"
+    return (f"; no frame is in the train split (split.rule = '{cfg.split.rule}', split.fractions = "
+            f"{','.join(f'{x:g}' for x in cfg.split.fractions)}), so OpenPCDet finds no training frame: give the "
+            f"train part a share, e.g. --set split.rule=sequence --set split.fractions=0.5,0.5,0")
 
 
 NO_MOTION_LIST = "ego_velocity_unknown.txt"

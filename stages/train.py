@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import transfer
-from pipeline.cache import DONE, RaggedRows
+from pipeline.cache import DONE, RaggedRows, frame_store
 from pipeline.checkpoint import read_meta
 from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import ConfigError, MetadataError, PipelineError
 from pipeline.stage import DatasetStage
 
 VERSION = 2
@@ -180,7 +180,9 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
     settings they were trained with (pipeline.transfer); this dataset's mean training map; the other
     dataset's camera (transfer.source_camera; in the summary as source_camera, None with the reason
     in the message when its calibrate output is gone), from which synthesize moves Dis-Net's prior."""
-    source = cfg.train.nets_from
+    named = cfg.train.nets_from
+    source = transfer.nets_origin(inputs.env.cache_root, named)  # named may itself hold another's nets
+    via = f" (through dataset {named}, which took them from it)" if source != named else ""
     trained = transfer.trained_settings(inputs.env.cache_root, source)
     wrong = transfer.mismatches(cfg, trained)
     if wrong:
@@ -197,7 +199,8 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
     try:  # where the source radar's returns lay in its camera: Dis-Net's prior is moved from there
         camera, unmoved = transfer.camera_record(transfer.source_camera(inputs.env.cache_root, source)), ""
     except PipelineError as exc:
-        camera, unmoved = None, f"; Dis-Net's prior is not moved to this camera: {exc}"
+        camera, unmoved = None, (f"; Dis-Net's prior is not moved to this camera: {exc} (the next run of this "
+                                 f"dataset then takes the nets again, with that camera)")
     record = {"nets_from": source, "source": src.path, "source_fingerprint": meta.get("fingerprint"),
               "source_finished": meta.get("finished"), "taken": taken, "settings": trained,
               "source_camera": camera, "source_metrics": meta.get("summary", {})}
@@ -205,7 +208,7 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
     nets = [n for n in NETS if f"{n}/best.safetensors" in taken]
     when = time.strftime("%Y-%m-%d %H:%M", time.gmtime(meta["finished"])) if meta.get("finished") else "?"
     return {"checkpoints": str(root), "nets_from": source, "settings": trained, "source_camera": camera,
-            "message": f"the nets of dataset {source} ({', '.join(nets)}; trained {when} UTC): "
+            "message": f"the nets of dataset {source}{via} ({', '.join(nets)}; trained {when} UTC): "
                        f"radar {trained.get('radar.name', '?')}{unmoved}"}
 
 
@@ -222,13 +225,22 @@ def _save_mean_map(inputs, root: Path) -> None:
 
 
 def nets_from_fingerprint(cfg: Config, env) -> str:
-    """train.nets_from: its value and the other dataset's train output (fingerprint and finishing
-    time), so that retraining that one makes this train stage, and what was synthesized with its
-    nets, stale; '' without (not a config key: train outputs made before it stay current)."""
+    """train.nets_from: its value, the dataset that trained the nets (transfer.nets_origin) and its
+    train output (fingerprint and finishing time), so that retraining that one makes this train
+    stage, and what was synthesized with its nets, stale, also through a dataset that took them
+    from it; and whether its calibrate output is there (Dis-Net's prior is moved from its camera:
+    calibrated after the nets were taken, they are taken again); '' without (not a config key:
+    train outputs made before it stay current)."""
     if not cfg.train.nets_from:
         return ""
-    meta = transfer.source_train(env.cache_root, cfg.train.nets_from).meta()
-    return f"{cfg.train.nets_from}:" + (f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else "absent")
+    origin = transfer.nets_origin(env.cache_root, cfg.train.nets_from)
+    meta = transfer.source_train(env.cache_root, origin).meta()
+    try:
+        camera = "camera" if frame_store(env.cache_root, origin, "calibrate").exists() else "no camera"
+    except MetadataError:
+        camera = "no camera"
+    return (f"{cfg.train.nets_from}:{origin}:" + (f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else
+                                                  "absent") + f":{camera}")
 
 
 def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:

@@ -136,9 +136,14 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
     _check_prior_moved(pipe, trained, reports["train"].summary)
     assert any(f"ego velocity unknown on {KITTI_FRAMES} of {KITTI_FRAMES} frames" in line for line in lines)
     assert f"; {KITTI_FRAMES} of them without a recorded ego motion" in reports["export"].summary["message"]
+    assert f"(the RCS column in {cfg.radar.rss_unit}, the unit of the simulated " in reports["export"].summary["message"]
     assert (trained / "kitti" / "export" / "ego_velocity_unknown.txt").read_text().split() == pipe.frame_ids()
-    exported = trained / "kitti" / "export" / "radar" / "testing"
+    # every frame in OpenPCDet's training/ (the profile's split: train and val about half each; until
+    # 2026-12-04 all were test, under testing/, where OpenPCDet reads no label)
+    exported = trained / "kitti" / "export" / "radar" / "training"
     assert len(list((exported / "velodyne").glob("*.bin"))) == KITTI_FRAMES
+    sets = {name: (exported.parent / "ImageSets" / f"{name}.txt").read_text().split() for name in ("train", "val", "test")}
+    assert sorted(sets["train"] + sets["val"]) == pipe.frame_ids() and not sets["test"]
     # KITTI's calib with the radar in the Velodyne's place, and KITTI's labels as they are
     assert (exported / "label_2" / "000000.txt").read_text() == KITTI_LABEL
     assert not (exported / "label_2" / "000001.txt").exists()
@@ -152,12 +157,32 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
     with pytest.raises(PipelineError, match="records no radar"):
         pipe.run("evaluate")
     assert np.all(pipe.env.store("evaluate-frames").status() == EXCLUDED)
+    # a dataset taking KITTI's nets takes the world's, from the world's train stage (KITTI's default
+    # is View-of-Delft's nets, which may be Astyx's; until 2026-12-04 the prior was moved from the
+    # middle dataset's camera, and retraining the first left the last one current)
+    from pipeline.transfer import nets_origin
+    from stages.train import nets_from_fingerprint
+
+    assert nets_origin(str(trained), "kitti") == "synthetic" and nets_origin(str(trained), "synthetic") == "synthetic"
+    chained = load_config("vod", {"train.nets_from": "kitti"}, environ={})
+    chain_fp = nets_from_fingerprint(chained, pipe.env)
+    assert chain_fp.startswith("kitti:synthetic:") and chain_fp.endswith(":camera")
+    assert chain_fp.split(":", 1)[1] == nets_from_fingerprint(_kitti_cfg(trained), pipe.env).split(":", 1)[1]
     # the other dataset's nets retrained: this dataset's copy and what it synthesized are stale
     assert pipe.is_current("synthesize")
     _pipeline(load_config("synthetic", TINY, environ={}), trained, "synthetic", trained.parent / "world").run(
         "train", force=True)
     again = _pipeline(_kitti_cfg(trained), trained, "kitti", kitti)
     assert not again.is_current("train") and not again.is_current("synthesize")
+    assert nets_from_fingerprint(chained, pipe.env) != chain_fp  # down the chain too
+    # nets taken while the source's calibrate output was gone (prior not moved) are taken again once it is back
+    calib, away = trained / "synthetic" / "calibrate.zarr", trained / "synthetic" / "away.zarr"
+    with_camera = nets_from_fingerprint(_kitti_cfg(trained), pipe.env)
+    calib.rename(away)
+    try:
+        assert nets_from_fingerprint(_kitti_cfg(trained), pipe.env) == with_camera[:-len("camera")] + "no camera"
+    finally:
+        away.rename(calib)
 
 
 def _check_prior_moved(pipe: Pipeline, cache: Path, train_summary: dict) -> None:
@@ -203,7 +228,7 @@ def _check_inputs_outside_training(pipe: Pipeline, cache: Path, notes: list[str]
     assert named, share   # a ground plane and a wall under a random image: unlike the world's scenes
     place = [n for n in notes if n.startswith("PlaceNet inputs outside")]
     assert len(place) == 1 and "(nets of 'synthetic')" in place[0], notes
-    assert all(f"{name} {share[FEATURES.index(name)]:.0%}" in place[0] for name in named)
+    assert all(f"{name} on {share[FEATURES.index(name)]:.0%}" in place[0] for name in named)
     # RSS-Net's inputs: KITTI without oxts gives every static point Doppler 0, below the 0.5
     # percentile of the world's training points' |Doppler|
     from pipeline.patches import INPUT_SUMMARIES
@@ -211,7 +236,7 @@ def _check_inputs_outside_training(pipe: Pipeline, cache: Path, notes: list[str]
         sum(int(syn.read("rss_points", i)) for i in range(KITTI_FRAMES))
     assert rss[INPUT_SUMMARIES.index("abs_doppler_mps")] > OUTSIDE_NOTE_SHARE
     (rss_note,) = [n for n in notes if n.startswith("RSS-Net inputs outside")]
-    assert f"abs_doppler_mps {rss[INPUT_SUMMARIES.index('abs_doppler_mps')]:.0%}" in rss_note
+    assert f"abs_doppler_mps on {rss[INPUT_SUMMARIES.index('abs_doppler_mps')]:.0%}" in rss_note
 
 
 def test_the_train_stage_refuses_settings_the_nets_were_not_trained_with(trained, tmp_path):
