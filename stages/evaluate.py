@@ -62,8 +62,9 @@ restricted to the evaluated region; the static-point Doppler check leaves out po
 unknown velocity; 10: nets of another dataset (train.nets_from) compared as pipeline.transfer.comparison
 says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; the physics checks
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
-wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on."""
-REPORT_VERSION = 12
+wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on (13: with another dataset's
+nets the report says that the baselines know this dataset's own radar)."""
+REPORT_VERSION = 13
 """The evaluate report's version (12: the RSS histogram bins each set apart when the units differ);
 evaluate-frames keeps VERSION."""
 

@@ -279,11 +279,14 @@ def test_a_radar_of_other_rss_units_is_evaluated_on_position_and_doppler(trained
     got = comparison(astyx_on_vod)
     assert (got.rss, got.doppler_span_mps, got.real_doppler_span_mps) == (False, ASTYX_SPAN_MPS, 0.0)
     assert "synthesized radar's span 10.3936 m/s (the real radar does not wrap)" in got.notes[1]
+    assert got.notes[2].startswith("the baselines' counts and maps come from this dataset's own radar on its train "
+                                   "split, which the nets of 'astyx' never saw")
     pipe = _pipeline(cfg, trained, "astyx", tmp_path / "astyx")
     pipe.run("evaluate")
     report = json.loads((trained / "astyx" / "evaluate" / "report.json").read_text())
     assert "RSS not compared" in report["meta"]["compared"] and "10.3936 m/s" in report["meta"]["compared"]
     assert "RSS not compared" in (trained / "astyx" / "evaluate" / "report.md").read_text()
+    assert "(with eval.split = all, the evaluated frames among them)" not in report["meta"]["compared"]  # test split
     assert report["distribution_distances"]["model"]["rss"] is None and report["distribution_distances"]["model"]["range_m"] is not None
     part = pipe.env.store("evaluate-frames")
     test = np.flatnonzero(part.status() == DONE)
