@@ -460,16 +460,18 @@ LIMITS: dict[str, str] = {
     "train.threads": ">0",
     "synth.refill_rounds": ">=0",
     "export.noise_fraction": ">=0",
-    "eval.figure_frames": ">=0", "eval.gate_m": ">0", "eval.gate_rss": ">0", "eval.gate_doppler_mps": ">0",
+    "eval.figure_frames": ">=0", "eval.gate_m": ">0 or inf", "eval.gate_rss": ">0 or inf",
+    "eval.gate_doppler_mps": ">0 or inf",
     "run.workers": ">0",
 }
-"""The values each numeric key may take (every item of a tuple): '>0' and '>=0' finite, '[0,1]' and
-'[0,1)' intervals, 'sign' +1 or -1. Checked wherever a value is set (profile, environment, --set),
+"""The values each numeric key may take (every item of a tuple): '>0' and '>=0' finite, '>0 or inf'
+(a gate that inf turns off), '[0,1]' and '[0,1)' intervals, 'sign' +1 or -1. Checked wherever a value is set (profile, environment, --set),
 so that a setting no stage could run with is refused before any output is touched."""
 
 _LIMIT_TESTS: dict[str, tuple[str, Any]] = {
     ">0": ("finite and > 0", lambda v: math.isfinite(v) and v > 0),
     ">=0": ("finite and >= 0", lambda v: math.isfinite(v) and v >= 0),
+    ">0 or inf": ("> 0 (inf: no gate)", lambda v: v > 0),
     "[0,1]": ("in [0, 1]", lambda v: 0 <= v <= 1),
     "[0,1)": ("in [0, 1)", lambda v: 0 <= v < 1),
     "sign": ("+1 or -1", lambda v: v in (1, -1)),

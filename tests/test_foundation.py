@@ -478,8 +478,8 @@ def test_values_no_stage_could_run_with_are_refused_with_the_key_before_anything
                                     "--set", f"{key}={value}"])
     assert out.exit_code != 0 and key in out.output and "Traceback" not in out.output
     assert not (tmp_path / "c").exists()
-    load_config("synthetic", {"radar.doppler_sign": "-1", "train.ema_decay": "0.99", "placement.map_weight": "0"},
-                environ={})  # values at the limits pass
+    load_config("synthetic", {"radar.doppler_sign": "-1", "train.ema_decay": "0.99", "placement.map_weight": "0",
+                              "eval.gate_rss": "inf"}, environ={})  # values at the limits pass; inf: no gate
 
 
 def test_cli_names_a_cache_url_fsspec_cannot_open_and_an_unknown_stage_to_unlock(tmp_path):
