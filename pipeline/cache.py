@@ -250,22 +250,31 @@ class FrameStore:
                 return self._chunk_error(g, self._member(g, name), int(index), problem)
         return exc
 
-    def array_names(self) -> list[str]:
-        """Names of the output's arrays, from its folder (an array whose metadata cannot be read
-        is listed too; zarr's own listing would stop on it)."""
+    def _array_folders(self) -> dict[str, bool]:
+        """{name: whether its ``zarr.json`` is there} of the output's array folders (every folder
+        of the group is an array's), from the file system: zarr's own listing stops on an array
+        whose metadata cannot be read, and leaves out one whose metadata is gone."""
         fs, path = fsspec.core.url_to_fs(self.url)
         try:
             entries = fs.ls(path, detail=True)
         except OSError as exc:
             raise cache_error(exc, f"listing {self.url}") from None
         names = [e["name"].rstrip("/").rsplit("/", 1)[-1] for e in entries if e.get("type") == "directory"]
-        return sorted(n for n in names if fs.exists(join(path, n, "zarr.json")))
+        return {n: fs.exists(join(path, n, "zarr.json")) for n in sorted(names)}
+
+    def array_names(self) -> list[str]:
+        """Names of the output's arrays that have their metadata file."""
+        return [n for n, has_meta in self._array_folders().items() if has_meta]
 
     def check_metadata(self) -> None:
-        """MetadataError naming the first array whose ``zarr.json`` cannot be read (every frame of
-        it would be unreadable): a run that resumes the output, ``status`` and ``verify`` ask first."""
+        """MetadataError naming the first array whose ``zarr.json`` is gone or cannot be read (every
+        frame of it would be unreadable): a run that resumes the output, ``status`` and ``verify``
+        ask first."""
         g = self._group("r")
-        for name in self.array_names():
+        for name, has_meta in self._array_folders().items():
+            if not has_meta:
+                raise MetadataError(f"{join(self.url, name, 'zarr.json')}: the metadata of array {name} is missing; "
+                                    f"recompute the stage: delete {self.url} or run it with --force")
             self._member(g, name)
 
     def _member(self, g: zarr.Group, name: str) -> zarr.Array:
@@ -321,6 +330,7 @@ class FrameStore:
         arrays). MetadataError when the group's or an array's metadata cannot be read."""
         if not self.exists():
             raise CacheError(f"{self.url}: no output to verify")
+        self.check_metadata()
         g = self._group("r")
         names = sorted(set(self.array_names()) - {"status", "reason"})
         total = self._member(g, "status").shape[0] * (2 + len(names))

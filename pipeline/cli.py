@@ -237,11 +237,14 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
         for key in ("report", "figures", "checkpoints", "output"):
             if key in r.summary:
                 click.echo(f"{r.stage} {key}: {r.summary[key]}")
-    nothing = [r for r in reports if r.processed and len(r.failures) == r.processed]
-    if nothing:  # a run that made nothing is no success for a script (a few failed frames are: see --strict)
+    # a stage with no frame done after a run that failed every frame it tried made nothing: no success
+    # for a script (some failed frames beside done ones are: see --strict)
+    nothing = [r for r in reports if r.processed and len(r.failures) == r.processed and r.done == 0]
+    if nothing:
         r = nothing[0]
         first = (r.failures[0][1] or "no reason recorded").splitlines()[0]
-        click.echo(f"error: every frame stage {r.stage} tried in this run failed ({r.processed}), e.g. {first}", err=True)
+        click.echo(f"error: stage {r.stage} has no frame done: all {r.processed} frame(s) it tried in this run "
+                   f"failed, e.g. {first}", err=True)
         sys.exit(1)
 
 
@@ -480,11 +483,12 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
 @dataset_options
 @_handle_errors
 def unlock(stage, dataset, data_root, cache_root, sets):
-    """Remove the lock of STAGE left by a run that died on another machine."""
+    """Remove the lock of STAGE (or 'world', the synthetic world's generation) left by a run that
+    died on another machine."""
     from pipeline.lock import remove_lock
     from stages import all_stages
 
-    names = [s.name for s in all_stages()]
+    names = [s.name for s in all_stages()] + ["world"]  # world: the synthetic world's generation
     if stage not in names:
         near = difflib.get_close_matches(stage, names, n=1)
         hint = f"; did you mean '{near[0]}'?" if near else ""

@@ -432,6 +432,7 @@ class Config:
             value = _parse_value(key, text, get_type_hints(type(sec))[name])
             check_limit(key, value)
             cfg = replace(cfg, **{section: replace(sec, **{name: value})})
+        check_relations(cfg)
         return cfg
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -463,9 +464,11 @@ LIMITS: dict[str, str] = {
     "eval.figure_frames": ">=0", "eval.gate_m": ">0 or inf", "eval.gate_rss": ">0 or inf",
     "eval.gate_doppler_mps": ">0 or inf",
     "run.workers": ">0",
+    "dataset.world_seed": ">=0", "split.seed": ">=0", "patches.seed": ">=0", "train.seed": ">=0", "synth.seed": ">=0",
+    "dataset.radar_mount_T_radar_lidar": "finite", "radar.rss_min": "finite", "radar.rss_max": "finite",
 }
 """The values each numeric key may take (every item of a tuple): '>0' and '>=0' finite, '>0 or inf'
-(a gate that inf turns off), '[0,1]' and '[0,1)' intervals, 'sign' +1 or -1. Checked wherever a value is set (profile, environment, --set),
+(a gate that inf turns off), '[0,1]' and '[0,1)' intervals, 'sign' +1 or -1, 'finite'. Checked wherever a value is set (profile, environment, --set),
 so that a setting no stage could run with is refused before any output is touched."""
 
 _LIMIT_TESTS: dict[str, tuple[str, Any]] = {
@@ -475,7 +478,21 @@ _LIMIT_TESTS: dict[str, tuple[str, Any]] = {
     "[0,1]": ("in [0, 1]", lambda v: 0 <= v <= 1),
     "[0,1)": ("in [0, 1)", lambda v: 0 <= v < 1),
     "sign": ("+1 or -1", lambda v: v in (1, -1)),
+    "finite": ("finite", lambda v: math.isfinite(v)),
 }
+
+
+def check_relations(cfg: "Config") -> None:
+    """ConfigError for settings that are each within :data:`LIMITS` but do not fit together."""
+    top, bottom = cfg.camera.crop_rows
+    if not 0 <= top < bottom <= cfg.camera.full_size[1]:
+        raise ConfigError(f"'camera.crop_rows' must satisfy 0 <= top < bottom <= camera.full_size height "
+                          f"{cfg.camera.full_size[1]}, got {top},{bottom}")
+    if abs(sum(cfg.split.fractions) - 1.0) > 1e-6:
+        raise ConfigError(f"'split.fractions' (train, val, test) must sum to 1, got {_text(cfg.split.fractions)}")
+    if not cfg.radar.rss_min < cfg.radar.rss_max:
+        raise ConfigError(f"'radar.rss_min' must be below 'radar.rss_max', got {cfg.radar.rss_min:g} and "
+                          f"{cfg.radar.rss_max:g}")
 
 
 def check_limit(key: str, value: Any) -> None:

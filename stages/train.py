@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import transfer
-from pipeline.cache import DONE, RaggedRows, frame_store
+from pipeline.cache import DONE, RaggedRows
 from pipeline.checkpoint import read_meta
 from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config
-from pipeline.errors import ConfigError, MetadataError, PipelineError
+from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
 VERSION = 2
@@ -183,7 +183,11 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
     named = cfg.train.nets_from
     source = transfer.nets_origin(inputs.env.cache_root, named)  # named may itself hold another's nets
     via = f" (through dataset {named}, which took them from it)" if source != named else ""
-    trained = transfer.trained_settings(inputs.env.cache_root, source)
+    transfer.check_not_own(cfg, source)
+    try:
+        trained = transfer.trained_settings(inputs.env.cache_root, source)
+    except PipelineError as exc:
+        raise type(exc)(f"{exc}{via}") from None
     wrong = transfer.mismatches(cfg, trained)
     if wrong:
         raise ConfigError(f"train.nets_from = '{source}': this configuration lacks settings the nets were trained "
@@ -199,8 +203,8 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
     try:  # where the source radar's returns lay in its camera: Dis-Net's prior is moved from there
         camera, unmoved = transfer.camera_record(transfer.source_camera(inputs.env.cache_root, source)), ""
     except PipelineError as exc:
-        camera, unmoved = None, (f"; Dis-Net's prior is not moved to this camera: {exc} (the next run of this "
-                                 f"dataset then takes the nets again, with that camera)")
+        camera, unmoved = None, (f"; Dis-Net's prior is not moved to this camera: {exc}, then `pipeline run train "
+                                 f"--force --dataset {cfg.profile} ...` to take the nets again with its camera")
     record = {"nets_from": source, "source": src.path, "source_fingerprint": meta.get("fingerprint"),
               "source_finished": meta.get("finished"), "taken": taken, "settings": trained,
               "source_camera": camera, "source_metrics": meta.get("summary", {})}
@@ -225,22 +229,19 @@ def _save_mean_map(inputs, root: Path) -> None:
 
 
 def nets_from_fingerprint(cfg: Config, env) -> str:
-    """train.nets_from: its value, the dataset that trained the nets (transfer.nets_origin) and its
-    train output (fingerprint and finishing time), so that retraining that one makes this train
-    stage, and what was synthesized with its nets, stale, also through a dataset that took them
-    from it; and whether its calibrate output is there (Dis-Net's prior is moved from its camera:
-    calibrated after the nets were taken, they are taken again); '' without (not a config key:
-    train outputs made before it stay current)."""
-    if not cfg.train.nets_from:
+    """train.nets_from: its value, the dataset that trained the nets (transfer.nets_origin) where
+    that is another, and its train output (fingerprint and finishing time), so that retraining that
+    one makes this train stage, and what was synthesized with its nets, stale, also through a
+    dataset that took them from it; '' without (not a config key: train outputs made before it
+    stay current)."""
+    named = cfg.train.nets_from
+    if not named:
         return ""
-    origin = transfer.nets_origin(env.cache_root, cfg.train.nets_from)
+    origin = transfer.nets_origin(env.cache_root, named)
+    transfer.check_not_own(cfg, origin)  # before this stage's output is judged stale and cleared
     meta = transfer.source_train(env.cache_root, origin).meta()
-    try:
-        camera = "camera" if frame_store(env.cache_root, origin, "calibrate").exists() else "no camera"
-    except MetadataError:
-        camera = "no camera"
-    return (f"{cfg.train.nets_from}:{origin}:" + (f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else
-                                                  "absent") + f":{camera}")
+    through = f">{origin}" if origin != named else ""  # the form of before chains for a direct source
+    return f"{named}{through}:" + (f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else "absent")
 
 
 def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:

@@ -394,14 +394,18 @@ def test_cli_damaged_group_metadata_names_the_file_and_force(tmp_path, fake_cli)
     assert fake_cli(tmp_path, "status").exit_code == 0
 
 
-def test_cli_damaged_array_metadata_names_the_file_in_status_verify_and_runs(tmp_path, fake_cli):
-    """One array's zarr.json truncated (found by an audit, 2026-12-04): verify ended in a raw
-    JSONDecodeError, status called the stage current, and a resumed or per-frame forced run of the
-    stage ended in a traceback."""
+@pytest.mark.parametrize("how", ["truncated", "deleted"])
+def test_cli_damaged_array_metadata_names_the_file_in_status_verify_and_runs(tmp_path, fake_cli, how):
+    """One array's zarr.json truncated or deleted (found by audits, 2026-12-04): verify ended in a
+    raw JSONDecodeError or said every chunk was intact, status called the stage current, and a
+    resumed or per-frame forced run of the stage ended in a traceback."""
     assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", "--frames", "0:4").exit_code == 0
     meta = tmp_path / "cache" / "synthetic" / "heatmaps.zarr" / "total" / "zarr.json"
-    _damage(meta, "truncated")
-    expected = f"{meta}: the metadata of array total cannot be read ("
+    if how == "deleted":
+        meta.unlink()
+    else:
+        _damage(meta, how)
+    expected = f"{meta}: the metadata of array total " + ("is missing" if how == "deleted" else "cannot be read (")
     for args in (("status",), ("verify",), ("run", "heatmaps", "--workers", "1"),
                  ("run", "heatmaps", "--force", "--frames", "f003", "--workers", "1")):
         out = fake_cli(tmp_path, *args)
@@ -453,8 +457,13 @@ def test_cli_run_exits_1_when_a_stage_made_nothing(tmp_path, fake_cli, monkeypat
     monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
     out = fake_cli(tmp_path / "all", "run", "calibrate", "--workers", "1")
     assert out.exit_code == 1, out.output
-    assert "error: every frame stage calibrate tried in this run failed (2), e.g. " in out.stderr
+    assert "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. " in out.stderr
     assert "bad000.bin is truncated" in out.stderr
+    # a rerun that tries only the bad frame again while the others are done made its output: exit 0
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["f000", "f001", "bad002"])
+    assert fake_cli(tmp_path / "rerun", "run", "calibrate", "--workers", "1", "--frames", "0:2").exit_code == 0
+    out = fake_cli(tmp_path / "rerun", "run", "heatmaps", "--workers", "1", "--retry-failed")
+    assert out.exit_code == 0, out.output
 
 
 def test_cli_status_says_unfinished_for_a_current_stage_with_frames_left(tmp_path, fake_cli):

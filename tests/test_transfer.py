@@ -165,9 +165,18 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
 
     assert nets_origin(str(trained), "kitti") == "synthetic" and nets_origin(str(trained), "synthetic") == "synthetic"
     chained = load_config("vod", {"train.nets_from": "kitti"}, environ={})
-    chain_fp = nets_from_fingerprint(chained, pipe.env)
-    assert chain_fp.startswith("kitti:synthetic:") and chain_fp.endswith(":camera")
-    assert chain_fp.split(":", 1)[1] == nets_from_fingerprint(_kitti_cfg(trained), pipe.env).split(":", 1)[1]
+    chain_fp, direct_fp = nets_from_fingerprint(chained, pipe.env), nets_from_fingerprint(_kitti_cfg(trained), pipe.env)
+    world_train = trained / "synthetic" / "train"
+    assert chain_fp.startswith("kitti>synthetic:") and direct_fp.startswith("synthetic:")  # the form of before
+    assert chain_fp.split(":", 1)[1] == direct_fp.split(":", 1)[1]
+    # the world's dataset taking KITTI's nets would take its own: refused before its nets are cleared
+    own = load_config("synthetic", {**TINY, "train.nets_from": "kitti"}, environ={})
+    with pytest.raises(ConfigError, match="its nets are this dataset's own"):
+        with_nets_from(own, str(trained))
+    with pytest.raises(ConfigError, match="its nets are this dataset's own"):
+        _pipeline(own, trained, "synthetic", trained.parent / "world").run("train")
+    assert (world_train / "disnet" / "best.safetensors").is_file() and _pipeline(
+        load_config("synthetic", TINY, environ={}), trained, "synthetic", trained.parent / "world").is_current("train")
     # the other dataset's nets retrained: this dataset's copy and what it synthesized are stale
     assert pipe.is_current("synthesize")
     _pipeline(load_config("synthetic", TINY, environ={}), trained, "synthetic", trained.parent / "world").run(
@@ -175,14 +184,6 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
     again = _pipeline(_kitti_cfg(trained), trained, "kitti", kitti)
     assert not again.is_current("train") and not again.is_current("synthesize")
     assert nets_from_fingerprint(chained, pipe.env) != chain_fp  # down the chain too
-    # nets taken while the source's calibrate output was gone (prior not moved) are taken again once it is back
-    calib, away = trained / "synthetic" / "calibrate.zarr", trained / "synthetic" / "away.zarr"
-    with_camera = nets_from_fingerprint(_kitti_cfg(trained), pipe.env)
-    calib.rename(away)
-    try:
-        assert nets_from_fingerprint(_kitti_cfg(trained), pipe.env) == with_camera[:-len("camera")] + "no camera"
-    finally:
-        away.rename(calib)
 
 
 def _check_prior_moved(pipe: Pipeline, cache: Path, train_summary: dict) -> None:
