@@ -241,7 +241,8 @@ class Executor:
         fs, path = fsspec.core.url_to_fs(cache_root)
         marker = f"{path.rstrip('/')}/.cluster-probe-{uuid.uuid4().hex}"
         try:
-            fs.makedirs(path, exist_ok=True)
+            if "://" not in cache_root or cache_root.startswith("file://"):  # an object store needs no folders
+                fs.makedirs(path, exist_ok=True)
             fs.pipe_file(marker, b"")
         except OSError as exc:
             raise cache_error(exc, f"writing a probe file into the cache {cache_root}") from None
@@ -261,7 +262,7 @@ class Executor:
         finally:
             try:
                 fs.rm_file(marker)
-            except OSError:
+            except Exception:  # noqa: BLE001 - a marker left behind must not hide the probe's own error
                 pass
         if not found:
             raise PipelineError(f"dask cluster at {self.scheduler}: a worker does not see the cache {cache_root}; "
