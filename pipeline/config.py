@@ -432,7 +432,6 @@ class Config:
             value = _parse_value(key, text, get_type_hints(type(sec))[name])
             check_limit(key, value)
             cfg = replace(cfg, **{section: replace(sec, **{name: value})})
-        check_relations(cfg)
         return cfg
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
@@ -608,7 +607,9 @@ def load_config(profile: str, overrides: dict[str, str] | None = None,
             flat[f"{section}.{name}"] = value
     flat.update(env_overrides(os.environ if environ is None else environ))
     flat.update(overrides or {})
-    return cfg.with_overrides(flat)
+    cfg = cfg.with_overrides(flat)
+    check_relations(cfg)  # once every value is in (a caller may change related keys one by one later)
+    return cfg
 
 
 def env_overrides(environ: dict[str, str]) -> dict[str, str]:
