@@ -4,6 +4,7 @@ a KITTI-layout dataset (no radar) synthesized and exported with the tiny synthet
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -184,6 +185,23 @@ def test_a_dataset_without_radar_is_synthesized_with_another_datasets_nets(train
     again = _pipeline(_kitti_cfg(trained), trained, "kitti", kitti)
     assert not again.is_current("train") and not again.is_current("synthesize")
     assert nets_from_fingerprint(chained, pipe.env) != chain_fp  # down the chain too
+    # two steps for real: a 'vod' train output holding the world's nets (a copy of KITTI's), and
+    # KITTI taking vod's: the nets, settings and camera are the world's, from its retrained train stage
+    again.run("train")
+    shutil.copytree(trained / "kitti" / "train", trained / "vod" / "train")
+    via_vod = _pipeline(with_nets_from(load_config("kitti", {"train.nets_from": "vod"}, environ={}), str(trained)),
+                        trained, "kitti", kitti)
+    report = via_vod.run("train")[-1]
+    assert report.summary["message"].startswith("the nets of dataset synthetic (through dataset vod, which took them ")
+    direct = json.loads((trained / "vod" / "train" / "metrics.json").read_text())
+    record = json.loads((trained / "kitti" / "train" / "metrics.json").read_text())
+    assert record["source_camera"] == direct["source_camera"] and record["settings"] == direct["settings"]
+    assert record["source_finished"] == (_pipeline(load_config("synthetic", TINY, environ={}), trained, "synthetic",
+                                                   trained.parent / "world").env.dir("train").meta()["finished"])
+    for net in ("disnet", "rssnet", "placenet"):
+        assert (trained / "kitti" / "train" / net / "best.safetensors").read_bytes() == \
+            (trained / "synthetic" / "train" / net / "best.safetensors").read_bytes()
+    shutil.rmtree(trained / "vod")
 
 
 def _check_prior_moved(pipe: Pipeline, cache: Path, train_summary: dict) -> None:
