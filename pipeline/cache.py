@@ -262,20 +262,18 @@ class FrameStore:
         names = [e["name"].rstrip("/").rsplit("/", 1)[-1] for e in entries if e.get("type") == "directory"]
         return {n: fs.exists(join(path, n, "zarr.json")) for n in sorted(names)}
 
-    def array_names(self) -> list[str]:
-        """Names of the output's arrays that have their metadata file."""
-        return [n for n, has_meta in self._array_folders().items() if has_meta]
-
-    def check_metadata(self) -> None:
-        """MetadataError naming the first array whose ``zarr.json`` is gone or cannot be read (every
-        frame of it would be unreadable): a run that resumes the output, ``status`` and ``verify``
-        ask first."""
+    def check_metadata(self) -> list[str]:
+        """The output's array names; MetadataError naming the first array whose ``zarr.json`` is
+        gone or cannot be read (every frame of it would be unreadable): a run that resumes the
+        output, ``status`` and ``verify`` ask first."""
         g = self._group("r")
-        for name, has_meta in self._array_folders().items():
+        folders = self._array_folders()
+        for name, has_meta in folders.items():
             if not has_meta:
                 raise MetadataError(f"{join(self.url, name, 'zarr.json')}: the metadata of array {name} is missing; "
                                     f"recompute the stage: delete {self.url} or run it with --force")
             self._member(g, name)
+        return list(folders)
 
     def _member(self, g: zarr.Group, name: str) -> zarr.Array:
         """Array ``name`` of group ``g``; CacheError naming its metadata file when that is damaged
@@ -330,9 +328,8 @@ class FrameStore:
         arrays). MetadataError when the group's or an array's metadata cannot be read."""
         if not self.exists():
             raise CacheError(f"{self.url}: no output to verify")
-        self.check_metadata()
+        names = sorted(set(self.check_metadata()) - {"status", "reason"})
         g = self._group("r")
-        names = sorted(set(self.array_names()) - {"status", "reason"})
         total = self._member(g, "status").shape[0] * (2 + len(names))
         progress = (lambda n: None) if progress is None else (lambda n, _p=progress: _p(n, total))
         errors: dict[int, ChunkError] = {}

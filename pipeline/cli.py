@@ -3,7 +3,6 @@ one-line message and exit code 2."""
 
 from __future__ import annotations
 
-import difflib
 import functools
 import json
 import os
@@ -15,7 +14,7 @@ import click
 from pipeline.cache import frame_store, join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
 from pipeline.errors import ConfigError, MetadataError, PipelineError
-from pipeline.runner import NAME_WIDTH
+from pipeline.runner import NAME_WIDTH, check_stage_name
 from pipeline.stage import FrameStage
 
 DEFAULT_CACHE = "cache"
@@ -488,11 +487,7 @@ def unlock(stage, dataset, data_root, cache_root, sets):
     from pipeline.lock import remove_lock
     from stages import all_stages
 
-    names = [s.name for s in all_stages()] + ["world"]  # world: the synthetic world's generation
-    if stage not in names:
-        near = difflib.get_close_matches(stage, names, n=1)
-        hint = f"; did you mean '{near[0]}'?" if near else ""
-        raise ConfigError(f"unknown stage '{stage}' (stages: {', '.join(names)}){hint}")
+    check_stage_name(stage, [s.name for s in all_stages()] + ["world"])  # world: the synthetic world's generation
     _check_url("--cache", cache_root)
     url = join(cache_root, dataset, "locks", f"{stage}.lock")
     click.echo(f"removed {url}" if remove_lock(url) else f"no lock at {url}")

@@ -11,6 +11,7 @@ marks the downstream outputs made from its old output stale.
 from __future__ import annotations
 
 import contextlib
+import difflib
 import hashlib
 import json
 import os
@@ -54,6 +55,14 @@ class DatasetInputs:
     def frame(self, index: int) -> FrameInputs:
         """Per-frame accessor (same API as in frame stages)."""
         return FrameInputs(self.env, index, self.frame_ids[index])
+
+
+def check_stage_name(name: str, names: list[str]) -> None:
+    """ConfigError naming the known stages (and the nearest) when ``name`` is not one of ``names``."""
+    if name not in names:
+        near = difflib.get_close_matches(name, names, n=1)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        raise ConfigError(f"unknown stage '{name}' (stages: {', '.join(names)}){hint}")
 
 
 @dataclass
@@ -104,8 +113,7 @@ class Pipeline:
 
     def upstream_closure(self, target: str) -> list[str]:
         """``target`` and everything it depends on, in execution order."""
-        if target not in self.stages:
-            raise ConfigError(f"unknown stage '{target}' (stages: {', '.join(self.order)})")
+        check_stage_name(target, self.order)
         need: set[str] = set()
         stack = [target]
         while stack:
