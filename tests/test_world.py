@@ -354,6 +354,14 @@ def test_world_in_the_cache_follows_the_profile(tmp_path: Path) -> None:
     assert json.loads((own / "world.json").read_text())["frames"] == 2  # the user's world is left alone
 
 
+def _is_spawned_worker(pid: int) -> bool:
+    """Whether process ``pid`` is a multiprocessing 'spawn' worker (not its resource tracker)."""
+    try:
+        return b"spawn_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
 def _children(pid: int) -> list[int]:
     """Processes whose parent is ``pid`` (from /proc)."""
     out = []
@@ -382,10 +390,9 @@ def test_generating_workers_exit_when_the_run_is_killed(tmp_path: Path) -> None:
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not [c for c in _children(proc.pid)
-                                                   if "spawn" in Path(f"/proc/{c}/cmdline").read_bytes().decode()]:
+        while time.monotonic() < deadline and not [c for c in _children(proc.pid) if _is_spawned_worker(c)]:
             time.sleep(0.2)
-        workers = [c for c in _children(proc.pid) if "spawn" in Path(f"/proc/{c}/cmdline").read_bytes().decode()]
+        workers = [c for c in _children(proc.pid) if _is_spawned_worker(c)]
         assert workers, "no generating worker started"
         time.sleep(1.0)
         proc.send_signal(signal.SIGKILL)
@@ -401,3 +408,39 @@ def test_generating_workers_exit_when_the_run_is_killed(tmp_path: Path) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_a_killed_two_process_generation_resumes_to_the_same_bytes(tmp_path: Path) -> None:
+    """The resume of the two-process path (the one `make demo` takes): a run SIGKILLed once its
+    first sequence is recorded keeps what it finished, and the next run makes only the rest, to the
+    bytes of an uninterrupted run."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    kw = dict(frames=40, seed=3, resolution_wh=(64, 32), lidar_lines=16, sequence_len=2,
+              scene_mix=("highway", "urban"))
+    code = f"from pipeline.world import generate; generate({str(tmp_path / 'w')!r}, **{kw!r})"
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    partial, workers = tmp_path / "w" / "partial", []
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and proc.poll() is None and not list(partial.glob("seq*.json")):
+            workers = [c for c in _children(proc.pid) if _is_spawned_worker(c)] or workers
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert len(workers) == 2, "the run did not generate in two processes"
+    deadline = time.monotonic() + 10          # the workers notice within PARENT_POLL_S
+    while time.monotonic() < deadline and any(Path(f"/proc/{w}").exists() for w in workers):
+        time.sleep(0.1)
+    assert not (tmp_path / "w" / "world.json").exists(), "the run finished before it was killed"
+    summary = generate(tmp_path / "w", **kw)
+    assert 1 <= summary["resumed_sequences"] < 20
+    generate(tmp_path / "whole", **kw)
+    assert _hash_tree(tmp_path / "w") == _hash_tree(tmp_path / "whole")
