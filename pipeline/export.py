@@ -174,7 +174,8 @@ def preview_png(
     canvas = np.ascontiguousarray(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     h, w = canvas.shape[:2]
     level = np.clip(np.nan_to_num(range_m / max_range_m) * 255, 0, 255).astype(np.uint8)
-    colours = cv2.applyColorMap(level.reshape(-1, 1), cv2.COLORMAP_TURBO).reshape(-1, 3)
+    colours = (cv2.applyColorMap(level.reshape(-1, 1), cv2.COLORMAP_TURBO).reshape(-1, 3) if len(level)
+               else np.zeros((0, 3), np.uint8))  # cv2 returns None for no points
     radius = max(2, round(min(w, h) / 160))
     finite = np.all(np.isfinite(uv), axis=1)
     for (u, v), colour in zip(np.rint(uv[finite]).astype(int), colours[finite]):
@@ -262,14 +263,16 @@ DONT_CARE_LINE = "DontCare -1 -1 -10 0 0 0 0 -1 -1 -1 -1000 -1000 -1000 -10"
 concatenates each file's boxes and fails on an empty file."""
 
 
-def detector_label_text(text: str, track_ids: bool = False) -> str:
+def detector_label_text(text: str, track_ids: bool = False, P2: np.ndarray | None = None,
+                        image_wh: tuple[int, int] | None = None) -> str:
     """KITTI label text for a detector. The second column is KITTI's truncation (0..1); View-of-Delft's
     tracking release and the synthetic world put track ids there, which OpenPCDet would read as
-    truncation (boxes above 0.5 leave its evaluation and its ground-truth sampling): with
-    ``track_ids`` (the reader knows the column holds them) it becomes 0 on every line, else where it
-    lies outside 0..1. Fields are joined by single spaces (OpenPCDet splits on one space), blank lines
-    dropped, lines with fewer than 15 fields kept as they are; a file without lines gets
-    :data:`DONT_CARE_LINE`."""
+    truncation (boxes above 0.5 leave its evaluation and its ground-truth sampling). With
+    ``track_ids`` (the reader knows the column holds them) it is replaced on every line, else where it
+    lies outside 0..1: by the box's truncation when the camera's ``P2`` (3, 4) and the image size
+    ``image_wh`` (W, H) are given (:func:`label_truncation`), else by 0. Fields are joined by single
+    spaces (OpenPCDet splits on one space), blank lines dropped, lines with fewer than 15 fields kept
+    as they are; a file without lines gets :data:`DONT_CARE_LINE`."""
     lines = []
     for line in text.splitlines():
         fields = line.split()
@@ -281,9 +284,53 @@ def detector_label_text(text: str, track_ids: bool = False) -> str:
             except ValueError:
                 truncation = -1.0
             if track_ids or not 0.0 <= truncation <= 1.0:
-                fields[1] = "0"
+                fields[1] = "0" if P2 is None or image_wh is None else f"{label_truncation(fields, P2, image_wh):.2f}"
         lines.append(" ".join(fields))
     return "".join(f"{line}\n" for line in lines or [DONT_CARE_LINE])
+
+
+def calib_P2(calib: str | os.PathLike) -> np.ndarray:
+    """The ``P2`` (3, 4) of a KITTI calib: its text (str) or its file (a path); ValueError naming the
+    file when the line is missing or malformed."""
+    text = calib if isinstance(calib, str) else Path(calib).read_text()
+    for line in text.splitlines():
+        key, _, values = line.partition(":")
+        if key.strip() == "P2":
+            try:
+                return np.array(values.split(), np.float64).reshape(3, 4)
+            except ValueError:
+                break
+    where = "calib text" if isinstance(calib, str) else str(calib)
+    raise ValueError(f"{where}: no 'P2:' line with 12 numbers")
+
+
+def label_truncation(fields: Sequence[str], P2: np.ndarray, image_wh: tuple[int, int]) -> float:
+    """KITTI truncation of a label line's 3D box (``fields``: the line split on spaces; dimensions
+    h w l in metres, location the bottom centre in the rectified camera frame, rotation_y) seen by
+    the camera ``P2`` (3, 4) in an image ``image_wh`` (W, H): the share of its projected 2D box
+    outside the image, as :func:`kitti_label_text` writes it; 1 when a corner is at or behind the
+    camera plane or the box misses the image (nothing to measure the share on)."""
+    P2 = check_shape("P2", np.asarray(P2, np.float64), (3, 4))
+    h, w, length, x, y, z, ry = (float(v) for v in fields[8:15])
+    dx, dy, dz = np.meshgrid([-length / 2, length / 2], [-h, 0.0], [-w / 2, w / 2], indexing="ij")
+    c, s = np.cos(ry), np.sin(ry)
+    corners_cam = np.stack([c * dx.ravel() + s * dz.ravel() + x, dy.ravel() + y,
+                            -s * dx.ravel() + c * dz.ravel() + z], axis=1)
+    if np.any(corners_cam[:, 2] <= 0.1):
+        return 1.0
+    uvw = corners_cam @ P2[:, :3].T + P2[:, 3]
+    box = _clipped_box(uvw[:, :2] / uvw[:, 2:3], image_wh)
+    return 1.0 if box is None else box[1]
+
+
+def _clipped_box(uv: np.ndarray, image_wh: tuple[int, int]) -> tuple[tuple[float, ...], float] | None:
+    """The 2D box (u0, v0, u1, v1) of projected corners ``uv`` (N, 2) px clipped to an image
+    ``image_wh`` (W, H), and the share of the unclipped box outside it; None when it misses the image."""
+    (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
+    cu0, cv0, cu1, cv1 = max(u0, 0.0), max(v0, 0.0), min(u1, image_wh[0] - 1.0), min(v1, image_wh[1] - 1.0)
+    if cu1 <= cu0 or cv1 <= cv0:
+        return None
+    return (cu0, cv0, cu1, cv1), 1.0 - (cu1 - cu0) * (cv1 - cv0) / max((u1 - u0) * (v1 - v0), 1e-9)
 
 
 def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np.ndarray,
@@ -299,7 +346,6 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
     names become '_'. A frame without boxes gets :data:`DONT_CARE_LINE`."""
     T = check_shape("T_cam_radar", np.asarray(T_cam_radar, np.float64), (4, 4))
     K = check_shape("K", np.asarray(K, np.float64), (3, 3))
-    w_img, h_img = image_wh
     lines = []
     for obj in objects:
         length, width, height = (float(v) for v in obj.size_lwh_m)
@@ -311,12 +357,10 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
         corners_cam = corners_D @ T[:3, :3].T + T[:3, 3]
         if np.any(corners_cam[:, 2] <= 0.1):
             continue
-        uv = (corners_cam @ K.T)[:, :2] / corners_cam[:, 2:3]
-        (u0, v0), (u1, v1) = uv.min(axis=0), uv.max(axis=0)
-        cu0, cv0, cu1, cv1 = max(u0, 0.0), max(v0, 0.0), min(u1, w_img - 1.0), min(v1, h_img - 1.0)
-        if cu1 <= cu0 or cv1 <= cv0:
+        box = _clipped_box((corners_cam @ K.T)[:, :2] / corners_cam[:, 2:3], image_wh)
+        if box is None:
             continue
-        truncation = 1.0 - (cu1 - cu0) * (cv1 - cv0) / max((u1 - u0) * (v1 - v0), 1e-9)
+        (cu0, cv0, cu1, cv1), truncation = box
         bottom_cam = T[:3, :3] @ (np.asarray(obj.center_D, np.float64) - [0.0, 0.0, height / 2]) + T[:3, 3]
         ry = float(np.angle(np.exp(-1j * (obj.yaw_rad + np.pi / 2))))
         alpha = float(np.angle(np.exp(1j * (ry - np.arctan2(bottom_cam[0], bottom_cam[2])))))

@@ -10,7 +10,7 @@ v_r_compensated, time = 0, the View-of-Delft radar layout that OpenPCDet's VoD c
 reads), with <subset> 'training' for frames of the train and val splits and 'testing' for the
 test split (where OpenPCDet looks for them); <subset>/calib/<id>.txt carried over, or generated
 from the full-resolution K and T_radar_cam when the dataset has none; <subset>/label_2/<id>.txt
-carried over with track ids out of the truncation column (pipeline.export.detector_label_text),
+carried over with track ids replaced by each box's truncation (pipeline.export.detector_label_text),
 or written from the reader's objects for the generated calib (pipeline.export.kitti_label_text);
 <subset>/image_2/<id> (export.images, in export.image_format); radar/ImageSets/{train,val,test}.txt;
 optional
@@ -41,17 +41,19 @@ CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
                "radar.doppler_span_mps",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
-VERSION = 3
+VERSION = 4
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
 3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
 out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
 export.image_format; Astyx's annotations as KITTI labels (pipeline.export.kitti_label_text);
-v_r_compensated wrapped into an aliasing radar's span (Astyx: 56% of its points had +-10.4 m/s)."""
+v_r_compensated wrapped into an aliasing radar's span (Astyx: 56% of its points had +-10.4 m/s).
+4: a track id's truncation column gets the box's truncation from the calib's P2, not 0 (boxes cut by
+the image edge were rated 'Easy' by OpenPCDet)."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
-    from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_text, detector_label_text, kitti_calib_text,
+    from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_P2, calib_text, detector_label_text, kitti_calib_text,
                                  kitti_label_text, preview_png, vod_points, write_image, write_image_sets, write_kitti_layout, write_pcd)
     from pipeline.working import full_K
 
@@ -66,6 +68,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         shutil.rmtree(root / folder, ignore_errors=True)
     lists: dict[str, list[str]] = {name: [] for name in SPLIT_NAMES.values()}
     no_motion: list[str] = []   # frames whose dataset records no ego motion: Doppler as if stopped
+    empty: list[str] = []       # frames written without a point
     (root / NO_MOTION_LIST).unlink(missing_ok=True)
     n_points = n_noise = 0
     for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
@@ -100,12 +103,15 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         generated = src.calib is None and src.label is None and src.objects_labelled
         record = f.reader.read(fid) if generated or (cfg.export.images and image_src is None) else None
         if src.label is not None:
-            label = detector_label_text(src.label.read_text(), src.label_track_ids)
+            label = detector_label_text(src.label.read_text(), src.label_track_ids, calib_P2(calib_src),
+                                        tuple(c.full_size))
         elif generated:  # the dataset's own annotation, for the generated calib's camera
             label = kitti_label_text(record.labels, T_cam_radar, K_full, tuple(c.full_size))
         else:
             label = None
         write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
+        if len(rows) == 0:
+            empty.append(fid)
         if cfg.export.images and image_src is None:  # the reader's image, in the chosen format
             write_image(radar_root / subset / "image_2" / f"{fid}{suffix or '.png'}", record.image)
         if cfg.export.pcd:
@@ -122,11 +128,14 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     if no_motion:
         (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
-            "no_ego_motion": len(no_motion),
+            "no_ego_motion": len(no_motion), "empty_frames": empty,
             "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root} (the RCS "
                        f"column in {cfg.radar.rss_unit}, the unit of the simulated {cfg.radar.name})"
                        + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
                           f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
+                       + (f"; {len(empty)} of them without a point (an empty .bin, on which a detector's "
+                          f"voxelisation may fail): {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}"
+                          if empty else "")
                        + ("" if lists["train"] else _no_train_hint(cfg))}
 
 

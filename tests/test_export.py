@@ -130,6 +130,12 @@ def test_preview_png(tmp_path: Path):
     expected = cv2.applyColorMap(np.array([[int(10 / 50 * 255)]], np.uint8), cv2.COLORMAP_TURBO)[0, 0]
     np.testing.assert_array_equal(out[90, 150], expected)  # point centre coloured by its range
     assert not np.array_equal(out[100, 60], out[90, 150])  # farther point, other colour
+    # no point in view (until 2026-12-04 cv2's None for no points crashed the export): the image and the bar
+    empty = cv2.imread(str(preview_png(tmp_path / "prev" / "00002.png", image, np.zeros((0, 2)), np.zeros(0), 50.0)))
+    yy, xx = np.mgrid[0:h, 0:w]
+    away = np.min([(xx - u) ** 2 + (yy - v) ** 2 for u, v in uv], axis=0) > 8 ** 2
+    np.testing.assert_array_equal(empty[away], out[away])
+    np.testing.assert_array_equal(empty[90, 150], [0, 0, 200])
 
 
 def test_kitti_layout_and_image_sets(tmp_path: Path):
@@ -241,3 +247,32 @@ def test_kitti_label_text_round_trips_through_openpcdets_reading(tmp_path: Path)
         assert 0 <= u0 < u1 <= 639 and 0 <= v0 < v1 <= 399 and (u0 <= uv[0, 0] <= u1 or obj.class_name == "Person")
     assert float(lines[0][1]) == 0.0 and 0.05 < float(lines[2][1]) < 0.95    # truncation: in view, partly out
     assert kitti_label_text([objects[3]], T_cam_radar, K, (640, 400)) == DONT_CARE_LINE + "\n"
+
+
+def test_track_id_labels_get_the_truncation_of_their_box():
+    """With the camera's P2 and image size, a track id's column gets the box's truncation, the value
+    kitti_label_text writes for the same box from {D} (the synthetic world's and View-of-Delft's
+    tracking labels had 0 everywhere until 2026-12-04, so OpenPCDet rated boxes cut by the image
+    edge 'Easy'); a box reaching behind the camera gets 1; without P2 the column becomes 0."""
+    from pipeline.export import calib_P2, kitti_label_text, label_truncation
+    from pipeline.frame import Object3D
+    from pipeline.readers.testing import R_CAM_D, rigid
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 200], [0, 0, 1]])
+    T_cam_radar = rigid(R_CAM_D, np.array([0.05, 0.8, -0.4]))
+    objects = [Object3D("Car", np.array([15.0, 2.0, 0.3]), np.array([4.2, 1.8, 1.5]), 0.4),      # in view
+               Object3D("Car", np.array([20.0, 10.0, 0.3]), np.array([4.2, 1.8, 1.5]), 0.4),    # a third out
+               Object3D("Car", np.array([10.0, 6.0, 0.3]), np.array([4.2, 1.8, 1.5]), 0.4)]     # mostly out
+    truth = [line.split() for line in kitti_label_text(objects, T_cam_radar, K, (640, 400)).splitlines()]
+    assert len(truth) == 3 and float(truth[0][1]) == 0.0 and 0.05 < float(truth[1][1]) < float(truth[2][1]) < 1
+    P2 = calib_P2(kitti_calib_text(np.column_stack([K, np.zeros(3)]), T_cam_radar))
+    tracked = "".join(" ".join([f[0], str(7 + i), *f[2:]]) + "\n" for i, f in enumerate(truth))
+    out = [line.split() for line in detector_label_text(tracked, True, P2, (640, 400)).splitlines()]
+    for got, want in zip(out, truth, strict=True):
+        assert float(got[1]) == pytest.approx(float(want[1]), abs=0.005) and got[2:] == want[2:]
+    behind = "Car 3 0 0 0 0 10 10 1.5 1.8 4.0 0.0 1.5 1.0 0.0\n"    # 4 m long, centred 1 m ahead
+    assert detector_label_text(behind, True, P2, (640, 400)).split()[1] == "1.00"
+    assert label_truncation(behind.split(), P2, (640, 400)) == 1.0
+    assert detector_label_text(behind, True).split()[1] == "0"
+    with pytest.raises(ValueError, match="P2"):
+        calib_P2("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -106,6 +107,17 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     with pytest.raises(ConfigError, match="export.image_format"):
         Pipeline(all_stages(), replace(serial.env, cfg=serial.env.cfg.with_overrides({"export.image_format": "bmp"})),
                  Executor(1, progress=False), progress=False, log=lambda m: None).run("export")
+    # a frame synthesized without a point is exported as an empty .bin, and the message names it
+    from stages.synthesize import outputs as synthesize_outputs
+
+    spec = next(s for s in synthesize_outputs(serial.env.cfg) if s.name == "points")
+    syn.write_frame(done[0], {"points": np.zeros((0, spec.shape[1]), np.float32)}, (spec,))
+    summary = {r.stage: r for r in Pipeline(all_stages(), serial.env, Executor(1, progress=False), progress=False,
+                                            log=lambda m: None).run("export", force=True)}["export"].summary
+    fid = serial.frame_ids()[done[0]]
+    assert summary["empty_frames"] == [fid] and f"1 of them without a point (an empty .bin" in summary["message"]
+    bins = list((tmp_path / "serial" / "synthetic" / "export" / "radar").glob(f"*/velodyne/{fid}.bin"))
+    assert len(bins) == 1 and bins[0].stat().st_size == 0
     # a report over part of the split says so (here synthesize deleted and redone for 3 frames only)
     partial = Pipeline(all_stages(), serial.env, Executor(1, progress=False), progress=False, log=lambda m: None)
     shutil.rmtree(tmp_path / "serial" / "synthetic" / "synthesize.zarr")
@@ -140,7 +152,8 @@ def check_export_round_trip(pipe: Pipeline, world: Path, cache: Path) -> None:
         assert (frame / "image_2" / source.name).read_bytes() == source.read_bytes()
         assert (frame / "velodyne" / f"{fid}.bin").stat().st_mode & 0o777 == mode   # readable as open() makes them
         labels = [line.split() for line in (frame / "label_2" / f"{fid}.txt").read_text().splitlines()]
-        assert labels and all(fields[1] == "0" for fields in labels)  # the world's track ids are no truncation
+        # the world's track ids become each box's truncation (pipeline.export.label_truncation)
+        assert labels and all(re.fullmatch(r"[01]\.\d\d", fields[1]) for fields in labels)
         pts = syn.read("points", int(i))
         if len(pts) < 3:
             continue
