@@ -270,9 +270,9 @@ def detector_label_text(text: str, track_ids: bool = False, P2: np.ndarray | Non
     truncation (boxes above 0.5 leave its evaluation and its ground-truth sampling). With
     ``track_ids`` (the reader knows the column holds them) it is replaced on every line, else where it
     lies outside 0..1: by the box's truncation when the camera's ``P2`` (3, 4) and the image size
-    ``image_wh`` (W, H) are given (:func:`label_truncation`), else by 0. Fields are joined by single
-    spaces (OpenPCDet splits on one space), blank lines dropped, lines with fewer than 15 fields kept
-    as they are; a file without lines gets :data:`DONT_CARE_LINE`."""
+    ``image_wh`` (W, H) are given (:func:`label_truncation`), else (or when a box field is no number)
+    by 0. Fields are joined by single spaces (OpenPCDet splits on one space), blank lines dropped,
+    lines with fewer than 15 fields kept as they are; a file without lines gets :data:`DONT_CARE_LINE`."""
     lines = []
     for line in text.splitlines():
         fields = line.split()
@@ -284,7 +284,12 @@ def detector_label_text(text: str, track_ids: bool = False, P2: np.ndarray | Non
             except ValueError:
                 truncation = -1.0
             if track_ids or not 0.0 <= truncation <= 1.0:
-                fields[1] = "0" if P2 is None or image_wh is None else f"{label_truncation(fields, P2, image_wh):.2f}"
+                fields[1] = "0"
+                if P2 is not None and image_wh is not None:
+                    try:
+                        fields[1] = f"{label_truncation(fields, P2, image_wh):.2f}"
+                    except ValueError:  # a box field that is no number: 0, as without P2
+                        pass
         lines.append(" ".join(fields))
     return "".join(f"{line}\n" for line in lines or [DONT_CARE_LINE])
 

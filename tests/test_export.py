@@ -274,5 +274,6 @@ def test_track_id_labels_get_the_truncation_of_their_box():
     assert detector_label_text(behind, True, P2, (640, 400)).split()[1] == "1.00"
     assert label_truncation(behind.split(), P2, (640, 400)) == 1.0
     assert detector_label_text(behind, True).split()[1] == "0"
+    assert detector_label_text(behind.replace("4.0", "x"), True, P2, (640, 400)).split()[1] == "0"
     with pytest.raises(ValueError, match="P2"):
         calib_P2("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
