@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -410,7 +411,8 @@ def test_generating_workers_exit_when_the_run_is_killed(tmp_path: Path) -> None:
             proc.kill()
 
 
-@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.skipif(not Path("/proc/self/stat").exists() or (os.cpu_count() or 1) < 2,
+                    reason="reads /proc; generates in two processes only with two cores")
 def test_a_killed_two_process_generation_resumes_to_the_same_bytes(tmp_path: Path) -> None:
     """The resume of the two-process path (the one `make demo` takes): a run SIGKILLed once its
     first sequence is recorded keeps what it finished, and the next run makes only the rest, to the
