@@ -477,7 +477,7 @@ _LIMIT_TESTS: dict[str, tuple[str, Any]] = {
     "[0,1]": ("in [0, 1]", lambda v: 0 <= v <= 1),
     "[0,1)": ("in [0, 1)", lambda v: 0 <= v < 1),
     "sign": ("+1 or -1", lambda v: v in (1, -1)),
-    "finite": ("finite", lambda v: math.isfinite(v)),
+    "finite": ("finite", math.isfinite),
 }
 
 

@@ -64,12 +64,15 @@ def nets_origin(cache_root: str, dataset: str) -> str:
         chain.append(taken_from)
 
 
-def check_not_own(cfg: Config, origin: str) -> None:
-    """ConfigError when the nets that train.nets_from leads to (``origin``, transfer.nets_origin)
-    are this dataset's own: taking them would first clear them as a stale train output."""
+def checked_origin(cfg: Config, cache_root: str) -> str:
+    """The dataset that trained the nets ``cfg.train.nets_from`` leads to (:func:`nets_origin`);
+    ConfigError when those are this dataset's own: taking them would first clear them as a stale
+    train output."""
+    origin = nets_origin(cache_root, cfg.train.nets_from)
     if origin == cfg.profile:
         raise ConfigError(f"train.nets_from = '{cfg.train.nets_from}': its nets are this dataset's own (taken from "
                           f"'{origin}'); leave train.nets_from empty to train here")
+    return origin
 
 
 def trained_settings(cache_root: str, dataset: str) -> dict[str, Any]:
@@ -109,8 +112,7 @@ def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = ()) -
         return cfg
     if source == cfg.profile:
         raise ConfigError(f"train.nets_from = '{source}' names this dataset itself; leave it empty to train here")
-    source = nets_origin(cache_root, source)
-    check_not_own(cfg, source)
+    source = checked_origin(cfg, cache_root)
     if source_train(cache_root, source).meta() is None:
         return cfg  # nothing trained there yet: the train stage says so when it runs
     trained = trained_settings(cache_root, source)

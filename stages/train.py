@@ -181,9 +181,8 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
     dataset's camera (transfer.source_camera; in the summary as source_camera, None with the reason
     in the message when its calibrate output is gone), from which synthesize moves Dis-Net's prior."""
     named = cfg.train.nets_from
-    source = transfer.nets_origin(inputs.env.cache_root, named)  # named may itself hold another's nets
+    source = transfer.checked_origin(cfg, inputs.env.cache_root)  # named may itself hold another's nets
     via = f" (through dataset {named}, which took them from it)" if source != named else ""
-    transfer.check_not_own(cfg, source)
     try:
         trained = transfer.trained_settings(inputs.env.cache_root, source)
     except PipelineError as exc:
@@ -237,8 +236,7 @@ def nets_from_fingerprint(cfg: Config, env) -> str:
     named = cfg.train.nets_from
     if not named:
         return ""
-    origin = transfer.nets_origin(env.cache_root, named)
-    transfer.check_not_own(cfg, origin)  # before this stage's output is judged stale and cleared
+    origin = transfer.checked_origin(cfg, env.cache_root)  # before this stage's output is judged stale and cleared
     meta = transfer.source_train(env.cache_root, origin).meta()
     through = f">{origin}" if origin != named else ""  # the form of before chains for a direct source
     return f"{named}{through}:" + (f"{meta.get('fingerprint')}:{meta.get('finished')}" if meta else "absent")

@@ -380,7 +380,6 @@ def _children(pid: int) -> list[int]:
 def test_generating_workers_exit_when_the_run_is_killed(tmp_path: Path) -> None:
     """Until 2026-12-04 a run killed while generating the world left its two worker processes
     generating on as orphans, holding the run's output open (a wrapper reading it hung)."""
-    import os
     import signal
     import subprocess
     import sys
