@@ -329,6 +329,11 @@ class SynthSection:
     """Where a sampled point goes: 'lidar' (onto a lidar point chosen by the map and PlaceNet's
     intensity, pipeline.placement; an improvement over the paper) or 'ray' (the paper: on the
     pixel's camera ray at the lidar range of its angular window, synth.range_estimator)."""
+    device: str = "cpu"
+    """Where synthesize and evaluate run the nets: 'cpu', 'cuda' or 'auto' (CUDA when present). The
+    CPU by default: on a 16-core GPU machine dask workers running the nets on the CPU were as fast
+    (README, "On a GPU"), and CPU results are the same on every machine. No fingerprint holds it: a
+    GPU rounds differently (TF32 convolutions), so the points differ in detail, not in kind."""
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,7 @@ def lidar_candidates(
 
 def candidate_features(
     points_D: np.ndarray, uv: np.ndarray, image: np.ndarray, lidar_D: np.ndarray, ego_velocity_D: np.ndarray,
-    labels: Sequence[Object3D] | np.ndarray,
+    labels: Sequence[Object3D] | np.ndarray, workers: int = 1,
 ) -> np.ndarray:
     """PlaceNet inputs (C, len(FEATURES)) float32 of candidates ``points_D`` (C, 3) at pixels ``uv``.
 
@@ -75,7 +75,8 @@ def candidate_features(
     deviation over COLOUR_WINDOW_PX (material); from its NORMAL_NEIGHBOURS nearest points of the
     whole lidar cloud ``lidar_D``: |cos| of the angle between the surface normal and the line of
     sight, planarity (smallest / summed covariance eigenvalue), log distance of the farthest
-    neighbour (lidar density) and the normal's squared z (ground or wall).
+    neighbour (lidar density) and the normal's squared z (ground or wall). ``workers``: threads of
+    the neighbour query (the features do not depend on it).
     """
     from pipeline.synthesis import object_velocities_for_points
 
@@ -89,7 +90,7 @@ def candidate_features(
     on_object = np.any(v_obj != 0, axis=1)
     rate = np.abs(radial_velocity(pts, ego, v_obj))
     colour = _colour_features(image, uv)
-    geometry = _geometry_features(pts, rae[:, 0], lidar_D)
+    geometry = _geometry_features(pts, rae[:, 0], lidar_D, workers)
     cols = [np.log(rae[:, 0]), pts[:, 2], rate, np.minimum(rate, 3.0), np.minimum(rate, 0.5), on_object,
             np.full(len(pts), np.linalg.norm(ego)), rae[:, 1], rae[:, 2]]
     return np.column_stack([*cols, colour, geometry]).astype(np.float32)
@@ -106,15 +107,16 @@ def _colour_features(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.concatenate([a[px[:, 1], px[:, 0]] for a in (img, mean, std)], axis=1)
 
 
-def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, lidar_D: np.ndarray) -> np.ndarray:
+def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, lidar_D: np.ndarray, workers: int = 1) -> np.ndarray:
     """(C, 4): |cos incidence|, planarity, log neighbour distance, normal z^2 (zeros with too few
-    lidar points)."""
+    lidar points). The tree is built unbalanced (median splits cost more than they save for one
+    query of each candidate: 11.6 against 12.3 ms for a demo frame's 8,800, the same neighbours)."""
     cloud = np.asarray(lidar_D, np.float64).reshape(-1, 3)
     cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
     k = min(NORMAL_NEIGHBOURS, len(cloud))
     if k < 3:
         return np.zeros((len(points_D), 4))
-    dist, idx = cKDTree(cloud).query(points_D, k=k)
+    dist, idx = cKDTree(cloud, balanced_tree=False, compact_nodes=False).query(points_D, k=k, workers=workers)
     nb = cloud[idx]
     nb -= nb.mean(axis=1, keepdims=True)                          # (C, k, 3)
     cov = np.matmul(nb.transpose(0, 2, 1), nb)

@@ -120,14 +120,15 @@ class TrainResult:
 # ----------------------------------------------------------------------------------------- data
 
 
-def select_device(name: str) -> torch.device:
-    """'auto' -> cuda when available else cpu; 'cpu' / 'cuda' as given (ConfigError if unusable)."""
+def select_device(name: str, key: str = "train.device") -> torch.device:
+    """'auto' -> cuda when available else cpu; 'cpu' / 'cuda' as given (ConfigError naming the
+    setting ``key`` if unusable)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"train.device = '{name}' but CUDA is not available (use 'auto' or 'cpu')")
+        raise ConfigError(f"{key} = '{name}' but CUDA is not available (use 'auto' or 'cpu')")
     if not (name == "cpu" or name.startswith("cuda")):
-        raise ConfigError(f"train.device must be 'auto', 'cpu' or 'cuda', got '{name}'")
+        raise ConfigError(f"{key} must be 'auto', 'cpu' or 'cuda', got '{name}'")
     return torch.device(name)
 
 

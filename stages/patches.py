@@ -89,10 +89,11 @@ def candidates(inputs: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray
     return lidar[idx], uv
 
 
-def features(inputs: FrameInputs, points_D: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """PlaceNet features of candidates (shared with synthesis)."""
+def features(inputs: FrameInputs, points_D: np.ndarray, uv: np.ndarray, workers: int = 1) -> np.ndarray:
+    """PlaceNet features of candidates (shared with synthesis; ``workers`` threads for the neighbour
+    query)."""
     return candidate_features(points_D, uv, inputs.get("calibrate", "image"), inputs.get("calibrate", "lidar"),
-                              inputs.get("calibrate", "ego_velocity"), inputs.get("calibrate", "labels"))
+                              inputs.get("calibrate", "ego_velocity"), inputs.get("calibrate", "labels"), workers)
 
 
 def placement_rows(inputs: FrameInputs, cfg: Config, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

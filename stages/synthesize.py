@@ -22,6 +22,8 @@ placement.voxel_m, placement.map_weight and heatmap.sigma_px (lidar placement); 
 train.nets_from the nets are another dataset's (pipeline.transfer): built as they were trained,
 their map resized to this dataset's working size, Dis-Net's prior (the other dataset's mean map)
 moved to the same places around the radar in this dataset's camera (transfer.prior_in_target).
+synth.device says where the nets run (the CPU unless set); like train.device it is in no
+fingerprint.
 """
 
 from __future__ import annotations
@@ -112,6 +114,10 @@ def check_generation(cfg: Config) -> None:
             raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
     # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set
     check_split("synth.split", s.split)
+    if s.device != "auto":  # 'auto' needs no check (nor torch imported for it)
+        from pipeline.training import select_device
+
+        select_device(s.device, "synth.device")
 
 
 def check_checkpoints(train_dir, cfg: Config) -> None:
@@ -132,7 +138,7 @@ def select(inputs, cfg: Config) -> np.ndarray:
 
 
 class Nets(NamedTuple):
-    """The train stage's best networks (CPU); placenet is None with synth.placement = 'ray'."""
+    """The train stage's best networks (on synth.device); placenet is None with synth.placement = 'ray'."""
 
     disnet: Any
     rssnet: Any
@@ -143,25 +149,28 @@ class Nets(NamedTuple):
 
 def models(inputs: FrameInputs, cfg: Config) -> Nets:
     """Best Dis-Net, RSS-Net and (lidar placement) PlaceNet of the train stage, loaded once per
-    process (CPU) and train run: the key holds the run's finishing time, since nets retrained under
-    the same fingerprint (``--force``) are other nets (a cluster's workers outlive a run)."""
+    process onto synth.device and per train run: the key holds the run's finishing time, since nets
+    retrained under the same fingerprint (``--force``) are other nets (a cluster's workers outlive a
+    run)."""
     import torch
 
-    from pipeline.training import load_disnet, load_placenet, load_rssnet
+    from pipeline.training import load_disnet, load_placenet, load_rssnet, select_device
 
     out = inputs.env.dir("train")
     meta = out.meta() or {}
-    key = ("models", out.url, meta.get("fingerprint"), meta.get("finished"), cfg.synth.placement, cfg.train.nets_from)
+    key = ("models", out.url, meta.get("fingerprint"), meta.get("finished"), cfg.synth.placement, cfg.train.nets_from,
+           cfg.synth.device)
 
     def build():
         torch.set_num_threads(max(1, cfg.train.threads // max(1, cfg.run.workers)))
         check_checkpoints(out, cfg)
+        device = str(select_device(cfg.synth.device, "synth.device"))
         saved = bool(cfg.train.nets_from)  # another dataset's nets: built as trained (pipeline.transfer)
-        placenet = (load_placenet(cfg, out.file("placenet/best.safetensors"), device="cpu", saved_arch=saved)
+        placenet = (load_placenet(cfg, out.file("placenet/best.safetensors"), device=device, saved_arch=saved)
                     if cfg.synth.placement == "lidar" else None)
         camera = meta.get("summary", {}).get("source_camera") if saved else None
-        return Nets(load_disnet(cfg, out.file("disnet/best.safetensors"), device="cpu", saved_arch=saved),
-                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device="cpu", saved_arch=saved), placenet,
+        return Nets(load_disnet(cfg, out.file("disnet/best.safetensors"), device=device, saved_arch=saved),
+                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device=device, saved_arch=saved), placenet,
                     transfer.camera_from_record(camera) if camera else None)
 
     return process_memo(key, build)
@@ -171,6 +180,8 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
     """synth.placement = 'lidar': points on the frame's lidar candidates (pipeline.placement). The
     candidates and their PlaceNet intensities are computed once per frame and PlaceNet: evaluate
     places the points of several maps on them."""
+    import torch
+
     from pipeline.placement import place_on_lidar
     from pipeline.training import placenet_predict
     from stages.heatmaps import working_sigma
@@ -178,7 +189,9 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
 
     def build() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         points, uv = candidates(inputs, cfg)
-        x = features(inputs, points, uv) if len(points) else np.zeros((0, len(FEATURES)), np.float32)
+        # the neighbour query gets the threads the nets get (one per dask worker on a full machine)
+        x = (features(inputs, points, uv, workers=torch.get_num_threads()) if len(points)
+             else np.zeros((0, len(FEATURES)), np.float32))
         intensity = placenet_predict(placenet, x) if len(points) else np.zeros(0)
         outside = (placenet.outside_range(x).sum(0) if placenet.has_training_range()
                    else np.full(len(FEATURES), -1))  # -1: saved without its range, not checked

@@ -540,7 +540,7 @@ def soak_train_direct(work: Path, kills: int, rng: random.Random, epochs: int = 
 # --------------------------------------------------------------------------- real stages
 
 REAL_STAGES = ("calibrate", "heatmaps", "patches", "train", "synthesize", "export")
-REAL_SETTINGS = ("train.epochs=3", "placement.epochs=3", "train.threads=1", "train.device=cpu")
+REAL_SETTINGS = ("train.epochs=3", "placement.epochs=3", "train.threads=1", "train.device=cpu", "synth.device=cpu")
 
 
 def real_stage_cmd(stage: str, cache: Path, world: Path, workers: int) -> list[str]:

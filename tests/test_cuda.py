@@ -139,3 +139,40 @@ def test_disnet_killed_on_the_gpu_resumes_and_finishes(tmp_path, monkeypatch, ca
         print(f"\n[Dis-Net on the GPU, {sorted(extra) or 'plain'}] relative L2 weight difference: two "
               f"uninterrupted runs {_relative_l2(a, _all_tensors(again.last_path)):.3g}, uninterrupted "
               f"against resumed {_relative_l2(a, _all_tensors(res.last_path)):.3g}")
+
+
+def test_synthesize_runs_the_nets_on_the_gpu_and_agrees_with_the_cpu(tmp_path):
+    """synth.device = cuda: the stage's nets are on the GPU, every frame is done, and the maps and
+    counts agree with a CPU run of the same nets (TF32 convolutions round differently, so the
+    sampled points may differ in detail); the same GPU run twice gives the same bytes."""
+    from pipeline.cache import DONE
+    from pipeline.config import load_config
+    from pipeline.executor import Executor, FrameInputs, RunEnv
+    from pipeline.runner import Pipeline
+    from pipeline.world import generate
+    from stages import all_stages
+    from stages.synthesize import models
+    from tests.test_pipeline_e2e import TINY, arrays
+
+    generate(tmp_path / "world", frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+
+    def synthesize(device: str) -> tuple[dict[str, np.ndarray], Pipeline]:
+        cfg = load_config("synthetic", {**TINY, "synth.device": device}, environ={})
+        env = RunEnv(cfg, str(tmp_path / "cache"), "synthetic", str(tmp_path / "world"))
+        pipe = Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
+        pipe.run("synthesize", force=(tmp_path / "cache" / "synthetic" / "synthesize.zarr").exists())
+        assert np.all(pipe.env.store("synthesize").status() == DONE)
+        return arrays(tmp_path / "cache", "synthesize"), pipe
+
+    on_cpu, _ = synthesize("cpu")
+    on_gpu, pipe = synthesize("cuda")
+    nets = models(FrameInputs(pipe.env, 0, pipe.frame_ids()[0]), pipe.env.cfg)
+    assert all(next(net.parameters()).is_cuda for net in (nets.disnet, nets.rssnet, nets.placenet))
+    np.testing.assert_allclose(on_gpu["n_hat"], on_cpu["n_hat"], rtol=1e-2)
+    np.testing.assert_allclose(on_gpu["pred_map"], on_cpu["pred_map"], rtol=2e-2, atol=1e-3 * on_cpu["pred_map"].max())
+    assert np.array_equal(on_gpu["candidates"], on_cpu["candidates"])
+    n_cpu, n_gpu = int(on_cpu["points_count"].sum()), int(on_gpu["points_count"].sum())
+    assert abs(n_gpu - n_cpu) <= 0.05 * n_cpu
+    again, _ = synthesize("cuda")
+    for name, values in on_gpu.items():
+        np.testing.assert_array_equal(again[name], values, err_msg=name)

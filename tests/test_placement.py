@@ -97,6 +97,12 @@ def test_candidate_features_hand_computed():
     # too few lidar points for a normal: the geometry columns are zeros, not NaN
     few = P.candidate_features(cand, uv, image, lidar[:2], ego, [])
     assert np.all(np.isfinite(few)) and np.all(few[:, -4:] == 0)
+    # the neighbour query's threads change nothing (synthesize gives it the nets' threads)
+    cloud = np.random.default_rng(2).uniform(-5, 5, (3000, 3)) + [20.0, 0.0, 0.0]
+    many = cloud[::3]
+    pixels = np.zeros((len(many), 2))
+    np.testing.assert_array_equal(P.candidate_features(many, pixels, image, cloud, ego, [], workers=2),
+                                  P.candidate_features(many, pixels, image, cloud, ego, []))
 
 
 def test_smallest_eigenpair_matches_eigh_and_handles_degenerate_matrices():

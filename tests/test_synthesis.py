@@ -513,9 +513,16 @@ def test_bad_generation_settings_are_config_errors():
                               ("synth.refill_rounds", "-1", "synth.refill_rounds' must be finite and >= 0"),
                               ("synth.placement", "mesh", "synth.placement must be one of lidar, ray"),
                               ("placement.voxel_m", "-1", "placement.voxel_m' must be finite and >= 0"),
-                              ("placement.map_weight", "1.5", r"placement.map_weight' must be in \[0, 1\]")):
+                              ("placement.map_weight", "1.5", r"placement.map_weight' must be in \[0, 1\]"),
+                              ("synth.device", "tpu", "synth.device must be 'auto', 'cpu' or 'cuda', got 'tpu'")):
         with pytest.raises(ConfigError, match=words):  # numeric ones when the configuration is built
             check_generation(load_config("synthetic", {key: value}, environ={}))
+    check_generation(load_config("synthetic", {"synth.device": "cpu"}, environ={}))
+    import torch
+
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="synth.device = 'cuda' but CUDA is not available"):
+            check_generation(load_config("synthetic", {"synth.device": "cuda"}, environ={}))
 
 
 class _Rows:

@@ -7,7 +7,8 @@ where the samples fall (samples without lidar support widen their window up to 4
 measured on the random network's map, on the frame's real-radar heatmap, and, after `make demo`,
 with the demo's trained networks (the stage's case); the last line is the last case with the
 paper's camera-ray placement (synth.placement = ray), which needs no lidar candidates or PlaceNet.
-Arguments KEY=VALUE override the synthetic profile's settings, e.g. placement.map_weight=1."""
+Arguments KEY=VALUE override the synthetic profile's settings, e.g. placement.map_weight=1; the nets
+run on synth.device (synth.device=cuda for a GPU)."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ from pipeline.models.placenet import build_placenet  # noqa: E402
 from pipeline.models.rssnet import build_rssnet  # noqa: E402
 from pipeline.runner import Pipeline  # noqa: E402
 from pipeline.training import (disnet_predict, load_disnet, load_placenet, load_rssnet,  # noqa: E402
-                               rssnet_predict)
+                               rssnet_predict, select_device)
 from pipeline.world import generate as generate_world  # noqa: E402
 from stages import all_stages  # noqa: E402
 from stages.patches import point_inputs  # noqa: E402
@@ -51,6 +52,8 @@ class Timed(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         t0 = time.perf_counter()
         out = self.net(x)
+        if out.is_cuda:
+            torch.cuda.synchronize()  # the GPU's work is network time, not the caller's
         self.seconds += time.perf_counter() - t0
         return out
 
@@ -108,6 +111,7 @@ def main() -> None:
     try:
         overrides = parse_set_options(sys.argv[1:])
         cfg = load_config("synthetic", overrides, environ={})
+        device = str(select_device(cfg.synth.device, "synth.device"))
     except ConfigError as exc:
         sys.exit(f"bench_synthesize.py: {exc}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -115,14 +119,15 @@ def main() -> None:
         env = RunEnv(cfg, f"{tmp}/cache", "synthetic", f"{tmp}/world")
         pipe = Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
         pipe.run("heatmaps")
-        random = (build_disnet(cfg, load_backbone=False).eval(), build_rssnet(cfg).eval(), build_placenet(cfg).eval())
+        random = tuple(net.eval().to(device) for net in (build_disnet(cfg, load_backbone=False), build_rssnet(cfg),
+                                                         build_placenet(cfg)))
         frames = [FrameInputs(env, i, f) for i, f in enumerate(pipe.frame_ids())]
         runs = [("network", *random), ("radar", *random)]
         trained = Path(TRAINED_CACHE) / "synthetic" / "train"
         try:  # after `make demo`: the real case
-            runs.append(("trained network", load_disnet(cfg, str(trained / "disnet" / "best.safetensors"), device="cpu"),
-                         load_rssnet(cfg, str(trained / "rssnet" / "best.safetensors"), device="cpu"),
-                         load_placenet(cfg, str(trained / "placenet" / "best.safetensors"), device="cpu")))
+            runs.append(("trained network", *(load(cfg, str(trained / name / "best.safetensors"), device=device)
+                                              for name, load in (("disnet", load_disnet), ("rssnet", load_rssnet),
+                                                                 ("placenet", load_placenet)))))
         except (CacheError, ConfigError) as exc:
             print(f"(no usable trained models under {trained}: run `make demo` to also time the trained "
                   f"networks; {str(exc).splitlines()[0]})")
@@ -132,9 +137,9 @@ def main() -> None:
             t_net, t_rest, n_frames, n_points = measure(frames, c, disnet, rssnet, placenet, source)
             total = t_net + t_rest
             print(f"synthesize {size}, {c.synth.placement} placement, samples from the {source} map, "
-                  f"{n_points / n_frames:.0f} points/frame, 2 threads: {n_frames / total:.1f} frames/s (network "
-                  f"{1e3 * t_net / n_frames:.1f} ms, rest {1e3 * t_rest / n_frames:.1f} ms per frame), non-network "
-                  f"share {t_rest / total:.2f} (goal < 0.20)")
+                  f"{n_points / n_frames:.0f} points/frame, nets on {device}, 2 threads: {n_frames / total:.1f} "
+                  f"frames/s (network {1e3 * t_net / n_frames:.1f} ms, rest {1e3 * t_rest / n_frames:.1f} ms per "
+                  f"frame), non-network share {t_rest / total:.2f} (goal < 0.20)")
 
 
 if __name__ == "__main__":
