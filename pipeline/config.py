@@ -352,6 +352,9 @@ class ExportSection:
     """source: the dataset's own image file as it is (VoD .jpg, KITTI .png), else the reader's image
     as PNG; png or jpg: that format for every frame (OpenPCDet's KITTI loader opens .png, the
     View-of-Delft forks .jpg)."""
+    class_names: str = ""
+    """Classes renamed in the written labels, 'From=To,...' (e.g. 'Person=Pedestrian' for Astyx's
+    people under the name OpenPCDet's configurations use); '': the dataset's own names."""
 
 
 @dataclass(frozen=True)

@@ -294,6 +294,43 @@ def detector_label_text(text: str, track_ids: bool = False, P2: np.ndarray | Non
     return "".join(f"{line}\n" for line in lines or [DONT_CARE_LINE])
 
 
+def parse_class_map(text: str) -> dict[str, str]:
+    """export.class_names ``'From=To,From2=To2'`` -> {'From': 'To', ...} ('' -> {}); ValueError
+    saying what is wrong for an item without one '=', an empty or spaced name, or a name given twice.
+    """
+    mapping: dict[str, str] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        names = [name.strip() for name in item.split("=")]
+        if len(names) != 2 or not all(names) or any(" " in name for name in names):
+            raise ValueError(f"'{item}' is not From=To (class names without spaces, e.g. Person=Pedestrian)")
+        if names[0] in mapping:
+            raise ValueError(f"'{names[0]}' is renamed twice")
+        mapping[names[0]] = names[1]
+    return mapping
+
+
+def rename_classes(label_text: str, mapping: Mapping[str, str]) -> str:
+    """KITTI label text with each line's class (its first field) renamed by ``mapping`` (classes not
+    in it, DontCare included unless named, kept); other fields as they are."""
+    if not mapping:
+        return label_text
+    lines = []
+    for line in label_text.splitlines():
+        name, sep, rest = line.partition(" ")
+        lines.append(f"{mapping.get(name, name)}{sep}{rest}")
+    return "".join(f"{line}\n" for line in lines)
+
+
+def label_classes(label_text: str) -> dict[str, int]:
+    """Boxes per class of KITTI label text (DontCare left out)."""
+    counts: dict[str, int] = {}
+    for line in label_text.splitlines():
+        name = line.split(" ", 1)[0]
+        if name and name != "DontCare":
+            counts[name] = counts.get(name, 0) + 1
+    return counts
+
+
 def calib_P2(calib: str | os.PathLike) -> np.ndarray:
     """The ``P2`` (3, 4) of a KITTI calib: its text (str) or its file (a path); ValueError naming the
     file when the line is missing or malformed."""

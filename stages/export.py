@@ -17,7 +17,8 @@ optional
 pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range);
 ego_velocity_unknown.txt, the frames whose dataset records no ego motion (their Doppler is a
 stopped car's: filter them out of Doppler-using training), absent when there are none.
-Config: export.* (noise_fraction: the paper's 5% uniform noise points), radar.* (noise bounds, the
+Config: export.* (noise_fraction: the paper's 5% uniform noise points; class_names: classes renamed
+in the labels, whose boxes per class the summary counts), radar.* (noise bounds, the
 Doppler span that v_r and v_r_compensated lie in),
 camera.* (the full-resolution K of a generated calib).
 """
@@ -37,24 +38,27 @@ from pipeline.geometry import invert_transform, project_to_image
 from pipeline.stage import DatasetStage
 
 CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export.images", "export.image_format",
+               "export.class_names",
                "radar.fov_az_deg",
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
                "radar.doppler_span_mps",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
-VERSION = 4
+VERSION = 5
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
 3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
 out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
 export.image_format; Astyx's annotations as KITTI labels (pipeline.export.kitti_label_text);
 v_r_compensated wrapped into an aliasing radar's span (Astyx: 56% of its points had +-10.4 m/s).
 4: a track id's truncation column gets the box's truncation from the calib's P2, not 0 (boxes cut by
-the image edge were rated 'Easy' by OpenPCDet)."""
+the image edge were rated 'Easy' by OpenPCDet).
+5: export.class_names renames classes in the labels; the summary counts the boxes per class."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_P2, calib_text, detector_label_text, kitti_calib_text,
-                                 kitti_label_text, preview_png, vod_points, write_image, write_image_sets, write_kitti_layout, write_pcd)
+                                 kitti_label_text, label_classes, parse_class_map, preview_png, rename_classes, vod_points,
+                                 write_image, write_image_sets, write_kitti_layout, write_pcd)
     from pipeline.working import full_K
 
     syn, calib = inputs.store("synthesize"), inputs.store("calibrate")
@@ -71,6 +75,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     empty: list[str] = []       # frames written without a point
     (root / NO_MOTION_LIST).unlink(missing_ok=True)
     n_points = n_noise = 0
+    class_map = parse_class_map(cfg.export.class_names)  # checked by check()
+    classes: dict[str, dict[str, int]] = {"training": {}, "testing": {}}  # boxes per class in the labels
     for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
         i = int(i)
         fid = inputs.frame_ids[i]
@@ -109,6 +115,10 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
             label = kitti_label_text(record.labels, T_cam_radar, K_full, tuple(c.full_size))
         else:
             label = None
+        if label is not None:
+            label = rename_classes(label, class_map)
+            for kind, count in label_classes(label).items():
+                classes[subset][kind] = classes[subset].get(kind, 0) + count
         write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
         if len(rows) == 0:
             empty.append(fid)
@@ -128,15 +138,27 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     if no_motion:
         (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
-            "no_ego_motion": len(no_motion), "empty_frames": empty,
+            "no_ego_motion": len(no_motion), "empty_frames": empty, "classes": classes,
             "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root} (the RCS "
                        f"column in {cfg.radar.rss_unit}, the unit of the simulated {cfg.radar.name})"
+                       + _classes_note(classes, cfg)
                        + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
                           f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
                        + (f"; {len(empty)} of them without a point (an empty .bin, on which a detector's "
                           f"voxelisation may fail): {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}"
                           if empty else "")
                        + ("" if lists["train"] else _no_train_hint(cfg))}
+
+
+def _classes_note(classes: dict[str, dict[str, int]], cfg: Config) -> str:
+    """The labelled boxes per class of the training subset (a detector's CLASS_NAMES must be among
+    them), or of the testing subset when no training frame has labels; '' without labels."""
+    subset = "training" if classes["training"] else "testing"
+    if not classes[subset]:
+        return ""
+    counts = ", ".join(f"{name} {n}" for name, n in sorted(classes[subset].items(), key=lambda kv: -kv[1]))
+    renamed = f", after export.class_names = '{cfg.export.class_names}'" if cfg.export.class_names else ""
+    return f"; labelled boxes under {subset}/ by class{renamed}: {counts} (a detector's CLASS_NAMES take these names)"
 
 
 def _no_train_hint(cfg: Config) -> str:
@@ -154,11 +176,15 @@ oxts), one id per line; absent when there are none."""
 
 
 def check(cfg: Config) -> None:
-    """ConfigError for an unknown export.image_format."""
-    from pipeline.export import IMAGE_FORMATS
+    """ConfigError for an unknown export.image_format or a malformed export.class_names."""
+    from pipeline.export import IMAGE_FORMATS, parse_class_map
 
     if cfg.export.image_format not in IMAGE_FORMATS:
         raise ConfigError(f"export.image_format must be one of {', '.join(IMAGE_FORMATS)}; got '{cfg.export.image_format}'")
+    try:
+        parse_class_map(cfg.export.class_names)
+    except ValueError as exc:
+        raise ConfigError(f"export.class_names: {exc}") from None
 
 
 STAGE = DatasetStage(name="export", upstream=("calibrate", "synthesize"), config_keys=CONFIG_KEYS, run=run,

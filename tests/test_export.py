@@ -12,8 +12,9 @@ import pytest
 
 from pipeline.errors import ReaderError
 from pipeline.export import (
-    DONT_CARE_LINE, add_uniform_noise, detector_label_text, kitti_calib_text, preview_png, read_pcd, read_vod_bin, vod_points,
-    write_image, write_image_sets, write_kitti_layout, write_pcd, write_vod_bin,
+    DONT_CARE_LINE, add_uniform_noise, detector_label_text, kitti_calib_text, label_classes, parse_class_map, preview_png,
+    read_pcd, read_vod_bin, rename_classes, vod_points, write_image, write_image_sets, write_kitti_layout, write_pcd,
+    write_vod_bin,
 )
 from pipeline.geometry import cartesian_to_spherical, invert_transform, project_to_image
 from pipeline.synthesis import doppler_for_points
@@ -277,3 +278,21 @@ def test_track_id_labels_get_the_truncation_of_their_box():
     assert detector_label_text(behind.replace("4.0", "x"), True, P2, (640, 400)).split()[1] == "0"
     with pytest.raises(ValueError, match="P2"):
         calib_P2("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+
+
+def test_class_names_rename_label_classes():
+    assert parse_class_map("") == {} and parse_class_map(" Person = Pedestrian , Other_Vehicle=Car,") == {
+        "Person": "Pedestrian", "Other_Vehicle": "Car"}
+    for bad, words in (("Person", "not From=To"), ("Person=", "not From=To"), ("a=b=c", "not From=To"),
+                       ("Towed Object=Car", "not From=To"), ("Car=Truck,Car=Van", "'Car' is renamed twice")):
+        with pytest.raises(ValueError, match=words):
+            parse_class_map(bad)
+    text = ("Person 0.00 0 -1.9 526.5 195.8 547.4 235.9 1.5 0.6 0.5 8.6 1.5 19.4 -1.5\n"
+            "Car 0.50 1 0.3 100 100 200 200 1.5 1.8 4.0 2.0 1.6 10.0 0.1\n" + DONT_CARE_LINE + "\n")
+    out = rename_classes(text, {"Person": "Pedestrian"})
+    lines = out.splitlines()
+    assert lines[0] == "Pedestrian " + text.splitlines()[0].split(" ", 1)[1]   # the other fields untouched
+    assert lines[1:] == text.splitlines()[1:] and out.endswith("\n")
+    assert rename_classes(text, {}) == text
+    assert label_classes(out) == {"Pedestrian": 1, "Car": 1}                      # DontCare is no box
+    assert label_classes(DONT_CARE_LINE + "\n") == {}
