@@ -7,6 +7,7 @@ import functools
 import json
 import os
 import sys
+from collections import Counter
 from pathlib import Path
 
 import click
@@ -92,7 +93,11 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
     _check_url("--cache", cache_root)
     explicit = set(overrides) | set(env_overrides(dict(os.environ)))
-    cfg = with_nets_from(cfg, cache_root, explicit)  # another dataset's nets bring their radar's settings
+    try:  # outputs made with the nets' radar settings: a run must not replace them with the profile's
+        made = need_root and frame_store(cache_root, dataset, "calibrate").exists()
+    except MetadataError:
+        made = True
+    cfg = with_nets_from(cfg, cache_root, explicit, require_trained=made)  # their radar's settings come too
     if not data_root:
         calib = frame_store(cache_root, dataset, "calibrate")
         try:
@@ -230,24 +235,31 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     finally:
         pipe.executor.close()
     failed = sum(r.failed for r in reports)
+    status_cmd = f"pipeline status --dataset {dataset}" + (f" --cache {cache_root}" if cache_root != DEFAULT_CACHE else "")
     if failed:
-        click.echo(f"{failed} frame(s) failed across stages; `pipeline status --dataset {dataset}` lists why.", err=True)
+        click.echo(f"{failed} frame(s) failed across stages; `{status_cmd}` lists why.", err=True)
     for r in reports:
         for key in ("report", "figures", "checkpoints", "output"):
             if key in r.summary:
                 click.echo(f"{r.stage} {key}: {r.summary[key]}")
-    # a stage with no frame done after a run that failed every frame it tried made nothing: no success
-    # for a script (some failed frames beside done ones are: see --strict)
-    nothing = [r for r in reports if r.processed and len(r.failures) == r.processed and r.done == 0]
+    # a frame stage with failed frames and none done made nothing (the run stopped after it unless it
+    # was the target): no success for a script (some failed frames beside done ones are: see --strict)
+    nothing = [r for r in reports if r.action != "dataset" and r.done == 0 and r.failed]
     if nothing:
         r = nothing[0]
-        first = (r.failures[0][1] or "no reason recorded").splitlines()[0]
-        click.echo(f"error: stage {r.stage} has no frame done: all {r.processed} frame(s) it tried in this run "
-                   f"failed, e.g. {first}", err=True)
+        if r.failures:
+            first = (r.failures[0][1] or "no reason recorded").splitlines()[0]
+            why = f"all {r.processed} frame(s) it tried in this run failed, e.g. {first}"
+        else:
+            why = f"its {r.failed} failed frame(s) failed in an earlier run (`{status_cmd}` lists why; " \
+                  f"--retry-failed tries them again)"
+        click.echo(f"error: stage {r.stage} has no frame done: {why}", err=True)
         sys.exit(1)
 
 
-def _print_status_row(row: dict) -> None:
+def _print_status_row(row: dict, notes: dict[str, int] | None = None) -> None:
+    """One stage's status line and its note. ``notes``: how many rows still to be printed hold each
+    note; a note is printed once, with that number when it is more than one."""
     current = {True: "current", False: "stale or missing", None: "unknown"}[row.get("current")]
     if row.get("current") and row.get("pending"):  # the settings match, frames are left: not finished
         current = "current, unfinished"
@@ -259,8 +271,10 @@ def _print_status_row(row: dict) -> None:
     else:
         state = "finished" if row.get("exists") else "not run"
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} {state}")
-    if row.get("note"):
-        click.echo(f"{'':<{NAME_WIDTH}} note: {row['note']}")
+    note = row.get("note")
+    if note and (notes is None or notes.get(note)):
+        more = notes.pop(note) if notes is not None else 1
+        click.echo(f"{'':<{NAME_WIDTH}} note: {note}{f' (so for {more} stages)' if more > 1 else ''}")
 
 
 @main.command()
@@ -279,8 +293,9 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
         click.echo(json.dumps(rows, indent=2, default=str))
     else:
         click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}  data {env.data_root or '(none)'}")
+        notes = Counter(row["note"] for row in rows if row.get("note"))
         for row in rows:
-            _print_status_row(row)
+            _print_status_row(row, notes)
             for i, why in list(row.get("reasons", {}).items())[:reasons]:
                 click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
     _exit_if_damaged(rows)

@@ -497,6 +497,16 @@ def check_relations(cfg: "Config") -> None:
                           f"{cfg.camera.full_size[1]}, got {top},{bottom}")
     if abs(sum(cfg.split.fractions) - 1.0) > 1e-6:
         raise ConfigError(f"'split.fractions' (train, val, test) must sum to 1, got {_text(cfg.split.fractions)}")
+    mount = cfg.dataset.radar_mount_T_radar_lidar
+    if len(mount) != 16:
+        raise ConfigError(f"'dataset.radar_mount_T_radar_lidar' must be 16 values (a row-major 4x4 rigid transform, "
+                          f"lidar -> radar), got {len(mount)}")
+    from pipeline.geometry import invert_transform  # numpy: only here
+
+    try:
+        invert_transform([mount[row * 4:row * 4 + 4] for row in range(4)])
+    except ValueError as exc:
+        raise ConfigError(f"'dataset.radar_mount_T_radar_lidar' is not a rigid transform: {exc}") from None
     if not cfg.radar.rss_min < cfg.radar.rss_max:
         raise ConfigError(f"'radar.rss_min' must be below 'radar.rss_max', got {cfg.radar.rss_min:g} and "
                           f"{cfg.radar.rss_max:g}")
@@ -537,6 +547,10 @@ def _jsonable(value: Any) -> Any:
     return list(value) if isinstance(value, tuple) else value
 
 
+_EXPECTED = {int: "a whole number", float: "a number", bool: "true or false"}
+"""How a bad value's message names the type it should have been."""
+
+
 def _parse_value(key: str, value: Any, typ: Any) -> Any:
     """Coerce a TOML value or a command-line string to the field's type."""
     text_type = str(typ)
@@ -567,7 +581,9 @@ def _parse_value(key: str, value: Any, typ: Any) -> Any:
                 raise ValueError(f"expected {len(inner)} values")
             return tuple(_parse_value(key, v, t) for v, t in zip(items, inner))
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"bad value {value!r} for '{key}' (expected {getattr(typ, '__name__', text_type)}): {exc}") from None
+        expected = "comma-separated values" if text_type.startswith("tuple") else _EXPECTED.get(typ, text_type)
+        detail = f": {exc}" if text_type.startswith("tuple") else ""  # Python's own words add nothing for one value
+        raise ConfigError(f"bad value {value!r} for '{key}' (expected {expected}){detail}") from None
     raise ConfigError(f"'{key}': unsupported field type {text_type}")
 
 
@@ -593,14 +609,21 @@ def profile_names() -> list[str]:
     return sorted(p.name[:-5] for p in files if p.name.endswith(".toml"))
 
 
+def check_profile(name: str, setting: str = "") -> None:
+    """ConfigError unless ``name`` is a dataset profile, suggesting the nearest; ``setting``: the
+    config key that gave the name, if any."""
+    names = profile_names()
+    if name not in names:
+        near = difflib.get_close_matches(name, names, n=1)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        what = f"{setting} = '{name}' names no dataset profile" if setting else f"unknown dataset profile '{name}'"
+        raise ConfigError(f"{what} (known: {', '.join(names)}){hint}")
+
+
 def load_config(profile: str, overrides: dict[str, str] | None = None,
                 environ: dict[str, str] | None = None) -> Config:
     """Build the configuration of ``profile`` with environment and explicit overrides applied."""
-    names = profile_names()
-    if profile not in names:
-        near = difflib.get_close_matches(profile, names, n=1)
-        hint = f"; did you mean '{near[0]}'?" if near else ""
-        raise ConfigError(f"unknown dataset profile '{profile}' (known: {', '.join(names)}){hint}")
+    check_profile(profile)
     text = resources.files("pipeline.profiles").joinpath(f"{profile}.toml").read_text()
     try:
         data = tomllib.loads(text)

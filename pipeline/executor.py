@@ -146,7 +146,8 @@ def process_frame(stage: FrameStage, env: RunEnv, index: int, frame_id: str) -> 
         store.write_frame(index, out, specs)
         return index, DONE, ""
     if not reason.startswith(f"stage {stage.name}"):
-        reason = f"stage {stage.name}, frame {frame_id}: {reason}"
+        own = f"frame {frame_id}: "  # a ReaderError names its frame already
+        reason = f"stage {stage.name}, frame {frame_id}: {reason[len(own):] if reason.startswith(own) else reason}"
     store.mark(index, FAILED, reason)
     return index, FAILED, reason
 

@@ -242,6 +242,10 @@ class Pipeline:
                 self.log(f"{'':<{NAME_WIDTH}} {note}")
             if strict and report.failed:
                 raise self._strict_error(name, report)
+            if isinstance(stage, FrameStage) and name != target and report.done == 0 and report.failed:
+                # every frame failed: the stages after it would fail or refuse for want of input
+                self.log(f"{'':<{NAME_WIDTH}} no frame of {name} is done: the stages after it were not run")
+                break
         return reports
 
     def moved_from(self) -> str | None:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.cache import DirStore, dir_store, frame_store
-from pipeline.config import Config, load_config, own_radar
+from pipeline.config import Config, check_profile, load_config, own_radar
 from pipeline.errors import ConfigError, PipelineError
 
 RADAR_SETTINGS = ("radar.name", "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
@@ -102,18 +102,26 @@ def mismatches(cfg: Config, trained: dict[str, Any]) -> list[str]:
             if _json(cfg.get(key)) != value]
 
 
-def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = ()) -> Config:
+def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = (), require_trained: bool = False) -> Config:
     """``cfg`` with the trained :data:`RADAR_SETTINGS` of dataset ``cfg.train.nets_from`` (``cfg``
     itself when it names none, or its train stage has not finished: the train stage then stops
     with a message). ``explicit``: the keys the user set (--set, PIPELINE__ variables); one of them
-    set to another value than the nets were trained with is a ConfigError."""
+    set to another value than the nets were trained with is a ConfigError. ``require_trained`` (a
+    run on a cache holding this dataset's outputs): no finished train stage there is a ConfigError
+    too, before any stage runs, since the profile's radar settings would replace those outputs."""
     source = cfg.train.nets_from
     if not source:
         return cfg
     if source == cfg.profile:
         raise ConfigError(f"train.nets_from = '{source}' names this dataset itself; leave it empty to train here")
+    check_profile(source, "train.nets_from")
     source = checked_origin(cfg, cache_root)
     if source_train(cache_root, source).meta() is None:
+        if require_trained:
+            raise ConfigError(f"train.nets_from = '{cfg.train.nets_from}': no finished train stage at "
+                              f"{source_train(cache_root, source).url}, and this dataset's outputs were made with "
+                              f"its radar settings, which the profile's would replace: run `pipeline run train "
+                              f"--dataset {source} --data-root ...` with this cache first (nothing was run)")
         return cfg  # nothing trained there yet: the train stage says so when it runs
     trained = trained_settings(cache_root, source)
     clash = [m for m in mismatches(cfg, trained) if m.split("=", 1)[0] in set(explicit)]

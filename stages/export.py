@@ -77,6 +77,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     n_points = n_noise = 0
     class_map = parse_class_map(cfg.export.class_names)  # checked by check()
     classes: dict[str, dict[str, int]] = {"training": {}, "testing": {}}  # boxes per class in the labels
+    unused = set(class_map)  # names of export.class_names no label holds (a misspelt class)
     for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
         i = int(i)
         fid = inputs.frame_ids[i]
@@ -116,6 +117,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         else:
             label = None
         if label is not None:
+            unused -= set(label_classes(label))
             label = rename_classes(label, class_map)
             for kind, count in label_classes(label).items():
                 classes[subset][kind] = classes[subset].get(kind, 0) + count
@@ -139,9 +141,12 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
             "no_ego_motion": len(no_motion), "empty_frames": empty, "classes": classes,
+            "classes_not_found": sorted(unused),
             "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root} (the RCS "
                        f"column in {cfg.radar.rss_unit}, the unit of the simulated {cfg.radar.name})"
                        + _classes_note(classes, cfg)
+                       + (f"; export.class_names renames {', '.join(sorted(unused))}, which no written label holds"
+                          if unused else "")
                        + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
                           f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
                        + (f"; {len(empty)} of them without a point (an empty .bin, on which a detector's "

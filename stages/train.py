@@ -25,7 +25,7 @@ import numpy as np
 from pipeline import transfer
 from pipeline.cache import DONE, RaggedRows
 from pipeline.checkpoint import read_meta
-from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config
+from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config, check_profile
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
@@ -297,6 +297,8 @@ def check(cfg: Config) -> None:
     if cfg.train.nets_from == cfg.profile:
         raise ConfigError(f"train.nets_from = '{cfg.train.nets_from}' names this dataset itself; leave it empty to "
                           f"train here")
+    if cfg.train.nets_from:
+        check_profile(cfg.train.nets_from, "train.nets_from")
     check_training(cfg)
 
 

@@ -467,7 +467,10 @@ def test_invalid_settings_are_refused_before_any_output_is_touched(tmp_path):
     ("heatmap.sigma_px", "nan,nan"), ("patches.r_c_px", "-1"), ("patches.points_per_frame", "-1"),
     ("placement.gate_m", "inf"), ("radar.doppler_sign", "2"), ("train.ema_decay", "1"), ("run.workers", "0"),
     ("split.fractions", "0.5,0.5,0.5"), ("split.seed", "-1"), ("camera.crop_rows", "300,100"),
-    ("camera.crop_rows", "0,5000"), ("radar.rss_max", "nan"), ("radar.rss_min", "100")])
+    ("camera.crop_rows", "0,5000"), ("radar.rss_max", "nan"), ("radar.rss_min", "100"),
+    ("dataset.radar_mount_T_radar_lidar", "1,0,0"),                 # the mount: refused since the 27th session
+    ("dataset.radar_mount_T_radar_lidar", "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,2"),
+    ("dataset.radar_mount_T_radar_lidar", "2,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1")])
 def test_values_no_stage_could_run_with_are_refused_with_the_key_before_anything_runs(tmp_path, key, value):
     """Until 2026-12-04 these were accepted: calibrate, heatmaps and patches then failed every frame
     (exit 0), after discarding the outputs made with the old settings."""

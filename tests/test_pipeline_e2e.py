@@ -109,7 +109,7 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
                  Executor(1, progress=False), progress=False, log=lambda m: None).run("export")
     # export.class_names renames classes in every label file; the summary counts the boxes per class
     renamed = {r.stage: r for r in Pipeline(all_stages(), replace(serial.env, cfg=serial.env.cfg.with_overrides(
-        {"export.class_names": "Car=Vehicle"})), Executor(1, progress=False), progress=False,
+        {"export.class_names": "Car=Vehicle,Carr=Auto"})), Executor(1, progress=False), progress=False,
         log=lambda m: None).run("export")}["export"].summary
     written: dict[str, dict[str, int]] = {"training": {}, "testing": {}}
     for path in (tmp_path / "serial" / "synthetic" / "export" / "radar").glob("*/label_2/*.txt"):
@@ -119,6 +119,7 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
                 written[path.parent.parent.name][kind] = written[path.parent.parent.name].get(kind, 0) + 1
     assert renamed["classes"] == written and "Car" not in str(written) and written["training"]["Vehicle"] > 0
     assert f"Vehicle {written['training']['Vehicle']}" in renamed["message"]
+    assert renamed["classes_not_found"] == ["Carr"] and "renames Carr, which no written label holds" in renamed["message"]
     with pytest.raises(ConfigError, match="export.class_names: 'Car' is not From=To"):
         Pipeline(all_stages(), replace(serial.env, cfg=serial.env.cfg.with_overrides({"export.class_names": "Car"})),
                  Executor(1, progress=False), progress=False, log=lambda m: None).run("export")

@@ -172,3 +172,19 @@ def test_calibrate_says_how_many_frames_have_no_ego_motion(tmp_path):
     Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lines.append).run("calibrate")
     assert not np.asarray(env.store("calibrate").array("ego_velocity_known")[:]).any()
     assert any("ego velocity unknown on 1 of 1 frames" in line and "stopped car" in line for line in lines), lines
+
+
+def test_a_failed_frame_is_named_once_in_its_reason(tmp_path):
+    """A reader error names its frame; the recorded reason adds the stage without naming the frame
+    a second time (until 2026-12-04: 'stage calibrate, frame 000007: frame 000007: ...')."""
+    from pipeline.executor import Executor, RunEnv
+    from pipeline.runner import Pipeline
+    from stages import calibrate
+
+    _make(tmp_path / "data", size=(200, 150))       # far from camera.full_size: the frame fails
+    cfg = _cfg().with_overrides({"camera.crop_rows": "0,48", "camera.working_size": "64,48"})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="kitti", data_root=str(tmp_path / "data"))
+    report, = Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lambda m: None).run("calibrate")
+    (_, reason), = report.failures
+    assert reason.startswith("stage calibrate, frame 000007: ") and reason.count("000007") == 2, reason  # + the file
+    assert "image is 200x150 pixels" in reason

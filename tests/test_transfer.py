@@ -4,6 +4,7 @@ a KITTI-layout dataset (no radar) synthesized and exported with the tiny synthet
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -83,6 +84,12 @@ def test_the_trained_radar_settings_replace_the_profile_and_are_recorded(trained
     # nothing trained there: the profile as it is (the train stage will say why it cannot run)
     missing = load_config("kitti", {"train.nets_from": "astyx"}, environ={})
     assert with_nets_from(missing, str(trained)) == missing
+    # a run (require_trained) is refused before any stage: the profile's radar settings would first
+    # recompute calibrate, heatmaps and patches (until 2026-12-04), and so would a misspelt name
+    with pytest.raises(ConfigError, match=r"'astyx': no finished train stage at .*astyx/train.*nothing was run"):
+        with_nets_from(missing, str(trained), require_trained=True)
+    with pytest.raises(ConfigError, match="'astyxx' names no dataset profile .*did you mean 'astyx'"):
+        with_nets_from(load_config("kitti", {"train.nets_from": "astyxx"}, environ={}), str(trained))
     with pytest.raises(ConfigError, match="names this dataset itself"):
         with_nets_from(load_config("kitti", {"train.nets_from": "kitti"}, environ={}), str(trained))
 
@@ -380,3 +387,28 @@ def test_dis_nets_prior_moves_to_the_same_directions_in_another_camera():
     # the map made with the source prior, as made with the moved one
     rebased = rebase_prior(prior * 0 + 1.0 / prior.size, prior, moved)
     np.testing.assert_allclose(rebased, moved / prior / (moved / prior).sum(), rtol=1e-5)
+
+
+def test_a_run_naming_untrained_nets_leaves_the_outputs_made_with_trained_ones(trained, tmp_path):
+    """KITTI's calibrate made with the synthetic nets' radar settings: a run naming nets not trained
+    in this cache (or a misspelt dataset) is refused before any stage, the output untouched (until
+    2026-12-04 the profile's settings first replaced calibrate, heatmaps and patches). Where this
+    dataset has no output yet, nothing is lost: the run goes on with the profile's settings."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    cache = tmp_path / "cache"
+    shutil.copytree(trained, cache)
+    kitti = _kitti(tmp_path / "kitti")
+    args = ["run", "calibrate", "--workers", "1", "--dataset", "kitti", "--data-root", str(kitti), "--cache", str(cache)]
+    assert CliRunner().invoke(main, [*args, "--set", "train.nets_from=synthetic"]).exit_code == 0
+    calib = cache / "kitti" / "calibrate.zarr" / "zarr.json"
+    before = calib.read_bytes()
+    for name, words in (("msc", "no finished train stage at .*msc/train.*nothing was run"),
+                        ("synthetik", "names no dataset profile .*did you mean 'synthetic'")):
+        out = CliRunner().invoke(main, [*args, "--set", f"train.nets_from={name}"])
+        assert out.exit_code == 2 and re.search(words, out.output), out.output
+    assert calib.read_bytes() == before
+    fresh = CliRunner().invoke(main, [*args[:-1], str(tmp_path / "other"), "--set", "train.nets_from=msc"])
+    assert fresh.exit_code == 0, fresh.output
