@@ -93,11 +93,7 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
     _check_url("--cache", cache_root)
     explicit = set(overrides) | set(env_overrides(dict(os.environ)))
-    try:  # outputs made with the nets' radar settings: a run must not replace them with the profile's
-        made = need_root and frame_store(cache_root, dataset, "calibrate").exists()
-    except MetadataError:
-        made = True
-    cfg = with_nets_from(cfg, cache_root, explicit, require_trained=made)  # their radar's settings come too
+    cfg = with_nets_from(cfg, cache_root, explicit, require_trained=need_root)  # their radar's settings come too
     if not data_root:
         calib = frame_store(cache_root, dataset, "calibrate")
         try:

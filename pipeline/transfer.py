@@ -26,7 +26,7 @@ import numpy as np
 
 from pipeline.cache import DirStore, dir_store, frame_store
 from pipeline.config import Config, check_profile, load_config, own_radar
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import ConfigError, MetadataError, PipelineError
 
 RADAR_SETTINGS = ("radar.name", "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
                   "radar.max_range_m", "radar.max_points", "radar.rss_min", "radar.rss_max", "radar.rss_unit",
@@ -96,6 +96,18 @@ def trained_settings(cache_root: str, dataset: str) -> dict[str, Any]:
     return out
 
 
+def _made_with_other_radar(cfg: Config, cache_root: str) -> bool:
+    """Whether dataset ``cfg.profile``'s calibrate output under ``cache_root`` recorded radar
+    settings other than ``cfg``'s (False without one, or where its metadata cannot be read: the run
+    then stops on that)."""
+    store = frame_store(cache_root, cfg.profile, "calibrate")
+    try:
+        recorded = store.attrs().get("config", {}) if store.exists() else {}
+    except MetadataError:
+        return False
+    return any(key in recorded and recorded[key] != _json(cfg.get(key)) for key in RADAR_SETTINGS)
+
+
 def mismatches(cfg: Config, trained: dict[str, Any]) -> list[str]:
     """'key=trained value (here: value)' for each of ``trained`` that ``cfg`` does not have."""
     return [f"{key}={_text(value)} (here: {_text(_json(cfg.get(key)))})" for key, value in trained.items()
@@ -107,8 +119,8 @@ def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = (), r
     itself when it names none, or its train stage has not finished: the train stage then stops
     with a message). ``explicit``: the keys the user set (--set, PIPELINE__ variables); one of them
     set to another value than the nets were trained with is a ConfigError. ``require_trained`` (a
-    run on a cache holding this dataset's outputs): no finished train stage there is a ConfigError
-    too, before any stage runs, since the profile's radar settings would replace those outputs."""
+    run): no finished train stage there is a ConfigError too where this dataset's calibrate output
+    was made with other radar settings (the nets', before): the profile's would replace it."""
     source = cfg.train.nets_from
     if not source:
         return cfg
@@ -117,7 +129,7 @@ def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = (), r
     check_profile(source, "train.nets_from")
     source = checked_origin(cfg, cache_root)
     if source_train(cache_root, source).meta() is None:
-        if require_trained:
+        if require_trained and _made_with_other_radar(cfg, cache_root):
             raise ConfigError(f"train.nets_from = '{cfg.train.nets_from}': no finished train stage at "
                               f"{source_train(cache_root, source).url}, and this dataset's outputs were made with "
                               f"its radar settings, which the profile's would replace: run `pipeline run train "
