@@ -222,9 +222,9 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
         rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
         _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
         return
+    pipe.executor.check_cluster(env.cache_root)  # before the world is generated or any output touched
     _ensure_world(env, pipe.progress)
     frames = parse_frames(frames_spec, pipe.frame_ids())
-    pipe.executor.check_cluster(env.cache_root)
     try:
         reports = pipe.run(stage, frames=frames, strict=strict, force=force, retry_failed=retry_failed,
                            wait_s=wait_s)

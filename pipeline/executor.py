@@ -223,9 +223,10 @@ class Executor:
     def check_cluster(self, cache_root: str, timeout_s: float = 60.0) -> None:
         """With an existing cluster (``scheduler``): connect now, before any output is touched, and
         run one probe task that imports the package and looks for a marker file written into the
-        cache (created here if it is not there yet: a first run). PipelineError naming the problem:
-        no connection (a malformed or wrong address), no worker, the package missing on the workers,
-        the cache elsewhere on their machines."""
+        cache (created here if it is not there yet: a first run), then look for it on every worker
+        connected (workers joining later are not probed). PipelineError naming the problem: no
+        connection (a malformed or wrong address), no worker, the package missing on the workers,
+        the cache elsewhere on their machines (naming the workers that miss it)."""
         if not self.scheduler:
             return
         import uuid
@@ -255,7 +256,10 @@ class Executor:
                                     f"scheduler's address, tcp://HOST:PORT") from None
             try:
                 client.wait_for_workers(1, timeout=timeout_s)
-                found = client.submit(_worker_probe, fs.unstrip_protocol(marker), pure=False).result(timeout=timeout_s)
+                url = fs.unstrip_protocol(marker)
+                found = client.submit(_worker_probe, url, pure=False).result(timeout=timeout_s)
+                # the task ran on one worker; every worker connected now must see the cache too
+                blind = sorted(w for w, seen in client.run(_worker_probe, url).items() if not seen)
             except Exception as exc:  # timeouts, a worker that cannot unpickle the task
                 raise PipelineError(f"dask cluster at {self.scheduler}: no worker ran a probe task within "
                                     f"{timeout_s:.0f} s ({first_line(exc)}); its workers need this package installed "
@@ -265,9 +269,11 @@ class Executor:
                 fs.rm_file(marker)
             except Exception:  # noqa: BLE001 - a marker left behind must not hide the probe's own error
                 pass
-        if not found:
-            raise PipelineError(f"dask cluster at {self.scheduler}: a worker does not see the cache {cache_root}; "
-                                f"its workers need the cache at the same path (a shared filesystem or an fsspec URL)")
+        if not found or blind:
+            which = f" ({', '.join(blind)})" if blind else ""
+            raise PipelineError(f"dask cluster at {self.scheduler}: a worker{which} does not see the cache "
+                                f"{cache_root}; its workers need the cache at the same path (a shared filesystem or "
+                                f"an fsspec URL)")
 
     def close(self) -> None:
         if self._client is not None:

@@ -241,12 +241,24 @@ def test_a_worker_that_does_not_see_the_probe_marker_is_named(tmp_path, monkeypa
         def wait_for_workers(self, n, timeout):
             pass
 
+        def __init__(self, blind_task: bool) -> None:
+            self.blind_task = blind_task
+
         def submit(self, fn, url, pure):
-            return types.SimpleNamespace(result=lambda timeout: fn(url.replace(str(tmp_path), str(tmp_path / "x"))))
+            seen = url.replace(str(tmp_path), str(tmp_path / "x")) if self.blind_task else url
+            return types.SimpleNamespace(result=lambda timeout: fn(seen))
+
+        def run(self, fn, url):  # two workers: the second on another filesystem
+            return {"tcp://a:1": fn(url), "tcp://b:2": fn(url.replace(str(tmp_path), str(tmp_path / "x")))}
 
     ex = Executor(scheduler="tcp://127.0.0.1:1", progress=False)
-    monkeypatch.setattr(ex, "client", lambda: Client())
+    monkeypatch.setattr(ex, "client", lambda: Client(blind_task=True))
     with pytest.raises(PipelineError, match="does not see the cache"):
+        ex.check_cluster(str(tmp_path / "cache"))
+    # the probe task ran on a worker that sees the cache, another does not (until 2026-12-04 the
+    # run went on and stopped at its first frame there, saying the cache's output did not exist)
+    monkeypatch.setattr(ex, "client", lambda: Client(blind_task=False))
+    with pytest.raises(PipelineError, match=r"a worker \(tcp://b:2\) does not see the cache"):
         ex.check_cluster(str(tmp_path / "cache"))
     assert not list((tmp_path / "cache").iterdir())
     pytest.importorskip("distributed")
