@@ -231,7 +231,9 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     finally:
         pipe.executor.close()
     failed = sum(r.failed for r in reports)
-    status_cmd = f"pipeline status --dataset {dataset}" + (f" --cache {cache_root}" if cache_root != DEFAULT_CACHE else "")
+    status_cmd = f"pipeline status --dataset {dataset}"
+    if cache_root != DEFAULT_CACHE:
+        status_cmd += f" --cache {cache_root}"
     if failed:
         click.echo(f"{failed} frame(s) failed across stages; `{status_cmd}` lists why.", err=True)
     for r in reports:

@@ -107,7 +107,8 @@ def _colour_features(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.concatenate([a[px[:, 1], px[:, 0]] for a in (img, mean, std)], axis=1)
 
 
-def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, lidar_D: np.ndarray, workers: int = 1) -> np.ndarray:
+def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, lidar_D: np.ndarray,
+                       workers: int = 1) -> np.ndarray:
     """(C, 4): |cos incidence|, planarity, log neighbour distance, normal z^2 (zeros with too few
     lidar points). The tree is built unbalanced (median splits cost more than they save for one
     query of each candidate: 11.6 against 12.3 ms for a demo frame's 8,800, the same neighbours)."""

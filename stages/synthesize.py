@@ -114,7 +114,7 @@ def check_generation(cfg: Config) -> None:
             raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
     # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set
     check_split("synth.split", s.split)
-    if s.device != "auto":  # 'auto' needs no check (nor torch imported for it)
+    if s.device not in ("auto", "cpu"):  # only these need no check (nor torch imported for it)
         from pipeline.training import select_device
 
         select_device(s.device, "synth.device")
