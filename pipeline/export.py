@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -321,14 +322,10 @@ def rename_classes(label_text: str, mapping: Mapping[str, str]) -> str:
     return "".join(f"{line}\n" for line in lines)
 
 
-def label_classes(label_text: str) -> dict[str, int]:
+def label_classes(label_text: str) -> Counter[str]:
     """Boxes per class of KITTI label text (DontCare left out)."""
-    counts: dict[str, int] = {}
-    for line in label_text.splitlines():
-        name = line.split(" ", 1)[0]
-        if name and name != "DontCare":
-            counts[name] = counts.get(name, 0) + 1
-    return counts
+    names = (line.split(" ", 1)[0] for line in label_text.splitlines())
+    return Counter(name for name in names if name and name != "DontCare")
 
 
 def calib_P2(calib: str | os.PathLike) -> np.ndarray:

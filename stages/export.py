@@ -26,6 +26,7 @@ camera.* (the full-resolution K of a generated calib).
 from __future__ import annotations
 
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -76,7 +77,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     (root / NO_MOTION_LIST).unlink(missing_ok=True)
     n_points = n_noise = 0
     class_map = parse_class_map(cfg.export.class_names)  # checked by check()
-    classes: dict[str, dict[str, int]] = {"training": {}, "testing": {}}  # boxes per class in the labels
+    classes: dict[str, Counter[str]] = {"training": Counter(), "testing": Counter()}  # boxes per class written
     unused = set(class_map)  # names of export.class_names no label holds (a misspelt class)
     for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
         i = int(i)
@@ -117,10 +118,10 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         else:
             label = None
         if label is not None:
-            unused -= set(label_classes(label))
+            found = label_classes(label)
+            unused -= set(found)
+            classes[subset].update({class_map.get(kind, kind): n for kind, n in found.items()})
             label = rename_classes(label, class_map)
-            for kind, count in label_classes(label).items():
-                classes[subset][kind] = classes[subset].get(kind, 0) + count
         write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
         if len(rows) == 0:
             empty.append(fid)
@@ -140,7 +141,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     if no_motion:
         (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
-            "no_ego_motion": len(no_motion), "empty_frames": empty, "classes": classes,
+            "no_ego_motion": len(no_motion), "empty_frames": empty,
+            "classes": {subset: dict(counts) for subset, counts in classes.items()},
             "classes_not_found": sorted(unused),
             "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root} (the RCS "
                        f"column in {cfg.radar.rss_unit}, the unit of the simulated {cfg.radar.name})"
@@ -155,13 +157,13 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                        + ("" if lists["train"] else _no_train_hint(cfg))}
 
 
-def _classes_note(classes: dict[str, dict[str, int]], cfg: Config) -> str:
+def _classes_note(classes: dict[str, Counter[str]], cfg: Config) -> str:
     """The labelled boxes per class of the training subset (a detector's CLASS_NAMES must be among
     them), or of the testing subset when no training frame has labels; '' without labels."""
     subset = "training" if classes["training"] else "testing"
     if not classes[subset]:
         return ""
-    counts = ", ".join(f"{name} {n}" for name, n in sorted(classes[subset].items(), key=lambda kv: -kv[1]))
+    counts = ", ".join(f"{name} {n}" for name, n in classes[subset].most_common())
     renamed = f", after export.class_names = '{cfg.export.class_names}'" if cfg.export.class_names else ""
     return f"; labelled boxes under {subset}/ by class{renamed}: {counts} (a detector's CLASS_NAMES take these names)"
 
