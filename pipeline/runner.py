@@ -212,30 +212,34 @@ class Pipeline:
         for name in self.upstream_closure(target):
             stage = self.stages[name]
             what = f"stage '{name}' of dataset '{self.env.dataset}'"
-            with stage_lock(self._lock_url(name), what, wait_s), \
-                    reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
-                t0 = time.perf_counter()
-                forced = force and (name == target or getattr(stage, "part_of", "") == target)
-                try:
-                    current = self.is_current(name)
-                except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
-                    if not forced or frames is not None:
-                        raise
-                    current = False
-                redo = forced and frames is not None and isinstance(stage, FrameStage) and current
-                rebuild = (forced and not redo) or not current
-                with rewriting(self._lock_url(name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
-                    if redo:
-                        self.redo_frames(name, frames)
-                    elif rebuild:
-                        # new outputs under a fingerprint that downstream outputs may already carry:
-                        # marked stale first, so that a run killed while rebuilding leaves them stale
-                        self.invalidate_downstream(name)
-                    if isinstance(stage, FrameStage):
-                        report = self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
-                    else:
-                        report = self._run_dataset(stage, forced, rebuild)
-                report.seconds = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            forced = force and (name == target or getattr(stage, "part_of", "") == target)
+            # up to date with nothing to run: found under a shared lock, which runs started together can
+            # all hold; otherwise the exclusive one, which a run writing the output holds
+            report = None if forced else self._report_if_nothing_to_do(stage, what, retry_failed)
+            if report is None:
+                with stage_lock(self._lock_url(name), what, wait_s), \
+                        reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
+                    try:
+                        current = self.is_current(name)
+                    except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
+                        if not forced or frames is not None:
+                            raise
+                        current = False
+                    redo = forced and frames is not None and isinstance(stage, FrameStage) and current
+                    rebuild = (forced and not redo) or not current
+                    with rewriting(self._lock_url(name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
+                        if redo:
+                            self.redo_frames(name, frames)
+                        elif rebuild:
+                            # new outputs under a fingerprint that downstream outputs may already carry:
+                            # marked stale first, so that a run killed while rebuilding leaves them stale
+                            self.invalidate_downstream(name)
+                        if isinstance(stage, FrameStage):
+                            report = self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
+                        else:
+                            report = self._run_dataset(stage, forced, rebuild)
+            report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
             for note in report.notes:
@@ -395,6 +399,45 @@ class Pipeline:
             if redo and other != name:
                 self.log(f"{other:<{NAME_WIDTH}} {len(redo)} frame(s) to recompute (upstream {name} recomputes them)")
 
+    def _report_if_nothing_to_do(self, stage: Stage, what: str, retry_failed: bool) -> StageReport | None:
+        """The report of stage ``stage`` when it is up to date with nothing left to run (no pending
+        frame, none to retry), found under a shared lock on it and its inputs (one that another run
+        may also hold) rather than its exclusive one; None when there is work, or anything is in the
+        way (being rewritten, damaged): run() then takes the exclusive lock, whose path reports it."""
+        urls = [self._lock_url(u) for u in (stage.name, *stage.upstream)]
+        try:
+            with reading(urls, what):
+                if not self.is_current(stage.name):
+                    return None
+                if isinstance(stage, DatasetStage):
+                    summary = self.env.dir(stage.name).summary()
+                    return StageReport(stage.name, "dataset", summary={**summary, "message": "up to date"})
+                store = self.env.store(stage.name)
+                store.check_metadata()
+                status = store.status()
+                if (status == PENDING).any() or (retry_failed and (status == FAILED).any()) or \
+                        self._blocked_frames_ready(stage, status).any():
+                    return None
+        except (PipelineError, OSError):
+            return None
+        self._done[stage.name] = done_digest(status)
+        return StageReport(stage.name, "resumed", done=int((status == DONE).sum()),
+                           failed=int((status == FAILED).sum()), excluded=int((status == EXCLUDED).sum()))
+
+    def _blocked_frames_ready(self, stage: FrameStage, status: np.ndarray) -> np.ndarray:
+        """(F,) bool: the frames that failed only because an upstream frame had failed, and whose
+        upstream frames are now all done (they were never tried: the next run tries them)."""
+        ready = np.zeros(len(status), bool)
+        if not (status == FAILED).any():
+            return ready
+        upstream_done = np.ones(len(status), bool)
+        for up in stage.upstream:
+            if isinstance(self.stages[up], FrameStage):
+                upstream_done &= self.env.store(up).status() == DONE
+        for i, reason in self.env.store(stage.name).reasons().items():
+            ready[i] = upstream_done[i] and reason.startswith("upstream stage ")
+        return ready
+
     def _ensure_created(self, stage: FrameStage, force: bool) -> bool:
         store = self.env.store(stage.name)
         fp = self.fingerprint(stage.name)
@@ -422,15 +465,8 @@ class Pipeline:
             todo_mask |= status == FAILED
         up_statuses = {up: self.env.store(up).status() for up in stage.upstream
                        if isinstance(self.stages[up], FrameStage)}
-        if not retry_failed and (status == FAILED).any():
-            # A frame that failed only because an upstream frame had failed was never tried: it
-            # runs once its upstream frames are done (e.g. after `run calibrate --retry-failed`).
-            ready = np.ones(len(ids), bool)
-            for up_status in up_statuses.values():
-                ready &= up_status == DONE
-            for i, reason in store.reasons().items():
-                if ready[i] and reason.startswith("upstream stage "):
-                    todo_mask[i] = True
+        if not retry_failed:  # e.g. after `run calibrate --retry-failed`
+            todo_mask |= self._blocked_frames_ready(stage, status)
         if frames is not None:
             sel = np.zeros(len(ids), bool)
             sel[[i for i in frames if 0 <= i < len(ids)]] = True

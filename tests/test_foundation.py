@@ -15,7 +15,7 @@ from pipeline.cache import DONE, FAILED, PENDING, DirStore, frame_store
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
-from pipeline.lock import stage_lock
+from pipeline.lock import rewriting, stage_lock
 from pipeline.runner import Pipeline, parse_frames
 from tests import fake_stages
 
@@ -276,6 +276,31 @@ def test_second_writer_refused_and_stale_lock_recovered(tmp_path):
     lock.write_text('{"pid": 999999999, "host": "%s", "started": 0}' % os.uname().nodename)
     pipe.run("calibrate")  # the holder is dead: the lock is recovered
     assert not lock.exists()
+
+
+def test_runs_checking_an_up_to_date_stage_do_not_refuse_each_other(tmp_path):
+    """A stage up to date with nothing to run is checked under a shared lock: a run that holds its
+    lock (another run checking it) does not stop this one. Until 2026-12-04 checking took the
+    exclusive lock, so two runs started together could refuse each other on an upstream stage. A
+    stage with frames left to compute is still refused while another run holds it."""
+    pipe = make_pipeline(tmp_path)
+    pipe.run("calibrate")
+    pipe.run("heatmaps", frames=[0, 1])
+    locks = Path(pipe.env.cache_root) / "fake" / "locks"
+    with stage_lock(str(locks / "heatmaps.lock"), "stage 'heatmaps' of dataset 'fake'"):
+        with pytest.raises(LockError, match="'heatmaps' of dataset 'fake' is being written by another run"):
+            make_pipeline(tmp_path).run("heatmaps")
+        assert make_pipeline(tmp_path).run("calibrate")[0].processed == 0
+    with stage_lock(str(locks / "calibrate.lock"), "stage 'calibrate' of dataset 'fake'"):
+        calibrate, heatmaps = make_pipeline(tmp_path).run("heatmaps")
+    assert (calibrate.processed, calibrate.done) == (0, len(IDS))
+    assert (heatmaps.processed, heatmaps.done) == (len(IDS) - 2, len(IDS))
+    with stage_lock(str(locks / "calibrate.lock"), "stage 'calibrate' of dataset 'fake'"), \
+            rewriting(str(locks / "calibrate.lock"), "stage 'calibrate' of dataset 'fake'"):
+        # another run recomputing calibrate: heatmaps, up to date, is not read meanwhile
+        with pytest.raises(LockError, match="'calibrate' of dataset 'fake' is being written by another run"):
+            make_pipeline(tmp_path).run("heatmaps")
+    assert [r.processed for r in make_pipeline(tmp_path).run("heatmaps")] == [0, 0]
 
 
 def test_cli_help_and_errors():
