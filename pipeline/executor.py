@@ -36,6 +36,8 @@ NO_WORKER_TIMEOUT_S = 60.0
 # While no frame comes back, a run on a cluster asks the scheduler this often how many workers it
 # has (one small request; never more often than a quarter of the no-worker timeout).
 WORKER_CHECK_S = 5.0
+# How long a server at the --scheduler address has to answer dask's handshake.
+HANDSHAKE_TIMEOUT_S = 10.0
 
 
 @functools.cache
@@ -178,6 +180,45 @@ def _worker_probe(marker_url: str) -> bool:
     return bool(fs.exists(path))
 
 
+def check_scheduler_answers(address: str, timeout_s: float | None = None) -> None:
+    """PipelineError when a server listens at the tcp ``address`` but does not complete dask's
+    handshake within ``timeout_s`` (e.g. the scheduler's dashboard, 8787 instead of 8786): dask's
+    Client would wait for its answer forever. Nothing listening, another protocol or a malformed
+    address are left to the Client, which reports them. ``timeout_s`` defaults to HANDSHAKE_TIMEOUT_S."""
+    import asyncio
+    import socket
+    from concurrent.futures import ThreadPoolExecutor
+
+    from distributed.comm import connect, parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        host, port = parse_host_port(location)
+    except ValueError:
+        return
+    if scheme != "tcp":
+        return
+    timeout_s = HANDSHAKE_TIMEOUT_S if timeout_s is None else timeout_s
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError:
+        return
+
+    async def handshake() -> None:
+        comm = await asyncio.wait_for(connect(address, timeout=timeout_s), timeout_s)
+        await comm.close()
+
+    with ThreadPoolExecutor(1) as pool:  # a loop of its own: the caller may run one (a notebook)
+        try:
+            pool.submit(asyncio.run, handshake()).result()
+        except Exception as exc:  # noqa: BLE001 - the timeout, or the other end closing or talking nonsense
+            why = f"no answer within {timeout_s:g} s" if isinstance(exc, TimeoutError) else type(exc).__name__
+            raise PipelineError(
+                f"dask cluster at {address}: something listens there but does not answer as a dask scheduler "
+                f"({why}); is it the scheduler's dashboard? Give the address the scheduler prints "
+                f"('Scheduler at: tcp://HOST:PORT', port 8786 by default)") from None
+
+
 class Executor:
     """Maps ``process_frame`` over frames, serially or on a dask.distributed cluster.
 
@@ -206,6 +247,7 @@ class Executor:
             from distributed import Client, LocalCluster
 
             if self.scheduler:
+                check_scheduler_answers(self.scheduler)
                 # a lost scheduler is reported in one line (cli); the client's own traceback would bury it
                 logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
                 self._client = Client(self.scheduler)
@@ -251,6 +293,8 @@ class Executor:
         try:
             try:
                 client = self.client()
+            except PipelineError:
+                raise
             except Exception as exc:  # a malformed address, a refused connection
                 raise PipelineError(f"dask cluster at {self.scheduler}: cannot connect ({first_line(exc)}); give the "
                                     f"scheduler's address, tcp://HOST:PORT") from None

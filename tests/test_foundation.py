@@ -267,6 +267,32 @@ def test_a_worker_that_does_not_see_the_probe_marker_is_named(tmp_path, monkeypa
     assert not list((tmp_path / "cache").iterdir())
 
 
+def test_a_scheduler_address_where_something_else_answers_is_an_error_not_a_hang(tmp_path, monkeypatch):
+    """--scheduler at a port where another server listens (the scheduler's dashboard, 8787 instead
+    of 8786) never answers dask's handshake: dask's Client waited for it forever until 2026-12-04."""
+    import http.server
+    import threading
+
+    pytest.importorskip("distributed")
+    from pipeline import executor as E
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    address = f"tcp://127.0.0.1:{server.server_address[1]}"
+    monkeypatch.setattr(E, "HANDSHAKE_TIMEOUT_S", 1.0)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(PipelineError, match=f"dask cluster at {address}: something listens there but does not "
+                                                f"answer as a dask scheduler \\(no answer within 1 s\\).*dashboard"):
+            Executor(scheduler=address, progress=False).check_cluster(str(tmp_path / "cache"))
+        assert time.monotonic() - t0 < 30
+    finally:
+        server.shutdown()
+        server.server_close()
+    E.check_scheduler_answers(address)  # nothing listens there now: left to the Client, which says so
+    E.check_scheduler_answers("foo")    # malformed: the same
+
+
 def test_second_writer_refused_and_stale_lock_recovered(tmp_path):
     pipe = make_pipeline(tmp_path)
     lock = Path(pipe.env.cache_root) / "fake" / "locks" / "calibrate.lock"
