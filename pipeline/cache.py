@@ -24,17 +24,21 @@ import asyncio
 import errno
 import hashlib
 import json
+import os
 import time
 from collections.abc import Awaitable, Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 import fsspec
+import numcodecs
 import numpy as np
 import zarr
 import zarr.api.asynchronous as zarr_async
-from zarr.codecs import ZstdCodec
+from zarr.codecs import BytesCodec, ZstdCodec
+from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
 from zarr.core.sync import sync
+from zarr.storage import LocalStore
 
 from pipeline.errors import CacheError, ChunkError, MetadataError
 from pipeline.stage import ArraySpec
@@ -167,6 +171,9 @@ class FrameStore:
     def status(self) -> np.ndarray:
         """(F,) uint8 status codes; ChunkError naming the lowest damaged chunk when one is."""
         arr = self._member(self._group("r"), "status")
+        status = _frames_from_chunk_files(arr)
+        if status is not None:
+            return status
         try:
             return np.asarray(arr[:])
         except DECODE_ERRORS as exc:
@@ -395,6 +402,11 @@ class CheckedArray:
         self._array = array
 
     def __getitem__(self, selection: Any) -> Any:
+        if selection is Ellipsis or (isinstance(selection, slice) and selection == slice(None)):
+            # the whole array, from its chunk files
+            value = _frames_from_chunk_files(self._array)
+            if value is not None:
+                return value
         return self._read(lambda: self._array[selection], selection)
 
     @property
@@ -434,7 +446,28 @@ class _CheckedOIndex:
         self._checked = checked
 
     def __getitem__(self, selection: Any) -> Any:
+        frames = _frame_indices(selection, self._checked._array.shape[0])
+        if frames is not None:  # some whole frames, from their chunk files
+            value = _frames_from_chunk_files(self._checked._array, frames)
+            if value is not None:
+                return value
         return self._checked._read(lambda: self._checked._array.oindex[selection], selection)
+
+
+def _frame_indices(selection: Any, n: int) -> np.ndarray | None:
+    """The frame indices an orthogonal selection ``selection`` of an array of ``n`` frames picks
+    when it picks whole frames by a 1-D list or array of indices or a boolean mask, in order;
+    None for any other selection (slices, negative indices, a selection along other axes)."""
+    if isinstance(selection, tuple) or not isinstance(selection, (list, np.ndarray)):
+        return None
+    picked = np.asarray(selection)
+    if picked.ndim != 1:
+        return None
+    if picked.dtype == bool:
+        return np.flatnonzero(picked) if len(picked) == n else None
+    if picked.dtype.kind not in "iu" or (picked.size and picked.min() < 0):
+        return None
+    return picked.astype(np.int64)
 
 
 async def _keys(store: Any, prefix: str) -> list[str]:
@@ -599,6 +632,48 @@ async def _gather_all(awaitables: Iterable[Awaitable[Any]]) -> list[Any]:
         if isinstance(result, BaseException):
             raise result
     return results
+
+
+def is_local(fs: fsspec.AbstractFileSystem) -> bool:
+    """Whether ``fs`` is the local file system."""
+    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
+    return "file" in protocol or "local" in protocol
+
+
+def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None) -> np.ndarray | None:
+    """Frames ``frames`` (indices; default all) of array ``arr`` of a FrameStore, read straight from
+    their chunk files (zarr's default chunk keys; a missing one is the fill value, as zarr reads
+    it): zarr spends about 0.3 ms per chunk, 6 s on the status of 20,000 frames, against 0.4 s
+    here. None, for zarr to read them (and name a damaged chunk), when the cache is not local, the
+    array is not laid out as ``FrameStore.create`` makes it (a fixed-size dtype, one chunk per
+    frame, zstd), or a chunk file does not decode to one frame."""
+    meta = arr.metadata
+    codecs = meta.codecs
+    if not isinstance(arr.store, LocalStore) or arr.dtype.kind not in "biuf" or \
+            meta.chunk_grid.chunk_shape != (1, *arr.shape[1:]) or \
+            meta.chunk_key_encoding != DefaultChunkKeyEncoding(separator="/") or \
+            [type(c) for c in codecs] != [BytesCodec, ZstdCodec]:
+        return None
+    frames = np.arange(arr.shape[0]) if frames is None else np.asarray(frames, np.int64).reshape(-1)
+    if frames.size and not (0 <= frames.min() and frames.max() < arr.shape[0]):
+        return None
+    stored = np.dtype(arr.dtype).newbyteorder(">" if getattr(codecs[0].endian, "value", "") == "big" else "<")
+    out = np.full((len(frames), *arr.shape[1:]), meta.fill_value, arr.dtype)
+    zstd = numcodecs.Zstd()
+    folder = os.path.join(arr.store.root, arr.path)
+    try:
+        for row, index in enumerate(frames):
+            try:
+                with open(os.path.join(folder, _chunk_key(arr, int(index))), "rb") as fh:
+                    data = zstd.decode(fh.read())
+            except FileNotFoundError:
+                continue
+            if len(data) != out[row].nbytes:
+                return None
+            out[row] = np.frombuffer(data, stored).reshape(out.shape[1:])
+    except (OSError, RuntimeError, ValueError):  # unreadable, not zstd, checksum mismatch
+        return None
+    return out
 
 
 def _open_group(url: str, mode: str) -> zarr.Group:

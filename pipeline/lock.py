@@ -25,6 +25,7 @@ from typing import Iterator
 
 import fsspec
 
+from pipeline.cache import cache_error, is_local
 from pipeline.errors import LockError
 
 _RETRY = -1
@@ -52,11 +53,6 @@ def _is_stale(info: dict | None) -> bool:
     if info is None:
         return True  # unreadable or half-written lock: its writer died while creating it
     return info.get("host") == socket.gethostname() and not _pid_alive(int(info.get("pid", -1)))
-
-
-def _is_local(fs: fsspec.AbstractFileSystem) -> bool:
-    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
-    return "file" in protocol or "local" in protocol
 
 
 def _try_flock(path: str, payload: str) -> int | None:
@@ -112,14 +108,12 @@ def stage_lock(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
     run to finish; otherwise raise LockError at once naming the holder. A cache that cannot be
     written (read-only, disk full) raises CacheError.
     """
-    from pipeline.cache import cache_error
-
     fs, path = fsspec.core.url_to_fs(url)
     payload = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()})
     deadline = time.monotonic() + wait_s
     try:
         fs.makedirs(fs._parent(path), exist_ok=True)
-        if _is_local(fs):
+        if is_local(fs):
             fd = _acquire_local(path, payload, what, deadline)
         else:
             fd = None
@@ -167,14 +161,12 @@ def rewriting(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
 
 @contextmanager
 def _readers_locks(urls: list[str], mode: int, wait_s: float, refusal: str) -> Iterator[None]:
-    from pipeline.cache import cache_error
-
     deadline = time.monotonic() + wait_s
     held = []
     try:
         for url in urls:
             fs, path = fsspec.core.url_to_fs(url)
-            if not _is_local(fs):
+            if not is_local(fs):
                 continue
             try:
                 fs.makedirs(fs._parent(path), exist_ok=True)
