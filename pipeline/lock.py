@@ -154,7 +154,8 @@ def rewriting(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
     other run may be reading it (an exclusive lock on its ``.readers`` file). Taken inside
     stage_lock, only by a run that rewrites the output (appending frames to it needs no more)."""
     with _readers_locks([url], fcntl.LOCK_EX, wait_s,
-                        f"{what} is being read by another run (a stage downstream of it); wait for it to finish "
+                        f"{what} is being read by another run (checked, or read by a stage downstream of it); "
+                        f"wait for it to finish "
                         f"(or pass --wait SECONDS)"):
         yield
 
@@ -220,6 +221,17 @@ def _acquire_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str, what
         if time.monotonic() >= deadline:
             raise _refuse(what, info)
         time.sleep(0.5)
+
+
+def held(url: str) -> bool:
+    """Whether the lock file ``url`` names a holder: a live process of this machine, or any process
+    of another machine. Reads the file only; taking the lock to probe it would make a writer's own
+    attempt at that moment fail."""
+    fs, path = fsspec.core.url_to_fs(url)
+    info = _read(fs, path)
+    if info is None:
+        return fs.exists(path)  # being written, or unreadable: count it as held
+    return info.get("host") != socket.gethostname() or _pid_alive(int(info.get("pid", -1)))
 
 
 def remove_lock(url: str) -> bool:

@@ -21,12 +21,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
+import fsspec
 import numpy as np
 
-from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest, join
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest, is_local, join
 from pipeline.errors import CacheError, ChunkError, ConfigError, FrameError, MetadataError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
-from pipeline.lock import reading, rewriting, stage_lock
+from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
 
 FIRST_STAGE = "calibrate"
@@ -402,27 +403,35 @@ class Pipeline:
     def _report_if_nothing_to_do(self, stage: Stage, what: str, retry_failed: bool) -> StageReport | None:
         """The report of stage ``stage`` when it is up to date with nothing left to run (no pending
         frame, none to retry), found under a shared lock on it and its inputs (one that another run
-        may also hold) rather than its exclusive one; None when there is work, or anything is in the
-        way (being rewritten, damaged): run() then takes the exclusive lock, whose path reports it."""
-        urls = [self._lock_url(u) for u in (stage.name, *stage.upstream)]
+        checking them may also hold) rather than its exclusive one; None when there is work, or
+        anything is in the way (another run writing it, damage, a remote cache, whose locks are
+        files only): run() then takes the exclusive lock, whose path reports it."""
+        url = self._lock_url(stage.name)
+        if not is_local(fsspec.core.url_to_fs(url)[0]) or held(url):
+            return None
         try:
-            with reading(urls, what):
+            with reading([url, *(self._lock_url(u) for u in stage.upstream)], what):
                 if not self.is_current(stage.name):
                     return None
                 if isinstance(stage, DatasetStage):
                     summary = self.env.dir(stage.name).summary()
-                    return StageReport(stage.name, "dataset", summary={**summary, "message": "up to date"})
-                store = self.env.store(stage.name)
-                store.check_metadata()
-                status = store.status()
-                if (status == PENDING).any() or (retry_failed and (status == FAILED).any()) or \
-                        self._blocked_frames_ready(stage, status).any():
-                    return None
+                    report = StageReport(stage.name, "dataset", summary={**summary, "message": "up to date"})
+                else:
+                    store = self.env.store(stage.name)
+                    store.check_metadata()
+                    status = store.status()
+                    if (status == PENDING).any() or (retry_failed and (status == FAILED).any()) or \
+                            self._blocked_frames_ready(stage, status).any():
+                        return None
+                    report = StageReport(stage.name, "resumed", done=int((status == DONE).sum()),
+                                         failed=int((status == FAILED).sum()), excluded=int((status == EXCLUDED).sum()))
         except (PipelineError, OSError):
             return None
-        self._done[stage.name] = done_digest(status)
-        return StageReport(stage.name, "resumed", done=int((status == DONE).sum()),
-                           failed=int((status == FAILED).sum()), excluded=int((status == EXCLUDED).sum()))
+        if held(url):  # a run that started writing it (appending frames) while this one read it
+            return None
+        if isinstance(stage, FrameStage):
+            self._done[stage.name] = done_digest(status)
+        return report
 
     def _blocked_frames_ready(self, stage: FrameStage, status: np.ndarray) -> np.ndarray:
         """(F,) bool: the frames that failed only because an upstream frame had failed, and whose

@@ -15,7 +15,7 @@ from pipeline.cache import DONE, FAILED, PENDING, DirStore, frame_store
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
-from pipeline.lock import rewriting, stage_lock
+from pipeline.lock import stage_lock
 from pipeline.runner import Pipeline, parse_frames
 from tests import fake_stages
 
@@ -305,28 +305,40 @@ def test_second_writer_refused_and_stale_lock_recovered(tmp_path):
 
 
 def test_runs_checking_an_up_to_date_stage_do_not_refuse_each_other(tmp_path):
-    """A stage up to date with nothing to run is checked under a shared lock: a run that holds its
-    lock (another run checking it) does not stop this one. Until 2026-12-04 checking took the
-    exclusive lock, so two runs started together could refuse each other on an upstream stage. A
-    stage with frames left to compute is still refused while another run holds it."""
+    """A stage up to date with nothing to run is checked under a shared lock, which runs checking
+    it at the same moment all hold. Until 2026-12-04 checking took the exclusive lock, so two runs
+    started together could refuse each other on an upstream stage. A stage another run is writing
+    (its exclusive lock held: appending frames, retrying failed ones) still stops this run, up to
+    date or not, as does one with frames left to compute."""
+    from pipeline.lock import held, reading
+
     pipe = make_pipeline(tmp_path)
     pipe.run("calibrate")
     pipe.run("heatmaps", frames=[0, 1])
     locks = Path(pipe.env.cache_root) / "fake" / "locks"
-    with stage_lock(str(locks / "heatmaps.lock"), "stage 'heatmaps' of dataset 'fake'"):
+    calibrate_lock, heatmaps_lock = str(locks / "calibrate.lock"), str(locks / "heatmaps.lock")
+    with stage_lock(heatmaps_lock, "stage 'heatmaps' of dataset 'fake'"):
+        assert held(heatmaps_lock) and not held(calibrate_lock)
         with pytest.raises(LockError, match="'heatmaps' of dataset 'fake' is being written by another run"):
             make_pipeline(tmp_path).run("heatmaps")
         assert make_pipeline(tmp_path).run("calibrate")[0].processed == 0
-    with stage_lock(str(locks / "calibrate.lock"), "stage 'calibrate' of dataset 'fake'"):
+    with reading([calibrate_lock, heatmaps_lock], "another run checking both"):
         calibrate, heatmaps = make_pipeline(tmp_path).run("heatmaps")
+        assert [r.processed for r in make_pipeline(tmp_path).run("heatmaps")] == [0, 0]
     assert (calibrate.processed, calibrate.done) == (0, len(IDS))
     assert (heatmaps.processed, heatmaps.done) == (len(IDS) - 2, len(IDS))
-    with stage_lock(str(locks / "calibrate.lock"), "stage 'calibrate' of dataset 'fake'"), \
-            rewriting(str(locks / "calibrate.lock"), "stage 'calibrate' of dataset 'fake'"):
-        # another run recomputing calibrate: heatmaps, up to date, is not read meanwhile
+    with stage_lock(calibrate_lock, "stage 'calibrate' of dataset 'fake'"):  # up to date, and being written
         with pytest.raises(LockError, match="'calibrate' of dataset 'fake' is being written by another run"):
             make_pipeline(tmp_path).run("heatmaps")
-    assert [r.processed for r in make_pipeline(tmp_path).run("heatmaps")] == [0, 0]
+    with reading([calibrate_lock], "another run checking calibrate"):  # and a forced run says so
+        with pytest.raises(LockError, match="'calibrate' of dataset 'fake' is being read by another run "
+                                            "\\(checked, or read by a stage downstream of it\\)"):
+            make_pipeline(tmp_path).run("calibrate", force=True)
+    assert not held(calibrate_lock)
+    Path(calibrate_lock).write_text('{"pid": 999999999, "host": "%s", "started": 0}' % os.uname().nodename)
+    assert not held(calibrate_lock)  # its holder is dead
+    Path(calibrate_lock).write_text('{"pid": 1, "host": "another-machine", "started": 0}')
+    assert held(calibrate_lock)
 
 
 def test_cli_help_and_errors():
