@@ -208,7 +208,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     closure = pipe.upstream_closure(stage)
     pipe.check_config(stage)
     if dry_run:
-        rows = {r["stage"]: r for r in pipe.status()}
+        rows = {r["stage"]: r for r in pipe.status(reasons=0)}
         for name in closure:
             _print_status_row(rows[name])
         if force and frames_spec and isinstance(pipe.stages[stage], FrameStage):
@@ -286,7 +286,7 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
     when a stage's output is damaged (every stage is still listed)."""
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
     pipe = _pipeline(env, 1, None, progress=False)
-    rows = pipe.status()
+    rows = pipe.status(reasons=None if as_json else reasons)
     if as_json:
         click.echo(json.dumps(rows, indent=2, default=str))
     else:

@@ -31,6 +31,9 @@ from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
 
 FIRST_STAGE = "calibrate"
+FAILURES_LOGGED = 20
+"""Failed frames of a stage logged one by one in a run; the rest are counted (a failure common to
+every frame of a large dataset would print one line per frame)."""
 NAME_WIDTH = 15
 """Width of the stage-name column of progress lines (the longest name, evaluate-frames)."""
 
@@ -334,7 +337,7 @@ class Pipeline:
         if report.failures:
             index, reason = report.failures[0]
         else:
-            index, reason = next(iter(self.env.store(name).reasons().items()))
+            index, reason = next(iter(self.env.store(name).reasons(limit=1).items()))
         frame = self.frame_ids()[index]
         prefix = f"stage {name}, frame {frame}: "
         problem = reason[len(prefix):] if reason.startswith(prefix) else reason
@@ -443,8 +446,9 @@ class Pipeline:
         for up in stage.upstream:
             if isinstance(self.stages[up], FrameStage):
                 upstream_done &= self.env.store(up).status() == DONE
-        for i, reason in self.env.store(stage.name).reasons().items():
-            ready[i] = upstream_done[i] and reason.startswith("upstream stage ")
+        candidates = np.flatnonzero((status == FAILED) & upstream_done)  # the reasons of these only: a read each
+        for i, reason in self.env.store(stage.name).reasons(candidates, status=status).items():
+            ready[i] = reason.startswith("upstream stage ")
         return ready
 
     def _ensure_created(self, stage: FrameStage, force: bool) -> bool:
@@ -484,25 +488,28 @@ class Pipeline:
         for up, up_status in up_statuses.items():
             for code, word in ((FAILED, "failed"), (EXCLUDED, "was excluded")):
                 blocked = todo_mask & (up_status == code)
-                for i in np.flatnonzero(blocked):
-                    store.mark(int(i), FAILED if code == FAILED else EXCLUDED, f"upstream stage {up} {word} for this frame")
+                store.mark_many(np.flatnonzero(blocked), code, f"upstream stage {up} {word} for this frame")
                 todo_mask &= ~blocked
             todo_mask &= up_status == DONE
         if stage.select is not None and (todo_mask.any() or (status == PENDING).any()):
             chosen = np.asarray(stage.select(DatasetInputs(self.env, ids), self.env.cfg), bool)
             # every pending frame the configuration leaves out, whatever --frames asked for, so
             # that the pending count is what is left to do
-            for i in np.flatnonzero((todo_mask | (status == PENDING)) & ~chosen):
-                store.mark(int(i), EXCLUDED, "not selected by this stage's configuration")
+            store.mark_many(np.flatnonzero((todo_mask | (status == PENDING)) & ~chosen), EXCLUDED,
+                            "not selected by this stage's configuration")
             todo_mask &= chosen
         todo = [(int(i), ids[int(i)]) for i in np.flatnonzero(todo_mask)]
         for index, code, reason in self.executor.map(stage, self.env, todo, strict):
             report.processed += 1
             if code == FAILED:
                 report.failures.append((index, reason))
-                self.log(f"  failed: {reason}")
+                if len(report.failures) <= FAILURES_LOGGED:
+                    self.log(f"  failed: {reason}")
                 if strict:
                     break
+        if len(report.failures) > FAILURES_LOGGED:
+            self.log(f"  ... and {len(report.failures) - FAILURES_LOGGED} more failed frame(s) of {stage.name} in this "
+                     f"run: `pipeline status --reasons N` lists their reasons")
         final = store.status()
         self._done[stage.name] = done_digest(final)  # what frames_read would read again
         report.done = int((final == DONE).sum())
@@ -574,11 +581,12 @@ class Pipeline:
 
     # ---- status ---------------------------------------------------------------------------
 
-    def status(self) -> list[dict[str, Any]]:
+    def status(self, reasons: int | None = None) -> list[dict[str, Any]]:
         """Per stage: done / failed / pending / excluded counts and whether it is current (which
-        needs its upstream stages current too: a run would rebuild it after them; None: unknown).
-        A frame stage whose output cannot be read (damaged metadata or status chunk) gets
-        ``damaged``, the error's message, and the other stages are still listed."""
+        needs its upstream stages current too: a run would rebuild it after them; None: unknown),
+        and the reasons of its first ``reasons`` failed frames (default all). A frame stage whose
+        output cannot be read (damaged metadata or status chunk) gets ``damaged``, the error's
+        message, and the other stages are still listed."""
         rows = []
         current_of: dict[str, bool | None] = {}
         for name in self.order:
@@ -597,7 +605,7 @@ class Pipeline:
                         store.check_metadata()
                         st = store.status()
                         row.update({STATUS_NAMES[c]: int((st == c).sum()) for c in STATUS_NAMES})
-                        row["reasons"] = store.reasons()
+                        row["reasons"] = store.reasons(limit=reasons, status=st)
                 except (CacheError, ChunkError) as exc:
                     row.update(exists=True, damaged=str(exc))
                     row.pop("note", None)  # the same error, from is_current

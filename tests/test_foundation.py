@@ -341,6 +341,37 @@ def test_runs_checking_an_up_to_date_stage_do_not_refuse_each_other(tmp_path):
     assert held(calibrate_lock)
 
 
+def test_many_failed_frames_are_marked_in_one_write_logged_up_to_a_limit_and_their_reasons_read_on_demand(tmp_path):
+    """Frames blocked by a failed upstream frame are marked in one write per array (mark() per
+    frame re-opened the group), the same codes and reasons; a run logs the first FAILURES_LOGGED
+    failures and counts the rest; reasons are read only for the frames asked for."""
+    from pipeline import runner as R
+    from pipeline.cache import EXCLUDED
+
+    ids = [f"bad{i:03d}" if i % 2 else f"f{i:03d}" for i in range(2 * R.FAILURES_LOGGED + 6)]
+    lines = []
+    pipe = make_pipeline(tmp_path, ids=ids)
+    pipe.log = lines.append
+    calibrate, heatmaps = pipe.run("heatmaps")
+    bad = [i for i, f in enumerate(ids) if f.startswith("bad")]
+    assert calibrate.failed == heatmaps.failed == len(bad)
+    failed_lines = [line for line in lines if line.startswith("  failed: ")]
+    assert len(failed_lines) == R.FAILURES_LOGGED
+    assert f"  ... and {len(bad) - R.FAILURES_LOGGED} more failed frame(s) of calibrate in this run: `pipeline " \
+           f"status --reasons N` lists their reasons" in lines
+    store = pipe.env.store("heatmaps")
+    reasons = store.reasons()
+    assert sorted(reasons) == bad and set(reasons.values()) == {"upstream stage calibrate failed for this frame"}
+    assert list(store.reasons(limit=2)) == bad[:2] and list(store.reasons(frames=np.array([bad[3], 0]))) == [bad[3]]
+    loose = pipe.env.store("calibrate")  # per frame and in one write: the same
+    loose.mark_many(np.array([0, 2]), EXCLUDED, "not selected")
+    loose.mark(4, EXCLUDED, "not selected")
+    assert list(loose.status()[[0, 2, 4]]) == [EXCLUDED] * 3
+    assert [loose.read("reason", i) for i in (0, 2, 4)] == ["not selected"] * 3
+    rows = {r["stage"]: r for r in pipe.status(reasons=3)}
+    assert list(rows["heatmaps"]["reasons"]) == bad[:3]
+
+
 def test_cli_help_and_errors():
     from pipeline.cli import main
 

@@ -491,3 +491,40 @@ def test_training_fingerprint_follows_which_frames_are_done(tmp_path):
     frame_store(str(tmp_path), "d", "patches").write_frame(1, {"x": np.float32(2)}, (ArraySpec("x", (), "float32", "-"),))
     assert training_fingerprint(Inputs(), cfg, "disnet") == before["disnet"]   # Dis-Net reads no patches
     assert training_fingerprint(Inputs(), cfg, "rssnet") != before["rssnet"]
+
+
+def test_ragged_rows_reads_any_rows_of_many_frames_a_window_of_frames_at_a_time(tmp_path):
+    """RaggedRows (the training rows of ragged per-frame arrays) gives row k of the frames' rows
+    laid end to end, in any order and with repeats, reading at most FRAMES_PER_READ frames at once
+    (a sample spread over every training frame read them all together: 3 GB at 16,000 frames)."""
+    from pipeline.cache import RaggedRows
+
+    rng = np.random.default_rng(0)
+    values = rng.normal(size=(70, 9, 3)).astype(np.float32)
+    array = zarr.create_array(str(tmp_path / "a.zarr"), shape=values.shape, chunks=(1, 9, 3), dtype="float32")
+    array[:] = values
+    counts = rng.integers(0, 10, 70)
+    frames = rng.permutation(70)[:50]  # train frames, then val frames: not in order
+    laid = np.concatenate([values[f, :counts[f]] for f in frames])
+    reads = []
+
+    class Counted:  # the zarr array, recording how many frames each read asks for
+        shape, dtype = array.shape, array.dtype
+
+        @property
+        def oindex(self):
+            return self
+
+        def __getitem__(self, idx):
+            reads.append(len(idx))
+            return array.oindex[idx]
+
+    rows = RaggedRows(Counted(), counts, frames)
+    rows.FRAMES_PER_READ = 8
+    assert len(rows) == len(laid) and rows.shape == laid.shape
+    for pick in (np.arange(len(laid)), rng.integers(0, len(laid), 500), np.array([len(laid) - 1, 0, 0]),
+                 np.zeros(0, np.int64)):
+        np.testing.assert_array_equal(rows[pick], laid[pick])
+    assert max(reads) == 8 and sum(reads) >= 50
+    with pytest.raises(IndexError):
+        rows[np.array([len(laid)])]

@@ -146,12 +146,18 @@ class _AstyxIndex(Reader):
         return sorted(set(frames) | set(problems), key=lambda s: (len(s), s))
 
     def sequence_of(self, frame_id: str) -> str:
-        ids = [f for f in self.frame_ids() if f.isdigit()]
-        if frame_id not in ids and frame_id not in self.frame_ids():
+        sequence = self._sequences.get(frame_id)
+        if sequence is None:
             raise ReaderError(self.root / self.index_name, "unknown frame id", frame=frame_id)
-        if not frame_id.isdigit():
-            return frame_id
-        return split_sequences_at_gaps([int(f) for f in ids])[int(frame_id)]
+        return sequence
+
+    @cached_property
+    def _sequences(self) -> dict[str, str]:
+        """Frame id -> sequence, once per reader (it was found anew per frame: O(F log F) each):
+        numbered frames split where the numbers jump, any other id a sequence of its own."""
+        ids = self.frame_ids()
+        numbered = split_sequences_at_gaps([int(f) for f in ids if f.isdigit()])
+        return {f: numbered[int(f)] if f.isdigit() else f for f in ids}
 
     def _paths(self, frame_id: str) -> dict[str, Path]:
         frames, problems = self._index
