@@ -3,7 +3,8 @@
 Layout under the cache root (a local folder or any fsspec URL)::
 
     <root>/<dataset>/<stage>.zarr/       frame stage: declared arrays, one chunk per frame,
-                                         plus ``status`` (uint8 per frame) and ``reason`` (str)
+                                         plus ``status`` (uint8 per frame), ``reason`` (str)
+                                         and ``frame_ids.json``
     <root>/<dataset>/<stage>/            dataset stage: files, and ``_stage.json`` written last
     <root>/<dataset>/locks/<stage>.lock  one writer per stage output
 
