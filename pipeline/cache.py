@@ -4,7 +4,7 @@ Layout under the cache root (a local folder or any fsspec URL)::
 
     <root>/<dataset>/<stage>.zarr/       frame stage: declared arrays, one chunk per frame,
                                          plus ``status`` (uint8 per frame), ``reason`` (str)
-                                         and ``frame_ids.json``
+                                         and ``frame_ids`` (str, one chunk)
     <root>/<dataset>/<stage>/            dataset stage: files, and ``_stage.json`` written last
     <root>/<dataset>/locks/<stage>.lock  one writer per stage output
 
@@ -47,9 +47,9 @@ from pipeline.stage import ArraySpec
 PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
 STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed", EXCLUDED: "excluded"}
 
-FRAME_IDS_FILE = "frame_ids.json"
-"""The output's frame ids (a JSON list), in its folder beside the group's ``zarr.json``; outputs
-created before 2026-12-04 hold them in the group's attributes."""
+FRAME_IDS = "frame_ids"
+"""The array of an output's frame ids (strings, one chunk); outputs created before 2026-12-04 hold
+them in the group's attributes."""
 
 EVERY_CHUNK = "every_chunk_written"
 """Group attribute: a finished frame has every chunk written, even one equal to the fill value
@@ -150,10 +150,11 @@ class FrameStore:
             g.create_array("status", shape=(n,), chunks=(1,), dtype="uint8", fill_value=PENDING,
                            compressors=COMPRESSOR, attributes={"codes": STATUS_NAMES})
             g.create_array("reason", shape=(n,), chunks=(1,), dtype=str, fill_value="", compressors=COMPRESSOR)
-            # beside the group's zarr.json, not in it: every open of the group (several per frame
-            # read or written) parses that file, 0.8 MB of ids at 50,000 frames
-            fs, path = fsspec.core.url_to_fs(self.url)
-            fs.pipe_file(join(path, FRAME_IDS_FILE), json.dumps(list(frame_ids)).encode())
+            # an array of one chunk, not the group's attributes: every open of the group (several
+            # per frame read or written) parses its zarr.json, 0.8 MB of ids at 50,000 frames
+            ids = g.create_array(FRAME_IDS, shape=(n,), chunks=(max(n, 1),), dtype=str, fill_value="",
+                                 compressors=COMPRESSOR)
+            ids[:] = np.asarray(list(frame_ids), dtype=str)
             g.attrs.update({**attrs, "created": time.time(), EVERY_CHUNK: True})
             # The fingerprint goes last: a group without it counts as absent.
             g.attrs["fingerprint"] = fingerprint
@@ -174,22 +175,18 @@ class FrameStore:
             raise cache_error(exc, f"updating the fingerprint of {self.url}") from None
 
     def frame_ids(self) -> list[str]:
-        """Frame ids, in frame-index order. MetadataError naming the file when it cannot be read."""
-        fs, path = fsspec.core.url_to_fs(self.url)
-        try:
-            with fs.open(join(path, FRAME_IDS_FILE), "rb") as fh:
-                ids = json.load(fh)
-            if isinstance(ids, list):
-                return [str(i) for i in ids]
-            problem = "is not a list"
-        except FileNotFoundError:
-            attrs = self._group("r").attrs  # outputs created before 2026-12-04 kept them there
-            if "frame_ids" in attrs:
-                return list(attrs["frame_ids"])
+        """Frame ids, in frame-index order. MetadataError naming the array when it cannot be read."""
+        g = self._group("r")
+        if FRAME_IDS not in g:  # outputs created before 2026-12-04 hold them in the group's attributes
+            if "frame_ids" in g.attrs:
+                return list(g.attrs["frame_ids"])
             problem = "is missing"
-        except (ValueError, OSError) as exc:
-            problem = f"cannot be read ({_one_line(exc)})"
-        raise MetadataError(f"{join(self.url, FRAME_IDS_FILE)}: the frame ids of stage output {self.stage} {problem}; "
+        else:
+            try:
+                return [str(i) for i in np.asarray(self._member(g, FRAME_IDS)[:])]
+            except DECODE_ERRORS as exc:
+                problem = f"cannot be decoded ({_one_line(exc)})"
+        raise MetadataError(f"{join(self.url, FRAME_IDS)}: the frame ids of stage output {self.stage} {problem}; "
                             f"recompute the stage: delete {self.url} or run it with --force")
 
     def status(self) -> np.ndarray:
@@ -381,7 +378,7 @@ class FrameStore:
         arrays). MetadataError when the group's or an array's metadata cannot be read."""
         if not self.exists():
             raise CacheError(f"{self.url}: no output to verify")
-        names = sorted(set(self.check_metadata()) - {"status", "reason"})
+        names = sorted(set(self.check_metadata()) - {"status", "reason", FRAME_IDS})
         g = self._group("r")
         total = self._member(g, "status").shape[0] * (2 + len(names))
         progress = (lambda n: None) if progress is None else (lambda n, _p=progress: _p(n, total))

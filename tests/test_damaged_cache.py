@@ -178,34 +178,34 @@ def test_whole_frame_reads_come_from_the_chunk_files_and_equal_zarrs(tmp_path):
     assert np.isnan(calib.array("points")[1]).all() and np.isnan(calib.array("points").oindex[[4]]).all()
 
 
-def test_frame_ids_live_beside_the_group_metadata_which_every_open_parses(tmp_path):
-    """An output's frame ids are a file of their own, not in the group's zarr.json that every read
-    and write of a frame parses (0.8 MB at 50,000 frames); an output that has them in its
-    attributes (created before 2026-12-04) still reads them there; a damaged file is named."""
-    import json
+def test_frame_ids_are_an_array_not_the_group_metadata_which_every_open_parses(tmp_path):
+    """An output's frame ids are an array of their own (one chunk), not in the group's zarr.json
+    that every read and write of a frame parses (0.8 MB at 50,000 frames); an output that has them
+    in its attributes (created before 2026-12-04) still reads them there; a damaged one is named,
+    and is no frame's damage for verify."""
+    import shutil
 
     import zarr
 
     pipe = _pipe(tmp_path)
     pipe.run("calibrate")
     calib = pipe.env.store("calibrate")
-    ids_file = Path(calib.url) / "frame_ids.json"
-    assert json.loads(ids_file.read_text()) == IDS and calib.frame_ids() == IDS
     group = zarr.open_group(calib.url, mode="r+")
+    assert list(group["frame_ids"][:]) == IDS and group["frame_ids"].nchunks == 1 and calib.frame_ids() == IDS
     assert "frame_ids" not in group.attrs and len((Path(calib.url) / "zarr.json").read_text()) < 2000
-    ids_file.unlink()  # an output of the earlier layout
+    assert not pipe.verify(["calibrate"])[0]["damaged"]
+    chunk = _chunk(pipe, "calibrate", "frame_ids/c/0")
+    _damage(chunk, "random bytes")
+    with pytest.raises(MetadataError, match=r"calibrate.zarr/frame_ids: the frame ids of stage output calibrate "
+                                            r"cannot be decoded \(.*\); recompute the stage"):
+        calib.frame_ids()
+    shutil.rmtree(Path(calib.url) / "frame_ids")  # an output of the earlier layout
     group.attrs["frame_ids"] = IDS
     assert calib.frame_ids() == IDS
     assert [r.processed for r in pipe.run("heatmaps")] == [0, len(IDS)]
     del group.attrs["frame_ids"]
-    with pytest.raises(MetadataError, match=r"calibrate.zarr/frame_ids.json: the frame ids of stage output calibrate "
+    with pytest.raises(MetadataError, match=r"calibrate.zarr/frame_ids: the frame ids of stage output calibrate "
                                             r"is missing; recompute the stage"):
-        calib.frame_ids()
-    ids_file.write_text('{"not": "a list"}')
-    with pytest.raises(MetadataError, match="frame_ids.json: the frame ids of stage output calibrate is not a list"):
-        calib.frame_ids()
-    ids_file.write_text('["f000", ')
-    with pytest.raises(MetadataError, match="frame_ids.json: the frame ids of stage output calibrate cannot be read"):
         calib.frame_ids()
 
 
