@@ -155,8 +155,7 @@ def rewriting(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
     stage_lock, only by a run that rewrites the output (appending frames to it needs no more)."""
     with _readers_locks([url], fcntl.LOCK_EX, wait_s,
                         f"{what} is being read by another run (checked, or read by a stage downstream of it); "
-                        f"wait for it to finish "
-                        f"(or pass --wait SECONDS)"):
+                        f"wait for it to finish (or pass --wait SECONDS)"):
         yield
 
 
