@@ -39,8 +39,10 @@ def _check_fractions(fractions: Sequence[float]) -> np.ndarray:
 def _sequence_groups(sequence_ids: Sequence[str]) -> list[np.ndarray]:
     """Frame indices of each sequence, sequences in order of first appearance, frames in given order."""
     _, first, inverse = np.unique(np.asarray(sequence_ids, dtype=object), return_index=True, return_inverse=True)
-    order = np.argsort(first)
-    return [np.flatnonzero(inverse == k) for k in order]
+    inverse = inverse.reshape(-1)
+    by_sequence = np.argsort(inverse, kind="stable")  # frames grouped by sequence, in given order within
+    groups = np.split(by_sequence, np.cumsum(np.bincount(inverse, minlength=len(first)))[:-1])
+    return [groups[k] for k in np.argsort(first)]
 
 
 def _assign_units(units: list[np.ndarray], fractions: np.ndarray, rng: np.random.Generator,
