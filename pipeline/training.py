@@ -943,10 +943,11 @@ def speed_count_prior(speeds_mps: Any, counts: Any, n_knots: int = COUNT_PRIOR_K
 
 
 def disnet_baseline(heatmaps: Any, counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
-                    batch: int = 64) -> dict[str, float]:
+                    batch: int = 64, mean_map: np.ndarray | None = None) -> dict[str, float]:
     """Per-frame mean L_KL of the mean training map ('kl') and L_n of the mean training count ('n')
-    on frames ``eval_idx``."""
-    mean_map = mean_map_baseline(heatmaps, train_idx, batch)
+    on frames ``eval_idx``. ``mean_map``: mean_map_baseline's, when the caller has it (it reads
+    every training heatmap)."""
+    mean_map = mean_map_baseline(heatmaps, train_idx, batch) if mean_map is None else mean_map
     n_bar = float(np.mean(take_rows(counts, np.asarray(train_idx, np.int64))))
     log_q = np.log(mean_map)
     kl_sum, n_sum, m = 0.0, 0.0, 0

@@ -98,9 +98,10 @@ def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
     from pipeline.training import disnet_baseline, mean_map_baseline, rssnet_baseline
 
     heat = inputs.store("heatmaps").array("heatmap")
+    mean_map = mean_map_baseline(heat, idx["train"])  # read once: every training heatmap
     out: dict[str, float] = {}
     if len(idx["test"]):
-        d = disnet_baseline(heat, table["count"], idx["train"], idx["test"])
+        d = disnet_baseline(heat, table["count"], idx["train"], idx["test"], mean_map=mean_map)
         out.update(mean_map_kl=d["kl"], mean_count_L_n=d["n"])
     out["train_mean_count"] = float(table["count"][idx["train"]].mean())
     train_rss, test_rss = rssnet_data(inputs, table, 0, 0).rss, rssnet_data(inputs, table, 2, 2).rss
@@ -110,8 +111,7 @@ def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
         r = rssnet_baseline(rss, np.arange(len(train_rss)), np.arange(len(train_rss), len(rss)),
                             cfg.radar.rss_min, cfg.radar.rss_max)
         out.update(median_rss_L_a=r["a"], train_rss_median=r["median"])
-    mean_map = mean_map_baseline(heat, idx["train"]).astype(np.float32)
-    np.save(Path(inputs.dir("train").path) / "mean_heatmap.npy", mean_map, allow_pickle=False)
+    np.save(Path(inputs.dir("train").path) / "mean_heatmap.npy", mean_map.astype(np.float32), allow_pickle=False)
     return out
 
 
