@@ -177,15 +177,21 @@ class FrameStore:
     def frame_ids(self) -> list[str]:
         """Frame ids, in frame-index order. MetadataError naming the array when it cannot be read."""
         g = self._group("r")
-        if FRAME_IDS not in g:  # outputs created before 2026-12-04 hold them in the group's attributes
-            if "frame_ids" in g.attrs:
-                return list(g.attrs["frame_ids"])
-            problem = "is missing"
-        else:
-            try:
-                return [str(i) for i in np.asarray(self._member(g, FRAME_IDS)[:])]
-            except DECODE_ERRORS as exc:
-                problem = f"cannot be decoded ({_one_line(exc)})"
+        try:
+            present = FRAME_IDS in g
+            if not present:  # outputs created before 2026-12-04 hold them in the group's attributes
+                if "frame_ids" in g.attrs:
+                    return list(g.attrs["frame_ids"])
+                problem = "is missing"
+            else:
+                ids = [str(i) for i in np.asarray(self._member(g, FRAME_IDS)[:])]
+                if all(ids):
+                    return ids
+                problem = "has empty ids (its chunk is missing)"  # zarr reads a missing chunk as the fill, ''
+        except MetadataError:
+            raise
+        except (*DECODE_ERRORS, TypeError) as exc:  # a damaged chunk, or zarr.json (json.JSONDecodeError)
+            problem = f"cannot be read ({_one_line(exc)})"
         raise MetadataError(f"{join(self.url, FRAME_IDS)}: the frame ids of stage output {self.stage} {problem}; "
                             f"recompute the stage: delete {self.url} or run it with --force")
 
@@ -358,7 +364,7 @@ class FrameStore:
         chunk = join(self.url, arr.path, _chunk_key(arr, index))
         try:
             ids = self.frame_ids()
-        except CacheError:  # only words
+        except Exception:  # noqa: BLE001 - only words: the chunk's own error must not be lost
             ids = []
         frame = str(ids[index]) if 0 <= index < len(ids) else None
         folder = self.url.rstrip("/").rsplit("/", 1)[-1]
@@ -691,8 +697,8 @@ def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None) 
     array is not laid out as ``FrameStore.create`` makes it (a fixed-size dtype, one chunk per
     frame, zstd), or a chunk file does not decode to one frame."""
     meta = arr.metadata
-    codecs = meta.codecs
-    if not isinstance(arr.store, LocalStore) or arr.dtype.kind not in "biuf" or \
+    codecs = getattr(meta, "codecs", None)  # None: zarr format 2
+    if codecs is None or not isinstance(arr.store, LocalStore) or arr.dtype.kind not in "biuf" or \
             meta.chunk_grid.chunk_shape != (1, *arr.shape[1:]) or \
             meta.chunk_key_encoding != DefaultChunkKeyEncoding(separator="/") or \
             [type(c) for c in codecs] != [BytesCodec, ZstdCodec]:
@@ -714,7 +720,7 @@ def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None) 
             if len(data) != out[row].nbytes:
                 return None
             out[row] = np.frombuffer(data, stored).reshape(out.shape[1:])
-    except (OSError, RuntimeError, ValueError):  # unreadable, not zstd, checksum mismatch
+    except (OSError, *DECODE_ERRORS):  # unreadable, not zstd, checksum mismatch, a huge claimed size
         return None
     return out
 

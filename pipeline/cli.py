@@ -277,7 +277,7 @@ def _print_status_row(row: dict, notes: dict[str, int] | None = None) -> None:
 
 @main.command()
 @dataset_options
-@click.option("--reasons", type=int, default=5, show_default=True, help="Failure reasons shown per stage.")
+@click.option("--reasons", type=click.IntRange(min=0), default=5, show_default=True, help="Failure reasons shown per stage.")
 @click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON.")
 @_handle_errors
 def status(dataset, data_root, cache_root, sets, reasons, as_json):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pickle
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -195,9 +196,25 @@ def test_frame_ids_are_an_array_not_the_group_metadata_which_every_open_parses(t
     assert "frame_ids" not in group.attrs and len((Path(calib.url) / "zarr.json").read_text()) < 2000
     assert not pipe.verify(["calibrate"])[0]["damaged"]
     chunk = _chunk(pipe, "calibrate", "frame_ids/c/0")
+    saved = chunk.read_bytes()
+    chunk.unlink()  # zarr would read the fill value, '', for every id
+    with pytest.raises(MetadataError, match=r"calibrate.zarr/frame_ids: the frame ids of stage output calibrate "
+                                            r"has empty ids \(its chunk is missing\)"):
+        calib.frame_ids()
+    chunk.write_bytes(saved)
+    meta = Path(calib.url) / "frame_ids" / "zarr.json"
+    text = meta.read_text()
+    meta.write_text(text[: len(text) // 2])
+    with pytest.raises(MetadataError, match=r"frame_ids: the frame ids of stage output calibrate cannot be read "
+                                            r"\(JSONDecodeError"):
+        calib.frame_ids()
+    _damage(_chunk(pipe, "calibrate", "value/c/2"), "random bytes")  # another chunk's error stays its own
+    with pytest.raises(ChunkError, match=r"calibrate.zarr/value, frame 2: chunk .*value/c/2 cannot be decoded"):
+        calib.read("value", 2)
+    meta.write_text(text)
     _damage(chunk, "random bytes")
     with pytest.raises(MetadataError, match=r"calibrate.zarr/frame_ids: the frame ids of stage output calibrate "
-                                            r"cannot be decoded \(.*\); recompute the stage"):
+                                            r"cannot be read \(.*\); recompute the stage"):
         calib.frame_ids()
     shutil.rmtree(Path(calib.url) / "frame_ids")  # an output of the earlier layout
     group.attrs["frame_ids"] = IDS
@@ -257,6 +274,12 @@ def test_status_read_from_its_chunk_files_is_zarrs_and_a_damaged_chunk_is_left_t
     np.testing.assert_array_equal(direct, arr[:])
     np.testing.assert_array_equal(store.status(), direct)
     _damage(_chunk(pipe, "calibrate", "status/c/3"), how)
+    assert _frames_from_chunk_files(arr) is None
+    with pytest.raises(ChunkError, match=r"calibrate.zarr/status, frame 3 \(f003\): chunk .* cannot be decoded"):
+        store.status()
+    # a zstd header claiming 64 TiB: numcodecs raises MemoryError, which must not escape either
+    huge = struct.pack("<I", 0xFD2FB528) + bytes([0xE0]) + struct.pack("<Q", 2 ** 46) + bytes([1, 0, 0])
+    _chunk(pipe, "calibrate", "status/c/3").write_bytes(huge)
     assert _frames_from_chunk_files(arr) is None
     with pytest.raises(ChunkError, match=r"calibrate.zarr/status, frame 3 \(f003\): chunk .* cannot be decoded"):
         store.status()
