@@ -248,7 +248,8 @@ class FrameStore:
             raise cache_error(exc, f"writing frame {index} of {self.url}") from None
 
     def mark(self, index: int, code: int, reason: str = "") -> None:
-        """Record a frame as failed or excluded, with the reason."""
+        """Record a frame as failed or excluded, with the reason. Not mark_many of one frame: zarr's
+        orthogonal write reads the chunks it replaces, and this one must overwrite a damaged one."""
         g = self._group("r+")
         try:
             g["reason"][index] = reason[:2000]

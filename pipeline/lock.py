@@ -228,9 +228,7 @@ def held(url: str) -> bool:
     attempt at that moment fail."""
     fs, path = fsspec.core.url_to_fs(url)
     info = _read(fs, path)
-    if info is None:
-        return fs.exists(path)  # being written, or unreadable: count it as held
-    return info.get("host") != socket.gethostname() or _pid_alive(int(info.get("pid", -1)))
+    return fs.exists(path) if info is None else not _is_stale(info)  # None: being written, or unreadable
 
 
 def remove_lock(url: str) -> bool:

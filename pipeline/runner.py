@@ -436,16 +436,20 @@ class Pipeline:
             self._done[stage.name] = done_digest(status)
         return report
 
-    def _blocked_frames_ready(self, stage: FrameStage, status: np.ndarray) -> np.ndarray:
+    def _blocked_frames_ready(self, stage: FrameStage, status: np.ndarray,
+                              up_statuses: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """(F,) bool: the frames that failed only because an upstream frame had failed, and whose
-        upstream frames are now all done (they were never tried: the next run tries them)."""
+        upstream frames are now all done (they were never tried: the next run tries them).
+        ``up_statuses``: the per-frame upstream stages' status, when the caller has read them."""
         ready = np.zeros(len(status), bool)
         if not (status == FAILED).any():
             return ready
+        if up_statuses is None:
+            up_statuses = {up: self.env.store(up).status() for up in stage.upstream
+                           if isinstance(self.stages[up], FrameStage)}
         upstream_done = np.ones(len(status), bool)
-        for up in stage.upstream:
-            if isinstance(self.stages[up], FrameStage):
-                upstream_done &= self.env.store(up).status() == DONE
+        for up_status in up_statuses.values():
+            upstream_done &= up_status == DONE
         candidates = np.flatnonzero((status == FAILED) & upstream_done)  # the reasons of these only: a read each
         for i, reason in self.env.store(stage.name).reasons(candidates, status=status).items():
             ready[i] = reason.startswith("upstream stage ")
@@ -479,7 +483,7 @@ class Pipeline:
         up_statuses = {up: self.env.store(up).status() for up in stage.upstream
                        if isinstance(self.stages[up], FrameStage)}
         if not retry_failed:  # e.g. after `run calibrate --retry-failed`
-            todo_mask |= self._blocked_frames_ready(stage, status)
+            todo_mask |= self._blocked_frames_ready(stage, status, up_statuses)
         if frames is not None:
             sel = np.zeros(len(ids), bool)
             sel[[i for i in frames if 0 <= i < len(ids)]] = True
