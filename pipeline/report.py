@@ -43,6 +43,13 @@ SPEED_COLUMNS: tuple[tuple[str, str], ...] = (
 """(metric key, header) of the model's means in the by-speed table."""
 
 
+def metric_columns(frames: Sequence[Mapping[str, float]]) -> dict[str, np.ndarray]:
+    """Per-frame metric dicts -> metric -> values (F,) float64, in frame order (NaN where a frame
+    lacks the metric); keys in order of first appearance."""
+    keys = list(dict.fromkeys(k for f in frames for k in f))
+    return {key: np.array([float(f.get(key, math.nan)) for f in frames], dtype=np.float64) for key in keys}
+
+
 def aggregate(per_frame: Mapping[str, Sequence[Mapping[str, float]]]) -> dict[str, dict[str, dict[str, float]]]:
     """Mean and median over frames of every metric of every method.
 
@@ -50,12 +57,17 @@ def aggregate(per_frame: Mapping[str, Sequence[Mapping[str, float]]]) -> dict[st
     {mean, median, n (finite values used), n_nan (NaN/inf values ignored)}; mean and median are
     NaN when no value is finite. Methods keep their input order.
     """
+    return aggregate_columns({method: metric_columns(frames) for method, frames in per_frame.items()})
+
+
+def aggregate_columns(columns: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, dict[str, dict[str, float]]]:
+    """:func:`aggregate` of method -> metric -> values (F,) over the method's frames (arrays, not a
+    dict per frame: 12 methods' dicts took about 20 kB per evaluated frame)."""
     table: dict[str, dict[str, dict[str, float]]] = {}
-    for method, frames in per_frame.items():
-        keys = list(dict.fromkeys(k for f in frames for k in f))
+    for method, metrics in columns.items():
         row = {}
-        for key in keys:
-            values = np.array([float(f.get(key, math.nan)) for f in frames], dtype=np.float64)
+        for key, column in metrics.items():
+            values = np.asarray(column, dtype=np.float64)
             ok = np.isfinite(values)
             row[key] = {
                 "mean": float(values[ok].mean()) if ok.any() else math.nan,
@@ -222,22 +234,24 @@ def _ceiling_sentence(table: Mapping[str, Mapping[str, Mapping[str, float]]], ce
 
 
 def speed_breakdown(speed_mps: np.ndarray, real_count: np.ndarray, model_count: np.ndarray,
-                    model_frames: Sequence[Mapping[str, float]],
+                    model_metrics: Mapping[str, np.ndarray],
                     edges_mps: Sequence[float] = SPEED_EDGES_MPS) -> list[dict[str, Any]]:
     """The model's count and metrics per ego-speed bin (a stopped ego is where a radar loses its
     static world to the zero-Doppler filter, and where a count learnt mostly in motion can fail).
 
     ``speed_mps`` (F,) ego speed |v| per frame, ``real_count`` (F,) real points, ``model_count``
-    (F,) the model's count, ``model_frames`` the model's F per-frame metric dicts, all in one frame
-    order. Returns one dict per non-empty bin: label, lo_mps, hi_mps (inf for the last), frames,
+    (F,) the model's count, ``model_metrics`` metric -> the model's values (F,) (:func:`metric_columns`),
+    all in one frame order. Returns one dict per non-empty bin: label, lo_mps, hi_mps (inf for the last), frames,
     real_count and model_count (means), and the mean of every SPEED_COLUMNS metric (finite values);
     frames without a finite speed form a last bin labelled 'unknown' (lo_mps and hi_mps NaN).
     """
     speed = np.asarray(speed_mps, np.float64)
     real, pred = np.asarray(real_count, np.float64), np.asarray(model_count, np.float64)
-    if not (speed.shape == real.shape == pred.shape == (len(model_frames),)):
+    columns = {key: np.asarray(model_metrics.get(key, np.full(len(speed), math.nan)), np.float64)
+               for key, _ in SPEED_COLUMNS}
+    if not all(speed.shape == real.shape == pred.shape == c.shape for c in columns.values()):
         raise ValueError(f"speed_breakdown: {speed.shape}, {real.shape}, {pred.shape} and "
-                         f"{len(model_frames)} frames differ")
+                         f"{[c.shape for c in columns.values()]} frames differ")
     bounds = [0.0, *edges_mps, math.inf]
     bins = [(_speed_label(lo, hi), lo, hi, np.flatnonzero((speed >= lo) & (speed < hi)))
             for lo, hi in zip(bounds[:-1], bounds[1:])]
@@ -249,7 +263,7 @@ def speed_breakdown(speed_mps: np.ndarray, real_count: np.ndarray, model_count: 
         row = {"label": label, "lo_mps": lo, "hi_mps": hi, "frames": int(idx.size),
                "real_count": float(real[idx].mean()), "model_count": float(pred[idx].mean())}
         for key, _ in SPEED_COLUMNS:
-            v = np.array([float(model_frames[k].get(key, math.nan)) for k in idx])
+            v = columns[key][idx]
             row[key] = float(v[np.isfinite(v)].mean()) if np.isfinite(v).any() else math.nan
         rows.append(row)
     return rows

@@ -30,6 +30,7 @@ Every method is evaluated on the same frames: those of eval.split that evaluate-
 from __future__ import annotations
 
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -75,12 +76,16 @@ RANGE_ESTIMATORS = ("mean", "nearest", "median", "min")
 """Range rules of the physics check (a); a fifth column, 'best', is the oracle (the window's lidar
 point closest to the measured range)."""
 
-CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.gate_m", "eval.gate_rss", "eval.gate_doppler_mps",
-               "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
+READ_BYTES = 64 << 20
+"""The report reads about this many bytes of one ragged array's chunks at a time (a frame's chunk
+holds the array's whole capacity: about 1 MB of points on the demo world)."""
+
+CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.pooled_rows_max", "eval.gate_m", "eval.gate_rss",
+               "eval.gate_doppler_mps", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
                "synth.placement", "placement.voxel_m", "placement.map_weight", "heatmap.sigma_px",
                "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
-FRAME_KEYS = tuple(k for k in CONFIG_KEYS if k != "eval.figure_frames")
-"""Configuration of the per-frame results (the figures are the report's)."""
+FRAME_KEYS = tuple(k for k in CONFIG_KEYS if k not in ("eval.figure_frames", "eval.pooled_rows_max"))
+"""Configuration of the per-frame results (the figures and the pooling are the report's)."""
 
 
 def _train_counts(inputs) -> tuple[np.ndarray, np.ndarray]:
@@ -311,8 +316,11 @@ def physics_checks(inputs, cfg: Config, frames) -> dict:
                             np.concatenate([b for _, b in rows]) if rows else np.zeros(0))
 
 
-def _physics_summary(abs_dr: np.ndarray, abs_dv: np.ndarray) -> dict:
-    """The report's physics section from pooled residuals abs_dr (M, 5) m and abs_dv (S,) m/s."""
+def _physics_summary(abs_dr: np.ndarray, abs_dv: np.ndarray, n_dr: int | None = None, n_dv: int | None = None) -> dict:
+    """The report's physics section from pooled residuals abs_dr (M, 5) m and abs_dv (S,) m/s, which
+    may be samples of ``n_dr`` and ``n_dv`` rows (the points counted; default: all of them)."""
+    n_dr = len(abs_dr) if n_dr is None else n_dr
+    n_dv = len(abs_dv) if n_dv is None else n_dv
     out = {}
     for k, key in enumerate((*RANGE_ESTIMATORS, "best")):
         v = abs_dr[:, k]
@@ -323,9 +331,9 @@ def _physics_summary(abs_dr: np.ndarray, abs_dv: np.ndarray) -> dict:
             "median_abs_dr_m": float(np.median(v[ok])) if ok.any() else float("nan"),
             "p90_abs_dr_m": float(np.percentile(v[ok], 90)) if ok.any() else float("nan"),
             f"within_{RANGE_CHECK_TOLERANCE_M:g}m_share": within,
-            "no_support_share": float(1 - ok.mean()) if len(v) else float("nan"), "points": int(len(v))}
+            "no_support_share": float(1 - ok.mean()) if len(v) else float("nan"), "points": int(n_dr)}
     out["doppler (static points)"] = {"median_abs_dv_mps": float(np.median(abs_dv)) if len(abs_dv) else float("nan"),
-                                      "points": int(len(abs_dv))}
+                                      "points": int(n_dv)}
     return out
 
 
@@ -338,10 +346,8 @@ def select_frames(inputs, cfg: Config) -> np.ndarray:
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     """The report over the frames evaluate-frames finished (module docstring)."""
-    from pipeline.baselines import METHODS
     from pipeline.figures import bev, fig8, histograms
-    from pipeline.metrics import FRAME_METRICS, distribution_distances
-    from pipeline.report import aggregate, speed_breakdown, write_report
+    from pipeline.report import write_report
     from pipeline.transfer import comparison
 
     check(cfg)
@@ -358,34 +364,27 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         why = f"; {failed} failed (`pipeline status` lists why)" if failed else ""
         raise PipelineError(f"evaluate: no evaluated frame in split '{cfg.eval.split}' "
                             f"(synth.split = '{cfg.synth.split}'{why})")
-    metrics, present, count, speeds, real_counts, points, abs_dr, abs_dv = _read_results(part, frames, inputs.progress)
-    per_frame = {spec.name: [dict(zip(FRAME_METRICS, metrics[k, row])) for k in np.flatnonzero(present[:, row])]
-                 for row, spec in enumerate(METHODS) if present[:, row].any()}
-    real = points[points[:, 0] == -1, 1:]
-    sph = {spec.name: points[points[:, 0] == row, 1:] for row, spec in enumerate(METHODS) if spec.name in per_frame}
     compared = comparison(cfg)
-    distances = {name: distribution_distances(p, real, compared.doppler_span_mps) for name, p in sph.items() if len(p)}
-    if not compared.rss:
-        distances = {name: {**d, "rss": float("nan")} for name, d in distances.items()}
+    summary = summarise(part, frames, compared.doppler_span_mps, compared.rss, cfg.eval.pooled_rows_max, inputs.progress)
     root = Path(out.path)
     figs = root / "figures"
-    _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, sph["model"], real, fig8, bev, histograms)
+    _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, summary.model_sph, summary.real_sph, fig8, bev,
+             histograms)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
             "placement": cfg.synth.placement, "train_mean_count": _mean_count(*_train_counts(inputs)),
             "synthesize_counts": _synth_counts(syn_store, frames)}
     if compared.notes:
         meta["compared"] = "; ".join(compared.notes)
+    if summary.sampled:
+        meta["sampled"] = summary.sampled
     if compared.doppler_span_mps > 0:
         meta["doppler_distance"] = (f"Doppler's Wasserstein distance on the circle of the radar's wrap span "
                                     f"({compared.doppler_span_mps:g} m/s)")
     left_out = _left_out(meta, in_split & calib_done & ~syn_done, in_split & syn_done & (part_status != DONE),
                          failed)
-    model_row = [s.name for s in METHODS].index("model")
-    by_speed = speed_breakdown(speeds, real_counts, count[:, model_row], per_frame["model"])
-    table = aggregate(per_frame)
-    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, table, distances,
-                                      _physics_summary(abs_dr, abs_dv), meta, by_speed)
-    model = table["model"]
+    json_path, md_path = write_report(root, inputs.env.dataset, cfg.eval.split, summary.table, summary.distances,
+                                      summary.physics, meta, summary.by_speed)
+    model = summary.table["model"]
     tail = f" ({'; '.join(left_out)})" if left_out else ""
     return {"report": str(md_path), "figures": str(figs),
             "message": (f"{len(frames)} frames{tail}: model chamfer {model['chamfer_m']['mean']:.2f} m, "
@@ -409,22 +408,95 @@ def _left_out(meta: dict, not_synthesized: np.ndarray, not_evaluated: np.ndarray
     return left_out
 
 
-def _read_results(part, frames: np.ndarray, progress: bool) -> tuple[np.ndarray, ...]:
-    """evaluate-frames' arrays of ``frames`` (F,): metrics (F, methods, metrics), present (F,
-    methods), count (F, methods), ego_speed (F,), real points per frame (F,) and the pooled points
-    (P, 6), abs_dr (M, 5), abs_dv (S,)."""
-    table = np.asarray(part.array("metrics").oindex[frames])
+@dataclass(frozen=True)
+class Summary:
+    """The report's numbers from evaluate-frames (:func:`summarise`)."""
+
+    table: dict
+    """method -> metric -> {mean, median, n, n_nan} (pipeline.report.aggregate_columns)."""
+    distances: dict
+    """method -> spherical column -> 1-D Wasserstein distance to the real points."""
+    physics: dict
+    """The physics checks (:func:`_physics_summary`)."""
+    by_speed: list
+    """The model by ego speed (pipeline.report.speed_breakdown)."""
+    real_sph: np.ndarray
+    """(P, 5) the pooled real points, spherical [range m, azimuth rad, elevation rad, range rate m/s, RSS]."""
+    model_sph: np.ndarray
+    """(Q, 5) the model's, the same columns."""
+    sampled: str
+    """What was pooled from a sample (eval.pooled_rows_max), '' when nothing."""
+
+
+def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool, rows_max: int,
+              progress: bool) -> Summary:
+    """The report's numbers over ``frames`` (F,) finished in evaluate-frames' store ``part``:
+    metrics aggregated per method, the distribution distances of the pooled points (Doppler on the
+    circle of ``doppler_span_mps`` when > 0; RSS left out unless ``with_rss``), the physics checks
+    and the model by ego speed. Memory grows with F by the metrics (about 2 kB a frame); the pooled
+    per-point rows of each kind stop growing at ``rows_max`` (eval.pooled_rows_max): a random sample
+    above it, said in ``Summary.sampled``."""
+    from pipeline.baselines import METHODS
+    from pipeline.metrics import FRAME_METRICS, distribution_distances
+    from pipeline.report import aggregate_columns, speed_breakdown
+
+    metrics = np.asarray(part.array("metrics").oindex[frames])  # (F, methods, FRAME_METRICS)
     present = np.asarray(part.array("present").oindex[frames], bool)
     count = np.asarray(part.array("count").oindex[frames])
     speeds = np.asarray(part.array("ego_speed").oindex[frames])
-    ragged = {name: (part.array(name), np.asarray(part.array(f"{name}_count").oindex[frames]))
-              for name in ("points", "abs_dr", "abs_dv")}
-    pooled: dict[str, list] = {name: [] for name in ragged}
-    for k, i in enumerate(tqdm(frames, desc="evaluate (report)", unit="frame", disable=not progress)):
-        for name, (array, rows) in ragged.items():
-            pooled[name].append(np.asarray(array[int(i), :int(rows[k])]))
-    real_counts = np.array([np.count_nonzero(p[:, 0] == -1) for p in pooled["points"]], np.float64)
-    return (table, present, count, speeds, real_counts, *(np.concatenate(v) for v in pooled.values()))
+    columns = {spec.name: {key: metrics[present[:, row], row, k] for k, key in enumerate(FRAME_METRICS)}
+               for row, spec in enumerate(METHODS) if present[:, row].any()}
+    real_counts = np.asarray(part.array("abs_dr_count").oindex[frames], np.float64)  # one row per real point
+    bar = tqdm(total=3 * len(frames), desc="evaluate (report)", unit="frame", disable=not progress)
+    with bar:
+        (points, n_points), (abs_dr, n_dr), (abs_dv, n_dv) = (_pooled(part, name, frames, rows_max, bar)
+                                                                for name in ("points", "abs_dr", "abs_dv"))
+    real = points[points[:, 0] == -1, 1:]
+    distances = {}
+    for row, spec in enumerate(METHODS):
+        sph = points[points[:, 0] == row, 1:]
+        if spec.name in columns and len(sph):
+            distances[spec.name] = distribution_distances(sph, real, doppler_span_mps)
+            if not with_rss:
+                distances[spec.name]["rss"] = float("nan")
+    model_row = [spec.name for spec in METHODS].index("model")
+    sampled = "; ".join(f"{name}: {len(kept):,} of {total:,} rows" for name, kept, total in
+                        (("points", points, n_points), ("physics residuals", abs_dr, n_dr),
+                         ("static Doppler residuals", abs_dv, n_dv)) if len(kept) < total)
+    if sampled:
+        sampled = (f"distribution distances, histograms and physics checks from a random sample of the pooled rows "
+                   f"({sampled}; eval.pooled_rows_max)")
+    return Summary(table=aggregate_columns(columns), distances=distances,
+                   physics=_physics_summary(abs_dr, abs_dv, n_dr, n_dv),
+                   by_speed=speed_breakdown(speeds, real_counts, count[:, model_row],
+                                            {key: metrics[:, model_row, k] for k, key in enumerate(FRAME_METRICS)}),
+                   real_sph=real, model_sph=points[points[:, 0] == model_row, 1:], sampled=sampled)
+
+
+def _pooled(part, name: str, frames: np.ndarray, rows_max: int, bar) -> tuple[np.ndarray, int]:
+    """The rows of ragged array ``name`` of ``frames`` (F,), in order, and how many there are; above
+    ``rows_max`` rows a simple random sample of that many (each frame's share drawn from the
+    multivariate hypergeometric, then its rows without replacement; one stream in frame order, so
+    the sample does not depend on how the frames are read). Reads READ_BYTES of chunks at a time."""
+    array = part.array(name)
+    rows = np.asarray(part.array(f"{name}_count").oindex[frames], np.int64)
+    total = int(rows.sum())
+    rng = np.random.default_rng(zlib.crc32(name.encode()))
+    keep = rng.multivariate_hypergeometric(rows, rows_max, method="marginals") if total > rows_max else rows
+    offsets = np.concatenate([[0], np.cumsum(keep)])
+    out = np.empty((int(offsets[-1]), *array.shape[2:]), array.dtype)
+    frame_bytes = int(np.prod(array.shape[1:], dtype=np.int64)) * array.dtype.itemsize
+    step = max(1, READ_BYTES // max(frame_bytes, 1))
+    for start in range(0, len(frames), step):
+        block = np.asarray(array.oindex[frames[start:start + step]])
+        for k in range(len(block)):
+            j = start + k
+            values = block[k, :rows[j]]
+            if keep[j] < rows[j]:
+                values = values[np.sort(rng.choice(rows[j], keep[j], replace=False))]
+            out[offsets[j]:offsets[j + 1]] = values
+        bar.update(len(block))
+    return out, total
 
 
 def _synth_counts(syn_store, frames) -> dict:

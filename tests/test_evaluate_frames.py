@@ -33,8 +33,8 @@ def synthesized(tmp_path_factory) -> tuple[Path, Path]:
     return world, cache
 
 
-def _pipeline(world: Path, cache: Path) -> Pipeline:
-    env = RunEnv(load_config("synthetic", TINY, environ={}), str(cache), "synthetic", str(world))
+def _pipeline(world: Path, cache: Path, **settings: str) -> Pipeline:
+    env = RunEnv(load_config("synthetic", {**TINY, **settings}, environ={}), str(cache), "synthetic", str(world))
     return Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
 
 
@@ -105,6 +105,45 @@ def test_a_failed_frame_is_left_out_and_said(synthesized, tmp_path, monkeypatch)
     monkeypatch.setattr(evaluate, "physics_frame", physics)
     reports = {r.stage: r for r in pipe.run("evaluate", retry_failed=True)}
     assert reports["evaluate-frames"].processed == 1 and _report(pipe)["meta"]["frames"] == FRAMES
+
+
+def test_the_report_pools_a_random_sample_above_eval_pooled_rows_max(synthesized, tmp_path, monkeypatch):
+    """Above eval.pooled_rows_max the report's pooled rows are a random sample of the rows of every
+    frame, the same however the frames are read; the per-frame metrics are untouched, and the
+    report says what was sampled."""
+    from tqdm import tqdm
+
+    pipe = _copy(synthesized, tmp_path)
+    pipe.run("evaluate")
+    part = pipe.env.store("evaluate-frames")
+    frames = np.flatnonzero(part.status() == DONE)
+    counts = np.asarray(part.array("points_count")[:])[frames]
+    full, total = evaluate._pooled(part, "points", frames, 10**9, tqdm(disable=True))
+    assert total == len(full) == counts.sum()
+    assert np.array_equal(full, np.concatenate([np.asarray(part.array("points")[int(i), :n]) for i, n in
+                                                zip(frames, counts)]))
+    k = total // 3
+    sample, sampled_total = evaluate._pooled(part, "points", frames, k, tqdm(disable=True))
+    assert sampled_total == total and len(sample) == k
+    full_rows = {tuple(r) for r in full}
+    assert all(tuple(r) in full_rows for r in sample) and len({tuple(r) for r in sample}) > 0.95 * k
+    monkeypatch.setattr(evaluate, "READ_BYTES", 1)  # one frame per read: the same sample
+    assert np.array_equal(evaluate._pooled(part, "points", frames, k, tqdm(disable=True))[0], sample)
+
+    exact = evaluate.summarise(part, frames, 0.0, True, 10**9, False)
+    thinned = evaluate.summarise(part, frames, 0.0, True, k, False)
+    assert exact.sampled == "" and f"points: {k:,} of {total:,} rows" in thinned.sampled
+    assert json.dumps(thinned.table) == json.dumps(exact.table)
+    assert json.dumps(thinned.by_speed) == json.dumps(exact.by_speed)
+    real_points = int(np.asarray(part.array("abs_dr_count")[:])[frames].sum())
+    assert {v["points"] for k_, v in thinned.physics.items() if k_.startswith("range")} == {real_points}
+    assert len(thinned.real_sph) < real_points == len(exact.real_sph)
+
+    report = {r.stage: r for r in _pipeline(*synthesized[:1], tmp_path / "cache", **{"eval.pooled_rows_max": str(k)})
+              .run("evaluate")}
+    assert report["evaluate-frames"].processed == 0  # the pooling is the report's alone
+    assert f"points: {k:,} of {total:,} rows" in _report(pipe)["meta"]["sampled"]
+    assert "random sample" in (Path(pipe.env.cache_root) / "synthetic" / "evaluate" / "report.md").read_text()
 
 
 def test_nets_retrained_under_the_same_fingerprint_are_loaded_again(synthesized, tmp_path):

@@ -117,7 +117,8 @@ def test_write_report_files(tmp_path):
     assert "2 / 2" in metric_rows[0]  # chamfer mean / median of the model
     assert "median_abs_dr = 3.8" in md and "mean-map" in md.split("does not beat every baseline")[-1]
     assert "by ego speed" not in md  # no rows: no section
-    by_speed = R.speed_breakdown(np.array([0.0, 1.0, 6.0, 11.0]), np.full(4, 10), np.full(4, 12), per_frame["model"])
+    by_speed = R.speed_breakdown(np.array([0.0, 1.0, 6.0, 11.0]), np.full(4, 10), np.full(4, 12),
+                                R.metric_columns(per_frame["model"]))
     R.write_report(out, "vod", "test", table, distances, physics, {}, by_speed)
     md = mp.read_text()
     assert md.index("## Distribution distances") < md.index("## The model by ego speed") < md.index("## Physics")
@@ -134,21 +135,21 @@ def test_speed_breakdown_bins_frames_by_ego_speed():
     pred = np.array([100, 110, 150, 190, 170, 150])
     frames = [{"count_rel_err": abs(p - r) / r, "chamfer_m": c, "gospa": 20.0, "f1": f}
               for p, r, c, f in zip(pred, real, [3.0, 1.0, 2.0, 2.0, 2.0, math.nan], [0.1, 0.1, 0.2, 0.3, 0.2, 0.4])]
-    rows = R.speed_breakdown(speeds, real, pred, frames)
+    rows = R.speed_breakdown(speeds, real, pred, R.metric_columns(frames))
     assert [r["label"] for r in rows] == ["< 0.5 m/s", "0.5-5 m/s", "5-10 m/s", ">= 10 m/s"]
     assert [r["frames"] for r in rows] == [2, 1, 1, 2]
     stopped = rows[0]
     assert stopped["real_count"] == 55 and stopped["model_count"] == 105 and stopped["chamfer_m"] == 2.0
     assert math.isclose(stopped["count_rel_err"], (1.0 + 50 / 60) / 2)
     assert rows[-1]["chamfer_m"] == 2.0 and math.isclose(rows[-1]["f1"], 0.3)  # NaN ignored
-    assert R.speed_breakdown(speeds[:2], real[:2], pred[:2], frames[:2])[0]["frames"] == 2  # empty bins left out
-    unknown = R.speed_breakdown(np.r_[np.nan, speeds[1:]], real, pred, frames)
+    assert R.speed_breakdown(speeds[:2], real[:2], pred[:2], R.metric_columns(frames[:2]))[0]["frames"] == 2  # empty bins left out
+    unknown = R.speed_breakdown(np.r_[np.nan, speeds[1:]], real, pred, R.metric_columns(frames))
     assert unknown[-1]["label"] == "unknown" and unknown[-1]["frames"] == 1 and unknown[-1]["real_count"] == 50
     assert sum(r["frames"] for r in unknown) == 6
     md = R.speed_table_md(rows)
     assert "| < 0.5 m/s | 2 | 55 | 105 |" in md and md.count("\n") == 5
     try:
-        R.speed_breakdown(speeds, real, pred, frames[:3])
+        R.speed_breakdown(speeds, real, pred, R.metric_columns(frames[:3]))
     except ValueError as exc:
         assert "differ" in str(exc)
     else:
