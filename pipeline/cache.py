@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import functools
 import hashlib
 import json
 import os
@@ -276,11 +277,30 @@ class FrameStore:
 
         ChunkError when a chunk it reads cannot be decoded, or is missing while the frame is done.
         """
+        direct = self._read_chunk_files(name, index)
+        if direct is not None:
+            return direct
         g = self._group("r")
         value = self._checked(g, self._member(g, name), index)
         if f"{name}_count" in g:
             value = value[: int(self._checked(g, self._member(g, f"{name}_count"), index))]
         return value
+
+    def _read_chunk_files(self, name: str, index: int) -> np.ndarray | None:
+        """:meth:`read` from the frame's chunk files (a local cache, the arrays opened once per
+        process); None, for zarr's path, when that cannot be done or a chunk is missing or damaged
+        (zarr's path then raises the ChunkError)."""
+        exists, arr = _opened_array(self.url, name)
+        if arr is None:
+            return None
+        value = _frames_from_chunk_files(arr, [index], missing_is_fill=False)
+        if value is None:
+            return None
+        ragged, counts = _opened_array(self.url, f"{name}_count")
+        if not ragged:
+            return value[0, ...]
+        rows = None if counts is None else _frames_from_chunk_files(counts, [index], missing_is_fill=False)
+        return None if rows is None else value[0, :int(rows[0])]
 
     def array(self, name: str) -> "CheckedArray":
         """The whole array (lazy; index it like a zarr array); a read that meets a damaged chunk
@@ -654,11 +674,8 @@ class DirStore:
 async def _write_frame_async(url: str, index: int, specs: tuple[ArraySpec, ...],
                              values: list[tuple[str, Any]]) -> None:
     """Write ``values`` into row ``index`` of the group's arrays concurrently, then the status."""
-    group = await zarr_async.open_group(url, mode="r+")
     names = [name for name, _ in values] + ["reason", "status"]
-    # every chunk written, a fill-valued one too (EVERY_CHUNK): a missing chunk is then damage
-    targets = {name: arr.with_config({"write_empty_chunks": True})
-               for name, arr in zip(names, await _gather_all(group.getitem(name) for name in names))}
+    targets = await _write_targets(url, names)
     ragged = {spec.name: spec.fill for spec in specs if spec.ragged}
 
     def row(name: str, value: Any) -> np.ndarray:
@@ -672,6 +689,30 @@ async def _write_frame_async(url: str, index: int, specs: tuple[ArraySpec, ...],
     await _gather_all([*(targets[name].setitem(index, row(name, v)) for name, v in values),
                        targets["reason"].setitem(index, "")])
     await targets["status"].setitem(index, DONE)
+
+
+_WRITABLE: dict[str, tuple[tuple[bytes | None, ...], dict[str, Any]]] = {}
+"""Arrays opened for writing frames, by store URL, with the bytes of each one's zarr.json (a local
+store; keyed as _OPENED): opening the group and its arrays for every frame cost about 1.5 ms."""
+
+
+async def _write_targets(url: str, names: list[str]) -> dict[str, Any]:
+    """The async arrays ``names`` of the store at ``url``, set to write every chunk (a fill-valued
+    one too, EVERY_CHUNK: a missing chunk is then damage); a local store's are opened once per
+    process while their zarr.json files hold the same bytes."""
+    root = _local_path(url)
+    key = None if root is None else tuple(_metadata_bytes(root, name) for name in names)
+    hit = _WRITABLE.get(url)
+    if key is not None and None not in key and hit is not None and hit[0] == key:
+        return hit[1]
+    group = await zarr_async.open_group(url, mode="r+")
+    targets = {name: arr.with_config({"write_empty_chunks": True})
+               for name, arr in zip(names, await _gather_all(group.getitem(name) for name in names))}
+    if key is not None and None not in key:
+        if len(_WRITABLE) >= OPENED_MAX:
+            _WRITABLE.clear()
+        _WRITABLE[url] = (key, targets)
+    return targets
 
 
 async def _gather_all(awaitables: Iterable[Awaitable[Any]]) -> list[Any]:
@@ -690,13 +731,15 @@ def is_local(fs: fsspec.AbstractFileSystem) -> bool:
     return "file" in protocol or "local" in protocol
 
 
-def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None) -> np.ndarray | None:
+def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None,
+                             missing_is_fill: bool = True) -> np.ndarray | None:
     """Frames ``frames`` (indices; default all) of array ``arr`` of a FrameStore, read straight from
     their chunk files (zarr's default chunk keys; a missing one is the fill value, as zarr reads
-    it): zarr spends about 0.3 ms per chunk, 6 s on the status of 20,000 frames, against 0.4 s
-    here. None, for zarr to read them (and name a damaged chunk), when the cache is not local, the
-    array is not laid out as ``FrameStore.create`` makes it (a fixed-size dtype, one chunk per
-    frame, zstd), or a chunk file does not decode to one frame."""
+    it, unless not ``missing_is_fill``): zarr spends about 0.3 ms per chunk, 6 s on the status of
+    20,000 frames, against 0.4 s here. None, for zarr to read them (and name a damaged chunk), when
+    the cache is not local, the array is not laid out as ``FrameStore.create`` makes it (a
+    fixed-size dtype, one chunk per frame, zstd), a chunk file does not decode to one frame, or one
+    is missing and not ``missing_is_fill``."""
     meta = arr.metadata
     codecs = getattr(meta, "codecs", None)  # None: zarr format 2
     if codecs is None or not isinstance(arr.store, LocalStore) or arr.dtype.kind not in "biuf" or \
@@ -717,13 +760,65 @@ def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None) 
                 with open(os.path.join(folder, _chunk_key(arr, int(index))), "rb") as fh:
                     data = zstd.decode(fh.read())
             except FileNotFoundError:
-                continue
+                if missing_is_fill:
+                    continue
+                return None
             if len(data) != out[row].nbytes:
                 return None
             out[row] = np.frombuffer(data, stored).reshape(out.shape[1:])
     except (OSError, *DECODE_ERRORS):  # unreadable, not zstd, checksum mismatch, a huge claimed size
         return None
     return out
+
+
+@functools.lru_cache(maxsize=1024)
+def _local_path(url: str) -> str | None:
+    """The local folder of cache URL ``url``; None when it is not on the local file system."""
+    fs, path = fsspec.core.url_to_fs(url)
+    return path if is_local(fs) else None
+
+
+_OPENED: dict[str, tuple[bytes, zarr.Array | None]] = {}
+"""Arrays opened for reading, by the path of their zarr.json, with that file's bytes: a frame's read
+opened its group and arrays each time, about 2 ms of zarr's IO-thread hand-offs per array read
+(FrameStore.read). Keyed by the metadata itself, not the file's inode and time: zarr replaces the
+file by a rename, inode numbers are reused and a file time may not change within a clock tick."""
+OPENED_MAX = 512
+
+
+def _metadata_bytes(root: str, name: str) -> bytes | None:
+    """The bytes of array ``name``'s zarr.json under local folder ``root``; None when unreadable."""
+    try:
+        with open(os.path.join(root, name, "zarr.json"), "rb") as fh:
+            return fh.read()
+    except OSError:
+        return None
+
+
+def _opened_array(url: str, name: str) -> tuple[bool, zarr.Array | None]:
+    """(whether it exists, the array or None) for array ``name`` of the local store at ``url``,
+    opened once per process while its ``zarr.json`` holds the same bytes; (False, None) when that
+    file cannot be read or the store is not local, (True, None) when zarr cannot open the array
+    (zarr's own path then names the problem)."""
+    root = _local_path(url)
+    meta = None if root is None else _metadata_bytes(root, name)
+    if meta is None:
+        return False, None
+    path = os.path.join(root, name)
+    hit = _OPENED.get(path)
+    if hit is not None and hit[0] == meta:
+        return True, hit[1]
+    try:
+        arr: zarr.Array | None = zarr.open_array(join(url, name), mode="r")
+    except Exception:  # noqa: BLE001 - damaged or racing metadata: left to zarr's path, which names it
+        arr = None
+    if arr is not None and json.dumps(arr.metadata.to_dict(), sort_keys=True, default=str) != \
+            json.dumps(json.loads(meta), sort_keys=True, default=str):
+        arr = None  # replaced between the two reads: not cached
+    if len(_OPENED) >= OPENED_MAX:
+        _OPENED.clear()
+    _OPENED[path] = (meta, arr)
+    return True, arr
 
 
 def _open_group(url: str, mode: str) -> zarr.Group:

@@ -179,6 +179,42 @@ def test_whole_frame_reads_come_from_the_chunk_files_and_equal_zarrs(tmp_path):
     assert np.isnan(calib.array("points")[1]).all() and np.isnan(calib.array("points").oindex[[4]]).all()
 
 
+def test_frame_reads_and_writes_reuse_opened_arrays_until_their_metadata_changes(tmp_path):
+    """FrameStore.read takes a local output's frame from its chunk files, with the arrays opened
+    once per process, and write_frame reuses the arrays it opened: the values zarr reads. An output
+    re-created under the same names with other arrays (dtype, capacity, fill) is read and written
+    as it now is."""
+    import zarr
+
+    from pipeline.stage import ArraySpec
+
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate", frames=[0, 1, 2, 4, 5, 6, 7])
+    calib = pipe.env.store("calibrate")
+    raw = zarr.open_group(calib.url, mode="r")
+    for i in range(8):
+        for name in ("points", "value", "status"):
+            want = np.asarray(raw[name][i])
+            if name == "points":
+                want = want[:int(raw["points_count"][i])]
+            got = calib.read(name, i)
+            assert got.dtype == want.dtype and got.shape == want.shape, (name, i)
+            np.testing.assert_array_equal(got, want)
+    assert calib._read_chunk_files("points", 5) is not None  # from the files, not zarr
+    assert calib._read_chunk_files("points", 3) is None  # never written: zarr's path decides
+    specs = (ArraySpec("points", (4, 2), "int16", "-", fill=-1, ragged=True), ArraySpec("value", (), "float32", "-"))
+    calib.create("other", IDS, specs, {"points": (4, 2), "value": ()}, {})
+    calib.write_frame(1, {"points": np.arange(6, dtype=np.int16).reshape(3, 2), "value": np.float32(2.5)}, specs)
+    raw = zarr.open_group(calib.url, mode="r")
+    assert raw["points"].dtype == np.int16 and raw["points"].shape == (8, 4, 2) and int(raw["points_count"][1]) == 3
+    np.testing.assert_array_equal(raw["points"][1], [[0, 1], [2, 3], [4, 5], [-1, -1]])
+    got = calib.read("points", 1)
+    assert got.dtype == np.int16 and got.shape == (3, 2)
+    np.testing.assert_array_equal(got, np.arange(6).reshape(3, 2))
+    value = calib.read("value", 1)
+    assert value.dtype == np.float32 and value.shape == () and value == 2.5
+
+
 def test_frame_ids_are_an_array_not_the_group_metadata_which_every_open_parses(tmp_path):
     """An output's frame ids are an array of their own (one chunk), not in the group's zarr.json
     that every read and write of a frame parses (0.8 MB at 50,000 frames); an output that has them
