@@ -374,7 +374,7 @@ class EvalSection:
     pooled_rows_max: int = 4_000_000
     """Per-point rows of one kind the report pools over every evaluated frame (every method's points
     and the real ones; the physics checks' residuals) for its distribution distances, histograms and
-    physics checks; above it a random sample of this many, and the report says so. 4,000,000 rows of
+    physics checks; above it a random sample of about this many, and the report says so. 4,000,000 rows of
     points take 192 MB (the demo world's test split pools about 90,000)."""
 
 

@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE, FAILED
 from pipeline.config import Config
-from pipeline.errors import PipelineError
+from pipeline.errors import CacheError, PipelineError
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.metrics import region_mask
@@ -77,8 +77,9 @@ RANGE_ESTIMATORS = ("mean", "nearest", "median", "min")
 point closest to the measured range)."""
 
 READ_BYTES = 64 << 20
-"""The report reads about this many bytes of one ragged array's chunks at a time (a frame's chunk
-holds the array's whole capacity: about 1 MB of points on the demo world)."""
+"""The report reads about this many bytes of one ragged array's chunks at a time, at least one
+frame's (a frame's chunk holds the array's whole capacity: about 1 MB of points on the demo
+world); the read's peak is 2-4 times as much (the block, the decoded bytes, the rows taken)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.pooled_rows_max", "eval.gate_m", "eval.gate_rss",
                "eval.gate_doppler_mps", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
@@ -460,12 +461,14 @@ def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool,
             if not with_rss:
                 distances[spec.name]["rss"] = float("nan")
     model_row = [spec.name for spec in METHODS].index("model")
-    sampled = "; ".join(f"{name}: {len(kept):,} of {total:,} rows" for name, kept, total in
-                        (("points", points, n_points), ("physics residuals", abs_dr, n_dr),
-                         ("static Doppler residuals", abs_dv, n_dv)) if len(kept) < total)
+    sampled = "; ".join(f"{what} from a random sample of {len(kept):,} of the {total:,} pooled {rows}"
+                        for what, rows, kept, total in (
+                            ("distribution distances and histograms", "points (every method's and the real ones)",
+                             points, n_points),
+                            ("physics checks of range", "real points' residuals", abs_dr, n_dr),
+                            ("physics check of static Doppler", "residuals", abs_dv, n_dv)) if len(kept) < total)
     if sampled:
-        sampled = (f"distribution distances, histograms and physics checks from a random sample of the pooled rows "
-                   f"({sampled}; eval.pooled_rows_max)")
+        sampled += " (eval.pooled_rows_max)"
     return Summary(table=aggregate_columns(columns), distances=distances,
                    physics=_physics_summary(abs_dr, abs_dv, n_dr, n_dv),
                    by_speed=speed_breakdown(speeds, real_counts, count[:, model_row],
@@ -475,14 +478,23 @@ def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool,
 
 def _pooled(part, name: str, frames: np.ndarray, rows_max: int, bar) -> tuple[np.ndarray, int]:
     """The rows of ragged array ``name`` of ``frames`` (F,), in order, and how many there are; above
-    ``rows_max`` rows a simple random sample of that many (each frame's share drawn from the
-    multivariate hypergeometric, then its rows without replacement; one stream in frame order, so
-    the sample does not depend on how the frames are read). Reads READ_BYTES of chunks at a time."""
+    ``rows_max`` rows a random sample of about that many: each row kept with probability
+    rows_max / rows (each frame's count drawn from the binomial, then that many of its rows without
+    replacement; one stream, from the array's name, in frame order: the sample does not depend on
+    how the frames are read, and memory stays within the sample and the frames' counts). Reads
+    about READ_BYTES of chunks at a time (at least one frame's chunk). CacheError when a frame's
+    row count is outside 0..the array's capacity."""
     array = part.array(name)
     rows = np.asarray(part.array(f"{name}_count").oindex[frames], np.int64)
+    bad = np.flatnonzero((rows < 0) | (rows > array.shape[1]))
+    if bad.size:
+        j = int(bad[0])
+        raise CacheError(f"{part.url}/{name}_count, frame {int(frames[j])}: {int(rows[j])} rows, outside "
+                         f"0..{array.shape[1]} (the array's capacity): the output is damaged; recompute it with "
+                         f"`pipeline run {part.stage} --force`")
     total = int(rows.sum())
     rng = np.random.default_rng(zlib.crc32(name.encode()))
-    keep = rng.multivariate_hypergeometric(rows, rows_max, method="marginals") if total > rows_max else rows
+    keep = rng.binomial(rows, rows_max / total) if total > rows_max else rows
     offsets = np.concatenate([[0], np.cumsum(keep)])
     out = np.empty((int(offsets[-1]), *array.shape[2:]), array.dtype)
     frame_bytes = int(np.prod(array.shape[1:], dtype=np.int64)) * array.dtype.itemsize

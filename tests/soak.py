@@ -125,17 +125,19 @@ _WRITING: list = []  # [stage, index, arrays written so far] while FrameStore.wr
 
 
 def install_hooks() -> None:
-    """Wrap FrameStore.write_frame and zarr.AsyncArray.setitem in this process (once): log completed
-    frame writes and inject the ``SOAK_FAULT`` fault after a frame's first array write completes
-    (the frame's other arrays are being written concurrently; its status is not yet)."""
+    """Wrap FrameStore.write_frame, zarr.AsyncArray.setitem and pipeline.cache._put_chunk (a chunk
+    file written directly) in this process (once): log completed frame writes and inject the
+    ``SOAK_FAULT`` fault after a frame's first array write completes (the frame's other arrays are
+    being written, concurrently through zarr; its status is not yet)."""
     if _HOOKED:
         return
     _HOOKED.append(True)
     import zarr
 
+    from pipeline import cache
     from pipeline.cache import FrameStore
 
-    original_write, original_setitem = FrameStore.write_frame, zarr.AsyncArray.setitem
+    original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache._put_chunk
 
     def write_frame(self, index, arrays, specs):
         stage = self.url.rstrip("/").rsplit("/", 1)[-1].removesuffix(".zarr")
@@ -146,15 +148,23 @@ def install_hooks() -> None:
             _WRITING.clear()
         log_event("written", stage, index)
 
-    async def setitem(self, key, value):
-        await original_setitem(self, key, value)
+    def written() -> None:
         if _WRITING:
             _WRITING[2] += 1
             if _WRITING[2] == 1:
                 _inject_fault(_WRITING[0], _WRITING[1])
 
+    async def setitem(self, key, value):
+        await original_setitem(self, key, value)
+        written()
+
+    def put_chunk(path, data):
+        original_put(path, data)
+        written()
+
     FrameStore.write_frame = write_frame
     zarr.AsyncArray.setitem = setitem
+    cache._put_chunk = put_chunk
 
 
 def _inject_fault(stage: str, index: int) -> None:

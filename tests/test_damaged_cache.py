@@ -215,6 +215,50 @@ def test_frame_reads_and_writes_reuse_opened_arrays_until_their_metadata_changes
     assert value.dtype == np.float32 and value.shape == () and value == 2.5
 
 
+def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, monkeypatch):
+    """write_frame writes a local output's chunk files itself once it knows an empty reason's chunk
+    (from a frame zarr wrote): the files zarr writes, the status last, a failed frame's reason
+    cleared; a row of the wrong shape is still zarr's error, and nothing of it is written."""
+    from pipeline import cache
+    from pipeline.stage import ArraySpec
+
+    monkeypatch.setattr(cache, "_EMPTY_REASON", {})
+    put, original_put = [], cache._put_chunk
+    monkeypatch.setattr(cache, "_put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
+    specs = (ArraySpec("points", (4, 2), "float32", "m", fill=np.nan, ragged=True), ArraySpec("value", (), "int64", "-"))
+    store = FrameStore(str(tmp_path / "s.zarr"))
+    store.create("fp", IDS, specs, {"points": (4, 2), "value": ()}, {})
+    frame = {"points": np.arange(6.0).reshape(3, 2), "value": np.int64(7)}
+    store.write_frame(0, frame, specs)
+    assert put == []  # the first frame through zarr, which gives the empty reason's chunk
+    store.mark(1, FAILED, "lidar truncated")
+    store.write_frame(1, frame, specs)
+    assert [p.relative_to(store.url).as_posix() for p in put] == [
+        "points_count/c/1", "points/c/1/0/0", "value/c/1", "reason/c/1", "status/c/1"]
+    assert store.status()[1] == DONE and store.reasons() == {} and store.read("value", 1) == 7
+    np.testing.assert_array_equal(store.read("points", 1), frame["points"])
+    assert not list(Path(store.url).rglob("*.partial"))
+    direct = {p: p.read_bytes() for p in put}
+    direct_writes = FrameStore._write_chunk_files
+    monkeypatch.setattr(FrameStore, "_write_chunk_files", lambda self, index, values, fills: False)
+    store.write_frame(1, frame, specs)  # through zarr: the same files
+    assert {p: p.read_bytes() for p in put} == direct
+    monkeypatch.setattr(FrameStore, "_write_chunk_files", direct_writes)
+    put.clear()
+    with pytest.raises(ValueError, match="broadcast"):
+        store.write_frame(2, {"points": np.zeros((5, 2)), "value": np.int64(1)}, specs)  # 5 rows, capacity 4
+    assert put == []
+
+    def disk_full(path, data):
+        put.append(Path(path))
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(cache, "_put_chunk", disk_full)
+    with pytest.raises(CacheError, match="writing frame 2"):
+        store.write_frame(2, frame, specs)
+    assert len(put) == 1 and store.status()[2] == PENDING  # the first chunk failed; not marked done
+
+
 def test_frame_ids_are_an_array_not_the_group_metadata_which_every_open_parses(tmp_path):
     """An output's frame ids are an array of their own (one chunk), not in the group's zarr.json
     that every read and write of a frame parses (0.8 MB at 50,000 frames); an output that has them

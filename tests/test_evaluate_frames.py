@@ -124,15 +124,17 @@ def test_the_report_pools_a_random_sample_above_eval_pooled_rows_max(synthesized
                                                 zip(frames, counts)]))
     k = total // 3
     sample, sampled_total = evaluate._pooled(part, "points", frames, k, tqdm(disable=True))
-    assert sampled_total == total and len(sample) == k
+    assert sampled_total == total and abs(len(sample) - k) < 4 * np.sqrt(k)  # each row kept with probability k / total
     full_rows = {tuple(r) for r in full}
-    assert all(tuple(r) in full_rows for r in sample) and len({tuple(r) for r in sample}) > 0.95 * k
+    assert all(tuple(r) in full_rows for r in sample) and len({tuple(r) for r in sample}) > 0.95 * len(sample)
     monkeypatch.setattr(evaluate, "READ_BYTES", 1)  # one frame per read: the same sample
     assert np.array_equal(evaluate._pooled(part, "points", frames, k, tqdm(disable=True))[0], sample)
 
     exact = evaluate.summarise(part, frames, 0.0, True, 10**9, False)
     thinned = evaluate.summarise(part, frames, 0.0, True, k, False)
-    assert exact.sampled == "" and f"points: {k:,} of {total:,} rows" in thinned.sampled
+    assert exact.sampled == "" and "physics" not in thinned.sampled  # fewer real points than k: all pooled
+    assert f"distribution distances and histograms from a random sample of {len(sample):,} of the {total:,} pooled " \
+        f"points" in thinned.sampled
     assert json.dumps(thinned.table) == json.dumps(exact.table)
     assert json.dumps(thinned.by_speed) == json.dumps(exact.by_speed)
     real_points = int(np.asarray(part.array("abs_dr_count")[:])[frames].sum())
@@ -142,8 +144,16 @@ def test_the_report_pools_a_random_sample_above_eval_pooled_rows_max(synthesized
     report = {r.stage: r for r in _pipeline(*synthesized[:1], tmp_path / "cache", **{"eval.pooled_rows_max": str(k)})
               .run("evaluate")}
     assert report["evaluate-frames"].processed == 0  # the pooling is the report's alone
-    assert f"points: {k:,} of {total:,} rows" in _report(pipe)["meta"]["sampled"]
+    assert f"random sample of {len(sample):,} of the {total:,} pooled points" in _report(pipe)["meta"]["sampled"]
     assert "random sample" in (Path(pipe.env.cache_root) / "synthetic" / "evaluate" / "report.md").read_text()
+
+    import zarr
+
+    from pipeline.errors import CacheError
+
+    zarr.open_array(f"{part.url}/points_count", mode="r+")[int(frames[2])] = part.array("points").shape[1] + 1
+    with pytest.raises(CacheError, match=rf"points_count, frame {int(frames[2])}: \d+ rows, outside 0\.\.\d+"):
+        evaluate.summarise(part, frames, 0.0, True, 10**9, False)
 
 
 def test_nets_retrained_under_the_same_fingerprint_are_loaded_again(synthesized, tmp_path):

@@ -151,8 +151,11 @@ def test_many_runs_recovering_one_stale_lock_never_overlap(tmp_path):
 
 
 def _fault_after_first_array(monkeypatch, stage: str, index: int, code: int) -> None:
-    """Make zarr writes of frame ``index`` of ``stage`` fail with OSError(code) after one array."""
-    original_write, original_setitem = FrameStore.write_frame, zarr.AsyncArray.setitem
+    """Make writes of frame ``index`` of ``stage`` (through zarr, or a chunk file written directly)
+    fail with OSError(code) after one array."""
+    from pipeline import cache
+
+    original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache._put_chunk
     state: list = []
 
     def write_frame(self, i, arrays, specs):
@@ -162,15 +165,27 @@ def _fault_after_first_array(monkeypatch, stage: str, index: int, code: int) -> 
         finally:
             state.clear()
 
-    async def setitem(self, key, value):
+    def fail_after_one() -> None:
         if state and state[0] and state[1] >= 1:
             raise OSError(code, os.strerror(code))
-        await original_setitem(self, key, value)
+
+    def wrote_one() -> None:
         if state:
             state[1] += 1
 
+    async def setitem(self, key, value):
+        fail_after_one()
+        await original_setitem(self, key, value)
+        wrote_one()
+
+    def put_chunk(path, data):
+        fail_after_one()
+        original_put(path, data)
+        wrote_one()
+
     monkeypatch.setattr(FrameStore, "write_frame", write_frame)
     monkeypatch.setattr(zarr.AsyncArray, "setitem", setitem)
+    monkeypatch.setattr(cache, "_put_chunk", put_chunk)
 
 
 @pytest.mark.parametrize("code, words", [(errno.ENOSPC, "disk holding the cache is full"),

@@ -1,7 +1,8 @@
 """A frame's read and write through FrameStore (what every frame stage does per frame): the chunk
-files read with the arrays opened once per process, and writes through arrays opened once,
-against zarr's path for the same calls (the group and its arrays opened for every call, as until
-2026-12-04). Both must read the same values, or the script exits with status 1.
+files read and written directly, with the arrays opened once per process, against zarr's path
+for the same calls (the group and its arrays opened for every call, as until 2026-12-04). The
+values read both ways, and the chunk files written both ways, must be the same, or the script
+exits with status 1.
 
 The store has N_FRAMES frames of a ragged float32 array and a scalar, as the fake stages'; each way
 is timed over FRAMES_TIMED frames, interleaved, best of REPEATS. Prints one line ending in the
@@ -45,25 +46,31 @@ def reads(store: FrameStore, frames: range, direct: bool) -> tuple[float, list]:
         FrameStore._read_chunk_files = original
 
 
-def writes(store: FrameStore, frames: range, reuse: bool) -> float:
-    """Seconds to write ``frames``; without ``reuse`` the opened arrays are forgotten before each."""
+def writes(store: FrameStore, frames: range, direct: bool) -> float:
+    """Seconds to write ``frames``; without ``direct`` through zarr, the arrays opened for each."""
     data = [frame(i) for i in frames]
-    t0 = time.perf_counter()
-    for i, arrays in zip(frames, data):
-        if not reuse:
-            cache._WRITABLE.clear()
-        store.write_frame(i, arrays, SPECS)
-    return time.perf_counter() - t0
+    original = FrameStore._write_chunk_files
+    if not direct:
+        FrameStore._write_chunk_files = lambda self, index, values, fills: False  # zarr's path
+    try:
+        t0 = time.perf_counter()
+        for i, arrays in zip(frames, data):
+            if not direct:
+                cache._WRITABLE.clear()
+            store.write_frame(i, arrays, SPECS)
+        return time.perf_counter() - t0
+    finally:
+        FrameStore._write_chunk_files = original
 
 
 def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         store = FrameStore(str(Path(tmp) / "stage.zarr"))
         store.create("bench", [f"{i:05d}" for i in range(N_FRAMES)], SPECS, {"points": (64, 3), "value": ()}, {})
-        times = {"read direct": [], "read zarr": [], "write reuse": [], "write zarr": []}
+        times = {"read direct": [], "read zarr": [], "write direct": [], "write zarr": []}
         for rep in range(REPEATS):  # interleaved: the machine is shared and noisy
             start = 2 * rep * FRAMES_TIMED
-            times["write reuse"].append(writes(store, range(start, start + FRAMES_TIMED), True))
+            times["write direct"].append(writes(store, range(start, start + FRAMES_TIMED), True))
             times["write zarr"].append(writes(store, range(start + FRAMES_TIMED, start + 2 * FRAMES_TIMED), False))
             frames = range(start, start + 2 * FRAMES_TIMED)
             t_direct, direct = reads(store, frames, True)
@@ -74,11 +81,25 @@ def main() -> None:
                 if not (p.dtype == q.dtype and np.array_equal(p, q) and v.shape == w.shape and v == w):
                     print("a frame read from the chunk files differs from zarr's read", file=sys.stderr)
                     sys.exit(1)
+        for i in range(3):  # the same frame written both ways: the same files
+            written = []
+            for direct in (True, False):
+                writes(store, range(i, i + 1), direct)
+                tops = [t for t in Path(store.url).glob(f"*/c/{i}") if t.parts[-3] != "frame_ids"]  # c/<frame>[/0/...]
+                files = [t for t in tops if t.is_file()] + [f for t in tops if t.is_dir() for f in t.rglob("*")]
+                written.append({f.relative_to(store.url).as_posix(): f.read_bytes() for f in files if f.is_file()})
+                if not direct and sorted(written[-1]) != ["points/c/%d/0/0" % i, "points_count/c/%d" % i,
+                                                          "reason/c/%d" % i, "status/c/%d" % i, "value/c/%d" % i]:
+                    print(f"frame {i}'s chunk files are not the five expected: {sorted(written[-1])}", file=sys.stderr)
+                    sys.exit(1)
+            if written[0] != written[1] or not written[0]:
+                print("a frame's chunk files written directly differ from zarr's", file=sys.stderr)
+                sys.exit(1)
     ms = {k: 1e3 * min(v) / (2 * FRAMES_TIMED if k.startswith("read") else FRAMES_TIMED) for k, v in times.items()}
     print(f"a frame of a {N_FRAMES:,}-frame output (2 arrays; best of {REPEATS}): read {ms['read direct']:.2f} ms "
-          f"against zarr's path {ms['read zarr']:.2f} ms, write {ms['write reuse']:.2f} ms against "
-          f"{ms['write zarr']:.2f} ms (identical values); zarr/FrameStore ratio read "
-          f"{ms['read zarr'] / ms['read direct']:.1f}x, write {ms['write zarr'] / ms['write reuse']:.1f}x")
+          f"against zarr's path {ms['read zarr']:.2f} ms, write {ms['write direct']:.2f} ms against "
+          f"{ms['write zarr']:.2f} ms (identical values and files); zarr/FrameStore ratio read "
+          f"{ms['read zarr'] / ms['read direct']:.1f}x, write {ms['write zarr'] / ms['write direct']:.1f}x")
 
 
 if __name__ == "__main__":
