@@ -345,7 +345,7 @@ class FrameStore:
         """:meth:`read` from the frame's chunk files (a local cache, the arrays opened once per
         process); None, for zarr's path, when that cannot be done or a chunk is missing or damaged
         (zarr's path then raises the ChunkError)."""
-        exists, arr = _opened_array(self.url, name)
+        arr = _opened_array(self.url, name)[1]
         if arr is None:
             return None
         value = _frames_from_chunk_files(arr, [index], missing_is_fill=False)
@@ -904,11 +904,11 @@ def _opened_array(url: str, name: str) -> tuple[bool, zarr.Array | None]:
         return True, hit[1]
     try:
         arr: zarr.Array | None = zarr.open_array(join(url, name), mode="r")
+        if json.dumps(arr.metadata.to_dict(), sort_keys=True, default=str) != \
+                json.dumps(json.loads(meta), sort_keys=True, default=str):
+            arr = None  # the file was replaced between the two reads: zarr's path this time
     except Exception:  # noqa: BLE001 - damaged or racing metadata: left to zarr's path, which names it
         arr = None
-    if arr is not None and json.dumps(arr.metadata.to_dict(), sort_keys=True, default=str) != \
-            json.dumps(json.loads(meta), sort_keys=True, default=str):
-        arr = None  # replaced between the two reads: not cached
     if len(_OPENED) >= OPENED_MAX:
         _OPENED.clear()
     _OPENED[path] = (meta, arr)

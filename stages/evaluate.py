@@ -82,7 +82,8 @@ frame's (a frame's chunk holds the array's whole capacity: about 1 MB of points 
 world); the read's peak is 2-4 times as much (the block, the decoded bytes, the rows taken)."""
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.pooled_rows_max", "eval.gate_m", "eval.gate_rss",
-               "eval.gate_doppler_mps", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling", "synth.refill_rounds",
+               "eval.gate_doppler_mps", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling",
+               "synth.refill_rounds",
                "synth.placement", "placement.voxel_m", "placement.map_weight", "heatmap.sigma_px",
                "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
 FRAME_KEYS = tuple(k for k in CONFIG_KEYS if k not in ("eval.figure_frames", "eval.pooled_rows_max"))
@@ -366,7 +367,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         raise PipelineError(f"evaluate: no evaluated frame in split '{cfg.eval.split}' "
                             f"(synth.split = '{cfg.synth.split}'{why})")
     compared = comparison(cfg)
-    summary = summarise(part, frames, compared.doppler_span_mps, compared.rss, cfg.eval.pooled_rows_max, inputs.progress)
+    summary = summarise(part, frames, compared.doppler_span_mps, compared.rss, cfg.eval.pooled_rows_max,
+                        inputs.progress)
     root = Path(out.path)
     figs = root / "figures"
     _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, summary.model_sph, summary.real_sph, fig8, bev,

@@ -225,7 +225,8 @@ def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, m
     monkeypatch.setattr(cache, "_EMPTY_REASON", {})
     put, original_put = [], cache._put_chunk
     monkeypatch.setattr(cache, "_put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
-    specs = (ArraySpec("points", (4, 2), "float32", "m", fill=np.nan, ragged=True), ArraySpec("value", (), "int64", "-"))
+    specs = (ArraySpec("points", (4, 2), "float32", "m", fill=np.nan, ragged=True),
+             ArraySpec("value", (), "int64", "-"))
     store = FrameStore(str(tmp_path / "s.zarr"))
     store.create("fp", IDS, specs, {"points": (4, 2), "value": ()}, {})
     frame = {"points": np.arange(6.0).reshape(3, 2), "value": np.int64(7)}

@@ -142,7 +142,8 @@ def test_speed_breakdown_bins_frames_by_ego_speed():
     assert stopped["real_count"] == 55 and stopped["model_count"] == 105 and stopped["chamfer_m"] == 2.0
     assert math.isclose(stopped["count_rel_err"], (1.0 + 50 / 60) / 2)
     assert rows[-1]["chamfer_m"] == 2.0 and math.isclose(rows[-1]["f1"], 0.3)  # NaN ignored
-    assert R.speed_breakdown(speeds[:2], real[:2], pred[:2], R.metric_columns(frames[:2]))[0]["frames"] == 2  # empty bins left out
+    two = R.speed_breakdown(speeds[:2], real[:2], pred[:2], R.metric_columns(frames[:2]))
+    assert two[0]["frames"] == 2  # empty bins left out
     unknown = R.speed_breakdown(np.r_[np.nan, speeds[1:]], real, pred, R.metric_columns(frames))
     assert unknown[-1]["label"] == "unknown" and unknown[-1]["frames"] == 1 and unknown[-1]["real_count"] == 50
     assert sum(r["frames"] for r in unknown) == 6
