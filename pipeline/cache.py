@@ -30,7 +30,7 @@ import json
 import os
 import time
 import uuid
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,7 +39,7 @@ import numcodecs
 import numpy as np
 import zarr
 import zarr.api.asynchronous as zarr_async
-from zarr.codecs import BytesCodec, ZstdCodec
+from zarr.codecs import BytesCodec, VLenUTF8Codec, ZstdCodec
 from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
 from zarr.core.sync import sync
 from zarr.storage import LocalStore
@@ -239,8 +239,7 @@ class FrameStore:
         A local output's chunk files are written directly, as zarr's local store writes them (each
         encoded by the array's own codecs, to a temporary file renamed over the chunk): zarr's
         writes cost about 4 ms a frame in IO-thread hand-offs. Otherwise (a remote cache, another
-        layout, the first frame a process writes to an output) all arrays of the frame are written
-        concurrently in one round trip to zarr's IO loop.
+        layout) all arrays of the frame are written concurrently in one round trip to zarr's IO loop.
         """
         values: list[tuple[str, Any]] = []
         for spec in specs:
@@ -250,82 +249,59 @@ class FrameStore:
             values.append((spec.name, value))
         fills = {spec.name: spec.fill for spec in specs if spec.ragged}
         try:
-            if not self._write_chunk_files(index, values, fills):
+            if not self._write_chunk_files([index], [*values, ("reason", "")], fills, DONE):
                 sync(_write_frame_async(self.url, index, fills, values))
-                self._remember_empty_reason(index)
         except OSError as exc:
             raise cache_error(exc, f"writing frame {index} of {self.url}") from None
 
-    def _write_chunk_files(self, index: int, values: list[tuple[str, Any]], fills: dict[str, Any]) -> bool:
-        """:meth:`write_frame`'s writes straight to the chunk files of a local output (the value
-        arrays, an empty reason, then the status); False, having written nothing, when that cannot
-        be done: not local, an array not laid out as :meth:`create` makes it, a row of another
-        shape (zarr's path raises the error), or no empty reason's chunk known yet."""
-        root = _local_path(self.url)
-        empty_reason = None if root is None else _EMPTY_REASON.get(_metadata_bytes(root, "reason") or b"")
-        if empty_reason is None:
-            return False
+    def _write_chunk_files(self, indices: Sequence[int] | np.ndarray, values: list[tuple[str, Any]], fills: dict[str, Any],
+                           code: int) -> bool:
+        """Write ``values`` (the same for each frame) straight to the chunk files of frames
+        ``indices`` of a local output, each frame's status ``code`` after its other chunks; False,
+        having written nothing, when that cannot be done: not local, an array not laid out as
+        :meth:`create` makes it, or a row of another shape (zarr's path raises the error)."""
         chunks = []
-        for name, value in (*values, ("status", np.uint8(DONE))):
+        for name, value in (*values, ("status", np.uint8(code))):
             arr = _opened_array(self.url, name)[1]
             layout = None if arr is None else _direct_layout(arr)
-            if layout is None:
+            if layout is None or not all(0 <= int(i) < arr.shape[0] for i in indices):
                 return False
             row = _frame_row(value, arr.dtype, arr.shape[1:], name in fills, fills.get(name))
-            if row.shape != tuple(arr.shape[1:]):
+            if np.shape(row) != layout.shape:
                 return False
-            stored, codec = layout
-            chunks.append((_chunk_path(arr, index),
-                           codec.encode(np.ascontiguousarray(row, dtype=stored).tobytes())))
-        reason = _opened_array(self.url, "reason")[1]
-        if reason is None:
-            return False
-        chunks.insert(-1, (_chunk_path(reason, index), empty_reason))
-        for path, data in chunks:  # the status last: the frame is done only once the rest is written
-            _put_chunk(path, data)
+            chunks.append((arr, layout.encode(row)))
+        for index in indices:
+            for arr, data in chunks:  # the status last: the frame is done only once the rest is written
+                _put_chunk(_chunk_path(arr, int(index)), data)
         return True
 
-    def _remember_empty_reason(self, index: int) -> None:
-        """After zarr wrote frame ``index`` (with an empty reason) to a local output: keep that
-        reason chunk's bytes, the same for every frame of an array with this metadata, so that
-        :meth:`_write_chunk_files` can write them."""
-        root = _local_path(self.url)
-        meta = None if root is None else _metadata_bytes(root, "reason")
-        reason = _opened_array(self.url, "reason")[1]
-        if meta is None or meta in _EMPTY_REASON or reason is None:
-            return
-        try:
-            with open(_chunk_path(reason, index), "rb") as fh:
-                data = fh.read()
-            if str(np.asarray(reason[index])) != "" or _metadata_bytes(root, "reason") != meta:
-                return  # not this frame's empty reason any more (another run's write): not kept
-        except (OSError, *DECODE_ERRORS):
-            return
-        _EMPTY_REASON[meta] = data
-
     def mark(self, index: int, code: int, reason: str = "") -> None:
-        """Record a frame as failed or excluded, with the reason. Not mark_many of one frame: zarr's
-        orthogonal write reads the chunks it replaces, and this one must overwrite a damaged one."""
-        g = self._group("r+")
-        try:
-            g["reason"][index] = reason[:2000]
-            g["status"][index] = code
-        except OSError as exc:
-            raise cache_error(exc, f"recording frame {index} of {self.url}") from None
+        """Record a frame as failed or excluded, with the reason (overwriting a damaged chunk)."""
+        self.mark_many(np.array([index]), code, reason)
 
     def mark_many(self, indices: np.ndarray, code: int, reason: str = "") -> None:
-        """Record frames ``indices`` (F',) as failed or excluded, with one reason, in one write per
-        array (mark() per frame re-opens the group: 4-7 ms a frame)."""
+        """Record frames ``indices`` (F',) as failed or excluded, with one reason: a local output's
+        chunk files written directly, as :meth:`write_frame` does, else by zarr, one write per array
+        (a single frame written alone: zarr's orthogonal write reads the chunks it replaces, and
+        :meth:`mark` must overwrite a damaged one)."""
         indices = np.unique(np.asarray(indices, np.int64))
         if not indices.size:
             return
-        g = self._group("r+")
+        reason = reason[:2000]
         try:
+            if self._write_chunk_files(indices, [("reason", reason)], {}, code):
+                return
+            g = self._group("r+")
+            if len(indices) == 1:
+                g["reason"][int(indices[0])] = reason
+                g["status"][int(indices[0])] = code
+                return
             reasons = g["reason"]
-            reasons.oindex[indices] = np.full(len(indices), reason[:2000], dtype=reasons.dtype)
+            reasons.oindex[indices] = np.full(len(indices), reason, dtype=reasons.dtype)
             g["status"].oindex[indices] = np.full(len(indices), code, np.uint8)
         except OSError as exc:
-            raise cache_error(exc, f"recording {len(indices)} frame(s) of {self.url}") from None
+            what = f"frame {indices[0]}" if len(indices) == 1 else f"{len(indices)} frames"
+            raise cache_error(exc, f"recording {what} of {self.url}") from None
 
     def read(self, name: str, index: int) -> np.ndarray:
         """One frame of an array; ragged arrays are trimmed to the frame's row count.
@@ -751,11 +727,6 @@ def _frame_row(value: Any, dtype: Any, shape: tuple[int, ...], ragged: bool, fil
     return padded
 
 
-_EMPTY_REASON: dict[bytes, bytes] = {}
-"""The chunk file of an empty reason (a finished frame's), by the reason array's zarr.json bytes:
-a string chunk is encoded by zarr alone, so one written by zarr is kept for the direct writes."""
-
-
 def _chunk_path(arr: zarr.Array, index: int) -> str:
     """The file of frame ``index``'s chunk of ``arr``, an array of a local store."""
     return os.path.join(str(arr.store.root), arr.path, _chunk_key(arr, index))
@@ -816,19 +787,57 @@ def is_local(fs: fsspec.AbstractFileSystem) -> bool:
     return "file" in protocol or "local" in protocol
 
 
-def _direct_layout(arr: zarr.Array) -> tuple[np.dtype, numcodecs.Zstd] | None:
-    """(the dtype as stored, the zstd codec of its chunks) of an array of a local store laid out as
-    ``FrameStore.create`` makes it (a fixed-size dtype, one chunk per frame, zarr's default chunk
-    keys, bytes then zstd, zarr format 3); None for any other."""
+@dataclass(frozen=True)
+class _ChunkCodec:
+    """How the chunk files of a FrameStore array (one frame per chunk) are encoded, as zarr's
+    codecs do it: bytes (``stored``: the dtype with its byte order) or vlen-utf8 strings
+    (``stored`` None), then zstd."""
+
+    dtype: Any
+    shape: tuple[int, ...]
+    stored: np.dtype | None
+    zstd: numcodecs.Zstd
+
+    def encode(self, row: Any) -> bytes:
+        """One frame's chunk file for ``row`` (a value of the per-frame shape)."""
+        if self.stored is None:
+            return self.zstd.encode(_VLEN_UTF8.encode(np.asarray(row, dtype=object).reshape(-1)))
+        return self.zstd.encode(np.ascontiguousarray(row, dtype=self.stored).tobytes())
+
+    def decode(self, data: bytes) -> np.ndarray | None:
+        """The frame of chunk file bytes ``data``; None when they do not decode to one frame."""
+        raw = self.zstd.decode(data)
+        size = int(np.prod(self.shape, dtype=np.int64))
+        if self.stored is None:
+            items = _VLEN_UTF8.decode(raw)
+            return items.reshape(self.shape).astype(self.dtype) if items.size == size else None
+        if len(raw) != size * self.stored.itemsize:
+            return None
+        return np.frombuffer(raw, self.stored).reshape(self.shape)
+
+
+_VLEN_UTF8 = numcodecs.VLenUTF8()
+"""zarr 3's vlen-utf8 codec encodes with numcodecs' VLenUTF8 (zarr.codecs.vlen_utf8)."""
+
+
+def _direct_layout(arr: zarr.Array) -> _ChunkCodec | None:
+    """The codec of the chunk files of an array of a local store laid out as ``FrameStore.create``
+    makes it (one chunk per frame, zarr's default chunk keys, zarr format 3, bytes of a fixed-size
+    dtype or vlen-utf8 strings, then zstd); None for any other."""
     meta = arr.metadata
     codecs = getattr(meta, "codecs", None)  # None: zarr format 2
-    if codecs is None or not isinstance(arr.store, LocalStore) or arr.dtype.kind not in "biuf" or \
+    if codecs is None or not isinstance(arr.store, LocalStore) or \
             meta.chunk_grid.chunk_shape != (1, *arr.shape[1:]) or \
-            meta.chunk_key_encoding != DefaultChunkKeyEncoding(separator="/") or \
-            [type(c) for c in codecs] != [BytesCodec, ZstdCodec]:
+            meta.chunk_key_encoding != DefaultChunkKeyEncoding(separator="/"):
         return None
-    stored = np.dtype(arr.dtype).newbyteorder(">" if getattr(codecs[0].endian, "value", "") == "big" else "<")
-    return stored, numcodecs.Zstd(level=codecs[1].level, checksum=codecs[1].checksum)
+    kinds = [type(c) for c in codecs]
+    zstd = numcodecs.Zstd(level=codecs[-1].level, checksum=codecs[-1].checksum) if kinds[-1:] == [ZstdCodec] else None
+    if kinds == [BytesCodec, ZstdCodec] and arr.dtype.kind in "biuf":
+        stored = np.dtype(arr.dtype).newbyteorder(">" if getattr(codecs[0].endian, "value", "") == "big" else "<")
+        return _ChunkCodec(arr.dtype, tuple(arr.shape[1:]), stored, zstd)
+    if kinds == [VLenUTF8Codec, ZstdCodec] and arr.dtype.kind in "TU":
+        return _ChunkCodec(arr.dtype, tuple(arr.shape[1:]), None, zstd)
+    return None
 
 
 def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None,
@@ -838,7 +847,7 @@ def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None,
     it, unless not ``missing_is_fill``): zarr spends about 0.3 ms per chunk, 6 s on the status of
     20,000 frames, against 0.4 s here. None, for zarr to read them (and name a damaged chunk), when
     the cache is not local, the array is not laid out as ``FrameStore.create`` makes it (a
-    fixed-size dtype, one chunk per frame, zstd), a chunk file does not decode to one frame, or one
+    ``_direct_layout``), a chunk file does not decode to one frame, or one
     is missing and not ``missing_is_fill``."""
     layout = _direct_layout(arr)
     if layout is None:
@@ -846,20 +855,19 @@ def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None,
     frames = np.arange(arr.shape[0]) if frames is None else np.asarray(frames, np.int64).reshape(-1)
     if frames.size and not (0 <= frames.min() and frames.max() < arr.shape[0]):
         return None
-    stored, zstd = layout
     out = np.full((len(frames), *arr.shape[1:]), arr.metadata.fill_value, arr.dtype)
     try:
         for row, index in enumerate(frames):
             try:
                 with open(_chunk_path(arr, int(index)), "rb") as fh:
-                    data = zstd.decode(fh.read())
+                    value = layout.decode(fh.read())
             except FileNotFoundError:
                 if missing_is_fill:
                     continue
                 return None
-            if len(data) != out[row].nbytes:
+            if value is None:
                 return None
-            out[row] = np.frombuffer(data, stored).reshape(out.shape[1:])
+            out[row] = value
     except (OSError, *DECODE_ERRORS):  # unreadable, not zstd, checksum mismatch, a huge claimed size
         return None
     return out

@@ -16,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 import pipeline.cli as cli
-from pipeline.cache import DONE, EVERY_CHUNK, FAILED, PENDING, FrameStore
+from pipeline.cache import DONE, EVERY_CHUNK, EXCLUDED, FAILED, PENDING, FrameStore
 from pipeline.config import load_config
 from pipeline.errors import CacheError, ChunkError, MetadataError
 from pipeline.executor import Executor, RunEnv
@@ -216,38 +216,49 @@ def test_frame_reads_and_writes_reuse_opened_arrays_until_their_metadata_changes
 
 
 def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, monkeypatch):
-    """write_frame writes a local output's chunk files itself once it knows an empty reason's chunk
-    (from a frame zarr wrote): the files zarr writes, the status last, a failed frame's reason
-    cleared; a row of the wrong shape is still zarr's error, and nothing of it is written."""
+    """write_frame, mark and mark_many write a local output's chunk files themselves, strings too:
+    the files zarr writes, to the byte, the status last, a failed frame's reason cleared; a row of
+    the wrong shape or a frame outside the output is still zarr's error, and nothing of it is written."""
     from pipeline import cache
     from pipeline.stage import ArraySpec
 
-    monkeypatch.setattr(cache, "_EMPTY_REASON", {})
     put, original_put = [], cache._put_chunk
     monkeypatch.setattr(cache, "_put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
     specs = (ArraySpec("points", (4, 2), "float32", "m", fill=np.nan, ragged=True),
-             ArraySpec("value", (), "int64", "-"))
+             ArraySpec("value", (), "int64", "-"), ArraySpec("name", (), "str", "-", fill=""))
     store = FrameStore(str(tmp_path / "s.zarr"))
-    store.create("fp", IDS, specs, {"points": (4, 2), "value": ()}, {})
-    frame = {"points": np.arange(6.0).reshape(3, 2), "value": np.int64(7)}
-    store.write_frame(0, frame, specs)
-    assert put == []  # the first frame through zarr, which gives the empty reason's chunk
+    store.create("fp", IDS, specs, {"points": (4, 2), "value": (), "name": ()}, {})
+    frame = {"points": np.arange(6.0).reshape(3, 2), "value": np.int64(7), "name": np.asarray("seq-ü 1", dtype=object)}
     store.mark(1, FAILED, "lidar truncated")
+    assert [p.relative_to(store.url).as_posix() for p in put] == ["reason/c/1", "status/c/1"]
+    assert store.reasons() == {1: "lidar truncated"}
+    store.mark_many(np.array([5, 3]), EXCLUDED, "upstream failed")
     store.write_frame(1, frame, specs)
-    assert [p.relative_to(store.url).as_posix() for p in put] == [
-        "points_count/c/1", "points/c/1/0/0", "value/c/1", "reason/c/1", "status/c/1"]
+    assert [p.relative_to(store.url).as_posix() for p in put[2:]] == [
+        "reason/c/3", "status/c/3", "reason/c/5", "status/c/5",
+        "points_count/c/1", "points/c/1/0/0", "value/c/1", "name/c/1", "reason/c/1", "status/c/1"]
     assert store.status()[1] == DONE and store.reasons() == {} and store.read("value", 1) == 7
+    assert store.read("name", 1) == "seq-ü 1" and list(store.status()[[3, 5]]) == [EXCLUDED, EXCLUDED]
+    assert store._read_chunk_files("name", 1) == "seq-ü 1"  # from the file, not zarr
     np.testing.assert_array_equal(store.read("points", 1), frame["points"])
     assert not list(Path(store.url).rglob("*.partial"))
     direct = {p: p.read_bytes() for p in put}
-    direct_writes = FrameStore._write_chunk_files
-    monkeypatch.setattr(FrameStore, "_write_chunk_files", lambda self, index, values, fills: False)
-    store.write_frame(1, frame, specs)  # through zarr: the same files
+    monkeypatch.setattr(FrameStore, "_write_chunk_files", lambda self, *args: False)
+    store.mark_many(np.array([5, 3]), EXCLUDED, "upstream failed")  # through zarr: the same files
+    store.write_frame(1, frame, specs)
     assert {p: p.read_bytes() for p in put} == direct
-    monkeypatch.setattr(FrameStore, "_write_chunk_files", direct_writes)
+    store.mark(1, FAILED, "lidar truncated")
+    failed = _chunk_files(store)
+    monkeypatch.undo()
+    store.write_frame(1, frame, specs)
+    store.mark(1, FAILED, "lidar truncated")
+    assert _chunk_files(store) == failed
     put.clear()
+    monkeypatch.setattr(cache, "_put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
     with pytest.raises(ValueError, match="broadcast"):
-        store.write_frame(2, {"points": np.zeros((5, 2)), "value": np.int64(1)}, specs)  # 5 rows, capacity 4
+        store.write_frame(2, {**frame, "points": np.zeros((5, 2))}, specs)  # 5 rows, capacity 4
+    with pytest.raises(IndexError):
+        store.mark(len(IDS), FAILED, "no such frame")
     assert put == []
 
     def disk_full(path, data):
@@ -258,6 +269,13 @@ def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, m
     with pytest.raises(CacheError, match="writing frame 2"):
         store.write_frame(2, frame, specs)
     assert len(put) == 1 and store.status()[2] == PENDING  # the first chunk failed; not marked done
+    with pytest.raises(CacheError, match="recording frame 2"):
+        store.mark(2, FAILED, "x")
+
+
+def _chunk_files(store: FrameStore) -> dict[str, bytes]:
+    return {p.relative_to(store.url).as_posix(): p.read_bytes()
+            for p in sorted(Path(store.url).rglob("c/*")) if p.is_file()}
 
 
 def test_frame_ids_are_an_array_not_the_group_metadata_which_every_open_parses(tmp_path):

@@ -51,7 +51,7 @@ def writes(store: FrameStore, frames: range, direct: bool) -> float:
     data = [frame(i) for i in frames]
     original = FrameStore._write_chunk_files
     if not direct:
-        FrameStore._write_chunk_files = lambda self, index, values, fills: False  # zarr's path
+        FrameStore._write_chunk_files = lambda self, *args: False  # zarr's path
     try:
         t0 = time.perf_counter()
         for i, arrays in zip(frames, data):
