@@ -225,22 +225,33 @@ def test_configuration_is_toml_data_never_code(tmp_path):
     assert not marker.exists()
 
 
-def test_index_paths_cannot_leave_the_data_root(tmp_path):
+@pytest.mark.parametrize("shared", [False, True], ids=["alone", "resolved-folders-shared"])
+def test_index_paths_cannot_leave_the_data_root(tmp_path, shared):
+    """Also with the resolved folders kept across calls (an index's entries): a file that is a
+    link, or a folder that became one, is still followed."""
     from pipeline.readers.base import inside_root
+
+    resolved = {} if shared else None
+
+    def check(relative):
+        return inside_root(root, relative, "000001", root / "index.json", resolved)
 
     root = tmp_path / "data"
     (root / "radar").mkdir(parents=True)
     (tmp_path / "secret.txt").write_text("x")
-    assert inside_root(root, "radar/000001.txt", "000001", root / "index.json") == root / "radar" / "000001.txt"
-    for bad in ("../secret.txt", "radar/../../secret.txt", str(tmp_path / "secret.txt")):
+    assert check("radar/000001.txt") == root / "radar" / "000001.txt"
+    for bad in ("../secret.txt", "radar/../../secret.txt", "radar/../..", str(tmp_path / "secret.txt")):
         with pytest.raises(ReaderError, match="outside the dataset root"):
-            inside_root(root, bad, "000001", root / "index.json")
+            check(bad)
     (root / "link").symlink_to(tmp_path)
     with pytest.raises(ReaderError, match="outside the dataset root"):
-        inside_root(root, "link/secret.txt", "000001", root / "index.json")
+        check("link/secret.txt")
+    (root / "radar" / "out.txt").symlink_to(tmp_path / "secret.txt")  # in a folder resolved before
+    with pytest.raises(ReaderError, match="outside the dataset root"):
+        check("radar/out.txt")
     (root / "radar" / "loop.txt").symlink_to(root / "radar" / "loop.txt")   # a file linked to itself
     with pytest.raises(ReaderError, match="cannot be resolved"):
-        inside_root(root, "radar/loop.txt", "000001", root / "index.json")
+        check("radar/loop.txt")
 
 
 def test_npy_written_by_stages_loads_without_pickle(tmp_path):

@@ -121,6 +121,7 @@ class _AstyxIndex(Reader):
         frames: dict[str, dict[str, Path]] = {}
         seen_radar: dict[Path, str] = {}
         seen_keys: dict[str, str] = {}
+        resolved: dict[Path, Path] = {}  # inside_root's resolved folders
         for key, entry in entries.items():
             fid = f"{int(key):06d}" if key.isdigit() else key
             if fid in seen_keys:
@@ -128,7 +129,7 @@ class _AstyxIndex(Reader):
                 continue
             seen_keys[fid] = key
             try:
-                paths = self._entry_paths(entry, fid, index_file)
+                paths = self._entry_paths(entry, fid, index_file, resolved)
             except ReaderError as exc:
                 problems[fid] = exc.problem
                 continue
@@ -143,13 +144,13 @@ class _AstyxIndex(Reader):
             seen_radar[paths[self.radar_uid]] = fid
         return frames, problems
 
-    def _entry_paths(self, entry: object, fid: str, index_file: Path) -> dict[str, Path]:
+    def _entry_paths(self, entry: object, fid: str, index_file: Path, resolved: dict[Path, Path]) -> dict[str, Path]:
         if not isinstance(entry, dict):
             raise ReaderError(index_file, f"index entry of frame {fid} is not an object", frame=fid)
         missing = [uid for uid in self.required_uids if uid not in entry]
         if missing:
             raise ReaderError(index_file, f"index entry lacks {', '.join(missing)}", frame=fid)
-        return {uid: inside_root(self.root, str(rel), fid, index_file) for uid, rel in entry.items()}
+        return {uid: inside_root(self.root, str(rel), fid, index_file, resolved) for uid, rel in entry.items()}
 
     def layout_hint(self) -> str:
         return (f"an entry in {self.index_name} whose {', '.join(self.required_uids)} files exist "
