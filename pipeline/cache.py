@@ -287,7 +287,8 @@ class FrameStore:
         indices = np.unique(np.asarray(indices, np.int64))
         if not indices.size:
             return
-        reason = reason[:2000]
+        # a reason naming a file whose name is no UTF-8 holds lone surrogates, which no string array stores
+        reason = reason[:2000].encode("utf-8", "backslashreplace").decode("utf-8")
         try:
             if self._write_chunk_files(indices, [("reason", reason)], {}, code):
                 return

@@ -229,6 +229,9 @@ def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, m
     store = FrameStore(str(tmp_path / "s.zarr"))
     store.create("fp", IDS, specs, {"points": (4, 2), "value": (), "name": ()}, {})
     frame = {"points": np.arange(6.0).reshape(3, 2), "value": np.int64(7), "name": np.asarray("seq-ü 1", dtype=object)}
+    store.mark(1, FAILED, "cannot read lidar/\udcff.bin")  # a file name that is no UTF-8
+    assert store.reasons() == {1: "cannot read lidar/\\udcff.bin"}
+    put.clear()
     store.mark(1, FAILED, "lidar truncated")
     assert [p.relative_to(store.url).as_posix() for p in put] == ["reason/c/1", "status/c/1"]
     assert store.reasons() == {1: "lidar truncated"}

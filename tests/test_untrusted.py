@@ -247,8 +247,9 @@ def test_index_paths_cannot_leave_the_data_root(tmp_path, shared):
     with pytest.raises(ReaderError, match="outside the dataset root"):
         check("link/secret.txt")
     (root / "radar" / "out.txt").symlink_to(tmp_path / "secret.txt")  # in a folder resolved before
-    with pytest.raises(ReaderError, match="outside the dataset root"):
-        check("radar/out.txt")
+    for bad in ("radar/out.txt", "missing/../radar/out.txt", "radar/missing/../out.txt"):
+        with pytest.raises(ReaderError, match="outside the dataset root"):
+            check(bad)
     (root / "radar" / "loop.txt").symlink_to(root / "radar" / "loop.txt")   # a file linked to itself
     with pytest.raises(ReaderError, match="cannot be resolved"):
         check("radar/loop.txt")

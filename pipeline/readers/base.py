@@ -7,6 +7,8 @@ message names the file, the frame and the problem; readers never return partial 
 
 from __future__ import annotations
 
+import os
+import stat
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,12 +119,18 @@ def inside_root(root: Path, relative: str, frame: str | None, index_file: Path,
 
     ``resolved``: the resolved folders of the calls so far ({folder: resolved}), for an index of
     many entries in a few folders: only the file itself is then looked at (the folders of 546
-    Astyx entries resolved anew each time took 1 ms an entry)."""
+    Astyx entries resolved anew each time took 1 ms an entry). An entry with a '..' part, or whose
+    file is a link or cannot be looked at, is resolved whole; a folder replaced by a link while
+    one index is read is not noticed (as a file replaced between this check and its read)."""
     rel = Path(relative)
     cache = {} if resolved is None else resolved
     try:
         path = root / rel
-        if rel.name in ("", ".", "..") or path.is_symlink():
+        try:
+            leaf_is_link = stat.S_ISLNK(os.lstat(path).st_mode)
+        except OSError:  # missing, or a part of the path is no folder: resolve() decides
+            leaf_is_link = True
+        if ".." in rel.parts or rel.name in ("", ".") or leaf_is_link:
             target = path.resolve()
         else:
             if path.parent not in cache:
