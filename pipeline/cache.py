@@ -260,11 +260,12 @@ class FrameStore:
         ``indices`` of a local output, each frame's status ``code`` after its other chunks; False,
         having written nothing, when that cannot be done: not local, an array not laid out as
         :meth:`create` makes it, or a row of another shape (zarr's path raises the error)."""
+        indices = np.asarray(indices, np.int64).reshape(-1)
         chunks = []
         for name, value in (*values, ("status", np.uint8(code))):
             arr = _opened_array(self.url, name)[1]
             layout = None if arr is None else _direct_layout(arr)
-            if layout is None or not all(0 <= int(i) < arr.shape[0] for i in indices):
+            if layout is None or (indices.size and not (indices.min() >= 0 and indices.max() < arr.shape[0])):
                 return False
             row = _frame_row(value, arr.dtype, arr.shape[1:], name in fills, fills.get(name))
             if np.shape(row) != layout.shape:

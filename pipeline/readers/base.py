@@ -127,10 +127,10 @@ def inside_root(root: Path, relative: str, frame: str | None, index_file: Path,
     try:
         path = root / rel
         try:
-            leaf_is_link = stat.S_ISLNK(os.lstat(path).st_mode)
+            whole = ".." in rel.parts or rel.name in ("", ".") or stat.S_ISLNK(os.lstat(path).st_mode)
         except OSError:  # missing, or a part of the path is no folder: resolve() decides
-            leaf_is_link = True
-        if ".." in rel.parts or rel.name in ("", ".") or leaf_is_link:
+            whole = True
+        if whole:
             target = path.resolve()
         else:
             if path.parent not in cache:
