@@ -402,10 +402,10 @@ class FrameStore:
 
     def _checked(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
         """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
-        although the frame is done and the group has every chunk written (:data:`EVERY_CHUNK`).
-        The file system is asked only for a value that is all fill."""
+        although the frame is done and the group has every chunk written (:data:`EVERY_CHUNK`;
+        zarr writes no chunk for a frame of no elements, which is never missing). The file system is asked only for a value that is all fill."""
         value = self._decode(g, arr, index)
-        if g.attrs.get(EVERY_CHUNK) and _all_fill(value, arr.fill_value) \
+        if value.size and g.attrs.get(EVERY_CHUNK) and _all_fill(value, arr.fill_value) \
                 and not sync(arr.store.exists(f"{arr.path}/{_chunk_key(arr, index)}")) \
                 and int(self._decode(g, self._member(g, "status"), index)) == DONE:
             raise self._chunk_error(g, arr, index, "is missing although the frame is done (zarr would read the fill "
@@ -460,7 +460,8 @@ class FrameStore:
         arr = self._member(g, name)
         n = arr.shape[0]
         wanted = np.ones(n, bool) if frames is None else frames
-        per_frame = max(1, int(np.prod(arr.shape[1:], dtype=np.int64)) * arr.dtype.itemsize)
+        per_frame_size = int(np.prod(arr.shape[1:], dtype=np.int64))
+        per_frame = max(1, per_frame_size * arr.dtype.itemsize)
         step = max(1, block_bytes // per_frame)
         values = np.empty(n, arr.dtype) if frames is None else None
         for start in range(0, n, step):
@@ -483,7 +484,7 @@ class FrameStore:
             if block is not None and values is not None:
                 values[start:stop] = block
             progress(stop - start)
-        if g.attrs.get(EVERY_CHUNK) and frames is not None:
+        if g.attrs.get(EVERY_CHUNK) and frames is not None and per_frame_size:  # zarr writes no chunk holding nothing
             present = set(sync(_keys(arr.store, f"{arr.path}/c/")))
             for i in np.flatnonzero(wanted):
                 if i not in errors and f"{arr.path}/{_chunk_key(arr, int(i))}" not in present:

@@ -135,6 +135,26 @@ def test_missing_chunk_reads_as_fill_value_in_an_output_without_the_marker(tmp_p
     assert calib.read("value", 2) == 0.0
 
 
+@pytest.mark.parametrize("writer", ["chunk files", "zarr"])
+def test_an_array_of_no_elements_per_frame_has_no_chunk_to_miss(tmp_path, monkeypatch, writer):
+    """zarr writes no chunk for a frame of an array with a zero-length dimension (a remote cache,
+    or an output zarr wrote): reading and verifying such a frame is no damage."""
+    from pipeline.cache import ArraySpec
+    if writer == "zarr":
+        monkeypatch.setattr(FrameStore, "_write_chunk_files", lambda self, *args: False)
+    specs = (ArraySpec("empty", (0, 3), "float32", "m", fill=np.nan, ragged=True),
+             ArraySpec("value", (2,), "float32", "m"))
+    store = FrameStore(str(tmp_path / "out.zarr"))
+    store.create("fp", ["a", "b"], specs, {"empty": (0, 3), "value": (2,)}, {})
+    for i in range(2):
+        store.write_frame(i, {"empty": np.zeros((0, 3), np.float32), "value": np.full(2, i, np.float32)}, specs)
+    assert store.read("empty", 1).shape == (0, 3)
+    status, errors = store.verify()
+    assert status.tolist() == [DONE, DONE] and errors == {}
+    (tmp_path / "out.zarr" / "value" / "c" / "1" / "0").unlink()  # a real chunk missing is still found
+    assert sorted(store.verify()[1]) == [1]
+
+
 def test_whole_array_reads_name_the_first_damaged_frame(tmp_path):
     """FrameStore.array (what dataset stages index) raises ChunkError for the frames it reads."""
     pipe = _pipe(tmp_path)
