@@ -368,6 +368,9 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     from pipeline.runner import DatasetInputs
     from stages.ablations import run_ablations
 
+    chosen = tuple(dict.fromkeys(t.strip() for t in tables.split(",") if t.strip()))
+    if not chosen or not set(chosen) <= {"2", "3"}:
+        raise click.BadParameter(f"'{tables}': give 2 (Dis-Net), 3 (RSS-Net) or 2,3", param_hint="--tables")
     env = _context(dataset, data_root, cache_root, sets)
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
     _ensure_world(env, pipe.progress)
@@ -377,8 +380,7 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     finally:
         pipe.executor.close()
     out = Path(env.dir("ablations").path)
-    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, out,
-                  tuple(t.strip() for t in tables.split(",")))
+    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, out, chosen)
     click.echo((out / "ablations.md").read_text())
     click.echo(f"ablations: {out / 'ablations.md'}")
 

@@ -90,9 +90,9 @@ def markdown(results: dict, profile: str) -> str:
         lines += ["## Table II: Dis-Net", "", "| input | L_KL | L_n | paper L_KL | paper L_n | train time |",
                   "|---|---|---|---|---|---|"]
         for r in results["table2"]:
-            p = paper.get(r["variant"], (float("nan"), float("nan")))
-            lines.append(f"| {r['variant']} | {r['L_KL']:.4f} | {r['L_n']:.4f} | {p[0]:.4f} | {p[1]:.4f} | "
-                         f"{r['seconds']:.0f} s |")
+            p = paper.get(r["variant"])
+            ref = "| |" if p is None else f"| {p[0]:.4f} | {p[1]:.4f} |"
+            lines.append(f"| {r['variant']} | {r['L_KL']:.4f} | {r['L_n']:.4f} {ref} {r['seconds']:.0f} s |")
         lines.append("")
     if results["table3"]:
         lines += ["## Table III: RSS-Net", "", "| inputs | L_a | paper L_a | train time |", "|---|---|---|---|"]
