@@ -194,6 +194,7 @@ class FrameStore:
         except MetadataError:
             raise
         except (*DECODE_ERRORS, TypeError) as exc:  # a damaged chunk, or zarr.json (json.JSONDecodeError)
+            _settle_io()
             problem = f"cannot be read ({_one_line(exc)})"
         raise MetadataError(f"{join(self.url, FRAME_IDS)}: the frame ids of stage output {self.stage} {problem}; "
                             f"recompute the stage: delete {self.url} or run it with --force")
@@ -207,6 +208,7 @@ class FrameStore:
         try:
             return np.asarray(arr[:])
         except DECODE_ERRORS as exc:
+            _settle_io()
             raise self.damaged("status", np.arange(arr.shape[0]), exc) from None
 
     def done_digest(self) -> str:
@@ -472,6 +474,7 @@ class FrameStore:
             try:
                 block = np.asarray(arr[start:stop])
             except DECODE_ERRORS:  # find the damaged frames of the block
+                _settle_io()
                 block = None
                 for i in range(start, stop):
                     try:
@@ -535,6 +538,7 @@ class CheckedArray:
         try:
             return read()
         except DECODE_ERRORS as exc:
+            _settle_io()
             first = selection[0] if isinstance(selection, tuple) else selection
             try:
                 frames = np.arange(self._array.shape[0])[first]
@@ -572,6 +576,20 @@ def _frame_indices(selection: Any, n: int) -> np.ndarray | None:
     if picked.dtype.kind not in "iu" or (picked.size and picked.min() < 0):
         return None
     return picked.astype(np.int64)
+
+
+async def _others_finished(timeout_s: float) -> None:
+    others = asyncio.all_tasks() - {asyncio.current_task()}
+    if others:
+        await asyncio.wait(others, timeout=timeout_s)
+
+
+def _settle_io(timeout_s: float = 60.0) -> None:
+    """After a zarr read of several chunks raised: wait (at most ``timeout_s``) for the reads of its
+    other chunks, still running on zarr's IO loop (asyncio.gather does not cancel them at the first
+    error). Left running, the process's exit destroys them with a warning and a traceback each,
+    hundreds of lines after the one-line error."""
+    sync(_others_finished(timeout_s))
 
 
 async def _keys(store: Any, prefix: str) -> list[str]:
