@@ -39,7 +39,7 @@ LARGE_SETTINGS := --set disnet.speed_map=true --set train.count_grad_scale=0 --s
 	--set train.select_on=kl --set train.jitter=0.3 --set train.count_refit_epochs=50 \
 	--set disnet.speed_count_prior=true
 
-demo-large: setup  ## the demo on a 2400-frame world, 12 epochs (about an hour on 2 cores): the fidelity figures
+demo-large: setup  ## the demo on a 2400-frame world, 12 epochs (about 70 minutes on 2 cores): the fidelity figures
 	$(MAKE) demo CACHE=cache-large ARGS="--set dataset.world_frames=2400 --set train.epochs=12 $(LARGE_SETTINGS) $(ARGS)"
 
 test: setup  ## the test suite (< 10 minutes on 2 cores)
