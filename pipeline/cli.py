@@ -373,6 +373,7 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
         raise click.BadParameter(f"'{tables}': give 2 (Dis-Net), 3 (RSS-Net) or 2,3", param_hint="--tables")
     env = _context(dataset, data_root, cache_root, sets)
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
+    pipe.require_local_cache(["ablate"])
     _ensure_world(env, pipe.progress)
     try:
         pipe.run("heatmaps")

@@ -348,11 +348,25 @@ class Pipeline:
 
     def check_config(self, target: str) -> None:
         """ConfigError for settings a stage of ``target``'s run cannot work with, before any output
-        is touched (each stage's ``check``)."""
-        for name in self.upstream_closure(target):
+        is touched (each stage's ``check``; a stage writing local files with a remote cache)."""
+        closure = self.upstream_closure(target)
+        self.require_local_cache([n for n in closure if getattr(self.stages[n], "local_files", False)])
+        for name in closure:
             check = self.stages[name].check
             if check is not None:
                 check(self.env.cfg)
+
+    def require_local_cache(self, names: list[str]) -> None:
+        """ConfigError when the cache is not a local folder although ``names`` (stages, commands)
+        write theirs with local file APIs: they would write to a local path named like the remote one."""
+        if names and not is_local(fsspec.core.url_to_fs(self.env.cache_root)[0]):
+            local = {n for n in self.order if getattr(self.stages[n], "local_files", False)}
+            frame_stages = [n for n in self.order if isinstance(self.stages[n], FrameStage)
+                            and not set(self.upstream_closure(n)) & local]
+            raise ConfigError(f"--cache {self.env.cache_root} is not a local folder, and {', '.join(names)} "
+                              f"write{'s' if len(names) == 1 else ''} checkpoints and reports with local file "
+                              f"APIs: use a local (or mounted) cache folder for them; on this cache run the "
+                              f"per-frame stages {', '.join(frame_stages)}")
 
     def downstream(self, name: str) -> list[str]:
         """Stages that depend on ``name``, directly or not, in execution order."""

@@ -79,7 +79,7 @@ class DatasetStage:
     """A stage run once over the whole dataset: ``run(inputs, cfg, out) -> summary dict``;
     ``check`` as for FrameStage. ``extra_fingerprint(cfg, env)``: what else the output depends on
     (e.g. another dataset's train stage, for train.nets_from), a string in its fingerprint ('' adds
-    nothing)."""
+    nothing). ``local_files``: see the field."""
 
     name: str
     upstream: tuple[str, ...]
@@ -89,6 +89,8 @@ class DatasetStage:
     doc: str = ""
     extra_fingerprint: Callable[["Config", Any], str] | None = field(default=None)
     check: Callable[["Config"], None] | None = None
+    local_files: bool = False
+    """Writes its output folder with local file APIs (checkpoints, reports): needs a local cache."""
 
 
 Stage = FrameStage | DatasetStage

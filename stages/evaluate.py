@@ -558,4 +558,5 @@ FRAMES = FrameStage(name="evaluate-frames", upstream=("calibrate", "heatmaps", "
                     config_keys=FRAME_KEYS, outputs=frame_outputs, process=evaluate_frame, select=select_frames,
                     version=VERSION, doc=__doc__, check=check, part_of="evaluate")
 STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize", FRAMES.name),
-                     config_keys=CONFIG_KEYS, version=REPORT_VERSION, run=run, doc=__doc__, check=check)
+                     config_keys=CONFIG_KEYS, version=REPORT_VERSION, run=run, doc=__doc__, check=check,
+                     local_files=True)

@@ -195,4 +195,4 @@ def check(cfg: Config) -> None:
 
 
 STAGE = DatasetStage(name="export", upstream=("calibrate", "synthesize"), config_keys=CONFIG_KEYS, run=run,
-                     version=VERSION, doc=__doc__, check=check)
+                     version=VERSION, doc=__doc__, check=check, local_files=True)

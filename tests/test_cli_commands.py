@@ -75,3 +75,19 @@ def test_estimate_sigma_uses_the_frames_asked_for(world, tmp_path):
         assert f"--set heatmap.sigma_px={sx:.0f},{sy:.0f}" in out.output and sx > 0 and sy > 0
     bad = CliRunner().invoke(main, args + ["--frames", "99"])
     assert bad.exit_code == 2 and "no frame '99'" in bad.output
+
+
+@pytest.mark.parametrize("command", [["run", "synthesize"], ["run", "export"], ["ablate"]])
+def test_stages_writing_local_files_refuse_a_remote_cache_before_any_work(world, command):
+    """train, evaluate and export write checkpoints and reports with local file APIs: on an fsspec
+    cache they wrote to a local path named like the remote one (or failed on a missing file)."""
+    import fsspec
+
+    url = f"memory://refuse-{command[-1]}"
+    out = CliRunner().invoke(main, [*command, "--dataset", "synthetic", "--data-root", str(world), "--cache", url,
+                                    "--workers", "1"])
+    assert out.exit_code == 2, out.output
+    assert f"--cache {url} is not a local folder" in out.output
+    assert "run the per-frame stages calibrate, heatmaps, patches" in out.output
+    assert not fsspec.filesystem("memory").exists(f"/refuse-{command[-1]}/synthetic/calibrate.zarr")
+    assert not Path(f"/refuse-{command[-1]}").exists()
