@@ -414,15 +414,28 @@ def process_frames(stage: FrameStage, env: RunEnv, batch: list[tuple[int, str]],
     """``process_frame`` over a batch of frames (one dask task); with ``strict`` stop at a failure.
 
     A batch whose task was cancelled (the run stopped: --strict, Ctrl-C, the client gone) stops
-    before its next frame: dask cannot stop a running task, it only drops its result."""
+    before its next frame: dask cannot stop a running task, it only drops its result.
+
+    An error that stops the run (a CacheError: the cache not writable, a damaged metadata file)
+    reaches the client without the exceptions it was raised from: dask pickles those too, and one
+    that cannot be unpickled (zarr's GroupNotFoundError, many of botocore's) turned the error into
+    a bare Exception that the CLI showed as a traceback."""
     results = []
+    fatal = None
     with one_blas_thread():
         for index, frame_id in batch:
             if _task_cancelled():
                 break
-            results.append(process_frame(stage, env, index, frame_id))
+            try:
+                results.append(process_frame(stage, env, index, frame_id))
+            except PipelineError as exc:
+                fatal = exc
+                break
             if strict and results[-1][1] == FAILED:
                 break
+    if fatal is not None:
+        fatal.__cause__ = fatal.__context__ = None
+        raise fatal.with_traceback(None)
     return results
 
 

@@ -320,3 +320,32 @@ def test_real_stage_kill_resume_on_synthetic_world(tmp_path):
     assert problems == [] and compared >= 2
     status = frame_store(str(tmp_path / "killed"), "synthetic", "heatmaps").status()
     assert (status != PENDING).all()
+
+
+def test_an_error_stopping_a_dask_task_reaches_the_client_as_itself(monkeypatch):
+    """dask pickles an exception with the ones it was raised from; zarr's GroupNotFoundError (as
+    botocore's errors) cannot be unpickled, and the client then got a bare Exception that the CLI
+    showed as a traceback instead of the one `error:` line."""
+    import distributed.protocol.pickle as dask_pickle
+    from zarr.errors import GroupNotFoundError
+
+    from pipeline import executor
+    from pipeline.errors import CacheError
+
+    def write_fails(stage, env, index, frame_id):
+        if index == 1:
+            try:
+                raise GroupNotFoundError("memory://x/calibrate.zarr", "")
+            except GroupNotFoundError as exc:
+                raise CacheError(f"writing frame {index}: {exc}") from None
+        return index, DONE, ""
+
+    with pytest.raises(Exception) as chained:  # what dask did with it before
+        write_fails(None, None, 1, "f1")
+    with pytest.raises(TypeError):
+        dask_pickle.loads(dask_pickle.dumps(chained.value))
+    monkeypatch.setattr(executor, "process_frame", write_fails)
+    with pytest.raises(CacheError) as raised:
+        executor.process_frames(None, None, [(0, "f0"), (1, "f1"), (2, "f2")])
+    back = dask_pickle.loads(dask_pickle.dumps(raised.value))
+    assert type(back) is CacheError and str(back) == str(raised.value) and "writing frame 1" in str(back)
