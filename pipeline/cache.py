@@ -405,7 +405,8 @@ class FrameStore:
     def _checked(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
         """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
         although the frame is done and the group has every chunk written (:data:`EVERY_CHUNK`;
-        zarr writes no chunk for a frame of no elements, which is never missing). The file system is asked only for a value that is all fill."""
+        zarr writes no chunk for a frame of no elements, which is never missing). The file system
+        is asked only for a value that is all fill."""
         value = self._decode(g, arr, index)
         if value.size and g.attrs.get(EVERY_CHUNK) and _all_fill(value, arr.fill_value) \
                 and not sync(arr.store.exists(f"{arr.path}/{_chunk_key(arr, index)}")) \
