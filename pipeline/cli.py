@@ -90,6 +90,8 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
 
     overrides = parse_set_options(sets)
     cfg = load_config(dataset, overrides)
+    if not cache_root.strip():  # an unset shell variable: '' joined to the dataset is a folder at the root
+        raise ConfigError("--cache (or $PIPELINE_CACHE) is empty: give the cache folder or URL")
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
     _check_url("--cache", cache_root)
     explicit = set(overrides) | set(env_overrides(dict(os.environ)))

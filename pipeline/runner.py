@@ -683,6 +683,12 @@ def parse_frames(spec: str | None, frame_ids: list[str]) -> list[int] | None:
         item = item.strip()
         if item in lookup:
             out.append(lookup[item])
+        elif item.isdigit() and any(f.isdigit() for f in frame_ids):
+            # '60' where the ids are numbers ('000060'): an id written without its zeros, or index 60?
+            like = next(f for f in frame_ids if f.isdigit())
+            raise ConfigError(f"--frames: '{item}' is no frame id here (ids are numbers like '{like}') and would "
+                              f"be taken as an index: give the id as the dataset writes it, or indices as "
+                              f"START:STOP ('{item}:{int(item) + 1}')")
         elif item.isdigit() and int(item) < len(frame_ids):
             out.append(int(item))
         else:

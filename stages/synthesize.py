@@ -55,6 +55,10 @@ CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synt
 SPLITS = {"train": 0, "val": 1, "test": 2}
 
 
+COUNTS = ("predicted", "oracle")
+"""synth.count: Dis-Net's count, or the frame's real one (an oracle for experiments)."""
+
+
 def check_split(key: str, name: str) -> None:
     """ConfigError unless ``name`` (the value of config key ``key``) names a split or 'all'."""
     if name != "all" and name not in SPLITS:
@@ -109,7 +113,7 @@ def check_generation(cfg: Config) -> None:
     s = cfg.synth
     for key, value, allowed in (("range_estimator", s.range_estimator, ESTIMATORS),
                                 ("no_support", s.no_support, NO_SUPPORT_RULES), ("sampling", s.sampling, SAMPLINGS),
-                                ("placement", s.placement, PLACEMENTS)):
+                                ("placement", s.placement, PLACEMENTS), ("count", s.count, COUNTS)):
         if value not in allowed:
             raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
     # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set

@@ -74,7 +74,7 @@ def test_estimate_sigma_uses_the_frames_asked_for(world, tmp_path):
         assert f"estimated Sigma std: {sx:.1f} px (u), {sy:.1f} px (v)" in out.output
         assert f"--set heatmap.sigma_px={sx:.0f},{sy:.0f}" in out.output and sx > 0 and sy > 0
     bad = CliRunner().invoke(main, args + ["--frames", "99"])
-    assert bad.exit_code == 2 and "no frame '99'" in bad.output
+    assert bad.exit_code == 2 and "'99' is no frame id here" in bad.output
 
 
 @pytest.mark.parametrize("command", [["run", "synthesize"], ["run", "export"], ["ablate"]])
@@ -91,3 +91,37 @@ def test_stages_writing_local_files_refuse_a_remote_cache_before_any_work(world,
     assert "run the per-frame stages calibrate, heatmaps, patches" in out.output
     assert not fsspec.filesystem("memory").exists(f"/refuse-{command[-1]}/synthetic/calibrate.zarr")
     assert not Path(f"/refuse-{command[-1]}").exists()
+
+
+def test_a_number_that_is_no_id_is_refused_where_ids_are_numbers():
+    """'60' on Astyx (ids '000060') was taken as index 60, another frame, and --force recomputed it."""
+    from pipeline.errors import ConfigError
+    from pipeline.runner import parse_frames
+
+    ids = [f"{i:06d}" for i in range(0, 400, 4)]  # Astyx-like: numbered, not every number
+    assert parse_frames("000060,000064", ids) == [15, 16] and parse_frames("60:62", ids) == [60, 61]
+    with pytest.raises(ConfigError, match="'60' is no frame id here .*'60:61'"):
+        parse_frames("60", ids)
+    assert parse_frames("1,a", ["a", "b"]) == [1, 0]  # ids that are no numbers: a number is an index
+
+
+@pytest.mark.parametrize("setting, words", [("split.rule=sequnce", "split.rule must be one of sequence"),
+                                            ("synth.count=orcale", "synth.count must be one of predicted, oracle")])
+def test_a_misspelt_choice_is_refused_before_any_output_is_touched(world, tmp_path, setting, words):
+    """A typo in split.rule failed every calibrate frame, discarding a finished output; one in
+    synth.count recomputed synthesize with the predicted count."""
+    args = ["--dataset", "synthetic", "--data-root", str(world), "--cache", str(tmp_path / "c"), "--workers", "1"]
+    assert CliRunner().invoke(main, ["run", "calibrate", *args]).exit_code == 0
+    stamp = (tmp_path / "c" / "synthetic" / "calibrate.zarr" / "zarr.json").stat().st_mtime_ns
+    out = CliRunner().invoke(main, ["run", "synthesize", *args, "--set", setting])
+    assert out.exit_code == 2 and words in out.output, out.output
+    assert (tmp_path / "c" / "synthetic" / "calibrate.zarr" / "zarr.json").stat().st_mtime_ns == stamp
+    assert not (tmp_path / "c" / "synthetic" / "heatmaps.zarr").exists()
+
+
+def test_an_empty_cache_option_is_refused_not_a_folder_at_the_root(world, monkeypatch):
+    monkeypatch.setenv("PIPELINE_CACHE", "")
+    for args in (["--cache", ""], []):
+        out = CliRunner().invoke(main, ["run", "calibrate", "--dataset", "synthetic", "--data-root", str(world), *args])
+        assert out.exit_code == 2 and "--cache (or $PIPELINE_CACHE) is empty" in out.output, out.output
+    assert not Path("/synthetic").exists()
