@@ -28,6 +28,7 @@ import functools
 import hashlib
 import json
 import os
+import shlex
 import time
 import uuid
 from collections.abc import Awaitable, Callable, Iterable, Sequence
@@ -425,8 +426,10 @@ class FrameStore:
             ids = []
         frame = str(ids[index]) if 0 <= index < len(ids) else None
         folder = self.url.rstrip("/").rsplit("/", 1)[-1]
-        remedy = (f"recompute the frame with `pipeline run {self.stage} --force --frames {frame if frame else index}` "
-                  f"(the frames made from it are recomputed too)")
+        root, dataset, _ = self.url.rstrip("/").rsplit("/", 2)  # <cache root>/<dataset>/<stage>.zarr
+        remedy = (f"recompute the frame with `pipeline run {self.stage} --dataset {shlex.quote(dataset)} --cache "
+                  f"{shlex.quote(root)} --force --frames {shlex.quote(frame) if frame else index}` (the frames made "
+                  f"from it are recomputed too)")
         return ChunkError(f"{folder}/{arr.basename}", index, frame, chunk, problem, remedy)
 
     def verify(self, progress: Callable[[int, int], None] | None = None,

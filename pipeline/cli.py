@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import shlex
 import sys
 from collections import Counter
 from pathlib import Path
@@ -233,9 +234,9 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     finally:
         pipe.executor.close()
     failed = sum(r.failed for r in reports)
-    status_cmd = f"pipeline status --dataset {dataset}"
+    status_cmd = f"pipeline status --dataset {shlex.quote(dataset)}"
     if cache_root != DEFAULT_CACHE:
-        status_cmd += f" --cache {cache_root}"
+        status_cmd += f" --cache {shlex.quote(cache_root)}"
     if failed:
         click.echo(f"{failed} frame(s) failed across stages; `{status_cmd}` lists why.", err=True)
     for r in reports:
@@ -484,8 +485,8 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
                 click.echo(f"{'':<{NAME_WIDTH}} {message}")
             if len(ids) > 5:
                 click.echo(f"{'':<{NAME_WIDTH}} ... and {len(ids) - 5} more")
-            click.echo(f"{'':<{NAME_WIDTH}} recompute them: pipeline run {name} --dataset {dataset} --force "
-                       f"--frames {','.join(ids)}")
+            click.echo(f"{'':<{NAME_WIDTH}} recompute them: pipeline run {name} --dataset {shlex.quote(dataset)} "
+                       f"--cache {shlex.quote(env.cache_root)} --force --frames {shlex.quote(','.join(ids))}")
         else:
             click.echo(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: every chunk intact")
     if not rows:

@@ -71,15 +71,15 @@ def test_damaged_upstream_chunk_fails_only_its_frame_naming_array_frame_and_file
     assert "internal error" not in reason and "\n" not in reason
     if how == "one bit flipped":
         assert "doesn't match checksum" in reason
-    assert reason.endswith("recompute the frame with `pipeline run calibrate --force --frames f003` (the frames "
-                           "made from it are recomputed too)")
+    assert reason.endswith(f"recompute the frame with `pipeline run calibrate --dataset fake --cache {tmp_path / 'cache'} "
+                           f"--force --frames f003` (the frames made from it are recomputed too)")
 
 
 def _follow(pipe: Pipeline, message: str) -> None:
     """Run the `pipeline run STAGE --force --frames ID` that a ChunkError's message gives."""
     from pipeline.runner import parse_frames
 
-    stage, frame = re.search(r"`pipeline run (\S+) --force --frames (\S+)`", message).groups()
+    stage, frame = re.search(r"`pipeline run (\S+) --dataset fake --cache \S+ --force --frames (\S+)`", message).groups()
     pipe.run(stage, frames=parse_frames(frame, pipe.frame_ids()), force=True)
 
 
@@ -365,8 +365,8 @@ def test_damaged_status_chunk_stops_the_run_naming_the_file(tmp_path):
         pipe.run("heatmaps")
     message = str(info.value)
     assert message.startswith(f"calibrate.zarr/status, frame 3 (f003): chunk {chunk} cannot be decoded (")
-    assert message.endswith("`pipeline run calibrate --force --frames f003` (the frames made from it are "
-                            "recomputed too)")
+    assert message.endswith(f"`pipeline run calibrate --dataset fake --cache {tmp_path / 'cache'} --force --frames "
+                            f"f003` (the frames made from it are recomputed too)")
     assert not pipe.env.store("heatmaps").exists()  # stopped before any downstream output
     _follow(pipe, message)
     pipe.run("heatmaps")
@@ -538,8 +538,8 @@ def test_verify_names_every_damaged_frame_and_nothing_else(tmp_path):
     assert rows["calibrate"]["frame_ids_damaged"] == ["f000", "f001", "f002", "f003", "f005"]
     assert rows["calibrate"]["damaged"][5].startswith("calibrate.zarr/value, frame 5 (f005): chunk ")
     assert "is missing although the frame is done" in rows["calibrate"]["damaged"][5]
-    assert rows["calibrate"]["damaged"][3].endswith("`pipeline run calibrate --force --frames f003` (the frames "
-                                                    "made from it are recomputed too)")
+    assert rows["calibrate"]["damaged"][3].endswith("--force --frames f003` (the frames made from it are "
+                                                    "recomputed too)")
     assert list(rows["heatmaps"]["damaged"]) == [6] and rows["heatmaps"]["checked"] == 7
     assert rows["heatmaps"]["damaged"][6].startswith("heatmaps.zarr/status, frame 6 (f006): chunk ")
     # the commands it gives repair everything
@@ -591,8 +591,8 @@ def test_cli_verify_prints_the_repair_command_and_exits_2(tmp_path, fake_cli):
     assert out.exit_code == 2 and out.stderr.strip() == "error: 1 stage output(s) damaged (above)"
     assert "heatmaps        8 finished frame(s) read: 1 damaged" in out.stdout
     command = re.search(r"recompute them: pipeline (run heatmaps .*)$", out.stdout, re.M).group(1)
-    assert command == "run heatmaps --dataset synthetic --force --frames f002"
-    assert fake_cli(tmp_path, *command.split()[:2], *command.split()[4:], "--workers", "1").exit_code == 0
+    assert command == f"run heatmaps --dataset synthetic --cache {tmp_path / 'cache'} --force --frames f002"
+    assert fake_cli(tmp_path, *command.split()[:2], *command.split()[6:], "--workers", "1").exit_code == 0
     assert fake_cli(tmp_path, "verify").exit_code == 0
     bad = fake_cli(tmp_path, "verify", "--stage", "heatmap")
     assert bad.exit_code == 2 and "--stage heatmap: no such stage" in bad.stderr
