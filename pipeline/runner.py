@@ -232,6 +232,8 @@ class Pipeline:
                         current = False
                     redo = forced and frames is not None and isinstance(stage, FrameStage) and current
                     rebuild = (forced and not redo) or not current
+                    if (rebuild or redo) and getattr(stage, "ready", None) is not None:
+                        stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
                     with rewriting(self._lock_url(name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
                         if redo:
                             self.redo_frames(name, frames)

@@ -58,6 +58,9 @@ class FrameStage:
     which the report then reads): ``--force`` on that stage recomputes this one too.
     ``summarise(store, cfg) -> lines``: what a run that processed frames prints under the stage's
     line (e.g. points the stage dropped over all its finished frames); none when it returns none.
+    ``ready(dataset_inputs, cfg)``: PipelineError when its upstream outputs cannot serve it (e.g.
+    a checkpoint unreadable); called, with the upstream stages up to date, before its own output
+    is recreated or any frame of it recomputed.
     """
 
     name: str
@@ -72,6 +75,7 @@ class FrameStage:
     check: Callable[["Config"], None] | None = None
     part_of: str = ""
     summarise: Callable[..., list[str]] | None = None
+    ready: Callable[..., None] | None = None
 
 
 @dataclass(frozen=True)

@@ -133,6 +133,19 @@ def check_checkpoints(train_dir, cfg: Config) -> None:
         hint = " (or set synth.placement=ray, which needs no PlaceNet)" if missing == ["placenet"] else ""
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
                             f"train stage with {', '.join(missing)} in train.nets{hint}")
+    from pipeline.checkpoint import read_meta
+
+    for net in nets:  # the header only: a truncated or overwritten file fails here, not in every frame
+        try:
+            read_meta(train_dir.file(f"{net}/best.safetensors"))
+        except PipelineError as exc:
+            raise PipelineError(f"{exc}; retrain it: `pipeline run train --force` (with the same --dataset and "
+                                f"--cache)") from None
+
+
+def ready(inputs, cfg: Config) -> None:
+    """Before synthesize's output is recreated: the train stage's checkpoints are there and readable."""
+    check_checkpoints(inputs.dir("train"), cfg)
 
 
 def select(inputs, cfg: Config) -> np.ndarray:
@@ -328,4 +341,4 @@ def summarise(store, cfg: Config) -> list[str]:
 
 STAGE = FrameStage(name="synthesize", upstream=("calibrate", "heatmaps", "train"), config_keys=CONFIG_KEYS,
                    outputs=outputs, process=process, select=select, version=VERSION, doc=__doc__,
-                   check=check_generation, summarise=summarise)
+                   check=check_generation, summarise=summarise, ready=ready)
