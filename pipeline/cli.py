@@ -288,18 +288,29 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
     ('current, unfinished': current with frames pending, as after an interrupted run). Exit code 2
     when a stage's output is damaged (every stage is still listed)."""
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
+    missing = not _cache_exists(env)
     pipe = _pipeline(env, 1, None, progress=False)
     rows = pipe.status(reasons=None if as_json else reasons)
     if as_json:
         click.echo(json.dumps(rows, indent=2, default=str))
     else:
         click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}  data {env.data_root or '(none)'}")
+        if missing:
+            click.echo("(no cache of this dataset there: nothing has run with this --cache and --dataset)")
         notes = Counter(row["note"] for row in rows if row.get("note"))
         for row in rows:
             _print_status_row(row, notes)
             for i, why in list(row.get("reasons", {}).items())[:reasons]:
                 click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
     _exit_if_damaged(rows)
+
+
+def _cache_exists(env) -> bool:
+    """Whether the cache holds a folder for ``env``'s dataset."""
+    import fsspec
+
+    fs, path = fsspec.core.url_to_fs(join(env.cache_root, env.dataset))
+    return fs.exists(path)
 
 
 def _exit_if_damaged(rows: list[dict]) -> None:
@@ -452,6 +463,9 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     from tqdm import tqdm
 
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
+    if not _cache_exists(env):  # a mistyped path: not 'nothing damaged', nor lock folders made there
+        raise PipelineError(f"no cache of dataset {dataset} at {join(env.cache_root, dataset)}: nothing to verify "
+                            f"(another --cache or --dataset?)")
     pipe = _pipeline(env, 1, None, progress=False)
     unknown = [s for s in stages if s not in pipe.stages]
     if unknown:

@@ -125,3 +125,14 @@ def test_an_empty_cache_option_is_refused_not_a_folder_at_the_root(world, monkey
         out = CliRunner().invoke(main, ["run", "calibrate", "--dataset", "synthetic", "--data-root", str(world), *args])
         assert out.exit_code == 2 and "--cache (or $PIPELINE_CACHE) is empty" in out.output, out.output
     assert not Path("/synthetic").exists()
+
+
+def test_verify_and_status_say_when_there_is_no_cache(tmp_path):
+    """A mistyped --cache: verify said 'no stage output to verify' with exit code 0 (and made lock
+    folders there); status listed every stage as not run."""
+    where = tmp_path / "typo"
+    out = CliRunner().invoke(main, ["verify", "--dataset", "astyx", "--cache", str(where)])
+    assert out.exit_code == 2 and f"no cache of dataset astyx at {where / 'astyx'}" in out.output, out.output
+    assert not where.exists()
+    out = CliRunner().invoke(main, ["status", "--dataset", "astyx", "--cache", str(where)])
+    assert out.exit_code == 0 and "(no cache of this dataset there" in out.output
