@@ -65,7 +65,10 @@ def dataset_options(fn):
 
 def _absolute(path: str) -> str:
     """A local path made absolute (a relative one means another folder on a dask worker or in a
-    later run from elsewhere); URLs and '' unchanged."""
+    later run from elsewhere); a file:// URL is its path (zarr's store for it creates no folders);
+    other URLs and '' unchanged."""
+    if path.startswith("file://"):
+        path = path[len("file://"):] or "/"
     return path if not path or "://" in path else os.path.abspath(path)
 
 

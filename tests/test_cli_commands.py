@@ -136,3 +136,10 @@ def test_verify_and_status_say_when_there_is_no_cache(tmp_path):
     assert not where.exists()
     out = CliRunner().invoke(main, ["status", "--dataset", "astyx", "--cache", str(where)])
     assert out.exit_code == 0 and "(no cache of this dataset there" in out.output
+
+
+def test_a_file_url_cache_is_its_folder(world, tmp_path):
+    out = CliRunner().invoke(main, ["run", "heatmaps", "--dataset", "synthetic", "--data-root", str(world),
+                                    "--cache", f"file://{tmp_path / 'c'}", "--workers", "1"])
+    assert out.exit_code == 0, out.output
+    assert (tmp_path / "c" / "synthetic" / "heatmaps.zarr" / "zarr.json").is_file()
