@@ -6,11 +6,14 @@ needs is read inside ``process_frame`` from the cache (or, for calibrate, from t
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import logging
 import queue
+import signal
 import sys
+import threading
 import time
 import traceback
 import uuid
@@ -256,7 +259,8 @@ class Executor:
                 # threshold at 128 KiB: every image-sized array is then a fresh mmap and page-faults
                 # in (measured on Astyx calibrate: 3.9 M faults and 1.3x on 2 workers; with these
                 # settings 0.1 M faults and 1.8x).
-                with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_MALLOC.items()}):
+                with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_MALLOC.items()}), \
+                        _workers_ignore_sigint():
                     self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                                  dashboard_address=":0", silence_logs=logging.CRITICAL)
                 self._client = Client(self._cluster)
@@ -407,6 +411,22 @@ class Executor:
         if self._cluster is not None:
             return self.workers
         return max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()))
+
+
+@contextlib.contextmanager
+def _workers_ignore_sigint() -> Iterator[None]:
+    """Start the local cluster's worker processes with SIGINT ignored (they inherit it; Python then
+    installs no KeyboardInterrupt handler): Ctrl-C in a terminal reaches the whole process group,
+    and each worker printed its KeyboardInterrupt traceback before the run's one line. The run
+    itself stops them when it stops."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def process_frames(stage: FrameStage, env: RunEnv, batch: list[tuple[int, str]],

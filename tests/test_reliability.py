@@ -349,3 +349,22 @@ def test_an_error_stopping_a_dask_task_reaches_the_client_as_itself(monkeypatch)
         executor.process_frames(None, None, [(0, "f0"), (1, "f1"), (2, "f2")])
     back = dask_pickle.loads(dask_pickle.dumps(raised.value))
     assert type(back) is CacheError and str(back) == str(raised.value) and "writing frame 1" in str(back)
+
+
+def test_local_cluster_workers_start_with_ctrl_c_ignored():
+    """Ctrl-C reaches the terminal's whole process group: each local worker printed its
+    KeyboardInterrupt traceback (68 lines on Astyx calibrate with 2 workers) before the run's one
+    'interrupted' line. Workers started inside the guard ignore SIGINT; the run's own handler is back after."""
+    import signal
+    import subprocess
+    import sys
+
+    from pipeline.executor import _workers_ignore_sigint
+
+    probe = [sys.executable, "-c", "import signal; print(signal.getsignal(signal.SIGINT) == signal.SIG_IGN)"]
+    before = signal.getsignal(signal.SIGINT)
+    with _workers_ignore_sigint():
+        inside = subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip()
+    assert inside == "True"
+    assert signal.getsignal(signal.SIGINT) is before
+    assert subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip() == "False"
