@@ -352,7 +352,7 @@ class Pipeline:
         """ConfigError for settings a stage of ``target``'s run cannot work with, before any output
         is touched (each stage's ``check``; a stage writing local files with a remote cache)."""
         closure = self.upstream_closure(target)
-        self.require_local_cache([n for n in closure if getattr(self.stages[n], "local_files", False)])
+        self.require_local_cache([n for n in closure if n in self._local_file_stages()])
         for name in closure:
             check = self.stages[name].check
             if check is not None:
@@ -362,13 +362,17 @@ class Pipeline:
         """ConfigError when the cache is not a local folder although ``names`` (stages, commands)
         write theirs with local file APIs: they would write to a local path named like the remote one."""
         if names and not is_local(fsspec.core.url_to_fs(self.env.cache_root)[0]):
-            local = {n for n in self.order if getattr(self.stages[n], "local_files", False)}
+            local = self._local_file_stages()
             frame_stages = [n for n in self.order if isinstance(self.stages[n], FrameStage)
                             and not set(self.upstream_closure(n)) & local]
             raise ConfigError(f"--cache {self.env.cache_root} is not a local folder, and {', '.join(names)} "
                               f"write{'s' if len(names) == 1 else ''} checkpoints and reports with local file "
                               f"APIs: use a local (or mounted) cache folder for them; on this cache run the "
                               f"per-frame stages {', '.join(frame_stages)}")
+
+    def _local_file_stages(self) -> set[str]:
+        """The stages that write their output with local file APIs (DatasetStage.local_files)."""
+        return {n for n in self.order if getattr(self.stages[n], "local_files", False)}
 
     def downstream(self, name: str) -> list[str]:
         """Stages that depend on ``name``, directly or not, in execution order."""
@@ -680,14 +684,14 @@ def parse_frames(spec: str | None, frame_ids: list[str]) -> list[int] | None:
                               f"indices 0 to {len(frame_ids) - 1})")
         return chosen
     lookup = {f: i for i, f in enumerate(frame_ids)}
+    like = next((f for f in frame_ids if f.isdigit()), None)  # ids that are numbers: '60' is ambiguous
     out = []
     for item in spec.split(","):
         item = item.strip()
         if item in lookup:
             out.append(lookup[item])
-        elif item.isdigit() and any(f.isdigit() for f in frame_ids):
+        elif item.isdigit() and like is not None:
             # '60' where the ids are numbers ('000060'): an id written without its zeros, or index 60?
-            like = next(f for f in frame_ids if f.isdigit())
             raise ConfigError(f"--frames: '{item}' is no frame id here (ids are numbers like '{like}') and would "
                               f"be taken as an index: give the id as the dataset writes it, or indices as "
                               f"START:STOP ('{item}:{int(item) + 1}')")
