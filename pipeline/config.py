@@ -538,6 +538,10 @@ def all_keys() -> list[str]:
     return [f"{s}.{f.name}" for s, cls in SECTIONS.items() for f in fields(cls)]
 
 
+_KEYS = all_keys()
+_KEY_OF_VARIABLE = {f"PIPELINE__{k.replace('.', '__').upper()}": k for k in _KEYS}
+
+
 def _split_key(key: str) -> tuple[str, str]:
     if "." in key:
         section, name = key.split(".", 1)
@@ -641,21 +645,51 @@ def load_config(profile: str, overrides: dict[str, str] | None = None,
             raise ConfigError(f"profile {profile}.toml: top-level key '{section}' is not a [section]")
         for name, value in values.items():
             flat[f"{section}.{name}"] = value
-    flat.update(env_overrides(os.environ if environ is None else environ))
-    flat.update(overrides or {})
+    overrides = overrides or {}
     cfg = cfg.with_overrides(flat)
+    for key, (var, value) in _env_variables(os.environ if environ is None else environ).items():
+        if key in overrides:  # --set wins, and is the value checked
+            continue
+        try:
+            cfg = cfg.with_overrides({key: value})
+        except ConfigError as exc:  # named as the user wrote it: the variable, not the key
+            raise ConfigError(f"environment variable {var}={value!r}: {exc}") from None
+    cfg = cfg.with_overrides(overrides)
     check_relations(cfg)  # once every value is in (a caller may change related keys one by one later)
     return cfg
 
 
 def env_overrides(environ: dict[str, str]) -> dict[str, str]:
-    """``{'section.key': value}`` of the PIPELINE__SECTION__KEY variables in ``environ``."""
+    """``{'section.key': value}`` of the PIPELINE__SECTION__KEY variables in ``environ``; ConfigError
+    for a PIPELINE__ variable that names no key."""
+    return {key: value for key, (_, value) in _env_variables(environ).items()}
+
+
+def _env_variables(environ: dict[str, str]) -> dict[str, tuple[str, str]]:
+    """``{'section.key': (variable, value)}`` of the PIPELINE__SECTION__KEY variables in ``environ``;
+    ConfigError naming the variable (and the one meant, where it is clear) for one that names no key,
+    e.g. PIPELINE__TRAIN_EPOCHS, which would otherwise be ignored without a word."""
     out = {}
-    for var, value in environ.items():
-        if var.startswith("PIPELINE__") and var.count("__") >= 2:
-            _, section, name = var.split("__", 2)
-            out[f"{section.lower()}.{name.lower()}"] = value
+    for var, value in sorted(environ.items()):
+        if not var.startswith("PIPELINE__"):
+            continue
+        key = _KEY_OF_VARIABLE.get(var.upper())  # keys are matched ignoring case (radar_mount_T_radar_lidar)
+        if key is None:
+            tail = var[len("PIPELINE__"):].upper()
+            meant = [k for k in _KEYS if k.replace(".", "_").upper() == tail]
+            near = difflib.get_close_matches(var.upper(), list(_KEY_OF_VARIABLE), n=1, cutoff=0.8)
+            meant = meant or [_KEY_OF_VARIABLE[v] for v in near]
+            hint = f"did you mean {_variable(meant[0])}?" if meant else "e.g. PIPELINE__TRAIN__EPOCHS"
+            raise ConfigError(f"environment variable {var} names no configuration key (the form is "
+                              f"PIPELINE__SECTION__KEY, two underscores around SECTION); {hint}")
+        out[key] = (var, value)
     return out
+
+
+def _variable(key: str) -> str:
+    """The environment variable that sets ``key``."""
+    section, name = key.split(".", 1)
+    return f"PIPELINE__{section.upper()}__{name.upper()}"
 
 
 def parse_set_options(items: tuple[str, ...] | list[str]) -> dict[str, str]:

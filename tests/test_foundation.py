@@ -593,6 +593,30 @@ def test_values_no_stage_could_run_with_are_refused_with_the_key_before_anything
                               "eval.gate_rss": "inf"}, environ={})  # values at the limits pass; inf: no gate
 
 
+def test_environment_errors_name_the_variable_and_a_malformed_variable_is_refused(tmp_path):
+    """Until 2026-12-05 a bad value was reported under the key alone ('train.epochs'), which the user
+    never typed, and PIPELINE__TRAIN_EPOCHS (one underscore) was ignored without a word."""
+    with pytest.raises(ConfigError, match=r"environment variable PIPELINE__TRAIN__EPOCHS='abc': .*train\.epochs"):
+        load_config("synthetic", environ={"PIPELINE__TRAIN__EPOCHS": "abc"})
+    for var, meant in [("PIPELINE__TRAIN_EPOCHS", "PIPELINE__TRAIN__EPOCHS"),
+                       ("PIPELINE__TRAIN__EPOCH", "PIPELINE__TRAIN__EPOCHS"),
+                       ("PIPELINE__HEATMAP__SIGMA", "PIPELINE__HEATMAP__SIGMA_PX"),
+                       ("PIPELINE__COUNT_GRAD_SCALE", "PIPELINE__TRAIN__COUNT_GRAD_SCALE"), ("PIPELINE__XYZ", None)]:
+        with pytest.raises(ConfigError, match=f"environment variable {var} names no configuration key") as exc:
+            load_config("synthetic", environ={var: "3"})
+        assert (f"did you mean {meant}?" in str(exc.value)) if meant else "did you mean" not in str(exc.value)
+    assert load_config("synthetic", environ={"PIPELINE__TRAIN__EPOCHS": "3"}).train.epochs == 3
+    assert load_config("synthetic", environ={"PIPELINE__TRAIN__COUNT_GRAD_SCALE": "0.5"}).train.count_grad_scale == 0.5
+    load_config("synthetic", environ={"PIPELINE_CACHE": "x"})  # the CLI's own variable (one underscore) is no key
+    # --set wins over the environment, so a bad variable it overrides is never read
+    assert load_config("synthetic", {"train.epochs": "4"}, environ={"PIPELINE__TRAIN__EPOCHS": "abc"}).train.epochs == 4
+    from pipeline.cli import main
+    out = CliRunner().invoke(main, ["run", "heatmaps", "--dataset", "synthetic", "--cache", str(tmp_path / "c")],
+                             env={"PIPELINE__TRAIN_EPOCHS": "3"})
+    assert out.exit_code != 0 and "PIPELINE__TRAIN__EPOCHS?" in out.output and "Traceback" not in out.output
+    assert not (tmp_path / "c").exists()
+
+
 def test_cli_names_a_cache_url_fsspec_cannot_open_and_an_unknown_stage_to_unlock(tmp_path):
     """Until 2026-12-04: a raw ImportError or ValueError traceback for the URL; `unlock heatmap`
     (a typo) said there was no lock and exited 0."""
