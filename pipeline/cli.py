@@ -16,7 +16,7 @@ import click
 from pipeline.cache import frame_store, join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
 from pipeline.errors import ConfigError, MetadataError, PipelineError
-from pipeline.runner import NAME_WIDTH, check_stage_name
+from pipeline.runner import NAME_WIDTH, check_stage_name, failed_frames_line
 from pipeline.stage import FrameStage
 
 DEFAULT_CACHE = "cache"
@@ -236,12 +236,12 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
                            wait_s=wait_s)
     finally:
         pipe.executor.close()
-    failed = sum(r.failed for r in reports)
+    failed = failed_frames_line(reports)
     status_cmd = f"pipeline status --dataset {shlex.quote(dataset)}"
     if cache_root != DEFAULT_CACHE:
         status_cmd += f" --cache {shlex.quote(cache_root)}"
     if failed:
-        click.echo(f"{failed} frame(s) failed across stages; `{status_cmd}` lists why.", err=True)
+        click.echo(f"{failed}; `{status_cmd}` lists why.", err=True)
     for r in reports:
         for key in ("report", "figures", "checkpoints", "output"):
             if key in r.summary:

@@ -704,6 +704,21 @@ def test_cli_names_relocate_when_the_recorded_data_root_is_gone(tmp_path, fake_c
     assert "`pipeline relocate --dataset synthetic --data-root NEW_PLACE`" in out.stderr
 
 
+def test_cli_counts_each_failed_frame_once_under_the_stage_it_first_failed_in(tmp_path, fake_cli, monkeypatch):
+    """Until 2026-12-05 the run printed '2 frame(s) failed across stages' for one bad frame: heatmaps
+    marks the frame calibrate failed on failed too, and the counts were summed."""
+    import sys
+
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "f001", "f002", "f003"])
+    out = fake_cli(tmp_path, "run", "train", "--workers", "1")
+    assert out.exit_code == 0, out.output
+    assert "1 frame(s) failed (first in calibrate: 1); `pipeline status --dataset synthetic --cache " in out.stderr
+    chunk = tmp_path / "cache" / "synthetic" / "calibrate.zarr" / "points" / "c" / "3" / "0" / "0"
+    _damage(chunk, "empty")  # frame 3 now fails in heatmaps; frame 0 stays failed from the first run
+    out = fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", "--force")
+    assert "2 frame(s) failed (first in calibrate: 1, heatmaps: 1)" in out.stderr, out.output
+
+
 def test_cli_run_exits_1_when_a_stage_made_nothing(tmp_path, fake_cli, monkeypatch):
     """Some failed frames leave the run a success (exit 0; --strict stops at the first); a stage
     whose every frame failed made nothing, which a script must notice (until 2026-12-04: exit 0)."""
