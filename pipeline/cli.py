@@ -365,14 +365,38 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     from pipeline.readers import get_reader
     from pipeline.runner import parse_frames
 
+    from tqdm import tqdm
+
     env = _context(dataset, data_root, cache_root, sets)
     reader = get_reader(env.cfg, env.data_root)
     ids = reader.frame_ids()
     chosen = parse_frames(frames_spec, ids) or range(len(ids))
-    records = [reader.read(ids[i]) for i in chosen]
-    sx, sy = sigma_from_frames(records)
-    click.echo(f"estimated Sigma std: {sx:.1f} px (u), {sy:.1f} px (v) at full resolution "
-               f"(profile uses {env.cfg.heatmap.sigma_px}); set it with --set heatmap.sigma_px={sx:.0f},{sy:.0f}")
+    skipped: list[tuple[str, str]] = []
+
+    def readable():  # one frame in memory at a time; an unreadable one is skipped and named, as `run` does
+        for i in tqdm(chosen, desc="estimate-sigma", unit="frame", leave=False, file=sys.stderr,
+                      disable=not sys.stderr.isatty()):
+            try:
+                yield reader.read(ids[i])
+            except (PipelineError, ValueError, OSError, KeyError) as exc:
+                skipped.append((ids[i], str(exc).splitlines()[0] if str(exc) else type(exc).__name__))
+
+    try:
+        sx, sy = sigma_from_frames(readable())
+    except ValueError as exc:  # no object with enough radar points in the frames read
+        raise PipelineError(f"dataset {dataset}: cannot estimate Sigma from the {len(chosen) - len(skipped)} "
+                            f"readable frame(s) ({exc})" + (f"; {_skipped_text(skipped)}" if skipped else "")) from None
+    if skipped:
+        click.echo(_skipped_text(skipped), err=True)
+    click.echo(f"estimated Sigma std: {sx:.1f} px (u), {sy:.1f} px (v) at full resolution from "
+               f"{len(chosen) - len(skipped)} frame(s) (profile uses {env.cfg.heatmap.sigma_px}); set it with "
+               f"--set heatmap.sigma_px={sx:.0f},{sy:.0f}")
+
+
+def _skipped_text(skipped: list[tuple[str, str]], shown: int = 3) -> str:
+    """'2 unreadable frame(s) skipped: 000012: why; 000013: why' (the first ``shown``)."""
+    more = f"; and {len(skipped) - shown} more" if len(skipped) > shown else ""
+    return f"{len(skipped)} unreadable frame(s) skipped: " + "; ".join(f"{i}: {why}" for i, why in skipped[:shown]) + more
 
 
 @main.command()

@@ -77,6 +77,39 @@ def test_estimate_sigma_uses_the_frames_asked_for(world, tmp_path):
     assert bad.exit_code == 2 and "'99' is no frame id here" in bad.output
 
 
+def test_estimate_sigma_skips_and_names_unreadable_frames(world, tmp_path):
+    """Until 2026-12-05 the first unreadable frame stopped it (and it held every frame read in memory)."""
+    import shutil
+
+    from pipeline.config import load_config
+    from pipeline.heatmap import sigma_from_frames
+    from pipeline.readers import get_reader
+
+    copy = tmp_path / "world"
+    shutil.copytree(world, copy)
+    reader = get_reader(load_config("synthetic", environ={}), str(copy))
+    ids = reader.frame_ids()
+    images = sorted(copy.glob("*/training/image_2/*.png"))  # the world's two layouts: each has the images
+    bad = ids[1]
+    for image in images:
+        if image.stem == bad:
+            image.write_bytes(b"not a png")
+    args = ["estimate-sigma", "--dataset", "synthetic", "--data-root", str(copy), "--cache", str(tmp_path / "c")]
+    out = CliRunner().invoke(main, args)
+    assert out.exit_code == 0, out.output
+    assert re.search(rf"^1 unreadable frame\(s\) skipped: {bad}: .*{bad}", out.stderr, re.M), out.stderr
+    sx, sy = sigma_from_frames([reader.read(i) for i in ids if i != bad])
+    assert (sx, sy) != sigma_from_frames([reader.read(i) for i in ids[2:]])  # frame 0 was used
+    assert f"estimated Sigma std: {sx:.1f} px (u), {sy:.1f} px (v) at full resolution from {len(ids) - 1} frame(s)" \
+        in out.stdout
+    for image in images:
+        image.write_bytes(b"")
+    out = CliRunner().invoke(main, args)
+    assert out.exit_code == 2 and "Traceback" not in out.output
+    assert out.stderr.startswith(f"error: dataset synthetic: cannot estimate Sigma from the 0 readable frame(s) (")
+    assert f"; {len(ids)} unreadable frame(s) skipped: " in out.stderr and "and 1 more" in out.stderr
+
+
 @pytest.mark.parametrize("command", [["run", "synthesize"], ["run", "export"], ["ablate"]])
 def test_stages_writing_local_files_refuse_a_remote_cache_before_any_work(world, command):
     """train, evaluate and export write checkpoints and reports with local file APIs: on an fsspec
