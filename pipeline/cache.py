@@ -28,6 +28,7 @@ import functools
 import hashlib
 import json
 import os
+import re
 import shlex
 import time
 import uuid
@@ -693,14 +694,17 @@ class DirStore:
                                                   indent=2, default=str))
 
     def summary(self) -> dict[str, Any]:
-        """The summary the stage finished with ({} if it never did); string values that were paths
-        inside the folder are given at its current path (the cache may have been moved since)."""
+        """The summary the stage finished with ({} if it never did); paths inside the folder, as
+        string values or within one (the message), are given at its current path (the cache may
+        have been moved since)."""
         meta = self.meta() or {}
         summary, old = dict(meta.get("summary", {})), meta.get("path")
         if old and old != self.path:
+            # the folder itself or a path under it: not a sibling whose name merely starts the same
+            inside = re.compile(re.escape(old.rstrip("/")) + r"(?=$|[/\s,;:)\]'\"`])")
             for key, value in summary.items():
-                if isinstance(value, str) and (value == old or value.startswith(old.rstrip("/") + "/")):
-                    summary[key] = self.path + value[len(old):]
+                if isinstance(value, str):
+                    summary[key] = inside.sub(lambda _: self.path.rstrip("/"), value)
         return summary
 
     def clear(self) -> None:

@@ -190,7 +190,8 @@ def main() -> None:
               help="Run per-frame work on an existing dask.distributed cluster (tcp://HOST:PORT; "
                    "or $DASK_SCHEDULER_ADDRESS). Its workers need the package and access to the cache and data.")
 @click.option("--frames", "frames_spec", default="", metavar="SPEC",
-              help="Limit per-frame work to START:STOP[:STEP] frame indices or a comma list of frame ids.")
+              help="Limit per-frame work to START:STOP[:STEP] frame indices or a comma list of frame ids "
+                   "(train, export and evaluate use every finished frame of their inputs).")
 @click.option("--strict", is_flag=True, help="Stop at the first failed frame with a non-zero exit code.")
 @click.option("--force", is_flag=True, help="Recompute STAGE from scratch even if its output is current (train: "
               "its checkpoints are discarded and the nets trained again); with --frames, only those frames, in "
@@ -224,13 +225,17 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
         elif force:
             click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
         if frames_spec:
-            click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames")
+            click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames"
+                       f"{_whole_dataset_note(pipe, closure)}")
         rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
         _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
         return
     pipe.executor.check_cluster(env.cache_root)  # before the world is generated or any output touched
     _ensure_world(env, pipe.progress)
     frames = parse_frames(frames_spec, pipe.frame_ids())
+    if frames_spec and _whole_dataset_note(pipe, closure):
+        click.echo(f"--frames {frames_spec}: limits the per-frame stages{_whole_dataset_note(pipe, closure)}",
+                   err=True)
     try:
         reports = pipe.run(stage, frames=frames, strict=strict, force=force, retry_failed=retry_failed,
                            wait_s=wait_s)
@@ -259,6 +264,16 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
                   f"--retry-failed tries them again)"
         click.echo(f"error: stage {r.stage} has no frame done: {why}", err=True)
         sys.exit(1)
+
+
+def _whole_dataset_note(pipe, names: list[str]) -> str:
+    """'; train, export use every ...' for the stages of ``names`` that --frames does not limit."""
+    whole = [n for n in names if not isinstance(pipe.stages[n], FrameStage)]
+    if not whole:
+        return ""
+    verb = "uses" if len(whole) == 1 else "use"
+    return (f"; {', '.join(whole)} {verb} every finished frame of {'its' if len(whole) == 1 else 'their'} inputs, "
+            f"not only those (they run again when more frames finish)")
 
 
 def _print_status_row(row: dict, notes: dict[str, int] | None = None) -> None:

@@ -234,9 +234,9 @@ class Pipeline:
         reports = []
         self._done.clear()
         self.check_config(target)
-        old = self.moved_from()
-        if old and not (force and target == FIRST_STAGE):
-            raise PipelineError(self._moved_message(old))
+        old = self.made_from()
+        if old and not (force and target == FIRST_STAGE):  # every output would be recomputed: only when asked
+            raise PipelineError(self._other_root_message(old))
         for name in self.upstream_closure(target):
             stage = self.stages[name]
             what = f"stage '{name}' of dataset '{self.env.dataset}'"
@@ -282,10 +282,9 @@ class Pipeline:
                 break
         return reports
 
-    def moved_from(self) -> str | None:
-        """The data root the first stage's output was made from, when this run's is another and
-        nothing else keeps that output from being current (the same frames, the same settings):
-        the data moved, or this run names other data at another place. Else None."""
+    def made_from(self) -> str | None:
+        """The data root the first stage's output was made from, when this run's is another (which
+        would make every stage recompute); else None, also when there is no output or it records none."""
         store = self.env.store(FIRST_STAGE)
         try:
             if not store.exists():
@@ -293,17 +292,42 @@ class Pipeline:
         except MetadataError:  # nothing recorded to compare: the run stops on it, or rebuilds it when forced
             return None
         old = store.attrs().get("data_root") or ""
-        if not old or _root(old) == _root(self.env.data_root):
-            return None
-        return old if store.fingerprint() == self._at(old).fingerprint(FIRST_STAGE) else None
+        return old if old and _root(old) != _root(self.env.data_root) else None
 
-    def _moved_message(self, old: str) -> str:
-        new = _root(self.env.data_root)
-        return (f"dataset '{self.env.dataset}': its cache was made from the data at {old}; the data root {new} lists "
-                f"the same frames, and would make every stage recompute, training included. The same data moved: "
-                f"`pipeline relocate --dataset {self.env.dataset} --data-root {new}` checks some of its frames and "
-                f"keeps every output. Other data: `pipeline run {FIRST_STAGE} --force --data-root {new}` recomputes "
-                f"everything from it (or use another --cache)")
+    def moved_from(self) -> str | None:
+        """:meth:`made_from`, when nothing else keeps that output from being current (the same
+        frames, the same settings): the data moved, or this run names other data at another place
+        that lists the same frames. Else None."""
+        old = self.made_from()
+        if old is None:
+            return None
+        return old if self.env.store(FIRST_STAGE).fingerprint() == self._at(old).fingerprint(FIRST_STAGE) else None
+
+    def _other_root_message(self, old: str) -> str:
+        """Why a run at this data root, not the cache's ``old`` one (:meth:`made_from`), stops, and the ways on."""
+        new, dataset = _root(self.env.data_root), self.env.dataset
+        start = (f"dataset '{dataset}': its cache was made from the data at {old}; the data root {new} ")
+        force = f"`pipeline run {FIRST_STAGE} --force --data-root {new}` recomputes everything from it"
+        if self.moved_from() == old:
+            return (f"{start}lists the same frames, and would make every stage recompute, training included. The "
+                    f"same data moved: `pipeline relocate --dataset {dataset} --data-root {new}` checks some of its "
+                    f"frames and keeps every output. Other data: {force} (or use another --cache)")
+        try:
+            cached = self.env.store(FIRST_STAGE).frame_ids()
+        except MetadataError:
+            cached = None
+        here = self.frame_ids()
+        if cached is None:
+            frames = f"lists {len(here)} frame(s)"
+        elif cached == here:
+            frames = (f"lists the same {len(here)} frame(s), but {FIRST_STAGE}'s settings or code differ from those "
+                      f"of the cache's output (so `pipeline relocate` cannot keep it)")
+        else:
+            common = len(set(cached) & set(here))
+            frames = f"lists {len(here)} frame(s), {common} of them among the cache's {len(cached)}"
+        return (f"{start}{frames}. Running on it would recompute every stage, training included, and replace "
+                f"what the cache holds. To do so: {force}; to keep this cache, use another --cache for the new "
+                f"data; to run on the cache's own data, omit --data-root")
 
     def _at(self, data_root: str) -> "Pipeline":
         """This pipeline reading its frames (as listed here) at ``data_root``."""
@@ -658,8 +682,8 @@ class Pipeline:
                 folder = self.env.dir(name)
                 row["exists"] = folder.meta() is not None
                 row["summary"] = folder.summary()
-            if name == FIRST_STAGE and row.get("exists") and (old := self.moved_from()):
-                row["note"] = self._moved_message(old)
+            if name == FIRST_STAGE and row.get("exists") and (old := self.made_from()):
+                row["note"] = self._other_root_message(old)
             row["current"] = _all_of([current, *(current_of.get(u) for u in stage.upstream)]) if row["exists"] else False
             current_of[name] = row["current"]
             rows.append(row)

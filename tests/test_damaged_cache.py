@@ -719,6 +719,19 @@ def test_cli_counts_each_failed_frame_once_under_the_stage_it_first_failed_in(tm
     assert "2 frame(s) failed (first in calibrate: 1, heatmaps: 1)" in out.stderr, out.output
 
 
+def test_cli_says_which_stages_frames_does_not_limit(tmp_path, fake_cli):
+    """Until 2026-12-05 nothing said that train (export, evaluate) used every finished frame after a
+    `--frames` run: `run export --frames 0:2` on a finished cache exported every frame."""
+    out = fake_cli(tmp_path, "run", "train", "--workers", "1", "--frames", "0:2")
+    assert out.exit_code == 0, out.output
+    assert ("--frames 0:2: limits the per-frame stages; train uses every finished frame of its inputs, not only "
+            "those (they run again when more frames finish)") in out.stderr
+    dry = fake_cli(tmp_path, "run", "train", "--dry-run", "--frames", "0:2")
+    assert "--frames 0:2: per-frame work would be limited to those frames; train uses every finished" in dry.stdout
+    out = fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", "--frames", "0:2")
+    assert out.exit_code == 0 and "--frames" not in out.output  # only frame stages: nothing to say
+
+
 def test_cli_run_exits_1_when_a_stage_made_nothing(tmp_path, fake_cli, monkeypatch):
     """Some failed frames leave the run a success (exit 0; --strict stops at the first); a stage
     whose every frame failed made nothing, which a script must notice (until 2026-12-04: exit 0)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import time
 import types
 from pathlib import Path
@@ -83,13 +84,15 @@ def test_a_moved_cache_reports_its_files_where_they_are_now(tmp_path):
     old = DirStore(str(tmp_path / "a" / "train"))
     old.ensure()
     summary = {"checkpoints": old.path, "report": f"{old.path}/report.md", "sibling": f"{old.path}2/x",
-               "outside": str(tmp_path / "elsewhere"), "note": "a plain string", "epochs": 3}
+               "outside": str(tmp_path / "elsewhere"), "note": "a plain string", "epochs": 3,
+               "message": f"80 frames; report {old.path}/report.md, figures ({old.path}); not {old.path}2/x"}
     old.finish("fp", summary)
     assert old.summary() == summary
     shutil.copytree(tmp_path / "a", tmp_path / "b")
     moved = DirStore(str(tmp_path / "b" / "train")).summary()
-    assert moved == {**summary, "checkpoints": str(tmp_path / "b" / "train"),
-                     "report": str(tmp_path / "b" / "train" / "report.md")}
+    new = tmp_path / "b" / "train"
+    assert moved == {**summary, "checkpoints": str(new), "report": str(new / "report.md"),  # the message since 2026-12-05
+                     "message": f"80 frames; report {new}/report.md, figures ({new}); not {old.path}2/x"}
     legacy = tmp_path / "b" / "train" / "_stage.json"   # written before the folder's path was kept
     legacy.write_text(json.dumps({"fingerprint": "fp", "summary": summary}))
     assert DirStore(str(tmp_path / "b" / "train")).summary() == summary
@@ -534,6 +537,40 @@ def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, mon
         make_pipeline(tmp_path).run("train")
     reports = {r.stage: r for r in make_pipeline(tmp_path).run("calibrate", force=True)}
     assert reports["calibrate"].processed == len(IDS) and not make_pipeline(tmp_path).is_current("heatmaps")
+
+
+def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced(tmp_path, monkeypatch):
+    """Until 2026-12-05 a --data-root listing other frames (a mistyped path, a subset of the data) made
+    every stage stale and recomputed it without a word, the trained nets included; only a root with
+    the same frames and settings (moved data) was refused."""
+    def at(root: Path, ids: list[str], overrides: dict | None = None) -> Pipeline:
+        env = RunEnv(cfg=load_config("synthetic", overrides or {}, environ={}), cache_root=str(tmp_path / "cache"),
+                     dataset="fake", data_root=str(root))
+        return Pipeline(fake_stages.STAGES, env, Executor(1), progress=False, log=lambda m: None,
+                        frame_lister=lambda: list(ids))
+
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    at(tmp_path, IDS).run("train")
+    trained = (tmp_path / "cache" / "fake" / "train" / "_stage.json").read_bytes()
+    log.unlink()
+    other = tmp_path / "other"
+    cases = [(IDS[:5] + ["x001"], {}, f"the data root {other} lists 6 frame(s), 5 of them among the cache's {len(IDS)}"),
+             (IDS, {"split.seed": "7"}, f"lists the same {len(IDS)} frame(s), but calibrate's settings or code differ")]
+    for ids, overrides, frames in cases:
+        for target in ("train", "heatmaps"):
+            with pytest.raises(PipelineError, match=re.escape(frames)) as exc:
+                at(other, ids, overrides).run(target)
+            assert f"`pipeline run calibrate --force --data-root {other}`" in str(exc.value)
+            assert "to keep this cache, use another --cache" in str(exc.value)
+            with pytest.raises(PipelineError):
+                at(other, ids, overrides).run(target, force=True)  # forcing another stage is no answer
+        assert frames in {r["stage"]: r for r in at(other, ids, overrides).status()}["calibrate"]["note"]
+    assert not log.exists()  # nothing computed, nothing replaced
+    assert (tmp_path / "cache" / "fake" / "train" / "_stage.json").read_bytes() == trained
+    assert at(tmp_path, IDS).is_current("train")
+    reports = {r.stage: r for r in at(other, IDS[:5] + ["x001"]).run("calibrate", force=True)}
+    assert reports["calibrate"].processed == 6 and at(other, IDS[:5] + ["x001"]).env.store("calibrate").frame_ids()[-1] == "x001"
 
 
 def test_invalid_settings_are_refused_before_any_output_is_touched(tmp_path):

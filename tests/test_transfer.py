@@ -36,6 +36,13 @@ def trained(tmp_path_factory) -> Path:
     return root / "cache"
 
 
+def _synthetic_only(trained: Path, tmp_path: Path) -> Path:
+    """A cache holding a copy of ``trained``'s synthetic dataset only: the other tests write their
+    KITTI data (from their own folders) into ``trained``, and a cache refuses another data root."""
+    shutil.copytree(trained / "synthetic", tmp_path / "cache" / "synthetic")
+    return tmp_path / "cache"
+
+
 def _pipeline(cfg, cache: Path, dataset: str, data: Path, log=lambda m: None) -> Pipeline:
     env = RunEnv(cfg, str(cache), dataset, str(data))
     return Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=log)
@@ -266,6 +273,7 @@ def _check_inputs_outside_training(pipe: Pipeline, cache: Path, notes: list[str]
 
 def test_the_train_stage_refuses_settings_the_nets_were_not_trained_with(trained, tmp_path):
     kitti = _kitti(tmp_path / "kitti")
+    trained = _synthetic_only(trained, tmp_path)
     raw = load_config("kitti", {"train.nets_from": "synthetic"}, environ={})   # not through with_nets_from
     with pytest.raises(ConfigError, match=r"train.nets_from = 'synthetic': this configuration lacks settings .*"
                                           r"radar\.name=synthetic"):
@@ -397,8 +405,7 @@ def test_a_run_naming_untrained_nets_leaves_the_outputs_made_with_trained_ones(t
 
     from pipeline.cli import main
 
-    cache = tmp_path / "cache"
-    shutil.copytree(trained, cache)
+    cache = _synthetic_only(trained, tmp_path)
     kitti = _kitti(tmp_path / "kitti")
     args = ["run", "calibrate", "--workers", "1", "--dataset", "kitti", "--data-root", str(kitti), "--cache", str(cache)]
     assert CliRunner().invoke(main, [*args, "--set", "train.nets_from=synthetic"]).exit_code == 0
