@@ -16,7 +16,10 @@ or written from the reader's objects for the generated calib (pipeline.export.ki
 optional
 pcd/<id>.pcd and preview/<id>.png (image with the points coloured by range);
 ego_velocity_unknown.txt, the frames whose dataset records no ego motion (their Doppler is a
-stopped car's: filter them out of Doppler-using training), absent when there are none.
+stopped car's: filter them out of Doppler-using training), absent when there are none;
+object_velocity_unknown.txt, the frames with points on labelled objects whose velocity the dataset
+does not record (no track to difference: the View-of-Delft example frames, Astyx), whose Doppler is
+a static object's, absent when there are none.
 Config: export.* (noise_fraction: the paper's 5% uniform noise points; class_names: classes renamed
 in the labels, whose boxes per class the summary counts), radar.* (noise bounds, the
 Doppler span that v_r and v_r_compensated lie in),
@@ -44,7 +47,7 @@ CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
                "radar.doppler_span_mps",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
-VERSION = 5
+VERSION = 6
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
 3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
 out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
@@ -52,7 +55,8 @@ export.image_format; Astyx's annotations as KITTI labels (pipeline.export.kitti_
 v_r_compensated wrapped into an aliasing radar's span (Astyx: 56% of its points had +-10.4 m/s).
 4: a track id's truncation column gets the box's truncation from the calib's P2, not 0 (boxes cut by
 the image edge were rated 'Easy' by OpenPCDet).
-5: export.class_names renames classes in the labels; the summary counts the boxes per class."""
+5: export.class_names renames classes in the labels; the summary counts the boxes per class.
+6: object_velocity_unknown.txt and the summary's count of points on objects of unknown velocity."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
@@ -74,7 +78,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     lists: dict[str, list[str]] = {name: [] for name in SPLIT_NAMES.values()}
     no_motion: list[str] = []   # frames whose dataset records no ego motion: Doppler as if stopped
     empty: list[str] = []       # frames written without a point
-    (root / NO_MOTION_LIST).unlink(missing_ok=True)
+    unknown_motion: dict[str, int] = {}  # frame -> points on labelled objects of unknown velocity: static Doppler
+    for listed in (NO_MOTION_LIST, UNKNOWN_OBJECT_MOTION_LIST):
+        (root / listed).unlink(missing_ok=True)
     n_points = n_noise = 0
     class_map = parse_class_map(cfg.export.class_names)  # checked by check()
     classes: dict[str, Counter[str]] = {"training": Counter(), "testing": Counter()}  # boxes per class written
@@ -136,12 +142,19 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         lists[name].append(fid)
         if not f.get("calibrate", "ego_velocity_known"):
             no_motion.append(fid)
+        on_unknown = points_of_unknown_motion(pts[:, :3], f.get("calibrate", "labels"))
+        if on_unknown:
+            unknown_motion[fid] = on_unknown
         n_points += len(pts)
     write_image_sets(radar_root, lists)
     if no_motion:
         (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
+    if unknown_motion:
+        (root / UNKNOWN_OBJECT_MOTION_LIST).write_text("\n".join(unknown_motion) + "\n")
+    n_unknown = sum(unknown_motion.values())
     return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
             "no_ego_motion": len(no_motion), "empty_frames": empty,
+            "object_motion_unknown": {"frames": len(unknown_motion), "points": int(n_unknown)},
             "classes": {subset: dict(counts) for subset, counts in classes.items()},
             "classes_not_found": sorted(unused),
             "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root} (the RCS "
@@ -151,6 +164,10 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                           if unused else "")
                        + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
                           f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
+                       + (f"; {n_unknown} of the points ({n_unknown / max(n_points, 1):.0%}), in {len(unknown_motion)} "
+                          f"frame(s), lie on labelled objects whose velocity the dataset does not record: their "
+                          f"Doppler is a static object's, so a moving object's points read as parked (frames listed "
+                          f"in {root / UNKNOWN_OBJECT_MOTION_LIST})" if unknown_motion else "")
                        + (f"; {len(empty)} of them without a point (an empty .bin, on which a detector's "
                           f"voxelisation may fail): {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}"
                           if empty else "")
@@ -180,6 +197,22 @@ def _no_train_hint(cfg: Config) -> str:
 NO_MOTION_LIST = "ego_velocity_unknown.txt"
 """Under the export folder: the exported frames whose dataset records no ego motion (KITTI without
 oxts), one id per line; absent when there are none."""
+
+
+UNKNOWN_OBJECT_MOTION_LIST = "object_velocity_unknown.txt"
+"""Under the export folder: the exported frames with points on labelled objects whose velocity the
+dataset does not record (their Doppler is a static object's), one id per line; absent when there
+are none."""
+
+
+def points_of_unknown_motion(points_D: np.ndarray, labels: np.ndarray) -> int:
+    """How many of the points (N, 3) m in {D} lie on a labelled object (calibrate's label rows) whose
+    velocity is unknown (NaN): synthesize gave them a static object's Doppler (the same boxes and
+    margin as pipeline.synthesis.object_velocities_for_points, which gave it)."""
+    from pipeline.synthesis import object_velocities_for_points
+
+    velocity = object_velocities_for_points(points_D, labels, unknown=np.nan)
+    return int(np.isnan(velocity[:, 0]).sum())
 
 
 def check(cfg: Config) -> None:

@@ -296,3 +296,22 @@ def test_class_names_rename_label_classes():
     assert rename_classes(text, {}) == text
     assert label_classes(out) == {"Pedestrian": 1, "Car": 1}                      # DontCare is no box
     assert label_classes(DONT_CARE_LINE + "\n") == {}
+
+
+def test_points_on_objects_of_unknown_velocity_are_counted():
+    """Until 2026-12-05 nothing said that points on a labelled object without a recorded velocity
+    (the View-of-Delft example frames, Astyx) got a static object's Doppler: a moving cyclist's
+    points were exported as parked."""
+    from pipeline.frame import Object3D, label_rows
+    from stages.export import points_of_unknown_motion
+
+    unknown = Object3D("Car", np.array([10.0, 0.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0)  # velocity NaN
+    known = Object3D("Car", np.array([20.0, 5.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0,
+                     velocity_D=np.array([3.0, 0.0, 0.0]))
+    points = np.array([[10.0, 0.0, 0.0], [11.9, 0.9, 0.5], [12.2, 0.0, 0.0],   # in the unknown box (margin 0.3)
+                       [20.0, 5.0, 0.0],                                         # in the moving box
+                       [30.0, -5.0, 0.0], [12.5, 0.0, 0.0]])                     # in none
+    rows = label_rows([unknown, known]).astype(np.float32)
+    assert points_of_unknown_motion(points, rows) == 3
+    assert points_of_unknown_motion(points, label_rows([known]).astype(np.float32)) == 0
+    assert points_of_unknown_motion(np.zeros((0, 3)), rows) == 0

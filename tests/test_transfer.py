@@ -419,3 +419,31 @@ def test_a_run_naming_untrained_nets_leaves_the_outputs_made_with_trained_ones(t
     for _ in range(2):  # nor where its outputs were made with the profile's settings (nothing to lose)
         fresh = CliRunner().invoke(main, [*args[:-1], str(tmp_path / "other"), "--set", "train.nets_from=msc"])
         assert fresh.exit_code == 0, fresh.output
+
+
+@pytest.mark.realdata
+def test_export_counts_points_on_objects_of_unknown_velocity_on_real_vod_frames(trained, tmp_path):
+    """The View-of-Delft example frames hold no tracks, so no label has a velocity: their points get
+    a static object's Doppler. Until 2026-12-05 the export said nothing of it (the audit found a
+    quarter of the points on such objects, cyclists among them)."""
+    from stages.export import UNKNOWN_OBJECT_MOTION_LIST, points_of_unknown_motion
+
+    vod = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vod_example"
+    if not vod.is_dir():
+        pytest.skip("../shared/data/vod_example not present")
+    cache = _synthetic_only(trained, tmp_path)
+    sets = {"synth.split": "all", "synth.count": "oracle"}
+    cfg = with_nets_from(load_config("vod", {"train.nets_from": "synthetic", **sets}, environ={}), str(cache),
+                         explicit=sets)
+    pipe = _pipeline(cfg, cache, "vod", vod)
+    summary = pipe.run("export")[-1].summary
+    syn, calib = pipe.env.store("synthesize"), pipe.env.store("calibrate")
+    ids = pipe.frame_ids()
+    per_frame = {fid: points_of_unknown_motion(syn.read("points", i)[:, :3], calib.read("labels", i))
+                 for i, fid in enumerate(ids)}
+    assert np.isnan(calib.read("labels", 0)[:, 7]).all()  # no velocity recorded
+    assert summary["object_motion_unknown"] == {"frames": 2, "points": sum(per_frame.values())}
+    assert sum(per_frame.values()) > 0 and all(per_frame.values())
+    assert (cache / "vod" / "export" / UNKNOWN_OBJECT_MOTION_LIST).read_text().split() == ids
+    assert f"; {sum(per_frame.values())} of the points (" in summary["message"]
+    assert "lie on labelled objects whose velocity the dataset does not record" in summary["message"]
