@@ -233,9 +233,9 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     pipe.executor.check_cluster(env.cache_root)  # before the world is generated or any output touched
     _ensure_world(env, pipe.progress)
     frames = parse_frames(frames_spec, pipe.frame_ids())
-    if frames_spec and _whole_dataset_note(pipe, closure):
-        click.echo(f"--frames {frames_spec}: limits the per-frame stages{_whole_dataset_note(pipe, closure)}",
-                   err=True)
+    whole = _whole_dataset_note(pipe, closure)
+    if frames_spec and whole:
+        click.echo(f"--frames {frames_spec}: limits the per-frame stages{whole}", err=True)
     try:
         reports = pipe.run(stage, frames=frames, strict=strict, force=force, retry_failed=retry_failed,
                            wait_s=wait_s)
@@ -376,11 +376,11 @@ def generate_world(frames, seed, out, scene_mix, resolution):
 @_handle_errors
 def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     """Estimate the heatmap Sigma (full-resolution pixels) from radar points on annotated objects."""
+    from tqdm import tqdm
+
     from pipeline.heatmap import sigma_from_frames
     from pipeline.readers import get_reader
     from pipeline.runner import parse_frames
-
-    from tqdm import tqdm
 
     env = _context(dataset, data_root, cache_root, sets)
     reader = get_reader(env.cfg, env.data_root)

@@ -306,7 +306,7 @@ class Pipeline:
     def _other_root_message(self, old: str) -> str:
         """Why a run at this data root, not the cache's ``old`` one (:meth:`made_from`), stops, and the ways on."""
         new, dataset = _root(self.env.data_root), self.env.dataset
-        start = (f"dataset '{dataset}': its cache was made from the data at {old}; the data root {new} ")
+        start = f"dataset '{dataset}': its cache was made from the data at {old}; the data root {new} "
         force = f"`pipeline run {FIRST_STAGE} --force --data-root {new}` recomputes everything from it"
         if self.moved_from() == old:
             return (f"{start}lists the same frames, and would make every stage recompute, training included. The "
