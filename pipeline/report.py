@@ -32,6 +32,9 @@ TABLE_COLUMNS: tuple[tuple[str, str], ...] = (
 COMPARED: tuple[tuple[str, bool], ...] = (("chamfer_m", False), ("gospa", False), ("f1", True))
 """Metrics of the "where the model does not beat every baseline" paragraph: (key, higher is better)."""
 
+PAIRED_MODELS: tuple[str, ...] = ("model", "model-oracle-map")
+"""The model rows compared with the baselines (the shortfall paragraph, the ceiling sentence)."""
+
 SHORT_NAMES: dict[str, str] = {"chamfer_m": "Chamfer", "gospa": "GOSPA", "f1": "F1"}
 """Names of the COMPARED metrics in the report's sentences."""
 
@@ -60,10 +63,16 @@ def aggregate(per_frame: Mapping[str, Sequence[Mapping[str, float]]]) -> dict[st
     return aggregate_columns({method: metric_columns(frames) for method, frames in per_frame.items()})
 
 
-def aggregate_columns(columns: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, dict[str, dict[str, float]]]:
+def aggregate_columns(columns: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, dict[str, dict[str, Any]]]:
     """:func:`aggregate` of method -> metric -> values (F,) over the method's frames (arrays, not a
-    dict per frame: 12 methods' dicts took about 20 kB per evaluated frame)."""
-    table: dict[str, dict[str, dict[str, float]]] = {}
+    dict per frame: 12 methods' dicts took about 20 kB per evaluated frame), NaN where a method has
+    no value for a frame (previous-frame on a sequence's first frame, Chamfer of an empty output).
+
+    Where a baseline and a model row (:data:`PAIRED_MODELS`) do not have a COMPARED metric on the
+    same frames, the baseline's entry gets ``paired``: model row -> {n, mean, median (the
+    baseline's), model_mean, model_median} over the frames both have, which the comparisons use
+    (a mean over other frames is no comparison: previous-frame lacks each test sequence's first frame)."""
+    table: dict[str, dict[str, dict[str, Any]]] = {}
     for method, metrics in columns.items():
         row = {}
         for key, column in metrics.items():
@@ -75,6 +84,22 @@ def aggregate_columns(columns: Mapping[str, Mapping[str, np.ndarray]]) -> dict[s
                 "n": int(ok.sum()), "n_nan": int((~ok).sum()),
             }
         table[method] = row
+    for model in (m for m in PAIRED_MODELS if m in columns):
+        for method in (m for m in columns if not m.startswith("model")):
+            for key, _ in COMPARED:
+                if key not in columns[model] or key not in columns[method]:
+                    continue
+                mine, theirs = (np.asarray(columns[m][key], np.float64) for m in (model, method))
+                if mine.shape != theirs.shape:
+                    raise ValueError(f"aggregate_columns: {model} has {mine.shape[0]} frames of {key}, "
+                                     f"{method} {theirs.shape[0]}: the columns must share the frames")
+                a, b = np.isfinite(mine), np.isfinite(theirs)
+                both = a & b
+                if both.any() and not (np.array_equal(both, a) and np.array_equal(both, b)):
+                    table[method][key].setdefault("paired", {})[model] = {
+                        "n": int(both.sum()), "mean": float(theirs[both].mean()),
+                        "median": float(np.median(theirs[both])), "model_mean": float(mine[both].mean()),
+                        "model_median": float(np.median(mine[both]))}
     return table
 
 
@@ -118,16 +143,33 @@ def _jsonable(obj: Any) -> Any:
 
 
 def metrics_table_md(table: Mapping[str, Mapping[str, Mapping[str, float]]]) -> str:
-    """Markdown table: one row per method (model first), 'mean / median' per metric column."""
-    header = "| method | " + " | ".join(h for _, h in TABLE_COLUMNS) + " |"
-    lines = [header, "|" + "---|" * (len(TABLE_COLUMNS) + 1)]
+    """Markdown table: one row per method (model first), the frames it has, 'mean / median' per
+    metric column; then a line for each row averaged over fewer frames than the most any row has,
+    and for each whose Chamfer is (undefined where either point set is empty)."""
+    header = "| method | frames | " + " | ".join(h for _, h in TABLE_COLUMNS) + " |"
+    lines = [header, "|" + "---|" * (len(TABLE_COLUMNS) + 2)]
+    frames = {m: _frames_of(table[m]) for m in table}
+    most = max(frames.values(), default=0)
+    notes = []
     for method in order_methods(list(table)):
         cells = []
         for key, _ in TABLE_COLUMNS:
             s = table[method].get(key)
             cells.append("n/a" if s is None else f"{_fmt(s.get('mean'))} / {_fmt(s.get('median'))}")
-        lines.append(f"| {method} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        lines.append(f"| {method} | {frames[method]} | " + " | ".join(cells) + " |")
+        if frames[method] < most:
+            notes.append(f"`{method}` has {frames[method]} of the {most} frames (it has no value on the others); "
+                         f"the model is compared with it on the frames it has (below).")
+        chamfer = table[method].get("chamfer_m", {}).get("n", 0)
+        if 0 < chamfer < frames[method]:
+            notes.append(f"`{method}`: Chamfer over {chamfer} of its {frames[method]} frames (undefined where "
+                         f"its output or the real radar has no point).")
+    return "\n".join(lines) + ("\n\n" + "\n".join(f"- {n}" for n in notes) if notes else "")
+
+
+def _frames_of(row: Mapping[str, Mapping[str, Any]]) -> int:
+    """The frames a method has a value on: those of its GOSPA (defined for any two point sets)."""
+    return int(row.get("gospa", {}).get("n", max((s.get("n", 0) for s in row.values()), default=0)))
 
 
 def distances_table_md(distances: Mapping[str, Mapping[str, float]]) -> str:
@@ -160,9 +202,11 @@ def model_shortfalls(table: Mapping[str, Mapping[str, Mapping[str, float]]], mod
     """Per compared metric, the non-model methods at least as good as ``model`` on ``stat``.
 
     A method counts when its value is finite and not worse than the model's (ties count: the
-    model does not *beat* it). Methods whose name starts with 'model' are variants, not baselines.
-    Returns metric -> list of {method, value, model_value}; metric -> [] when the model wins, and
-    the metric is left out when the model has no finite value for it.
+    model does not *beat* it), both over the frames both have (``paired`` entries of
+    :func:`aggregate_columns`). Methods whose name starts with 'model' are variants, not baselines.
+    Returns metric -> list of {method, value, model_value, frames (of the pair, or None: all the
+    model's)}; metric -> [] when the model wins, and the metric is left out when the model has no
+    finite value for it.
     """
     out: dict[str, list[dict[str, Any]]] = {}
     if model not in table:
@@ -175,9 +219,11 @@ def model_shortfalls(table: Mapping[str, Mapping[str, Mapping[str, float]]], mod
         for method, row in table.items():
             if method.startswith("model") or method in REFERENCE_ROWS:
                 continue
-            bv = row.get(key, {}).get(stat, math.nan)
-            if math.isfinite(bv) and not _beats(mv, bv, higher):
-                out[key].append({"method": method, "value": bv, "model_value": mv})
+            pair = row.get(key, {}).get("paired", {}).get(model)
+            bv, mine = (pair[stat], pair[f"model_{stat}"]) if pair else (row.get(key, {}).get(stat, math.nan), mv)
+            if math.isfinite(bv) and not _beats(mine, bv, higher):
+                out[key].append({"method": method, "value": bv, "model_value": mine,
+                                 "frames": pair["n"] if pair else None})
     return out
 
 
@@ -191,8 +237,10 @@ def shortfall_paragraph(table: Mapping[str, Mapping[str, Mapping[str, float]]]) 
         for key, losers in model_shortfalls(table, stat=stat).items():
             oracle |= any("oracle" in d["method"] for d in losers)
             if losers:
-                who = ", ".join(f"`{d['method']}` ({_fmt(d['value'])})" for d in losers)
-                sentences.append(f"{names[key]} ({stat}): the model ({_fmt(losers[0]['model_value'])}) "
+                who = ", ".join(f"`{d['method']}` ({_fmt(d['value'])}" + (
+                    f" on the {d['frames']} frames it has, the model {_fmt(d['model_value'])} on them)"
+                    if d["frames"] is not None else ")") for d in losers)
+                sentences.append(f"{names[key]} ({stat}): the model ({_fmt(table['model'][key][stat])}) "
                                  f"does not beat {who}.")
     if not sentences:
         return ("The model beats every baseline on Chamfer distance, GOSPA and matched F1 (mean and median)."

@@ -65,8 +65,9 @@ says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; 
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
 wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on (13: with another dataset's
 nets the report says that the baselines know this dataset's own radar)."""
-REPORT_VERSION = 13
-"""The evaluate report's version (12: the RSS histogram bins each set apart when the units differ);
+REPORT_VERSION = 14
+"""The evaluate report's version (12: the RSS histogram bins each set apart when the units differ;
+14: the model compared with a baseline on the frames both have, the frames per row in the table);
 evaluate-frames keeps VERSION."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
@@ -447,7 +448,8 @@ def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool,
     present = np.asarray(part.array("present").oindex[frames], bool)
     count = np.asarray(part.array("count").oindex[frames])
     speeds = np.asarray(part.array("ego_speed").oindex[frames])
-    columns = {spec.name: {key: metrics[present[:, row], row, k] for k, key in enumerate(FRAME_METRICS)}
+    columns = {spec.name: {key: np.where(present[:, row], metrics[:, row, k], np.nan)  # aligned: frames paired
+                           for k, key in enumerate(FRAME_METRICS)}
                for row, spec in enumerate(METHODS) if present[:, row].any()}
     real_counts = np.asarray(part.array("abs_dr_count").oindex[frames], np.float64)  # one row per real point
     bar = tqdm(total=3 * len(frames), desc="evaluate (report)", unit="frame", disable=not progress)

@@ -112,9 +112,9 @@ def test_write_report_files(tmp_path):
     rows = [line for line in md.splitlines() if line.startswith("| ") and not line.startswith("| method")]
     metric_rows = rows[:3]
     assert [r.split("|")[1].strip() for r in metric_rows] == ["model", "uniform", "mean-map"]
-    header = next(line for line in md.splitlines() if line.startswith("| method | KL"))
-    assert len(header.split("|")) - 2 == 1 + len(R.TABLE_COLUMNS)
-    assert "2 / 2" in metric_rows[0]  # chamfer mean / median of the model
+    header = next(line for line in md.splitlines() if line.startswith("| method | frames | KL"))
+    assert len(header.split("|")) - 2 == 2 + len(R.TABLE_COLUMNS)
+    assert metric_rows[0].startswith("| model | 4 | ") and "2 / 2" in metric_rows[0]  # frames; chamfer mean / median
     assert "median_abs_dr = 3.8" in md and "mean-map" in md.split("does not beat every baseline")[-1]
     assert "by ego speed" not in md  # no rows: no section
     by_speed = R.speed_breakdown(np.array([0.0, 1.0, 6.0, 11.0]), np.full(4, 10), np.full(4, 12),
@@ -193,3 +193,36 @@ def test_physics_summary_rows_and_share_within_tolerance():
     empty = _physics_summary(np.full((2, 5), np.nan), np.zeros(0))
     assert np.isnan(empty["range (mean rule)"][key]) and empty["range (mean rule)"]["no_support_share"] == 1.0
     assert np.isnan(empty["doppler (static points)"]["median_abs_dv_mps"])
+
+
+def test_a_baseline_with_fewer_frames_is_compared_on_the_frames_it_has():
+    """Until 2026-12-05 previous-frame (no value on a sequence's first frame: 76 of the demo's 80)
+    was compared by its mean over its frames against the model's over all of them, and the table
+    did not say over how many frames each row was averaged (a helper's audit)."""
+    nan = math.nan
+    model = {"chamfer_m": np.array([1.0, 1.0, 1.0, 9.0]), "gospa": np.array([10.0, 10.0, 10.0, 30.0]),
+             "f1": np.array([0.5, 0.5, 0.5, 0.0])}
+    # previous-frame lacks frame 3, on which the model happens to be bad: over all frames the
+    # model (mean Chamfer 3.0) looks worse than previous-frame (2.0), on the same frames it is better
+    previous = {"chamfer_m": np.array([2.0, 2.0, 2.0, nan]), "gospa": np.array([12.0, 12.0, 12.0, nan]),
+                "f1": np.array([0.4, 0.4, 0.4, nan])}
+    empty = {"chamfer_m": np.array([nan, 0.5, 0.5, 0.5]), "gospa": np.array([11.0, 5.0, 5.0, 5.0]),
+             "f1": np.array([0.0, 0.9, 0.9, 0.9])}  # no points on frame 0: Chamfer undefined there
+    table = R.aggregate_columns({"model": model, "previous-frame": previous, "lidar-subsample": empty})
+    assert table["previous-frame"]["chamfer_m"]["n"] == 3 and table["previous-frame"]["chamfer_m"]["mean"] == 2.0
+    assert table["previous-frame"]["chamfer_m"]["paired"]["model"] == {
+        "n": 3, "mean": 2.0, "median": 2.0, "model_mean": 1.0, "model_median": 1.0}
+    assert "paired" not in table["lidar-subsample"]["gospa"]  # the same frames: nothing to pair
+    shortfalls = R.model_shortfalls(table)
+    assert [d["method"] for d in shortfalls["chamfer_m"]] == ["lidar-subsample"]
+    assert shortfalls["chamfer_m"][0] == {"method": "lidar-subsample", "value": 0.5, "model_value": 11 / 3, "frames": 3}
+    assert all(d["method"] != "previous-frame" for losers in shortfalls.values() for d in losers)
+    text = R.shortfall_paragraph(table)
+    assert ("Chamfer distance (mean): the model (3) does not beat `lidar-subsample` (0.5 on the 3 frames it has, "
+            "the model 3.67 on them).") in text
+    md = R.metrics_table_md(table)
+    assert "| previous-frame | 3 | " in md and "| model | 4 | " in md
+    assert "- `previous-frame` has 3 of the 4 frames (it has no value on the others)" in md
+    assert "- `lidar-subsample`: Chamfer over 3 of its 4 frames (undefined where its output or the real radar" in md
+    with pytest.raises(ValueError, match="the columns must share the frames"):
+        R.aggregate_columns({"model": model, "previous-frame": {k: v[:3] for k, v in previous.items()}})
