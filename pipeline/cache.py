@@ -715,6 +715,18 @@ class DirStore:
         except OSError as exc:
             raise cache_error(exc, f"removing {self.url}") from None
 
+    def remove_temporaries(self) -> list[str]:
+        """Remove the ``*.tmp`` files a killed run left (atomic writes that never reached their
+        rename, e.g. a half-written checkpoint); call only while holding the output's exclusive
+        lock. Returns the paths removed."""
+        try:
+            found = self.fs.glob(join(self.path, "**", "*.tmp")) if self.fs.exists(self.path) else []
+            for name in found:
+                self.fs.rm(name)
+        except OSError as exc:
+            raise cache_error(exc, f"removing temporary files of {self.url}") from None
+        return found
+
     def set_fingerprint(self, fingerprint: str, **_: Any) -> None:
         """Store another fingerprint for the finished output as it is (relocated data); its other
         fields are kept."""

@@ -12,17 +12,20 @@ reads only the safetensors file.
 from __future__ import annotations
 
 import json
+import os
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
+from pipeline.cache import cache_error
 from pipeline.errors import CacheError
-from pipeline.fileio import atomic_path, write_atomic
+from pipeline.fileio import FILE_MODE, atomic_path, write_atomic
 
 FORMAT = "pipeline-checkpoint/1"
 
@@ -34,7 +37,14 @@ def save_checkpoint(path: str | Path, tensors: dict[str, Tensor], meta: dict[str
     meta = {"format": FORMAT, **meta}
     flat = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
     with atomic_path(path) as tmp:
-        save_file(flat, str(tmp), metadata={"meta": json.dumps(meta)})
+        try:
+            save_file(flat, str(tmp), metadata={"meta": json.dumps(meta)})
+        except SafetensorError as exc:  # its I/O errors are not OSErrors: the errno is in the message
+            code = re.search(r"\(os error (\d+)\)", str(exc))
+            if code is None:
+                raise CacheError(f"{path}: writing the checkpoint failed ({exc})") from None
+            raise cache_error(OSError(int(code[1]), os.strerror(int(code[1]))), f"writing the checkpoint {path}") from None
+        os.chmod(tmp, FILE_MODE)  # safetensors creates its own file (0600): the mode open() would give
     write_json_atomic(path.with_suffix(".json"), meta)
 
 

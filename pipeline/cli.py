@@ -15,7 +15,7 @@ import click
 
 from pipeline.cache import frame_store, join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
-from pipeline.errors import ConfigError, MetadataError, PipelineError
+from pipeline.errors import ConfigError, MetadataError, PipelineError, StageInterrupted
 from pipeline.runner import NAME_WIDTH, check_stage_name, failed_frames_line
 from pipeline.stage import FrameStage
 
@@ -37,11 +37,15 @@ def _handle_errors(fn):
             if not type(exc).__module__.startswith(("distributed", "dask")):
                 raise
             # the cluster failed (scheduler lost, workers killed): one line, and what is kept
+            again = "run the same command again" + (" without --force" if kwargs.get("force") else "")
             click.echo(f"error: the dask cluster failed ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
-                       f"finished frames are kept: run the same command again to resume", err=True)
+                       f"finished frames are kept: {again} to resume", err=True)
             sys.exit(2)
+        except StageInterrupted as exc:
+            click.echo(exc.advice(), err=True)
+            sys.exit(130)
         except KeyboardInterrupt:
-            click.echo("interrupted: finished frames are kept; run the same command again to resume", err=True)
+            click.echo("interrupted", err=True)
             sys.exit(130)
 
     return wrapper

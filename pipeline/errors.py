@@ -69,3 +69,28 @@ class ChunkError(PipelineError):
 
     def __reduce__(self):  # picklable (raised on dask workers)
         return type(self), (self.array, self.index, self.frame, self.chunk, self.problem, self.remedy)
+
+
+class StageInterrupted(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) while a stage ran: says which stage, and so what a new run goes on from.
+
+    ``kind``: 'frame' (finished frames are kept), 'resumes' (a dataset stage that goes on from what
+    it saved, train's per-epoch checkpoints) or 'dataset' (starts over). ``forced``: the stage was
+    being recomputed because of --force, which a repeated --force would start again.
+    """
+
+    def __init__(self, stage: str, kind: str, forced: bool) -> None:
+        self.stage = stage
+        self.kind = kind
+        self.forced = forced
+        super().__init__(stage)
+
+    def advice(self) -> str:
+        """One line for the person who pressed Ctrl-C."""
+        again = "run the same command again" + (" without --force" if self.forced else "")
+        if self.kind == "frame":
+            return f"interrupted in {self.stage}: its finished frames are kept; {again} to resume"
+        if self.kind == "resumes":
+            return f"interrupted in {self.stage}: what it saved is kept; {again} to resume from its last checkpoint"
+        return (f"interrupted in {self.stage}: the stages before it are kept, {self.stage} starts over "
+                f"when you run the same command again")

@@ -24,8 +24,9 @@ from typing import Any, Callable
 import fsspec
 import numpy as np
 
-from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest, is_local, join
-from pipeline.errors import CacheError, ChunkError, ConfigError, FrameError, MetadataError, PipelineError
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, cache_error, done_digest, is_local, join
+from pipeline.errors import (CacheError, ChunkError, ConfigError, FrameError, MetadataError, PipelineError,
+                             StageInterrupted)
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
@@ -246,29 +247,13 @@ class Pipeline:
             # all hold; otherwise the exclusive one, which a run writing the output holds
             report = None if forced else self._report_if_nothing_to_do(stage, what, retry_failed)
             if report is None:
-                with stage_lock(self._lock_url(name), what, wait_s), \
-                        reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
-                    try:
-                        current = self.is_current(name)
-                    except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
-                        if not forced or frames is not None:
-                            raise
-                        current = False
-                    redo = forced and frames is not None and isinstance(stage, FrameStage) and current
-                    rebuild = (forced and not redo) or not current
-                    if (rebuild or redo) and getattr(stage, "ready", None) is not None:
-                        stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
-                    with rewriting(self._lock_url(name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
-                        if redo:
-                            self.redo_frames(name, frames)
-                        elif rebuild:
-                            # new outputs under a fingerprint that downstream outputs may already carry:
-                            # marked stale first, so that a run killed while rebuilding leaves them stale
-                            self.invalidate_downstream(name)
-                        if isinstance(stage, FrameStage):
-                            report = self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
-                        else:
-                            report = self._run_dataset(stage, forced, rebuild)
+                try:
+                    report = self._bring_up_to_date(stage, what, forced, frames, strict, retry_failed, wait_s)
+                except KeyboardInterrupt as exc:
+                    if isinstance(exc, StageInterrupted):
+                        raise
+                    kind = "frame" if isinstance(stage, FrameStage) else "resumes" if stage.resumes else "dataset"
+                    raise StageInterrupted(name, kind, forced) from None
             report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
@@ -591,6 +576,33 @@ class Pipeline:
                 report.notes = [f"summary unavailable: {exc}"]
         return report
 
+    def _bring_up_to_date(self, stage: Stage, what: str, forced: bool, frames: list[int] | None, strict: bool,
+                          retry_failed: bool, wait_s: float) -> StageReport:
+        """Run ``stage`` (or the frames of it that are left) under its locks; ``forced``: --force
+        applies to it. The arguments otherwise as for :meth:`run`."""
+        with stage_lock(self._lock_url(stage.name), what, wait_s), \
+                reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
+            try:
+                current = self.is_current(stage.name)
+            except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
+                if not forced or frames is not None:
+                    raise
+                current = False
+            redo = forced and frames is not None and isinstance(stage, FrameStage) and current
+            rebuild = (forced and not redo) or not current
+            if (rebuild or redo) and getattr(stage, "ready", None) is not None:
+                stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
+            with rewriting(self._lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
+                if redo:
+                    self.redo_frames(stage.name, frames)
+                elif rebuild:
+                    # new outputs under a fingerprint that downstream outputs may already carry:
+                    # marked stale first, so that a run killed while rebuilding leaves them stale
+                    self.invalidate_downstream(stage.name)
+                if isinstance(stage, FrameStage):
+                    return self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
+                return self._run_dataset(stage, forced, rebuild)
+
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:
         """Run a dataset stage when ``rebuild`` (forced or not current, as run() found), else report it current."""
         out = self.env.dir(stage.name)
@@ -602,12 +614,20 @@ class Pipeline:
         frames = self.frames_read(stage.name)
         if not force and out.fingerprint() == fp:
             self.log(f"{stage.name:<{NAME_WIDTH}} recomputing: its per-frame inputs finished other frames since it ran")
-        if force:
+        if force or not stage.resumes:
             out.clear()  # from scratch: nothing of the last run is reused (train's checkpoints included)
+        else:
+            out.remove_temporaries()  # a killed run's half-written files
         out.ensure()
         out.invalidate()
-        summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
-                            fingerprint=fp)
+        try:
+            summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
+                                fingerprint=fp)
+        except OSError as exc:
+            named = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
+            if named and not any(f.startswith(out.path) for f in named):
+                raise  # names its files, none of them the output's (e.g. a dataset file it read)
+            raise cache_error(exc, f"{stage.name}: writing into {out.path}") from None
         out.finish(fp, summary, frames)
         report.summary = summary
         return report

@@ -95,6 +95,10 @@ class DatasetStage:
     check: Callable[["Config"], None] | None = None
     local_files: bool = False
     """Writes its output folder with local file APIs (checkpoints, reports): needs a local cache."""
+    resumes: bool = False
+    """Goes on from what an interrupted run of it saved in its folder (train's per-epoch
+    checkpoints). Otherwise the folder is emptied before the stage runs, so that its files all come
+    from one run, whatever an earlier run left when it failed or was killed."""
 
 
 Stage = FrameStage | DatasetStage

@@ -28,7 +28,6 @@ camera.* (the full-resolution K of a generated calib).
 
 from __future__ import annotations
 
-import shutil
 from collections import Counter
 from pathlib import Path
 
@@ -73,14 +72,10 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     split = np.asarray(calib.array("split")[:])
     root = Path(out.path)
     radar_root = root / "radar"
-    for folder in ("radar", "pcd", "preview"):  # a new export replaces the last one: no frame of it is left over
-        shutil.rmtree(root / folder, ignore_errors=True)
     lists: dict[str, list[str]] = {name: [] for name in SPLIT_NAMES.values()}
     no_motion: list[str] = []   # frames whose dataset records no ego motion: Doppler as if stopped
     empty: list[str] = []       # frames written without a point
     unknown_motion: dict[str, int] = {}  # frame -> points on labelled objects of unknown velocity: static Doppler
-    for listed in (NO_MOTION_LIST, UNKNOWN_OBJECT_MOTION_LIST):
-        (root / listed).unlink(missing_ok=True)
     n_points = n_noise = 0
     class_map = parse_class_map(cfg.export.class_names)  # checked by check()
     classes: dict[str, Counter[str]] = {"training": Counter(), "testing": Counter()}  # boxes per class written

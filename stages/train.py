@@ -303,4 +303,5 @@ def check(cfg: Config) -> None:
 
 
 STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=VERSION,
-                     run=run, doc=__doc__, check=check, extra_fingerprint=nets_from_fingerprint, local_files=True)
+                     run=run, doc=__doc__, check=check, extra_fingerprint=nets_from_fingerprint, local_files=True,
+                     resumes=True)

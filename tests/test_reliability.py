@@ -368,3 +368,95 @@ def test_local_cluster_workers_start_with_ctrl_c_ignored():
     assert inside == "True"
     assert signal.getsignal(signal.SIGINT) is before
     assert subprocess.run(probe, capture_output=True, text=True, check=True).stdout.strip() == "False"
+
+
+def _pipe_with_dataset_stage(tmp_path: Path, run, resumes: bool = False) -> Pipeline:
+    """The fake frame stages, then a dataset stage 'train' running ``run(inputs, cfg, out, fingerprint)``."""
+    from pipeline.stage import DatasetStage
+
+    (tmp_path / "data").mkdir(parents=True, exist_ok=True)
+    stages = [*fake_stages.STAGES[:2], DatasetStage("train", ("heatmaps",), ("train.epochs",), run, resumes=resumes)]
+    env = RunEnv(cfg=load_config("synthetic", {}, environ={}), cache_root=str(tmp_path / "cache"),
+                 dataset="synthetic", data_root=str(tmp_path / "data"))
+    return Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: IDS)
+
+
+def test_disk_full_in_a_dataset_stage_names_the_stage_and_its_folder(tmp_path):
+    """A failing write(2) raises an OSError without a file name: the message said only
+    '[Errno 28] No space left on device'. An error naming a file outside the output is left as is."""
+    def full(inputs, cfg, out, fingerprint):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    pipe = _pipe_with_dataset_stage(tmp_path, full)
+    with pytest.raises(CacheError) as raised:
+        pipe.run("train")
+    folder = pipe.env.dir("train").path
+    assert str(raised.value).startswith(f"train: writing into {folder}: the disk holding the cache is full")
+
+    def unreadable(inputs, cfg, out, fingerprint):
+        raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "data" / "labels.txt"))
+
+    with pytest.raises(PermissionError):
+        _pipe_with_dataset_stage(tmp_path, unreadable).run("train")
+
+
+def test_a_dataset_stage_output_holds_one_runs_files(tmp_path):
+    """A stage that does not resume starts from an empty folder: a failed run's files (and the
+    report of the run before) are gone. One that resumes keeps its files but not the temporary files
+    a killed run left (a half-written checkpoint of 42 MB stayed on the demo)."""
+    calls = []
+
+    def writes(inputs, cfg, out, fingerprint):
+        calls.append(sorted(p.name for p in Path(out.path).iterdir()))
+        out.write_text("report.json", f"run {len(calls)}")
+        if len(calls) == 1:
+            out.write_text("report.md", "run 1")
+            (Path(out.path) / ".last.safetensors.x1y2.tmp").write_bytes(b"half")
+            raise ValueError("failed between the two files")
+        return {"message": "ok"}
+
+    with pytest.raises(ValueError):
+        _pipe_with_dataset_stage(tmp_path / "plain", writes).run("train")
+    _pipe_with_dataset_stage(tmp_path / "plain", writes).run("train")
+    assert calls[1] == []
+
+    calls.clear()
+    with pytest.raises(ValueError):
+        _pipe_with_dataset_stage(tmp_path / "resumes", writes, resumes=True).run("train")
+    _pipe_with_dataset_stage(tmp_path / "resumes", writes, resumes=True).run("train")
+    assert calls[1] == ["report.json", "report.md"]  # kept for it to resume from; the .tmp file gone
+
+
+def test_ctrl_c_says_which_stage_and_whether_to_drop_force(tmp_path, monkeypatch, capsys):
+    """The message was 'run the same command again to resume' everywhere, but a repeated --force
+    starts the stage again, and a stage without checkpoints (export, evaluate) starts over anyway."""
+    from pipeline.cli import _handle_errors
+    from pipeline.errors import StageInterrupted
+
+    def interrupted(inputs, cfg, out, fingerprint):
+        raise KeyboardInterrupt
+
+    with pytest.raises(StageInterrupted) as raised:
+        _pipe_with_dataset_stage(tmp_path / "a", interrupted, resumes=True).run("train", force=True)
+    assert (raised.value.stage, raised.value.kind, raised.value.forced) == ("train", "resumes", True)
+    assert "without --force to resume from its last checkpoint" in raised.value.advice()
+    with pytest.raises(StageInterrupted) as raised:
+        _pipe_with_dataset_stage(tmp_path / "b", interrupted).run("train")
+    assert (raised.value.kind, raised.value.forced) == ("dataset", False)
+    assert "train starts over" in raised.value.advice() and "--force" not in raised.value.advice()
+
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(tmp_path / "calls.log"))
+    monkeypatch.setenv("FAKE_STAGE_STOP_AFTER", "2")
+    with pytest.raises(StageInterrupted) as raised:
+        _pipe_with_dataset_stage(tmp_path / "c", interrupted).run("heatmaps", force=True)
+    assert (raised.value.stage, raised.value.kind, raised.value.forced) == ("calibrate", "frame", False)
+
+    @_handle_errors
+    def command(force):
+        raise StageInterrupted("heatmaps", "frame", force)
+
+    with pytest.raises(SystemExit) as exit_:
+        command(force=True)
+    assert exit_.value.code == 130
+    assert capsys.readouterr().err == ("interrupted in heatmaps: its finished frames are kept; "
+                                       "run the same command again without --force to resume\n")

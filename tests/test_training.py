@@ -311,6 +311,28 @@ def test_checkpoints_are_safetensors_with_json_meta(tmp_path):
         T.train_disnet(tiny_cfg(), make_disnet_data(n=8), tmp_path, progress=False)
 
 
+def test_checkpoint_mode_and_disk_full(tmp_path, monkeypatch):
+    """safetensors creates its file 0600 (another user, e.g. a training container, could not read
+    the weights) and reports a full disk as its own SafetensorError: a 47-line traceback."""
+    from safetensors import SafetensorError
+
+    from pipeline.errors import CacheError
+    from pipeline.fileio import FILE_MODE
+
+    path = tmp_path / "net" / "last.safetensors"
+    ckpt.save_checkpoint(path, {"model.w": torch.ones(3)}, {"epoch": 1})
+    assert path.stat().st_mode & 0o777 == FILE_MODE
+
+    def full(*args, **kwargs):
+        raise SafetensorError("Error while serializing: I/O error: No space left on device (os error 28)")
+
+    monkeypatch.setattr(ckpt, "save_file", full)
+    with pytest.raises(CacheError, match=r"^writing the checkpoint .*last\.safetensors: the disk holding the cache is full"):
+        ckpt.save_checkpoint(path, {"model.w": torch.zeros(3)}, {"epoch": 2})
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.json", "last.safetensors"]  # no temporary left
+    assert ckpt.read_meta(path)["epoch"] == 1  # the last good one
+
+
 def test_rssnet_learns_from_zarr_and_resumes(tmp_path):
     data = make_rss_data(p=400, as_zarr=True)
     cfg = tiny_cfg(**{"train.epochs": "3"})
