@@ -141,9 +141,12 @@ def _ensure_world(env, progress: bool) -> None:
         ds = env.cfg.dataset
         click.echo(f"generating the synthetic world ({ds.world_frames} frames, seed {ds.world_seed}) "
                    f"into {env.data_root} ...", err=True)
-        summary = generate(env.data_root, frames=ds.world_frames, seed=ds.world_seed,
-                           resolution_wh=tuple(ds.world_resolution), sequence_len=ds.world_sequence_len,
-                           progress=progress)
+        try:
+            summary = generate(env.data_root, frames=ds.world_frames, seed=ds.world_seed,
+                               resolution_wh=tuple(ds.world_resolution), sequence_len=ds.world_sequence_len,
+                               progress=progress)
+        except KeyboardInterrupt:
+            raise StageInterrupted("the synthetic world's generation", "frame", False) from None
         kept = summary.get("resumed_sequences", 0)
         resumed = f" ({kept} of {summary['sequences']} sequences kept from an interrupted run)" if kept else ""
         click.echo(f"  done in {summary.get('seconds', 0):.1f} s{resumed}", err=True)

@@ -74,7 +74,8 @@ class ChunkError(PipelineError):
 class StageInterrupted(KeyboardInterrupt):
     """Ctrl-C (SIGINT) while a stage ran: says which stage, and so what a new run goes on from.
 
-    ``kind``: 'frame' (finished frames are kept), 'resumes' (a dataset stage that goes on from what
+    ``kind``: 'frame' (finished frames are kept; the world's generation keeps its finished
+    sequences, which hold them), 'resumes' (a dataset stage that goes on from what
     it saved, train's per-epoch checkpoints) or 'dataset' (starts over). ``forced``: the stage was
     being recomputed because of --force, which a repeated --force would start again.
     """

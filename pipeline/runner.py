@@ -615,7 +615,7 @@ class Pipeline:
         if not force and out.fingerprint() == fp:
             self.log(f"{stage.name:<{NAME_WIDTH}} recomputing: its per-frame inputs finished other frames since it ran")
         if force or not stage.resumes:
-            out.clear()  # from scratch: nothing of the last run is reused (train's checkpoints included)
+            out.clear()  # from scratch: nothing of an earlier run is reused or left (forced: train's checkpoints too)
         else:
             out.remove_temporaries()  # a killed run's half-written files
         out.ensure()

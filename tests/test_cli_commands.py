@@ -176,3 +176,18 @@ def test_a_file_url_cache_is_its_folder(world, tmp_path):
                                     "--cache", f"file://{tmp_path / 'c'}", "--workers", "1"])
     assert out.exit_code == 0, out.output
     assert (tmp_path / "c" / "synthetic" / "heatmaps.zarr" / "zarr.json").is_file()
+
+
+def test_ctrl_c_while_the_world_is_generated_says_its_sequences_are_kept(tmp_path, monkeypatch):
+    """The run generates the built-in world first; Ctrl-C there keeps its finished sequences."""
+    import pipeline.world
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline.world, "generate", interrupted)
+    out = CliRunner().invoke(main, ["run", "calibrate", "--cache", str(tmp_path / "cache")])
+    assert out.exit_code == 130
+    assert out.output.strip().splitlines()[-1] == (
+        "interrupted in the synthetic world's generation: its finished frames are kept; "
+        "run the same command again to resume")
