@@ -82,12 +82,15 @@ def _check_url(option: str, url: str) -> None:
     if "://" not in url:
         return
     import fsspec
+    from fsspec.registry import known_implementations
 
     try:
         fsspec.core.url_to_fs(url)
     except (ImportError, ValueError) as exc:
-        raise ConfigError(f"{option} {url}: fsspec cannot open it ({str(exc).splitlines()[0]}); install the "
-                          f"filesystem package its protocol needs (e.g. `pip install s3fs` for s3://)") from None
+        known = url.split("://", 1)[0] in known_implementations  # its message names the package
+        hint = ("install the package it names" if known else
+                "use a protocol fsspec knows, with its package installed (e.g. s3:// with `pip install s3fs`)")
+        raise ConfigError(f"{option} {url}: fsspec cannot open it ({str(exc).splitlines()[0]}); {hint}") from None
 
 
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
@@ -333,6 +336,7 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
 def _cache_exists(env) -> bool:
     """Whether the cache holds a folder for ``env``'s dataset."""
     import fsspec
+    from fsspec.registry import known_implementations
 
     fs, path = fsspec.core.url_to_fs(join(env.cache_root, env.dataset))
     return fs.exists(path)

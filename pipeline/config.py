@@ -671,7 +671,7 @@ def _env_variables(environ: dict[str, str]) -> dict[str, tuple[str, str]]:
     e.g. PIPELINE__TRAIN_EPOCHS, which would otherwise be ignored without a word."""
     out = {}
     for var, value in sorted(environ.items()):
-        if not var.startswith("PIPELINE__"):
+        if not var.upper().startswith("PIPELINE__"):  # the whole name in any case
             continue
         key = _KEY_OF_VARIABLE.get(var.upper())  # keys are matched ignoring case (radar_mount_T_radar_lidar)
         if key is None:

@@ -118,6 +118,15 @@ def check_generation(cfg: Config) -> None:
             raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
     # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set
     check_split("synth.split", s.split)
+    if not cfg.train.nets_from:  # trained here: refused before training, not after it
+        from stages.train import named_nets
+
+        left_out = [n for n in ("disnet", "rssnet") + (("placenet",) if s.placement == "lidar" else ())
+                    if n not in named_nets(cfg)]
+        if left_out:
+            hint = " (or set synth.placement=ray, which needs no PlaceNet)" if left_out == ["placenet"] else ""
+            raise ConfigError(f"train.nets = '{cfg.train.nets}' leaves out {', '.join(left_out)}, which synthesis "
+                              f"with synth.placement = '{s.placement}' needs: add it to train.nets{hint}")
     if s.device not in ("auto", "cpu"):  # only these need no check (nor torch imported for it)
         from pipeline.training import select_device
 

@@ -138,7 +138,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     check(cfg)
     if cfg.train.nets_from:
         return _take_nets(inputs, cfg, out)
-    nets = _nets(cfg)
+    nets = named_nets(cfg)
     table = frame_table(inputs)
     d_data, idx = disnet_data(inputs, table)
     if len(idx["train"]) == 0:
@@ -282,7 +282,7 @@ def _headline(s: dict) -> str:
     return "; ".join(parts) or "trained"
 
 
-def _nets(cfg: Config) -> set[str]:
+def named_nets(cfg: Config) -> set[str]:
     """The nets train.nets names."""
     return {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
 
@@ -291,7 +291,7 @@ def check(cfg: Config) -> None:
     """ConfigError for train.nets or training settings the stage cannot run with."""
     from pipeline.training import check_training
 
-    unknown = _nets(cfg) - set(NETS)
+    unknown = named_nets(cfg) - set(NETS)
     if unknown:
         raise ConfigError(f"train.nets: unknown net(s) {sorted(unknown)} (use {', '.join(NETS)})")
     if cfg.train.nets_from == cfg.profile:

@@ -643,6 +643,7 @@ def test_environment_errors_name_the_variable_and_a_malformed_variable_is_refuse
             load_config("synthetic", environ={var: "3"})
         assert (f"did you mean {meant}?" in str(exc.value)) if meant else "did you mean" not in str(exc.value)
     assert load_config("synthetic", environ={"PIPELINE__TRAIN__EPOCHS": "3"}).train.epochs == 3
+    assert load_config("synthetic", environ={"pipeline__train__epochs": "5"}).train.epochs == 5  # was ignored
     assert load_config("synthetic", environ={"PIPELINE__TRAIN__COUNT_GRAD_SCALE": "0.5"}).train.count_grad_scale == 0.5
     load_config("synthetic", environ={"PIPELINE_CACHE": "x"})  # the CLI's own variable (one underscore) is no key
     # --set wins over the environment, so a bad variable it overrides is never read
@@ -664,6 +665,11 @@ def test_cli_names_a_cache_url_fsspec_cannot_open_and_an_unknown_stage_to_unlock
             out = CliRunner().invoke(main, [*args, "--dataset", "vod", "--cache", url, "--data-root", str(tmp_path)])
             assert out.exit_code == 2 and "Traceback" not in out.output, (args, out.output)
             assert f"--cache {url}: fsspec cannot open it" in out.output and words in out.output
+            assert "e.g. s3:// with `pip install s3fs`" in out.output
+    import importlib.util
+    if importlib.util.find_spec("gcsfs") is None:  # a known protocol whose package is missing: fsspec names it
+        out = CliRunner().invoke(main, ["status", "--dataset", "vod", "--cache", "gs://b/c"])
+        assert out.exit_code == 2 and "gcsfs" in out.output and out.output.rstrip().endswith("install the package it names")
     out = CliRunner().invoke(main, ["unlock", "heatmap", "--dataset", "synthetic", "--cache", str(tmp_path)])
     assert out.exit_code == 2 and "did you mean 'heatmaps'" in out.output
     out = CliRunner().invoke(main, ["unlock", "heatmaps", "--dataset", "synthetic", "--cache", str(tmp_path)])

@@ -208,17 +208,20 @@ def test_train_stage_reports_the_count_refit(world, tmp_path):
 
 
 def test_lidar_placement_without_placenet_is_a_clear_error_and_ray_placement_works(world, tmp_path):
-    """Nets trained without PlaceNet: synthesize with the default lidar placement stops before any
-    frame, naming the missing checkpoint; synth.placement=ray generates from Dis-Net and RSS-Net."""
-    from pipeline.errors import PipelineError
+    """Nets trained without PlaceNet: synthesize with the default lidar placement is refused before
+    anything runs (until 2026-12-05 only after training), a train output without PlaceNet's checkpoint
+    names it; synth.placement=ray generates from Dis-Net and RSS-Net."""
+    from pipeline.errors import ConfigError, PipelineError
+    from stages.synthesize import check_checkpoints
 
     def pipeline(**extra: str) -> Pipeline:
         cfg = load_config("synthetic", {**TINY, "train.nets": "disnet,rssnet", **extra}, environ={})
         env = RunEnv(cfg, str(tmp_path / "cache"), "synthetic", str(world))
         return Pipeline(all_stages(), env, Executor(1, progress=False), progress=False, log=lambda m: None)
 
-    with pytest.raises(PipelineError, match="no placenet checkpoint.*synth.placement=ray"):
+    with pytest.raises(ConfigError, match=r"train.nets = 'disnet,rssnet' leaves out placenet.*synth.placement=ray"):
         pipeline().run("synthesize")
+    assert not (tmp_path / "cache" / "synthetic" / "calibrate.zarr").exists()  # nothing ran
     pipe = pipeline(**{"synth.placement": "ray"})
     assert not pipe.env.store("synthesize").exists()  # stopped before its output was created (ready)
     pipe.run("synthesize")
@@ -228,3 +231,5 @@ def test_lidar_placement_without_placenet_is_a_clear_error_and_ray_placement_wor
     assert counts[:, 0].sum() > 0 and counts[:, 4].sum() >= 0
     points = np.concatenate([syn.read("points", i) for i in range(len(syn.status()))])
     assert len(points) > 0 and np.all(np.isfinite(points))
+    with pytest.raises(PipelineError, match="no placenet checkpoint.*synth.placement=ray"):
+        check_checkpoints(pipe.env.dir("train"), load_config("synthetic", TINY, environ={}))
