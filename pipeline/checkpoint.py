@@ -42,7 +42,7 @@ def save_checkpoint(path: str | Path, tensors: dict[str, Tensor], meta: dict[str
         except SafetensorError as exc:  # its I/O errors are not OSErrors: the errno is in the message
             code = re.search(r"\(os error (\d+)\)", str(exc))
             if code is None:
-                raise CacheError(f"{path}: writing the checkpoint failed ({exc})") from None
+                raise CacheError(f"writing the checkpoint {path}: {exc}") from None
             raise cache_error(OSError(int(code[1]), os.strerror(int(code[1]))), f"writing the checkpoint {path}") from None
         os.chmod(tmp, FILE_MODE)  # safetensors creates its own file (0600): the mode open() would give
     write_json_atomic(path.with_suffix(".json"), meta)

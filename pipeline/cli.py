@@ -336,7 +336,6 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
 def _cache_exists(env) -> bool:
     """Whether the cache holds a folder for ``env``'s dataset."""
     import fsspec
-    from fsspec.registry import known_implementations
 
     fs, path = fsspec.core.url_to_fs(join(env.cache_root, env.dataset))
     return fs.exists(path)
@@ -411,7 +410,9 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
         sx, sy = sigma_from_frames(readable())
     except ValueError as exc:  # no object with enough radar points in the frames read
         raise PipelineError(f"dataset {dataset}: cannot estimate Sigma from the {len(chosen) - len(skipped)} "
-                            f"readable frame(s) ({exc})" + (f"; {_skipped_text(skipped)}" if skipped else "")) from None
+                            f"readable frame(s) ({exc})" + (f"; {_skipped_text(skipped)}" if skipped else "")
+                            + "; it needs frames with labelled objects that hold radar points: give more "
+                              "frames (--frames, or all by leaving it out)") from None
     if skipped:
         click.echo(_skipped_text(skipped), err=True)
     click.echo(f"estimated Sigma std: {sx:.1f} px (u), {sy:.1f} px (v) at full resolution from "

@@ -596,6 +596,11 @@ def _parse_value(key: str, value: Any, typ: Any) -> Any:
     raise ConfigError(f"'{key}': unsupported field type {text_type}")
 
 
+def named_nets(cfg: "Config") -> set[str]:
+    """The nets train.nets names (checked against the known ones by the train stage)."""
+    return {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
+
+
 def own_radar(cfg: "Config") -> "RadarSection":
     """The radar the dataset itself recorded, as its reader reads it (Doppler sign and span, field
     of view): ``cfg.radar``, except where train.nets_from put another dataset's radar settings into
@@ -647,8 +652,9 @@ def load_config(profile: str, overrides: dict[str, str] | None = None,
             flat[f"{section}.{name}"] = value
     overrides = overrides or {}
     cfg = cfg.with_overrides(flat)
+    given = {k.lower() for k in overrides}  # keys are matched ignoring case
     for key, (var, value) in _env_variables(os.environ if environ is None else environ).items():
-        if key in overrides:  # --set wins, and is the value checked
+        if key.lower() in given:  # --set wins, and is the value checked
             continue
         try:
             cfg = cfg.with_overrides({key: value})
@@ -682,6 +688,8 @@ def _env_variables(environ: dict[str, str]) -> dict[str, tuple[str, str]]:
             hint = f"did you mean {_variable(meant[0])}?" if meant else "e.g. PIPELINE__TRAIN__EPOCHS"
             raise ConfigError(f"environment variable {var} names no configuration key (the form is "
                               f"PIPELINE__SECTION__KEY, two underscores around SECTION); {hint}")
+        if key in out:
+            raise ConfigError(f"environment variables {out[key][0]} and {var} both set {key}: unset one")
         out[key] = (var, value)
     return out
 

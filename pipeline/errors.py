@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 
 class PipelineError(Exception):
     """Base class of every error the library raises on purpose."""
@@ -75,12 +77,16 @@ class StageInterrupted(KeyboardInterrupt):
     """Ctrl-C (SIGINT) while a stage ran: says which stage, and so what a new run goes on from.
 
     ``kind``: 'frame' (finished frames are kept; the world's generation keeps its finished
-    sequences, which hold them), 'resumes' (a dataset stage that goes on from what
-    it saved, train's per-epoch checkpoints) or 'dataset' (starts over). ``forced``: the stage was
-    being recomputed because of --force, which a repeated --force would start again.
+    sequences, which hold them), 'resumes' (a dataset stage that goes on from what it saved,
+    train's per-epoch checkpoints) or 'dataset' (starts over). ``forced``: a recomputation that
+    --force asked for had begun, which a repeated --force would start again.
     """
 
-    def __init__(self, stage: str, kind: str, forced: bool) -> None:
+    KINDS = ("frame", "resumes", "dataset")
+
+    def __init__(self, stage: str, kind: Literal["frame", "resumes", "dataset"], forced: bool) -> None:
+        if kind not in self.KINDS:
+            raise ValueError(f"StageInterrupted: kind must be one of {self.KINDS}, got {kind!r}")
         self.stage = stage
         self.kind = kind
         self.forced = forced

@@ -57,8 +57,9 @@ def aggregate(per_frame: Mapping[str, Sequence[Mapping[str, float]]]) -> dict[st
     """Mean and median over frames of every metric of every method.
 
     ``per_frame``: method -> list of per-frame metric dicts. Returns method -> metric ->
-    {mean, median, n (finite values used), n_nan (NaN/inf values ignored)}; mean and median are
-    NaN when no value is finite. Methods keep their input order.
+    {mean, median, n (finite values used), n_nan (frames without a finite value: NaN or inf, or,
+    from :func:`aggregate_columns` with aligned columns, a frame the method does not have)}; mean
+    and median are NaN when no value is finite. Methods keep their input order.
     """
     return aggregate_columns({method: metric_columns(frames) for method, frames in per_frame.items()})
 
@@ -71,7 +72,8 @@ def aggregate_columns(columns: Mapping[str, Mapping[str, np.ndarray]]) -> dict[s
     Where a baseline and a model row (:data:`PAIRED_MODELS`) do not have a COMPARED metric on the
     same frames, the baseline's entry gets ``paired``: model row -> {n, mean, median (the
     baseline's), model_mean, model_median} over the frames both have, which the comparisons use
-    (a mean over other frames is no comparison: previous-frame lacks each test sequence's first frame)."""
+    (a mean over other frames is no comparison: previous-frame lacks each test sequence's first frame);
+    {n: 0} alone when they have no frame in common."""
     table: dict[str, dict[str, dict[str, Any]]] = {}
     for method, metrics in columns.items():
         row = {}
@@ -95,11 +97,13 @@ def aggregate_columns(columns: Mapping[str, Mapping[str, np.ndarray]]) -> dict[s
                                      f"{method} {theirs.shape[0]}: the columns must share the frames")
                 a, b = np.isfinite(mine), np.isfinite(theirs)
                 both = a & b
-                if both.any() and not (np.array_equal(both, a) and np.array_equal(both, b)):
-                    table[method][key].setdefault("paired", {})[model] = {
-                        "n": int(both.sum()), "mean": float(theirs[both].mean()),
-                        "median": float(np.median(theirs[both])), "model_mean": float(mine[both].mean()),
-                        "model_median": float(np.median(mine[both]))}
+                if not b.any() or (np.array_equal(both, a) and np.array_equal(both, b)):
+                    continue  # nothing to compare, or the same frames
+                pair: dict[str, Any] = {"n": int(both.sum())}  # n = 0: no frame to compare them on
+                if both.any():
+                    pair.update(mean=float(theirs[both].mean()), median=float(np.median(theirs[both])),
+                                model_mean=float(mine[both].mean()), model_median=float(np.median(mine[both])))
+                table[method][key].setdefault("paired", {})[model] = pair
     return table
 
 
@@ -145,7 +149,7 @@ def _jsonable(obj: Any) -> Any:
 def metrics_table_md(table: Mapping[str, Mapping[str, Mapping[str, float]]]) -> str:
     """Markdown table: one row per method (model first), the frames it has, 'mean / median' per
     metric column; then a line for each row averaged over fewer frames than the most any row has,
-    and for each whose Chamfer is (undefined where either point set is empty)."""
+    and for each whose Chamfer covers fewer of its frames (undefined where either point set is empty)."""
     header = "| method | frames | " + " | ".join(h for _, h in TABLE_COLUMNS) + " |"
     lines = [header, "|" + "---|" * (len(TABLE_COLUMNS) + 2)]
     frames = {m: _frames_of(table[m]) for m in table}
@@ -203,7 +207,8 @@ def model_shortfalls(table: Mapping[str, Mapping[str, Mapping[str, float]]], mod
 
     A method counts when its value is finite and not worse than the model's (ties count: the
     model does not *beat* it), both over the frames both have (``paired`` entries of
-    :func:`aggregate_columns`). Methods whose name starts with 'model' are variants, not baselines.
+    :func:`aggregate_columns`; one with no frame in common is left out). Methods whose name starts
+    with 'model' are variants, not baselines.
     Returns metric -> list of {method, value, model_value, frames (of the pair, or None: all the
     model's)}; metric -> [] when the model wins, and the metric is left out when the model has no
     finite value for it.
@@ -220,6 +225,8 @@ def model_shortfalls(table: Mapping[str, Mapping[str, Mapping[str, float]]], mod
             if method.startswith("model") or method in REFERENCE_ROWS:
                 continue
             pair = row.get(key, {}).get("paired", {}).get(model)
+            if pair is not None and pair["n"] == 0:
+                continue  # no frame in common: no comparison
             bv, mine = (pair[stat], pair[f"model_{stat}"]) if pair else (row.get(key, {}).get(stat, math.nan), mv)
             if math.isfinite(bv) and not _beats(mine, bv, higher):
                 out[key].append({"method": method, "value": bv, "model_value": mine,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import difflib
+import errno
 import hashlib
 import json
 import os
@@ -19,7 +20,7 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import fsspec
 import numpy as np
@@ -91,7 +92,7 @@ class StageReport:
     notes: list[str] = field(default_factory=list)
     """Lines printed under the stage's line (FrameStage.summarise)."""
 
-    def count(self, status: np.ndarray) -> "StageReport":
+    def set_counts(self, status: np.ndarray) -> "StageReport":
         """Take the frame counts (and the failed frames) from the output's (F,) status after the run."""
         self.done, self.pending, self.excluded = (int((status == code).sum()) for code in (DONE, PENDING, EXCLUDED))
         self.failed_frames = np.flatnonzero(status == FAILED)
@@ -252,8 +253,7 @@ class Pipeline:
                 except KeyboardInterrupt as exc:
                     if isinstance(exc, StageInterrupted):
                         raise
-                    kind = "frame" if isinstance(stage, FrameStage) else "resumes" if stage.resumes else "dataset"
-                    raise StageInterrupted(name, kind, forced) from None
+                    raise StageInterrupted(name, _interrupted_kind(stage), False) from None  # before any work
             report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
@@ -479,7 +479,7 @@ class Pipeline:
                     if (status == PENDING).any() or (retry_failed and (status == FAILED).any()) or \
                             self._blocked_frames_ready(stage, status).any():
                         return None
-                    report = StageReport(stage.name, "resumed").count(status)
+                    report = StageReport(stage.name, "resumed").set_counts(status)
         except (PipelineError, OSError):
             return None
         if held(url):  # a run that started writing it (appending frames) while this one read it
@@ -568,7 +568,7 @@ class Pipeline:
                      f"run: `pipeline status --reasons N` lists their reasons")
         final = store.status()
         self._done[stage.name] = done_digest(final)  # what frames_read would read again
-        report.count(final)
+        report.set_counts(final)
         if stage.summarise is not None and report.processed:
             try:
                 report.notes = list(stage.summarise(store, self.env.cfg))
@@ -593,15 +593,18 @@ class Pipeline:
             if (rebuild or redo) and getattr(stage, "ready", None) is not None:
                 stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
             with rewriting(self._lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
-                if redo:
-                    self.redo_frames(stage.name, frames)
-                elif rebuild:
-                    # new outputs under a fingerprint that downstream outputs may already carry:
-                    # marked stale first, so that a run killed while rebuilding leaves them stale
-                    self.invalidate_downstream(stage.name)
-                if isinstance(stage, FrameStage):
-                    return self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
-                return self._run_dataset(stage, forced, rebuild)
+                try:
+                    if redo:
+                        self.redo_frames(stage.name, frames)
+                    elif rebuild:
+                        # new outputs under a fingerprint that downstream outputs may already carry:
+                        # marked stale first, so that a run killed while rebuilding leaves them stale
+                        self.invalidate_downstream(stage.name)
+                    if isinstance(stage, FrameStage):
+                        return self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
+                    return self._run_dataset(stage, forced, rebuild)
+                except KeyboardInterrupt:  # a forced recomputation has begun: a repeated --force starts it again
+                    raise StageInterrupted(stage.name, _interrupted_kind(stage), forced) from None
 
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:
         """Run a dataset stage when ``rebuild`` (forced or not current, as run() found), else report it current."""
@@ -624,9 +627,11 @@ class Pipeline:
             summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
                                 fingerprint=fp)
         except OSError as exc:
-            named = [str(f) for f in (exc.filename, exc.filename2) if f is not None]
-            if named and not any(f.startswith(out.path) for f in named):
-                raise  # names its files, none of them the output's (e.g. a dataset file it read)
+            named = [os.fspath(f) for f in (exc.filename, exc.filename2) if f is not None]
+            inside = any(os.path.commonpath([os.path.abspath(f), os.path.abspath(out.path)])
+                         == os.path.abspath(out.path) for f in named)
+            if not (inside or (not named and exc.errno in WRITE_ERRNOS)):
+                raise  # a read error, or one naming other files only (e.g. a dataset file it read)
             raise cache_error(exc, f"{stage.name}: writing into {out.path}") from None
         out.finish(fp, summary, frames)
         report.summary = summary
@@ -708,6 +713,18 @@ class Pipeline:
             current_of[name] = row["current"]
             rows.append(row)
         return rows
+
+
+WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
+"""Errors only a write raises: one without a file name, from a dataset stage, is its output's
+(a write(2) that fails names no file)."""
+
+
+def _interrupted_kind(stage: Stage) -> Literal["frame", "resumes", "dataset"]:
+    """What an interrupted run of ``stage`` leaves to go on from (:class:`StageInterrupted`)."""
+    if isinstance(stage, FrameStage):
+        return "frame"
+    return "resumes" if stage.resumes else "dataset"
 
 
 def _checkpoints_read(folder) -> tuple[int, list[str]]:

@@ -465,6 +465,12 @@ def object_velocities_for_points(
     return out
 
 
+def on_objects_of_unknown_velocity(points_D: np.ndarray, labels: Sequence[Object3D] | np.ndarray) -> np.ndarray:
+    """(N,) bool: the points (N, 3) m in {D} on a labelled object whose velocity is unknown (NaN),
+    found as :func:`object_velocities_for_points` finds them: their Doppler is a static object's."""
+    return np.isnan(object_velocities_for_points(points_D, labels, unknown=np.nan)[:, 0])
+
+
 def doppler_for_points(
     points_D: np.ndarray, ego_velocity_D: np.ndarray, object_velocity_D: np.ndarray | None,
     doppler_sign: int, span_mps: float,

@@ -65,10 +65,10 @@ says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; 
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
 wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on (13: with another dataset's
 nets the report says that the baselines know this dataset's own radar)."""
-REPORT_VERSION = 14
+REPORT_VERSION = 15
 """The evaluate report's version (12: the RSS histogram bins each set apart when the units differ;
-14: the model compared with a baseline on the frames both have, the frames per row in the table);
-evaluate-frames keeps VERSION."""
+14: the model compared with a baseline on the frames both have, the frames per row in the table;
+15: not compared with one that has none of its frames); evaluate-frames keeps VERSION."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the

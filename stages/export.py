@@ -63,6 +63,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_P2, calib_text, detector_label_text, kitti_calib_text,
                                  kitti_label_text, label_classes, parse_class_map, preview_png, rename_classes, vod_points,
                                  write_image, write_image_sets, write_kitti_layout, write_pcd)
+    from pipeline.synthesis import on_objects_of_unknown_velocity
     from pipeline.working import full_K
 
     syn, calib = inputs.store("synthesize"), inputs.store("calibrate")
@@ -137,7 +138,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         lists[name].append(fid)
         if not f.get("calibrate", "ego_velocity_known"):
             no_motion.append(fid)
-        on_unknown = points_of_unknown_motion(pts[:, :3], f.get("calibrate", "labels"))
+        on_unknown = int(on_objects_of_unknown_velocity(pts[:, :3], f.get("calibrate", "labels")).sum())
         if on_unknown:
             unknown_motion[fid] = on_unknown
         n_points += len(pts)
@@ -198,16 +199,6 @@ UNKNOWN_OBJECT_MOTION_LIST = "object_velocity_unknown.txt"
 """Under the export folder: the exported frames with points on labelled objects whose velocity the
 dataset does not record (their Doppler is a static object's), one id per line; absent when there
 are none."""
-
-
-def points_of_unknown_motion(points_D: np.ndarray, labels: np.ndarray) -> int:
-    """How many of the points (N, 3) m in {D} lie on a labelled object (calibrate's label rows) whose
-    velocity is unknown (NaN): synthesize gave them a static object's Doppler (the same boxes and
-    margin as pipeline.synthesis.object_velocities_for_points, which gave it)."""
-    from pipeline.synthesis import object_velocities_for_points
-
-    velocity = object_velocities_for_points(points_D, labels, unknown=np.nan)
-    return int(np.isnan(velocity[:, 0]).sum())
 
 
 def check(cfg: Config) -> None:

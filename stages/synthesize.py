@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from pipeline import transfer
-from pipeline.config import Config
+from pipeline.config import Config, named_nets
 from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import wrap_doppler
@@ -119,10 +119,7 @@ def check_generation(cfg: Config) -> None:
     # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set
     check_split("synth.split", s.split)
     if not cfg.train.nets_from:  # trained here: refused before training, not after it
-        from stages.train import named_nets
-
-        left_out = [n for n in ("disnet", "rssnet") + (("placenet",) if s.placement == "lidar" else ())
-                    if n not in named_nets(cfg)]
+        left_out = [n for n in needed_nets(cfg) if n not in named_nets(cfg)]
         if left_out:
             hint = " (or set synth.placement=ray, which needs no PlaceNet)" if left_out == ["placenet"] else ""
             raise ConfigError(f"train.nets = '{cfg.train.nets}' leaves out {', '.join(left_out)}, which synthesis "
@@ -133,10 +130,15 @@ def check_generation(cfg: Config) -> None:
         select_device(s.device, "synth.device")
 
 
+def needed_nets(cfg: Config) -> tuple[str, ...]:
+    """The nets generation loads: PlaceNet only for synth.placement = 'lidar'."""
+    return ("disnet", "rssnet") + (("placenet",) if cfg.synth.placement == "lidar" else ())
+
+
 def check_checkpoints(train_dir, cfg: Config) -> None:
     """PipelineError naming what is missing unless the train stage's output ``train_dir`` holds
-    every checkpoint generation needs (PlaceNet only for synth.placement = 'lidar')."""
-    nets = ("disnet", "rssnet") + (("placenet",) if cfg.synth.placement == "lidar" else ())
+    every checkpoint generation needs (:func:`needed_nets`)."""
+    nets = needed_nets(cfg)
     missing = [n for n in nets if not train_dir.fs.exists(train_dir.file(f"{n}/best.safetensors"))]
     if missing:
         hint = " (or set synth.placement=ray, which needs no PlaceNet)" if missing == ["placenet"] else ""

@@ -25,7 +25,7 @@ import numpy as np
 from pipeline import transfer
 from pipeline.cache import DONE, RaggedRows
 from pipeline.checkpoint import read_meta
-from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config, check_profile
+from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config, check_profile, named_nets
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
@@ -280,11 +280,6 @@ def _headline(s: dict) -> str:
         parts.append(f"PlaceNet test NLL {s['placenet']['test']['nll']:.4f} "
                      f"(constant intensity {s['placenet'].get('constant_intensity_test_nll', nan):.4f})")
     return "; ".join(parts) or "trained"
-
-
-def named_nets(cfg: Config) -> set[str]:
-    """The nets train.nets names."""
-    return {n.strip() for n in cfg.train.nets.split(",") if n.strip()}
 
 
 def check(cfg: Config) -> None:

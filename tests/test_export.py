@@ -303,7 +303,7 @@ def test_points_on_objects_of_unknown_velocity_are_counted():
     (the View-of-Delft example frames, Astyx) got a static object's Doppler: a moving cyclist's
     points were exported as parked."""
     from pipeline.frame import Object3D, label_rows
-    from stages.export import points_of_unknown_motion
+    from pipeline.synthesis import on_objects_of_unknown_velocity
 
     unknown = Object3D("Car", np.array([10.0, 0.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0)  # velocity NaN
     known = Object3D("Car", np.array([20.0, 5.0, 0.0]), np.array([4.0, 2.0, 1.5]), 0.0,
@@ -312,6 +312,6 @@ def test_points_on_objects_of_unknown_velocity_are_counted():
                        [20.0, 5.0, 0.0],                                         # in the moving box
                        [30.0, -5.0, 0.0], [12.5, 0.0, 0.0]])                     # in none
     rows = label_rows([unknown, known]).astype(np.float32)
-    assert points_of_unknown_motion(points, rows) == 3
-    assert points_of_unknown_motion(points, label_rows([known]).astype(np.float32)) == 0
-    assert points_of_unknown_motion(np.zeros((0, 3)), rows) == 0
+    assert on_objects_of_unknown_velocity(points, rows).tolist() == [True, True, True, False, False, False]
+    assert not on_objects_of_unknown_velocity(points, label_rows([known]).astype(np.float32)).any()
+    assert on_objects_of_unknown_velocity(np.zeros((0, 3)), rows).shape == (0,)

@@ -648,6 +648,11 @@ def test_environment_errors_name_the_variable_and_a_malformed_variable_is_refuse
     load_config("synthetic", environ={"PIPELINE_CACHE": "x"})  # the CLI's own variable (one underscore) is no key
     # --set wins over the environment, so a bad variable it overrides is never read
     assert load_config("synthetic", {"train.epochs": "4"}, environ={"PIPELINE__TRAIN__EPOCHS": "abc"}).train.epochs == 4
+    with pytest.raises(ConfigError, match=r"^unknown configuration key 'train.Epochs'; did you mean 'train.epochs'"):
+        load_config("synthetic", {"train.Epochs": "4"}, environ={"PIPELINE__TRAIN__EPOCHS": "abc"})  # the --set named
+    with pytest.raises(ConfigError, match="environment variables PIPELINE__TRAIN__EPOCHS and pipeline__train__epochs "
+                                          "both set train.epochs"):
+        load_config("synthetic", environ={"PIPELINE__TRAIN__EPOCHS": "3", "pipeline__train__epochs": "5"})
     from pipeline.cli import main
     out = CliRunner().invoke(main, ["run", "heatmaps", "--dataset", "synthetic", "--cache", str(tmp_path / "c")],
                              env={"PIPELINE__TRAIN_EPOCHS": "3"})

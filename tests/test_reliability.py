@@ -393,11 +393,15 @@ def test_disk_full_in_a_dataset_stage_names_the_stage_and_its_folder(tmp_path):
     folder = pipe.env.dir("train").path
     assert str(raised.value).startswith(f"train: writing into {folder}: the disk holding the cache is full")
 
-    def unreadable(inputs, cfg, out, fingerprint):
-        raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "data" / "labels.txt"))
+    for error in (PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "data" / "labels.txt")),
+                  PermissionError(errno.EACCES, "Permission denied", folder + "_old/x"),  # a sibling's
+                  OSError(errno.EIO, os.strerror(errno.EIO))):  # a read(2) that fails names no file either
+        def fails(inputs, cfg, out, fingerprint, error=error):
+            raise error
 
-    with pytest.raises(PermissionError):
-        _pipe_with_dataset_stage(tmp_path, unreadable).run("train")
+        with pytest.raises(type(error)) as raised:
+            _pipe_with_dataset_stage(tmp_path, fails).run("train")
+        assert raised.value is error
 
 
 def test_a_dataset_stage_output_holds_one_runs_files(tmp_path):
@@ -444,6 +448,22 @@ def test_ctrl_c_says_which_stage_and_whether_to_drop_force(tmp_path, monkeypatch
         _pipe_with_dataset_stage(tmp_path / "b", interrupted).run("train")
     assert (raised.value.kind, raised.value.forced) == ("dataset", False)
     assert "train starts over" in raised.value.advice() and "--force" not in raised.value.advice()
+
+    # stopped before a forced rebuild began (waiting for a lock, checking the output): nothing is
+    # discarded yet, so the same command, --force and all, is the way on
+    pipe = _pipe_with_dataset_stage(tmp_path / "a", interrupted, resumes=True)
+    real_is_current = Pipeline.is_current
+
+    def stopped_in_train_check(self, name):
+        if name == "train":
+            raise KeyboardInterrupt
+        return real_is_current(self, name)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Pipeline, "is_current", stopped_in_train_check)
+        with pytest.raises(StageInterrupted) as raised:
+            pipe.run("train", force=True)
+    assert (raised.value.stage, raised.value.forced) == ("train", False)
 
     monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(tmp_path / "calls.log"))
     monkeypatch.setenv("FAKE_STAGE_STOP_AFTER", "2")

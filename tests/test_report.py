@@ -213,6 +213,11 @@ def test_a_baseline_with_fewer_frames_is_compared_on_the_frames_it_has():
     assert table["previous-frame"]["chamfer_m"]["paired"]["model"] == {
         "n": 3, "mean": 2.0, "median": 2.0, "model_mean": 1.0, "model_median": 1.0}
     assert "paired" not in table["lidar-subsample"]["gospa"]  # the same frames: nothing to pair
+    # no frame in common: no comparison (it was by the means over different frames)
+    apart = R.aggregate_columns({"model": {"chamfer_m": np.array([5.0, 5.0, nan, nan])},
+                                 "previous-frame": {"chamfer_m": np.array([nan, nan, 1.0, 1.0])}})
+    assert apart["previous-frame"]["chamfer_m"]["paired"]["model"] == {"n": 0}
+    assert R.model_shortfalls(apart) == {"chamfer_m": []}
     shortfalls = R.model_shortfalls(table)
     assert [d["method"] for d in shortfalls["chamfer_m"]] == ["lidar-subsample"]
     assert shortfalls["chamfer_m"][0] == {"method": "lidar-subsample", "value": 0.5, "model_value": 11 / 3, "frames": 3}
