@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 
 class PipelineError(Exception):
@@ -73,6 +73,10 @@ class ChunkError(PipelineError):
         return type(self), (self.array, self.index, self.frame, self.chunk, self.problem, self.remedy)
 
 
+InterruptedKind = Literal["frame", "resumes", "dataset"]
+"""What an interrupted stage leaves to go on from (:class:`StageInterrupted`)."""
+
+
 class StageInterrupted(KeyboardInterrupt):
     """Ctrl-C (SIGINT) while a stage ran: says which stage, and so what a new run goes on from.
 
@@ -82,9 +86,9 @@ class StageInterrupted(KeyboardInterrupt):
     --force asked for had begun, which a repeated --force would start again.
     """
 
-    KINDS = ("frame", "resumes", "dataset")
+    KINDS = get_args(InterruptedKind)
 
-    def __init__(self, stage: str, kind: Literal["frame", "resumes", "dataset"], forced: bool) -> None:
+    def __init__(self, stage: str, kind: InterruptedKind, forced: bool) -> None:
         if kind not in self.KINDS:
             raise ValueError(f"StageInterrupted: kind must be one of {self.KINDS}, got {kind!r}")
         self.stage = stage

@@ -20,14 +20,14 @@ import sys
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import fsspec
 import numpy as np
 
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, cache_error, done_digest, is_local, join
-from pipeline.errors import (CacheError, ChunkError, ConfigError, FrameError, MetadataError, PipelineError,
-                             StageInterrupted)
+from pipeline.errors import (CacheError, ChunkError, ConfigError, FrameError, InterruptedKind, MetadataError,
+                             PipelineError, StageInterrupted)
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
@@ -248,12 +248,7 @@ class Pipeline:
             # all hold; otherwise the exclusive one, which a run writing the output holds
             report = None if forced else self._report_if_nothing_to_do(stage, what, retry_failed)
             if report is None:
-                try:
-                    report = self._bring_up_to_date(stage, what, forced, frames, strict, retry_failed, wait_s)
-                except KeyboardInterrupt as exc:
-                    if isinstance(exc, StageInterrupted):
-                        raise
-                    raise StageInterrupted(name, _interrupted_kind(stage), False) from None  # before any work
+                report = self._bring_up_to_date(stage, what, forced, frames, strict, retry_failed, wait_s)
             report.seconds = time.perf_counter() - t0
             reports.append(report)
             self.log(report.line())
@@ -579,21 +574,23 @@ class Pipeline:
     def _bring_up_to_date(self, stage: Stage, what: str, forced: bool, frames: list[int] | None, strict: bool,
                           retry_failed: bool, wait_s: float) -> StageReport:
         """Run ``stage`` (or the frames of it that are left) under its locks; ``forced``: --force
-        applies to it. The arguments otherwise as for :meth:`run`."""
-        with stage_lock(self._lock_url(stage.name), what, wait_s), \
-                reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
-            try:
-                current = self.is_current(stage.name)
-            except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
-                if not forced or frames is not None:
-                    raise
-                current = False
-            redo = forced and frames is not None and isinstance(stage, FrameStage) and current
-            rebuild = (forced and not redo) or not current
-            if (rebuild or redo) and getattr(stage, "ready", None) is not None:
-                stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
-            with rewriting(self._lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
+        applies to it. The arguments otherwise as for :meth:`run`. Ctrl-C raises StageInterrupted."""
+        begun = False  # a forced recomputation has begun: a repeated --force would start it again
+        try:
+            with stage_lock(self._lock_url(stage.name), what, wait_s), \
+                    reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
                 try:
+                    current = self.is_current(stage.name)
+                except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
+                    if not forced or frames is not None:
+                        raise
+                    current = False
+                redo = forced and frames is not None and isinstance(stage, FrameStage) and current
+                rebuild = (forced and not redo) or not current
+                if (rebuild or redo) and getattr(stage, "ready", None) is not None:
+                    stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
+                with rewriting(self._lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
+                    begun = forced
                     if redo:
                         self.redo_frames(stage.name, frames)
                     elif rebuild:
@@ -603,8 +600,8 @@ class Pipeline:
                     if isinstance(stage, FrameStage):
                         return self._run_frames(stage, frames, strict, rebuild and forced, retry_failed)
                     return self._run_dataset(stage, forced, rebuild)
-                except KeyboardInterrupt:  # a forced recomputation has begun: a repeated --force starts it again
-                    raise StageInterrupted(stage.name, _interrupted_kind(stage), forced) from None
+        except KeyboardInterrupt:
+            raise StageInterrupted(stage.name, _interrupted_kind(stage), begun) from None
 
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:
         """Run a dataset stage when ``rebuild`` (forced or not current, as run() found), else report it current."""
@@ -627,10 +624,7 @@ class Pipeline:
             summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
                                 fingerprint=fp)
         except OSError as exc:
-            named = [os.fspath(f) for f in (exc.filename, exc.filename2) if f is not None]
-            inside = any(os.path.commonpath([os.path.abspath(f), os.path.abspath(out.path)])
-                         == os.path.abspath(out.path) for f in named)
-            if not (inside or (not named and exc.errno in WRITE_ERRNOS)):
+            if not _writing_into(exc, out.path):
                 raise  # a read error, or one naming other files only (e.g. a dataset file it read)
             raise cache_error(exc, f"{stage.name}: writing into {out.path}") from None
         out.finish(fp, summary, frames)
@@ -720,7 +714,17 @@ WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
 (a write(2) that fails names no file)."""
 
 
-def _interrupted_kind(stage: Stage) -> Literal["frame", "resumes", "dataset"]:
+def _writing_into(exc: OSError, folder: str) -> bool:
+    """Whether ``exc`` came from writing into ``folder``: it names a file there, or names none and
+    only a write raises it (WRITE_ERRNOS)."""
+    named = [os.path.abspath(os.fspath(f)) for f in (exc.filename, exc.filename2) if f is not None]
+    if not named:
+        return exc.errno in WRITE_ERRNOS
+    folder = os.path.abspath(folder)
+    return any(os.path.commonpath([f, folder]) == folder for f in named)
+
+
+def _interrupted_kind(stage: Stage) -> InterruptedKind:
     """What an interrupted run of ``stage`` leaves to go on from (:class:`StageInterrupted`)."""
     if isinstance(stage, FrameStage):
         return "frame"

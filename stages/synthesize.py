@@ -82,6 +82,8 @@ of the candidates or points (1% by construction on the training data:
 pipeline.input_range.RANGE_PERCENTILES)."""
 PLACEMENTS = ("lidar", "ray")
 """Values of synth.placement."""
+RAY_HINT = " (or set synth.placement=ray, which needs no PlaceNet)"
+"""Said where PlaceNet alone is missing."""
 
 
 def capacity(cfg: Config) -> int:
@@ -121,7 +123,7 @@ def check_generation(cfg: Config) -> None:
     if not cfg.train.nets_from:  # trained here: refused before training, not after it
         left_out = [n for n in needed_nets(cfg) if n not in named_nets(cfg)]
         if left_out:
-            hint = " (or set synth.placement=ray, which needs no PlaceNet)" if left_out == ["placenet"] else ""
+            hint = RAY_HINT if left_out == ["placenet"] else ""
             raise ConfigError(f"train.nets = '{cfg.train.nets}' leaves out {', '.join(left_out)}, which synthesis "
                               f"with synth.placement = '{s.placement}' needs: add it to train.nets{hint}")
     if s.device not in ("auto", "cpu"):  # only these need no check (nor torch imported for it)
@@ -141,7 +143,7 @@ def check_checkpoints(train_dir, cfg: Config) -> None:
     nets = needed_nets(cfg)
     missing = [n for n in nets if not train_dir.fs.exists(train_dir.file(f"{n}/best.safetensors"))]
     if missing:
-        hint = " (or set synth.placement=ray, which needs no PlaceNet)" if missing == ["placenet"] else ""
+        hint = RAY_HINT if missing == ["placenet"] else ""
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
                             f"train stage with {', '.join(missing)} in train.nets{hint}")
     from pipeline.checkpoint import read_meta
