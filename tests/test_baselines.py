@@ -168,3 +168,10 @@ def test_previous_frame_moves_points_keeps_columns():
     assert out[:, 0] == pytest.approx(prev[:, 0] - 0.5)
     assert np.array_equal(out[:, 1:], prev[:, 1:])
     assert B.previous_frame(np.zeros((0, 5)), T).shape == (0, 5)
+
+
+def test_mean_count_rounds_to_the_nearest_count():
+    """n_bar is the training mean rounded (not truncated), and at least 1."""
+    assert B.mean_count([10, 20, 32]) == 21          # mean 20.67
+    assert B.mean_count([3, 4, 4]) == 4              # mean 3.67
+    assert B.mean_count([0, 0, 0, 1]) == 1           # mean 0.25, but never 0 points

@@ -315,3 +315,39 @@ def test_points_on_objects_of_unknown_velocity_are_counted():
     assert on_objects_of_unknown_velocity(points, rows).tolist() == [True, True, True, False, False, False]
     assert not on_objects_of_unknown_velocity(points, label_rows([known]).astype(np.float32)).any()
     assert on_objects_of_unknown_velocity(np.zeros((0, 3)), rows).shape == (0,)
+
+
+def test_uniform_noise_fills_the_field_of_view_and_range_shell():
+    """Noise is uniform over the TOTAL fields of view and [min_range_m, max_range_m]: with many
+    points both angles reach near their limits and no range falls below min_range_m; the count is
+    round(fraction * n), not truncated."""
+    points, rss, v_r = random_points(200)
+    rows = vod_points(points, rss, v_r, np.zeros(3))
+    out = add_uniform_noise(rows, 2.0, np.random.default_rng(1), fov_az_deg=64.0, fov_el_deg=20.0,
+                            max_range_m=50.0, min_range_m=20.0, rss_range=(0, 1), doppler_range_mps=(0, 1))
+    rae = cartesian_to_spherical(out[200:].astype(np.float64)[:, :3])
+    az, el = np.abs(np.rad2deg(rae[:, 1])), np.abs(np.rad2deg(rae[:, 2]))
+    assert 30.0 < az.max() <= 32.0 + 1e-3 and 9.0 < el.max() <= 10.0 + 1e-3
+    assert rae[:, 0].min() >= 20.0 - 1e-4 and rae[:, 0].max() <= 50.0 + 1e-4
+    assert np.mean(rae[:, 0] < 35.0) == pytest.approx(0.5, abs=0.1)       # uniform in range, not in volume
+    few = add_uniform_noise(rows[:199], 0.05, np.random.default_rng(0), fov_az_deg=64, fov_el_deg=40,
+                            max_range_m=50, rss_range=(0, 1), doppler_range_mps=(0, 1))
+    assert few.shape == (199 + 10, 7)                                        # round(9.95) = 10
+
+
+def test_kitti_label_alpha_is_the_observation_angle():
+    """alpha = rotation_y - atan2(x, z): a car driving straight away from the camera has alpha =
+    -pi/2 wherever it is in the image (KITTI's observation angle), although its rotation_y differs."""
+    from pipeline.export import kitti_label_text
+    from pipeline.frame import Object3D
+    from pipeline.readers.testing import R_CAM_D, rigid
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 200], [0, 0, 1]])
+    T_cam_radar = rigid(R_CAM_D, np.zeros(3))
+    objects = [Object3D("Car", np.array([25.0, 25.0 * np.tan(a), 0.3]), np.array([4.2, 1.8, 1.5]), a)
+               for a in np.radians([-20.0, -8.0, 0.0, 12.0, 20.0])]
+    lines = [line.split() for line in kitti_label_text(objects, T_cam_radar, K, (640, 400)).splitlines()]
+    assert len(lines) == 5
+    alphas, rys = np.array([float(f[3]) for f in lines]), np.array([float(f[14]) for f in lines])
+    np.testing.assert_allclose(alphas, -np.pi / 2, atol=1e-4)
+    assert np.ptp(rys) > 0.6

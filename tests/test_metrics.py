@@ -326,3 +326,55 @@ def test_rss_loss_and_frame_metrics():
     assert fm["kl"] == pytest.approx(0.0, abs=1e-12)
     assert fm["chamfer_m"] == 0.0 and fm["gospa"] == 0.0 and fm["f1"] == 1.0 and fm["count_rel_err"] == 0.0
     assert math.isnan(M.frame_metrics(real[:3], real)["kl"])
+
+
+# ---------------------------------------------------------------- audit: orientation, gates, units
+
+def test_frame_metrics_orientation_synthetic_is_the_estimate():
+    """One real point, three synthetic ones (one 0.5 m from it): by the module's conventions the
+    two far synthetic points are 'false' (c^2 / 2 = 2 each), nothing is 'missed', precision =
+    1 / 3 (matches / synthetic), recall = 1 (matches / real), and the count error is relative to
+    the real count: |3 - 1| / 1 = 2."""
+    real = np.array([[0.0, 0, 0, 0, 0]])
+    syn = np.array([[0.5, 0, 0, 0, 0], [10.0, 0, 0, 0, 0], [20.0, 0, 0, 0, 0]])
+    fm = M.frame_metrics(syn, real)
+    assert fm["gospa_missed"] == 0.0 and fm["gospa_false"] == pytest.approx(4.0)
+    assert fm["gospa_localisation"] == pytest.approx(0.25)
+    assert fm["precision"] == pytest.approx(1 / 3) and fm["recall"] == 1.0
+    assert fm["count_rel_err"] == pytest.approx(2.0) and fm["count_sq_rel_err"] == pytest.approx(4.0)
+    assert M.frame_metrics(syn, real, n_hat=2)["count_rel_err"] == pytest.approx(1.0)   # n_hat, not len(syn)
+
+
+def test_frame_metrics_passes_the_doppler_span_to_the_matching():
+    real = np.array([[0.0, 0, 0, 5.0, 0]])
+    syn = np.array([[0.0, 0, 0, -5.0, 0]])   # 0.39 m/s apart on a 10.39 m/s circle
+    assert M.frame_metrics(syn, real)["f1"] == 0.0
+    assert M.frame_metrics(syn, real, doppler_span_mps=10.39)["f1"] == 1.0
+
+
+def test_f1_gates_are_inclusive():
+    """EVALUATION.md: a pair counts if distance <= 1.0 m, |d RSS| <= 8 and |d Doppler| <= 2.5 m/s
+    (values exact in binary: Astyx RSS comes in 0.5 steps, so a difference of exactly 8 is common)."""
+    real = np.array([[0.0, 0, 0, 1.0, 50.0]])
+    for syn, want in (([1.0, 0, 0, 1.0, 50.0], 1), ([0.0, 0, 0, 1.0, 58.0], 1), ([0.0, 0, 0, 3.5, 50.0], 1),
+                      ([0.0, 0, 0, -1.5, 42.0], 1), ([0.0, 0, 0, 1.0, 58.5], 0), ([0.0, 0, 0, 3.5625, 50.0], 0)):
+        assert M.matched_f1(np.array([syn]), real)["matches"] == want, syn
+
+
+def test_region_mask_half_fields_of_view_and_range_limit():
+    """fov_* are TOTAL fields of view: with 40 deg, azimuth 25 deg is out although it projects into
+    the image; a point at exactly max_range_m is in ('within 50 m')."""
+    from pipeline.geometry import project_to_image
+
+    K, T, size = _camera()
+    pts = np.array([[10.0, 10.0 * math.tan(math.radians(25)), 0], [10.0, 10.0 * math.tan(math.radians(15)), 0],
+                    [50.0, 0, 0], [50.0 + 1e-6, 0, 0]])
+    assert project_to_image(pts, K, T, size)[2].all()
+    mask = M.region_mask(pts, fov_az_deg=40.0, fov_el_deg=40.0, max_range_m=50.0, K=K, T_cam_radar=T,
+                         image_size_wh=size)
+    assert mask.tolist() == [False, True, True, False]
+
+
+def test_rss_loss_normalises_by_the_span_not_the_maximum():
+    # Astyx Mag spans 45..102: a 5-unit error is 5 / 57 of the span
+    assert M.rss_loss([45.0, 102.0], [50.0, 102.0], 45.0, 102.0) == pytest.approx(0.5 * (5.0 / 57.0) ** 2)

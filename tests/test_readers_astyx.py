@@ -184,3 +184,62 @@ def test_calibrate_counts_radar_points_beyond_max_range(tmp_path):
         "calibrate", frames=[1], force=True)[0]
     assert report.processed == 1 and report.notes[0].startswith("summary unavailable:") and "radar_beyond_range" in \
         report.notes[0], report.notes
+
+
+def _rot(axis: str, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+            "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])}[axis]
+
+
+def test_fixture_calibration_directions_lidar_points_and_time(tmp_path):
+    """calib_data.T_to_ref_COS maps sensor -> reference: with a radar entry that is not the
+    identity, T_radar_lidar = inv(T_radar) @ T_lidar and T_radar_cam = inv(T_radar) @ T_camera;
+    lidar points land at T_radar_lidar @ p_L (rotation and translation both); the frame time is
+    the median lidar Timestamp in microseconds; the intensity is the Reflectivity column."""
+    import json
+
+    from pipeline.readers.testing import K_FIXTURE, T_CAM_RADAR, rigid
+
+    make_astyx_dataset(tmp_path, n_frames=2, speed_mps=8.0)
+    T_ref_radar = rigid(_rot("z", 0.1), np.array([0.2, -0.1, 0.05]))
+    T_ref_lidar = rigid(_rot("z", 0.3) @ _rot("x", 0.05), np.array([-0.5, 0.1, 0.8]))
+    T_ref_cam = T_ref_radar @ np.linalg.inv(T_CAM_RADAR)
+    calib = {"sensors": [
+        {"sensor_uid": "radar_6455", "calib_data": {"T_to_ref_COS": T_ref_radar.tolist()}},
+        {"sensor_uid": "lidar_vlp16", "calib_data": {"T_to_ref_COS": T_ref_lidar.tolist()}},
+        {"sensor_uid": "camera_front", "calib_data": {"T_to_ref_COS": T_ref_cam.tolist(), "K": K_FIXTURE.tolist()}}]}
+    (tmp_path / "calibration" / "000001.json").write_text(json.dumps(calib))
+    rng = np.random.default_rng(7)
+    p_L = rng.uniform([2, -10, -2], [40, 10, 2], (201, 3))
+    stamps = 3_000_000 + 1000 * np.arange(201)                      # 3.0 s .. 3.2 s, median 3.1 s
+    rows = "\n".join(f"{a:.4f} {b:.4f} {c:.4f} {7 + k % 3} {k % 16} {t}"
+                     for k, ((a, b, c), t) in enumerate(zip(p_L, stamps)))
+    (tmp_path / "lidar_vlp16" / "000001.txt").write_text("X Y Z Reflectivity LaserID Timestamp \n" + rows + "\n")
+    reader = get_reader(load_config("astyx").with_overrides({"camera.full_size": "64,48"}), tmp_path)
+    rec = reader.read("000001")
+    np.testing.assert_allclose(rec.T_radar_lidar, np.linalg.inv(T_ref_radar) @ T_ref_lidar, atol=1e-9)
+    np.testing.assert_allclose(rec.T_radar_cam, np.linalg.inv(T_CAM_RADAR), atol=1e-9)
+    homogeneous = np.column_stack([np.round(p_L, 4), np.ones(201)])
+    expected = (np.linalg.inv(T_ref_radar) @ T_ref_lidar @ homogeneous.T).T[:, :3]
+    np.testing.assert_allclose(rec.lidar_D, expected, atol=1e-4)
+    assert rec.timestamp_s == pytest.approx(3.1, abs=1e-9)
+    np.testing.assert_array_equal(rec.lidar_intensity, 7 + np.arange(201) % 3)
+
+
+def test_fixture_ego_velocity_when_every_point_is_aliased(tmp_path):
+    """At 8 m/s with every target within 25 deg of the axis, every static range rate (< -7 m/s) is
+    aliased into the +/-5.2 m/s span: the record's ego velocity must come from the alias-aware fit."""
+    make_astyx_dataset(tmp_path, n_frames=2, speed_mps=8.0)
+    rng = np.random.default_rng(2)
+    n = 300
+    az, el, r = rng.uniform(-0.45, 0.45, n), rng.uniform(-0.2, 0.2, n), rng.uniform(3, 45, n)
+    xyz = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], 1)
+    rate = -(xyz / r[:, None]) @ np.array([8.0, 0, 0])
+    assert rate.max() < -ASTYX_SPAN_MPS / 2
+    v_r = -wrap_doppler(rate, ASTYX_SPAN_MPS)                        # Astyx: positive approaching
+    rows = "\n".join(f"{a:.6f} {b:.6f} {c:.6f} {d:.4f} 60.0" for (a, b, c), d in zip(xyz, v_r))
+    (tmp_path / "radar_6455" / "000001.txt").write_text("\nX Y Z V_r Mag\n" + rows + "\n")
+    reader = get_reader(load_config("astyx").with_overrides({"camera.full_size": "64,48"}), tmp_path)
+    np.testing.assert_allclose(reader.read("000001").ego_velocity_D, [8.0, 0, 0], atol=0.05)
+    np.testing.assert_allclose(reader.estimate_ego("000001").velocity_D, [8.0, 0, 0], atol=0.05)

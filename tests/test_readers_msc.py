@@ -223,3 +223,37 @@ def test_bag_layout(tmp_path):
     np.testing.assert_allclose(rec.ego_velocity_D, [5.0, 0, 0])
     np.testing.assert_array_equal(rec.image, cv2.undistort(_image(1)[:, :, ::-1], K, DIST)[:, :, ::-1])
     assert rec.lidar_D.shape == (300, 3) and rec.sequence_id == "URBAN_D0"
+
+
+def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(axis, np.float64) / np.linalg.norm(axis) * angle)[0]
+
+
+def test_folder_turned_extrinsics_millimetres_and_three_radial_terms(tmp_path):
+    """p_cam = R p_sensor + t with rotations that are not the identity and the radar translation in
+    millimetres: radar and lidar points through the record land where the calibration text puts them
+    in the camera; a third radial coefficient is k3 (OpenCV's 5th distortion term, not p1)."""
+    truth = make_folder(tmp_path)
+    R_radar = _rot([0.2, 1.0, 0.1], 0.15)
+    t_radar_mm = np.array([120.0, -80.0, 40.0])
+    R_lidar = R_CAM_D @ _rot([0.0, 0.0, 1.0], 0.3) @ _rot([1.0, 0.0, 0.0], 0.05)
+    calib = tmp_path / "5_CALIBRATION_URBAN"
+    rows = lambda R: "\n".join(" ".join(f"{v:.12g}" for v in r) for r in R)  # noqa: E731
+    (calib / "CALIBRATION_CAMERA_RADAR.txt").write_text(
+        f"attitude of RADAR in camera coordinate\n{rows(R_radar)}\n"
+        "translation of RADAR in camera coordinate\n" + " ".join(map(str, t_radar_mm)) + "\n")
+    (calib / "CALIBRATION_CAMERA_LIDAR.txt").write_text(
+        f"attitude of LIDAR in camera coordinate\n{rows(R_lidar)}\n"
+        "translation of LIDAR in camera coordinate\n" + " ".join(map(str, T_CAM_LIDAR_T)) + "\n")
+    text = (calib / "CALIBRATION_CAMERA.txt").read_text()
+    (calib / "CALIBRATION_CAMERA.txt").write_text(text.replace("-0.23 0.12\n", "-0.23 0.12 -0.05\n", 1))
+    reader = get_reader(_cfg(), tmp_path)
+    rec = reader.read("000002")
+    assert reader.report()["extrinsics_in_millimetres"] == 1
+    T_cam_radar = invert_transform(rec.T_radar_cam)
+    radar_cam = rec.radar_D[:, :3].astype(np.float64) @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3]
+    np.testing.assert_allclose(radar_cam, truth["radar"][2][:, :3] @ R_radar.T + t_radar_mm / 1000.0, atol=1e-4)
+    lidar_cam = rec.lidar_D.astype(np.float64) @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3]
+    np.testing.assert_allclose(lidar_cam, truth["lidar"][1][:, :3] @ R_lidar.T + T_CAM_LIDAR_T, atol=1e-4)
+    expected = cv2.undistort(_image(2), K, np.array([-0.23, 0.12, 0.0, 0.0, -0.05]))[:, :, ::-1]
+    np.testing.assert_array_equal(rec.image, expected)

@@ -230,3 +230,62 @@ def test_unknown_reader_name_is_a_config_error(tmp_path):
 def _mkdir(path: Path) -> Path:
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def _rz(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_fixture_rotated_odometry_world_and_lidar_mounting(tmp_path):
+    """Velocities in {D} do not depend on how the odometry world is oriented: with every pose
+    turned by 0.7 rad about z and shifted, the pose-differenced ego velocity (2 radar points: the
+    Doppler fit is unusable) and the tracked object's velocity are still the fixture's, in {D}.
+    A lidar mounted turned by 0.2 rad about z: its points land at T_radar_lidar @ p_L with
+    T_radar_lidar = inv(T_cam_radar) @ T_cam_lidar. The Doppler column is v_r (not
+    v_r_compensated), the RSS column the RCS."""
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0), n_radar=2)
+    T_turned = rigid(_rz(0.7), np.array([100.0, -50.0, 3.0]))
+    for fid in truth.frame_ids:
+        path = tmp_path / "lidar/training/pose" / f"{fid}.json"
+        T_world_cam = np.array(json.loads(path.read_text().splitlines()[0])["odomToCamera"]).reshape(4, 4)
+        write_pose(path, T_turned @ T_world_cam)
+    fid = truth.frame_ids[1]
+    T_radar_lidar = rigid(_rz(0.2), np.array([-0.5, 0.1, 0.8]))
+    from pipeline.readers.testing import K_FIXTURE, write_kitti_calib
+    write_kitti_calib(tmp_path / "lidar/training/calib" / f"{fid}.txt", K_FIXTURE, T_CAM_RADAR @ T_radar_lidar)
+    p_L = np.random.default_rng(4).uniform([2, -10, -2], [40, 10, 2], (300, 3))
+    np.column_stack([p_L, np.full(300, 0.5)]).astype("<f4").tofile(tmp_path / "lidar/training/velodyne" / f"{fid}.bin")
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    rec = reader.read(fid)
+    assert reader.report()["ego_from_poses"] == 1
+    np.testing.assert_allclose(rec.ego_velocity_D, truth.ego_velocity_D, atol=1e-6)
+    np.testing.assert_allclose(rec.labels[0].velocity_D, truth.object_velocity_D, atol=1e-4)
+    np.testing.assert_allclose(rec.T_radar_lidar, T_radar_lidar, atol=1e-6)
+    expected = p_L.astype(np.float32).astype(np.float64) @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
+    np.testing.assert_allclose(rec.lidar_D, expected, atol=1e-4)
+    raw = np.fromfile(tmp_path / "radar/training/velodyne" / f"{fid}.bin", dtype="<f4").reshape(-1, 7)
+    np.testing.assert_array_equal(rec.radar_D[:, 3], raw[:, 4])
+    np.testing.assert_array_equal(rec.radar_D[:, 4], raw[:, 3])
+
+
+def test_lidar_box_labels_are_upright_in_a_tilted_lidar(tmp_path):
+    """View-of-Delft's devkit: a box is upright in the LIDAR frame, its KITTI location the bottom
+    centre (centre lowered h/2 along the lidar's z) in the camera frame, rotation_y = -(yaw_L + pi/2).
+    With a lidar pitched 8 deg and yawed 25 deg against the radar, the reader's box has the lidar
+    centre mapped into {D} and the heading of the lidar's yaw mapped into {D}."""
+    from pipeline.readers.kitti_format import KittiLabel, lidar_box_label_to_object
+
+    cp, sp, cy, sy = np.cos(0.14), np.sin(0.14), np.cos(0.44), np.sin(0.44)
+    R_radar_lidar = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    T_radar_lidar = rigid(R_radar_lidar, np.array([-0.6, 0.1, 0.9]))
+    T_cam_lidar = T_CAM_RADAR @ T_radar_lidar
+    h, w, l, yaw_L = 1.8, 0.7, 1.9, 0.6
+    centre_L = np.array([12.0, -3.0, -0.4])
+    bottom_cam = (T_cam_lidar @ np.append(centre_L - [0.0, 0.0, h / 2], 1.0))[:3]
+    label = KittiLabel("Cyclist", 3, np.array([h, w, l]), bottom_cam, -(yaw_L + np.pi / 2))
+    obj = lidar_box_label_to_object(label, invert_transform(T_CAM_RADAR), T_radar_lidar, 3)
+    np.testing.assert_allclose(obj.center_D, (T_radar_lidar @ np.append(centre_L, 1.0))[:3], atol=1e-9)
+    heading_D = R_radar_lidar @ [np.cos(yaw_L), np.sin(yaw_L), 0.0]
+    assert obj.yaw_rad == pytest.approx(np.arctan2(heading_D[1], heading_D[0]), abs=1e-9)
+    np.testing.assert_allclose(obj.size_lwh_m, [l, w, h])

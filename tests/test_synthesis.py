@@ -577,3 +577,28 @@ def test_synthesize_summary_names_the_inputs_outside_placenets_training_range():
     quiet = _Store([DONE], candidates=np.array([1000]), outside_training=np.zeros((1, len(FEATURES)), np.int32),
                    rss_points=np.array([0]), rss_outside=np.zeros((1, 4), np.int32))
     assert summarise(quiet, cfg) == []
+
+
+def test_synthesize_frame_doppler_uses_labels_sign_and_span():
+    """The frame's Doppler is eq. 16 with each point's object velocity, in the simulated radar's
+    convention: an Astyx-like radar (sign -1: positive approaching, wrapped into 10.39 m/s) seeing a
+    static wall at 8 m/s reports wrap(+8 cos) < 0, and points on a box moving with the ego vehicle
+    report 0. n_hat is rounded to the nearest count."""
+    span = 10.39
+    T = make_T_radar_cam((0.3, 0.4, 0.5))
+    prob = np.zeros((80, 160))
+    prob[30:50, 60:100] = 1.0
+    ego = np.array([8.0, 0.0, 0.0])
+    box = Object3D("Car", np.array([15.0, 5.0, 0.0]), np.array([2.0, 10.0, 6.0]), 0.0, velocity_D=ego.copy())
+    radar = dict(RADAR, doppler_sign=-1, doppler_span_mps=span)
+    out = synthesize_frame(prob, 120.6, K_SMALL, T, wall_scene(), ego, [box], estimator="nearest",
+                           no_support="drop", rng=np.random.default_rng(1), **radar)
+    assert out["n_requested"] == 121
+    points = out["points_D"].astype(np.float64)
+    on_box = (np.abs(points[:, 0] - 15.0) <= 1.3) & (np.abs(points[:, 1] - 5.0) <= 5.3) & (np.abs(points[:, 2]) <= 3.3)
+    assert 10 < on_box.sum() < len(points) - 10
+    unit = points / np.linalg.norm(points, axis=1, keepdims=True)
+    range_rate = -(unit @ ego) * ~on_box                   # static world: -(u . v_ego); on the box: 0
+    expected = np.mod(-range_rate + span / 2, span) - span / 2
+    np.testing.assert_allclose(out["doppler"], expected, atol=1e-4)
+    assert np.all(out["doppler"][~on_box] < -1.0)           # +8 m/s approaching, aliased
