@@ -321,7 +321,8 @@ def sigma_from_frames(frames: Iterable[FrameRecord], grow_m: float = 0.5, min_po
 def resize_distribution(prob_hw: np.ndarray, size_wh: Sequence[int]) -> np.ndarray:
     """A per-pixel probability map (h, w) >= 0 at another size (W, H): float32 (H, W) summing to 1
     (all zeros when ``prob_hw`` has no mass). Area-averaged where it shrinks, bilinear where it
-    grows (a map predicted at another dataset's working size, train.nets_from)."""
+    grows (a map predicted at another dataset's working size, train.nets_from). A map already of
+    that size is returned as it is, not normalised again (Dis-Net's maps sum to 1)."""
     import cv2
 
     prob = check_shape("prob_hw", np.asarray(prob_hw, np.float32), (None, None))

@@ -14,6 +14,7 @@ from pipeline.heatmap import (
     naive_heatmap,
     object_points_uv,
     points_in_box,
+    resize_distribution,
     sigma_from_frames,
 )
 
@@ -132,6 +133,12 @@ def test_estimate_sigma_is_robust_to_outliers():
     assert 9.0 < sx < 11.5 and 9.0 < sy < 11.5
 
 
+def test_estimate_sigma_counts_an_object_with_exactly_min_points():
+    # deviations from the median (1, 1): (-1, 0, 2) per axis, median |dev| = 1
+    sx, sy = estimate_sigma_px([np.array([[0.0, 0.0], [1.0, 1.0], [3.0, 3.0]])], min_points=3)
+    assert sx == pytest.approx(1.4826) and sy == pytest.approx(1.4826)
+
+
 def test_estimate_sigma_errors():
     with pytest.raises(ValueError, match="no object"):
         estimate_sigma_px([np.zeros((2, 2))])
@@ -145,6 +152,14 @@ def test_points_in_box_rotated_and_grown():
     pts = np.array([[10.0, 1.9, 0.0], [11.4, 0.0, 0.0], [10.0, 0.0, 0.74], [10.0, 2.3, 0.0]])
     np.testing.assert_array_equal(points_in_box(pts, box), [True, False, True, False])
     np.testing.assert_array_equal(points_in_box(pts, box, grow_m=0.5), [True, True, True, True])
+
+
+def test_points_in_box_follows_the_yaw_direction():
+    # yaw 45 deg (counter-clockwise seen from above, towards +y): the long axis points along (1, 1)
+    box = Object3D("car", np.array([10.0, 0.0, 0.0]), np.array([4.0, 1.0, 1.0]), np.pi / 4)
+    along, across = np.array([1.0, 1.0, 0.0]) / np.sqrt(2), np.array([-1.0, 1.0, 0.0]) / np.sqrt(2)
+    pts = box.center_D + np.array([1.8 * along, -1.8 * along, 1.8 * across, 0.4 * across])
+    np.testing.assert_array_equal(points_in_box(pts, box), [True, True, False, True])
 
 
 def _frame_with_objects(rng: np.random.Generator) -> tuple[FrameRecord, np.ndarray]:
@@ -176,6 +191,16 @@ def test_object_points_uv_projects_each_objects_points():
     p = frame.radar_D[:20, :3].astype(np.float64)
     expected = np.c_[320.0 + 500.0 * (-p[:, 1] / p[:, 0]), 240.0 + 500.0 * (-p[:, 2] / p[:, 0])]
     np.testing.assert_allclose(per_object[0], expected, rtol=1e-6)
+
+
+def test_object_points_uv_keeps_only_points_inside_the_image():
+    frame, _ = _frame_with_objects(np.random.default_rng(4))
+    # a third object 6 m to the left at 5 m: u = 320 + 500 * 6 / 5 < 0, left of the image
+    side = Object3D("car", np.array([5.0, 6.0, 0.0]), np.array([2.0, 2.0, 1.5]), 0.0)
+    pts = np.c_[side.center_D + np.random.default_rng(5).uniform(-0.5, 0.5, (10, 3)), np.zeros((10, 2))]
+    frame = FrameRecord(**{**frame.__dict__, "labels": [*frame.labels, side],
+                           "radar_D": np.vstack([frame.radar_D, pts]).astype(np.float32)})
+    assert [len(p) for p in object_points_uv(frame)] == [20, 20, 0]
 
 
 def test_sigma_from_frames_pools_objects():
@@ -246,3 +271,16 @@ def test_interpolated_path_is_close_to_the_exact_product(monkeypatch):
     monkeypatch.setattr(hm, "_chebyshev_plan", lambda *a: None)
     exact = hm.gaussian_heatmap(uv, (400, 250), (30.0, 30.0))
     np.testing.assert_allclose(fast, exact, rtol=3e-6)
+
+
+def test_resize_distribution_area_averages_when_shrinking_and_interpolates_when_growing():
+    rng = np.random.default_rng(0)
+    prob = rng.random((8, 12))
+    prob /= prob.sum()
+    small = resize_distribution(prob, (3, 2))  # 4 x 4 blocks: each block's mass, nothing lost
+    np.testing.assert_allclose(small, prob.reshape(2, 4, 3, 4).sum(axis=(1, 3)), rtol=1e-5)
+    # 2 x 2 -> 4 x 4 bilinear with pixel-centre alignment: 1-D [a, b] -> [a, (3a + b) / 4, (a + 3b) / 4, b]
+    coarse = np.array([[0.1, 0.2], [0.3, 0.4]])
+    up = np.array([[1.0, 0.0], [0.75, 0.25], [0.25, 0.75], [0.0, 1.0]])
+    expected = up @ coarse @ up.T
+    np.testing.assert_allclose(resize_distribution(coarse, (4, 4)), expected / expected.sum(), rtol=1e-5)

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.patches import image_patch, image_patches, sample_points
+from pipeline.patches import image_patch, image_patches, input_summaries, sample_points
 
 
 def _coded_image(h: int = 40, w: int = 60) -> np.ndarray:
@@ -29,6 +29,16 @@ def test_odd_window_centre_pixel_is_the_point():
     img = _coded_image()
     patch = image_patch(img, np.array([30.0, 20.0]), 2.5, 5)  # S = 5
     assert tuple(patch[2, 2]) == (21, 31, 7)
+
+
+def test_window_side_is_the_nearest_integer_to_twice_r_c():
+    img = _coded_image()
+    # r_c = 3.3 -> 2 r_c = 6.6 -> S = 7 (not 6): columns 27..33 around u = 30, no resize at out 7
+    patch = image_patch(img, np.array([30.0, 20.0]), 3.3, 7)
+    np.testing.assert_array_equal(patch[0, :, 1], np.arange(27, 34) + 1)
+    np.testing.assert_array_equal(patch[:, 0, 0], np.arange(17, 24) + 1)
+    # r_c = 3.2 -> 6.4 -> S = 6: x0 = round(30 - 2.5) = 28 (half to even)
+    np.testing.assert_array_equal(image_patch(img, np.array([30.0, 20.0]), 3.2, 6)[0, :, 1], np.arange(28, 34) + 1)
 
 
 def test_border_is_zero_padded_not_shifted():
@@ -122,3 +132,16 @@ def test_sample_points():
     assert not np.array_equal(sample_points(g, 1000, 5), sample_points(g, 1000, 5))
     with pytest.raises(ValueError):
         sample_points(rng, -1, 5)
+    # most of the points: still no point drawn twice
+    assert len(np.unique(sample_points(np.random.default_rng(5), 100, 90))) == 90
+
+
+def test_input_summaries_hand_computed():
+    # range images: EMPTY (-1) is unoccupied, 0 (a neighbour nearer by r_l) is occupied
+    ranges = np.array([[[-1.0, 0.0], [127.0, -1.0]], [[254.0, 3.5], [0.0, 1.0]]])
+    patches = np.zeros((2, 2, 2, 3))
+    patches[1] = 51.0
+    points = np.array([[3.0, 4.0, 0.0, -2.5], [0.0, 0.0, 2.0, 1.5]])
+    out = input_summaries(patches, ranges, points)
+    np.testing.assert_allclose(out, [[0.5, 5.0, 2.5, 0.0], [1.0, 2.0, 1.5, 51.0]])
+    assert np.isnan(input_summaries(None, None, points)[:, [0, 3]]).all()

@@ -45,12 +45,15 @@ def test_lidar_candidates_keep_only_points_the_radar_and_camera_both_see():
         [10.0, 9.0, 0.0],     # azimuth 42 deg: outside the 160 px image
         [np.nan, 0.0, 0.0],
         [20.0, -1.0, 0.5],    # kept
+        [10.0, 0.0, -2.2],    # elevation -12.4 deg < -20 / 2, inside the image (row 67)
     ])
     idx, uv = P.lidar_candidates(points, K_SMALL, T_RADAR_CAM, (160, 80), fov_az_deg=20.0, fov_el_deg=20.0,
                                  max_range_m=50.0)
     np.testing.assert_array_equal(idx, [0, 8])
     wide, _ = P.lidar_candidates(points, K_SMALL, T_RADAR_CAM, (160, 80), 100.0, 20.0, 50.0)
     np.testing.assert_array_equal(wide, [0, 3, 8])    # the radar sees 42 deg, the camera does not
+    tall, _ = P.lidar_candidates(points, K_SMALL, T_RADAR_CAM, (160, 80), 20.0, 30.0, 50.0)
+    np.testing.assert_array_equal(tall, [0, 8, 9])
     expect, _, _ = project_to_image(points[idx], K_SMALL, invert_transform(T_RADAR_CAM), (160, 80))
     np.testing.assert_allclose(uv, expect)
     with pytest.raises(ValueError, match="lidar_D"):
@@ -103,6 +106,19 @@ def test_candidate_features_hand_computed():
     pixels = np.zeros((len(many), 2))
     np.testing.assert_array_equal(P.candidate_features(many, pixels, image, cloud, ego, [], workers=2),
                                   P.candidate_features(many, pixels, image, cloud, ego, []))
+
+
+def test_planarity_is_the_smallest_share_of_the_spread():
+    """Ten neighbours spread equally along x, y and z (covariance 2 a^2 I): planarity 1/3 whatever a;
+    flattened to a disc in z: 0."""
+    for a in (0.1, 2.0):
+        cloud = np.vstack([a * np.vstack([np.eye(3), -np.eye(3)]), np.zeros((4, 3))]) + [10.0, 0.0, 0.0]
+        f = P.candidate_features(cloud[:1], np.zeros((1, 2)), np.zeros((4, 4, 3), np.uint8), cloud,
+                                 np.zeros(3), [])
+        assert f[0, P.FEATURES.index("planarity")] == pytest.approx(1 / 3, rel=1e-5)
+        disc = cloud * [1.0, 1.0, 0.0]
+        f = P.candidate_features(disc[:1], np.zeros((1, 2)), np.zeros((4, 4, 3), np.uint8), disc, np.zeros(3), [])
+        assert f[0, P.FEATURES.index("planarity")] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_smallest_eigenpair_matches_eigh_and_handles_degenerate_matrices():
@@ -172,6 +188,22 @@ def test_placement_weights_equal_the_sum_over_map_pixels():
     half = P.placement_weights(m[::2, ::2], uv, lam, (2 * w, 2 * h), (2 * sigma[0], 2 * sigma[1]))
     np.testing.assert_allclose(half, P.placement_weights(m[::2, ::2], (uv + 0.5) / 2 - 0.5, lam, (w, h), sigma),
                                rtol=1e-9)
+
+
+def test_placement_weights_with_a_map_of_another_aspect_ratio():
+    """A 12 x 10 map for a 24 x 40 working image: u scales by 1/2, v by 1/4, and so do the blur's
+    standard deviations (6, 10) working pixels -> (3, 2.5) map pixels; brute force at map pixels."""
+    rng = np.random.default_rng(2)
+    (w, h), (mw, mh), sigma = (24, 40), (12, 10), (6.0, 10.0)
+    m = rng.random((mh, mw))
+    uv = rng.uniform(0, [w - 1, h - 1], (15, 2))
+    lam = rng.gamma(1.0, 1.0, 15)
+    q = P.placement_weights(m, uv, lam, (w, h), sigma)
+    px = np.floor((uv + 0.5) * [mw / w, mh / h]).astype(int)
+    yy, xx = np.mgrid[0:mh, 0:mw]
+    g = gaussian(xx[..., None] - px[:, 0], 3.0) * gaussian(yy[..., None] - px[:, 1], 2.5)
+    brute = lam * np.einsum("hw,hwc->c", m / (g @ lam), g)
+    np.testing.assert_allclose(q, brute / brute.sum(), rtol=1e-6)
 
 
 def test_placement_weights_take_each_candidate_from_its_own_pixel_of_a_smaller_map():
@@ -261,6 +293,18 @@ def test_choose_candidates_fill_every_voxel_before_doubling_up():
         P.choose_candidates(q, points[:3], 1, rng, 1.0)
 
 
+def test_choose_candidates_voxel_grid_has_a_random_offset():
+    """Two candidates 0.1 m apart on either side of x = 1 share a 1 m cube unless a cube face falls
+    between them (probability 0.1 with a random offset; always without one). With a third, far
+    candidate and two draws, both near ones come out only when they are in different cubes."""
+    rng = np.random.default_rng(3)
+    points = np.array([[0.95, 0.2, 0.2], [1.05, 0.2, 0.2], [30.0, 0.2, 0.2]])
+    q = np.full(3, 1 / 3)
+    both = np.mean([set(P.choose_candidates(q, points, 2, rng, voxel_m=1.0).tolist()) == {0, 1}
+                    for _ in range(400)])
+    assert both < 0.1  # ~0.1 * 1/3 with the offset; 1/3 with a fixed grid
+
+
 def test_choose_candidates_single_draw_follows_q():
     rng = np.random.default_rng(2)
     q = np.array([0.5, 0.3, 0.2])
@@ -282,6 +326,15 @@ def test_place_on_lidar_puts_points_on_candidates():
     assert out["n_requested"] == 20 and len(out["points_D"]) == 20 and out["n_no_support"] == 0
     rows = {tuple(p) for p in cand.astype(np.float32).tolist()}
     assert all(tuple(p) in rows for p in out["points_D"].tolist())
+    # each point's pixel is its own projection
+    expect_uv, _, _ = project_to_image(out["points_D"].astype(np.float64), K_SMALL, invert_transform(T_RADAR_CAM),
+                                       (160, 80))
+    np.testing.assert_allclose(out["uv"], expect_uv, atol=1e-3)
+    # n_hat is rounded to the nearest count, not truncated
+    three = P.place_on_lidar(m, 2.6, cand, uv, np.ones(len(cand)), image_wh=(160, 80), sigma_px=(4.0, 4.0),
+                             voxel_m=1.0, ego_velocity_D=ego, labels=[], doppler_span_mps=0.0,
+                             rng=np.random.default_rng(0))
+    assert three["n_requested"] == 3 and len(three["points_D"]) == 3
     np.testing.assert_allclose(out["rae"], cartesian_to_spherical(out["points_D"].astype(np.float64)), atol=1e-5)
     unit = out["points_D"] / np.linalg.norm(out["points_D"], axis=1, keepdims=True)
     np.testing.assert_allclose(out["doppler"], -(unit @ ego), atol=1e-5)      # static world: range rate

@@ -10,7 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from pipeline.rangeimage import EMPTY, local_range_image, local_range_images, local_range_images_brute
+from pipeline.rangeimage import (
+    EMPTY, INT32_KEY_PIXELS, local_range_image, local_range_images, local_range_images_brute,
+)
 
 P = np.array([10.0, 0.0, 0.0])  # radar point, 10 m straight ahead
 
@@ -76,6 +78,21 @@ def test_point_exactly_at_radius_is_excluded_and_values_stay_in_range():
     assert np.count_nonzero(img != EMPTY) == 1
     # The coincident point: distance 0, |l| == |p| -> s = -1, 127 - 0 = 127.
     assert img[16, 64] == 127.0
+
+
+def test_equal_distance_from_the_radar_counts_as_nearer_and_levels_round_half_up():
+    # |(4, 3, 0)| == |(3, 4, 0)| == 5 exactly: s = -1. d = sqrt(2), r_l = 2: level round(90.16) = 90.
+    img = local_range_image(np.array([[4.0, 3.0, 0.0]]), np.array([3.0, 4.0, 0.0]), 2.0)
+    assert img[img != EMPTY].tolist() == [127.0 - 90.0]
+    # r_l = 127.5: level = round(d), with d = 0.5 and 2.5 exactly: halves go up (1 and 3), not to even
+    for d, level in [(0.5, 1), (2.5, 3)]:
+        img = local_range_image(P + [[d, 0.0, 0.0]], P, 127.5)
+        assert img[img != EMPTY].tolist() == [127.0 + level]
+
+
+def test_int32_sort_keys_cannot_overflow():
+    """Below INT32_KEY_PIXELS pixels in all, (pixel << 8) | value must fit a signed 32-bit key."""
+    assert ((INT32_KEY_PIXELS - 1) << 8) | 255 <= np.iinfo(np.int32).max
 
 
 def test_empty_inputs():

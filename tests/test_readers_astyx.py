@@ -33,7 +33,7 @@ def _demo_cfg():
 # -- estimator on generated scans ----------------------------------------------------------------
 
 @pytest.mark.parametrize("v_true", [(0.0, 0.0, 0.0), (3.0, 0.2, 0.0), (7.8, -0.4, 0.1), (15.3, 0.3, 0.3),
-                                    (24.0, 1.0, 0.0)])
+                                    (24.0, 1.0, 0.0), (-0.8, 0.0, 0.0)])  # the last: reversing
 def test_estimator_resolves_aliasing_with_outliers(v_true):
     rng = np.random.default_rng(3)
     n = 800
@@ -45,6 +45,8 @@ def test_estimator_resolves_aliasing_with_outliers(v_true):
     fit = estimate_ego_velocity(pts, measured, ASTYX_SPAN_MPS)
     np.testing.assert_allclose(fit.velocity_D[:2], v_true[:2], atol=0.1)
     assert fit.n_used >= 550
+    # the RMS is over the inliers only: about the quantisation step / sqrt(12), not the moving targets'
+    assert fit.residual_rms_mps < 0.05
 
 
 def test_compensation_pair_is_exact_and_handles_too_few_points():
@@ -54,7 +56,30 @@ def test_compensation_pair_is_exact_and_handles_too_few_points():
     u = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     fit = fit_compensation_pair(pts, -(u @ v) + 1.0, np.full(50, 1.0))
     np.testing.assert_allclose(fit.velocity_D, v, atol=1e-9)
+    assert fit.residual_rms_mps < 1e-9 and fit.n_used == 50
     assert np.isnan(fit_compensation_pair(pts[:2], np.zeros(2), np.zeros(2)).velocity_D).all()
+
+
+def test_compensation_pair_condition_number():
+    """The VoD reader falls back to poses when the design's condition number exceeds 1e3."""
+    # unit directions x, x, y, z: u^T u = diag(2, 1, 1), singular values sqrt(2), 1, 1
+    axes = np.array([[5.0, 0.0, 0.0], [7.0, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 2.0]])
+    assert fit_compensation_pair(axes, np.zeros(4), np.zeros(4)).condition == pytest.approx(np.sqrt(2), rel=1e-12)
+    # points within 1e-4 rad of one direction: the lateral and vertical speeds are barely observable
+    rng = np.random.default_rng(1)
+    narrow = np.column_stack([np.full(20, 10.0), rng.uniform(-1e-3, 1e-3, (20, 2))])
+    assert fit_compensation_pair(narrow, np.zeros(20), np.zeros(20)).condition > 1e3
+
+
+def test_estimator_ignores_points_at_the_origin():
+    rng = np.random.default_rng(2)
+    az = rng.uniform(-0.9, 0.9, 300)
+    pts = np.column_stack([20 * np.cos(az), 20 * np.sin(az), np.zeros(300)])
+    rate = -(pts / 20.0) @ np.array([5.0, 0.5, 0.0])
+    fit = estimate_ego_velocity(pts, rate, ASTYX_SPAN_MPS)
+    with_origin = estimate_ego_velocity(np.vstack([pts, np.zeros((10, 3))]), np.r_[rate, np.zeros(10)], ASTYX_SPAN_MPS)
+    assert with_origin.n_points == 310 and with_origin.n_used == fit.n_used == 300
+    np.testing.assert_allclose(with_origin.velocity_D, fit.velocity_D)
 
 
 # -- fixture in the exact layout -------------------------------------------------------------------

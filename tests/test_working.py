@@ -57,6 +57,14 @@ def test_crop_resize_matches_cv2_and_tracks_a_feature():
     np.testing.assert_allclose(Kw, working_K(np.eye(3), (40, 120), (200, 120), (100, 40)))
 
 
+def test_shrinking_averages_whole_pixel_blocks():
+    # A 4x shrink must average each 4 x 4 block (area interpolation), not sample a few pixels of it.
+    img = np.random.default_rng(2).integers(0, 256, (16, 24, 3), dtype=np.uint8)
+    out, _ = crop_resize(img, np.eye(3), (0, 16), (6, 4))
+    block_mean = img.astype(np.float64).reshape(4, 4, 6, 4, 3).mean(axis=(1, 3))
+    assert np.abs(out - block_mean).max() <= 0.5 + 1e-9
+
+
 def test_enlarging_uses_linear_and_shapes():
     img = np.random.default_rng(1).integers(0, 255, (10, 12, 3), dtype=np.uint8)
     out, _ = crop_resize(img, K_FULL, (0, 10), (24, 20))
@@ -93,8 +101,12 @@ def test_fov_mask():
         [-10.0, 0.0, 0.0],                                   # behind
         [49.9, 0.0, 0.0], [50.1, 0.0, 0.0],                  # range limit
         [0.0, 0.0, 0.0],                                     # origin
+        [10.0, -10.0 * np.tan(np.deg2rad(31.0)), 0.0],       # az -31: inside
+        [10.0, -10.0 * np.tan(np.deg2rad(33.0)), 0.0],       # az -33: out
+        [10.0, 0.0, -10.0 * np.tan(np.deg2rad(19.0))],       # el -19: inside
+        [10.0, 0.0, -10.0 * np.tan(np.deg2rad(21.0))],       # el -21: out
     ])
-    np.testing.assert_array_equal(fov_mask(pts, 64.0, 40.0, 50.0), [1, 1, 0, 0, 0, 1, 0, 0])
+    np.testing.assert_array_equal(fov_mask(pts, 64.0, 40.0, 50.0), [1, 1, 0, 0, 0, 1, 0, 0, 1, 0, 1, 0])
     assert fov_mask(np.zeros((0, 3)), 64.0, 40.0, 50.0).shape == (0,)
 
 
@@ -107,6 +119,14 @@ def test_common_fov_mask_requires_projection_inside_working_image():
     # Row of (20, 0, 0): 610 + 1480 * 0.2 / 20 = 624.8, inside the crop 571..1214 -> in.
     # Above the crop (z = 5 m at 20 m projects to row ~250) -> out; beyond range (60 m) -> out.
     assert mask[0] and not mask[1] and mask[2] and not mask[3]
+    # The image is 320 wide and 160 high (not 160 wide): a point 12 m to the right at 20 m (camera
+    # depth 20.1 m) lands at full column 960 + (1500 * 12 + 0.3 * 0.2) / 20.1 = 1855.5, working
+    # column (1855.5 + 0.5) * 320 / 1936 - 0.5 = 306.3; full row 610 + 1480 * 0.2 / 20.1 = 624.7,
+    # working row (624.7 - 571 + 0.5) * 160 / 644 - 0.5 = 13.0.
+    right = np.array([[20.0, -12.0, 0.0]])
+    uv, _, _ = project_to_image(right, Kw, T_CAM_RADAR, WORK_WH)
+    np.testing.assert_allclose(uv[0], [306.28, 12.97], atol=0.01)
+    assert common_fov_mask(right, Kw, T_CAM_RADAR, WORK_WH, 90.0, 40.0, 50.0).tolist() == [True]
 
 
 def test_full_K_inverts_working_K():
