@@ -15,7 +15,7 @@ import click
 
 from pipeline.cache import frame_store, join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
-from pipeline.errors import ConfigError, MetadataError, PipelineError, StageInterrupted
+from pipeline.errors import ClusterFailed, ConfigError, MetadataError, PipelineError, StageInterrupted, from_dask
 from pipeline.runner import NAME_WIDTH, check_stage_name, failed_frames_line
 from pipeline.stage import FrameStage
 
@@ -34,12 +34,11 @@ def _handle_errors(fn):
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
         except Exception as exc:
-            if not type(exc).__module__.startswith(("distributed", "dask")):
+            if not from_dask(exc):
                 raise
-            # the cluster failed (scheduler lost, workers killed): one line, and what is kept
-            again = "run the same command again" + (" without --force" if kwargs.get("force") else "")
-            click.echo(f"error: the dask cluster failed ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); "
-                       f"finished frames are kept: {again} to resume", err=True)
+            # the cluster failed outside a stage's run (which says ClusterFailed): no stage had begun
+            first = str(exc).splitlines()[0] if str(exc) else ""
+            click.echo(f"error: {ClusterFailed(f'the dask cluster failed ({type(exc).__name__}: {first})')}", err=True)
             sys.exit(2)
         except StageInterrupted as exc:
             click.echo(exc.advice(), err=True)

@@ -73,6 +73,27 @@ class ChunkError(PipelineError):
         return type(self), (self.array, self.index, self.frame, self.chunk, self.problem, self.remedy)
 
 
+class ClusterFailed(PipelineError):
+    """The dask cluster failed while a stage's frames were computed (no worker left, the scheduler
+    lost, workers killed). ``what``: what failed; ``stage``: the stage it failed in (None: not
+    known yet, the runner adds it); ``forced``: a recomputation that --force asked for had begun,
+    which a repeated --force would start again; ``after``: a condition for the rerun."""
+
+    def __init__(self, what: str, stage: str | None = None, forced: bool = False, after: str = "") -> None:
+        self.what, self.stage, self.forced, self.after = what, stage, forced, after
+        again = "run the same command again" + (" without --force" if forced else "")
+        where = f" in {stage}" if stage else ""
+        super().__init__(f"{what}{where}; finished frames are kept: {again} to resume{after}")
+
+    def __reduce__(self):
+        return type(self), (self.what, self.stage, self.forced, self.after)
+
+
+def from_dask(exc: BaseException) -> bool:
+    """Whether ``exc`` is dask's or dask.distributed's own (the cluster failed, not the work)."""
+    return type(exc).__module__.startswith(("distributed", "dask"))
+
+
 InterruptedKind = Literal["frame", "resumes", "dataset"]
 """What an interrupted stage leaves to go on from (:class:`StageInterrupted`)."""
 

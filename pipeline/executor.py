@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE, FAILED, FrameStore, dir_store, frame_store
 from pipeline.config import Config
-from pipeline.errors import CacheError, FrameError, PipelineError
+from pipeline.errors import CacheError, ClusterFailed, FrameError, PipelineError
 from pipeline.stage import FrameStage
 
 # glibc heap settings for local dask workers: arrays under 64 MiB come from a reused heap.
@@ -396,9 +396,8 @@ class Executor:
                 none_since = time.monotonic()
             elif time.monotonic() - none_since >= self.no_worker_timeout_s:
                 where = self.scheduler or f"{self._cluster.scheduler_address} (the local cluster)"
-                raise PipelineError(f"dask cluster at {where} has had no worker for {self.no_worker_timeout_s:g} s; "
-                                    f"finished frames are kept: run the same command again to resume "
-                                    f"(once the cluster has workers)")
+                raise ClusterFailed(f"dask cluster at {where} has had no worker for {self.no_worker_timeout_s:g} s",
+                                    after=" (once the cluster has workers)")
 
     @staticmethod
     def _worker_count(client) -> int:

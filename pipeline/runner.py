@@ -26,8 +26,8 @@ import fsspec
 import numpy as np
 
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, cache_error, done_digest, is_local, join
-from pipeline.errors import (CacheError, ChunkError, ConfigError, FrameError, InterruptedKind, MetadataError,
-                             PipelineError, StageInterrupted)
+from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
+                             MetadataError, PipelineError, StageInterrupted, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
@@ -574,7 +574,8 @@ class Pipeline:
     def _bring_up_to_date(self, stage: Stage, what: str, forced: bool, frames: list[int] | None, strict: bool,
                           retry_failed: bool, wait_s: float) -> StageReport:
         """Run ``stage`` (or the frames of it that are left) under its locks; ``forced``: --force
-        applies to it. The arguments otherwise as for :meth:`run`. Ctrl-C raises StageInterrupted."""
+        applies to it. The arguments otherwise as for :meth:`run`. Ctrl-C raises StageInterrupted, a
+        failed dask cluster ClusterFailed (each saying whether to drop --force on the rerun)."""
         begun = False  # a forced recomputation has begun: a repeated --force would start it again
         try:
             with stage_lock(self._lock_url(stage.name), what, wait_s), \
@@ -602,6 +603,13 @@ class Pipeline:
                     return self._run_dataset(stage, forced, rebuild)
         except KeyboardInterrupt:
             raise StageInterrupted(stage.name, _interrupted_kind(stage), begun) from None
+        except ClusterFailed as exc:
+            raise ClusterFailed(exc.what, stage.name, begun, exc.after) from None
+        except Exception as exc:
+            if not from_dask(exc):
+                raise
+            first = str(exc).splitlines()[0] if str(exc) else ""
+            raise ClusterFailed(f"the dask cluster failed ({type(exc).__name__}: {first})", stage.name, begun) from exc
 
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:
         """Run a dataset stage when ``rebuild`` (forced or not current, as run() found), else report it current."""
@@ -616,8 +624,11 @@ class Pipeline:
             self.log(f"{stage.name:<{NAME_WIDTH}} recomputing: its per-frame inputs finished other frames since it ran")
         if force or not stage.resumes:
             out.clear()  # from scratch: nothing of an earlier run is reused or left (forced: train's checkpoints too)
-        else:
-            out.remove_temporaries()  # a killed run's half-written files
+        else:  # a killed run's half-written files
+            left = [name.rstrip("/").rsplit("/", 1)[-1] for name in out.remove_temporaries()]
+            if left:
+                self.log(f"{stage.name:<{NAME_WIDTH}} removed {len(left)} temporary file{'s' * (len(left) > 1)} a killed "
+                         f"run left: {', '.join(left[:3])}{' ...' * (len(left) > 3)}")
         out.ensure()
         out.invalidate()
         try:

@@ -132,10 +132,23 @@ def select_device(name: str, key: str = "train.device") -> torch.device:
     return torch.device(name)
 
 
-def evenly_spaced(idx: np.ndarray, n: int) -> np.ndarray:
+Rows = np.ndarray | range
+"""Row indices: an int array, or a ``range`` (step 1) for the contiguous row sets of RSS-Net and
+PlaceNet, which are never materialised (8 bytes a row: 390 MB at 24,000 frames of 2,048 rows)."""
+
+
+def evenly_spaced(idx: Rows, n: int) -> np.ndarray:
     """At most ``n`` of the indices ``idx``, evenly spaced along it (all of them when fewer)."""
+    pick = np.unique(np.linspace(0, len(idx) - 1, min(len(idx), n)).astype(np.int64)) if len(idx) else []
+    if isinstance(idx, range):
+        return idx.start + idx.step * np.asarray(pick, np.int64)
     idx = np.asarray(idx, dtype=np.int64)
-    return idx[np.unique(np.linspace(0, len(idx) - 1, min(len(idx), n)).astype(np.int64))] if len(idx) else idx
+    return idx[pick] if len(idx) else idx
+
+
+def _rows(idx: Sequence[int]) -> Rows:
+    """``idx`` as row indices for :func:`iter_batches`: a ``range`` (step 1) as it is, else int64."""
+    return idx if isinstance(idx, range) and idx.step == 1 else np.asarray(idx, np.int64)
 
 
 def take_rows(array: Any, idx: np.ndarray) -> np.ndarray:
@@ -162,38 +175,70 @@ def chunk_len(array: Any) -> int:
     return int(first[0] if isinstance(first, tuple) else first)
 
 
-def epoch_order(idx: Sequence[int], rows_per_chunk: int, window: int, rng: np.random.Generator) -> np.ndarray:
+def epoch_order(idx: Rows, rows_per_chunk: int, window: int, rng: np.random.Generator) -> np.ndarray:
     """Shuffled order of ``idx`` for one epoch: chunk groups in random order, then a full shuffle
     inside each window of ``window`` rows (a plain permutation when rows_per_chunk == 1)."""
-    idx = np.asarray(idx, dtype=np.int64)
-    if rows_per_chunk <= 1:
-        return rng.permutation(idx)
-    _, group = np.unique(idx // rows_per_chunk, return_inverse=True)
-    rank = rng.permutation(group.max() + 1)
-    order = idx[np.argsort(rank[group], kind="stable")]
-    for start in range(0, len(order), window):
-        order[start:start + window] = rng.permutation(order[start:start + window])
-    return order
+    windows = list(epoch_windows(idx, rows_per_chunk, window, rng))
+    return np.concatenate(windows) if windows else np.zeros(0, np.int64)
 
 
-def iter_batches(arrays: dict[str, Any], order: np.ndarray, batch_size: int) -> Iterator[Batch]:
-    """Yield ``{name: rows}`` batches in ``order``; windows of WINDOW_BATCHES batches are read in
-    one go per array, the next window in a background thread while the current one is consumed."""
-    window = batch_size * WINDOW_BATCHES
-    starts = list(range(0, len(order), window))
-    if not starts:
+def epoch_windows(idx: Rows, rows_per_chunk: int, window: int, rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """:func:`epoch_order` in consecutive pieces of ``window`` rows (the last may be shorter), each
+    made when it is asked for, drawing from ``rng`` as epoch_order does. For a ``range`` (step 1)
+    with rows_per_chunk > 1 only one window is held at a time, not the order of every row (8 bytes
+    a row, and several times that while sorting: 2.9 GB for 49 million rows)."""
+    if window <= 0:
+        raise ValueError(f"epoch_windows: window must be > 0, got {window}")
+    if len(idx) == 0:
         return
+    if not (isinstance(idx, range) and idx.step == 1 and rows_per_chunk > 1):
+        idx = np.asarray(idx, dtype=np.int64)
+        if rows_per_chunk <= 1:
+            order = rng.permutation(idx)
+        else:
+            _, group = np.unique(idx // rows_per_chunk, return_inverse=True)
+            rank = rng.permutation(group.max() + 1)
+            order = idx[np.argsort(rank[group], kind="stable")]
+        for start in range(0, len(order), window):
+            yield order[start:start + window] if rows_per_chunk <= 1 else rng.permutation(order[start:start + window])
+        return
+    first = idx.start // rows_per_chunk
+    rank = rng.permutation((idx.stop - 1) // rows_per_chunk - first + 1)
+    pending: list[np.ndarray] = []
+    held = 0
+    for chunk in first + np.argsort(rank):  # chunk c holds rank[c - first]-th place
+        rows = np.arange(max(chunk * rows_per_chunk, idx.start), min((chunk + 1) * rows_per_chunk, idx.stop))
+        pending.append(rows)
+        held += len(rows)
+        while held >= window:
+            rows = np.concatenate(pending)
+            yield rng.permutation(rows[:window])
+            pending, held = [rows[window:]], held - window
+    if held:
+        yield rng.permutation(np.concatenate(pending))
 
-    def read(start: int) -> Batch:
-        sel = order[start:start + window]
+
+def iter_batches(arrays: dict[str, Any], order: Rows | Iterator[np.ndarray], batch_size: int) -> Iterator[Batch]:
+    """Yield ``{name: rows}`` batches in ``order``: row indices, or an iterator of windows of them
+    (:func:`epoch_windows`, WINDOW_BATCHES batches each). A window is read in one go per array, the
+    next one in a background thread while the current one is consumed (windows are taken from the
+    iterator in this thread)."""
+    if isinstance(order, Iterator):
+        windows = order
+    else:
+        window = batch_size * WINDOW_BATCHES
+        windows = (order[s:s + window] for s in range(0, len(order), window))
+
+    def read(sel: Rows) -> Batch:
         return {k: take_rows(a, sel) for k, a in arrays.items()}
 
     with ThreadPoolExecutor(max_workers=1) as pool:
-        pending = pool.submit(read, starts[0])
-        for i in range(len(starts)):
+        sel = next(windows, None)
+        pending = pool.submit(read, sel) if sel is not None else None
+        while pending is not None:
             block = pending.result()
-            if i + 1 < len(starts):
-                pending = pool.submit(read, starts[i + 1])
+            sel = next(windows, None)
+            pending = pool.submit(read, sel) if sel is not None else None
             n = len(next(iter(block.values())))
             for s in range(0, n, batch_size):
                 yield {k: v[s:s + batch_size] for k, v in block.items()}
@@ -314,7 +359,7 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         t0 = time.perf_counter()
         for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
             group["lr"] = epoch_lr(cfg, epoch, base_lr, n_epochs)
-        order = epoch_order(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
+        order = epoch_windows(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
         tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
                              spec.terms_fn, spec.weights, device, n_train_batches,
                              f"{spec.name} epoch {epoch}/{n_epochs}", progress, ema)
@@ -514,17 +559,20 @@ def _setup(cfg) -> None:
     torch.manual_seed(cfg.train.seed)
 
 
-def _checked_idx(idx: Sequence[int], name: str, arrays: dict[str, Any], allow_empty: bool) -> np.ndarray:
-    """Indices as int64, checked against the arrays (which must all have the same length)."""
+def _checked_idx(idx: Sequence[int], name: str, arrays: dict[str, Any], allow_empty: bool) -> Rows:
+    """Indices as int64 (a ``range`` of step 1 stays one), checked against the arrays (which must
+    all have the same length)."""
     lengths = {k: n_rows(a) for k, a in arrays.items()}
     if len(set(lengths.values())) > 1:
         raise ValueError(f"training arrays differ in length along axis 0: {lengths}")
     n = next(iter(lengths.values()))
-    arr = np.asarray(idx, dtype=np.int64).reshape(-1)
-    if not allow_empty and arr.size == 0:
+    arr = idx if isinstance(idx, range) and idx.step == 1 else np.asarray(idx, dtype=np.int64).reshape(-1)
+    if not allow_empty and len(arr) == 0:
         raise ValueError(f"{name} is empty: nothing to train on")
-    if arr.size and (arr.min() < 0 or arr.max() >= n):
-        raise ValueError(f"{name} holds indices outside 0..{n - 1}: {arr.min()}..{arr.max()}")
+    if len(arr):
+        lo, hi = (arr.start, arr.stop - 1) if isinstance(arr, range) else (int(arr.min()), int(arr.max()))
+        if lo < 0 or hi >= n:
+            raise ValueError(f"{name} holds indices outside 0..{n - 1}: {lo}..{hi}")
     return arr
 
 
@@ -867,25 +915,31 @@ def disnet_metrics(model: DisNet, data: DisNetData, idx: Sequence[int], alpha: f
 def rssnet_metrics(model: RSSNet, data: RssNetData, idx: Sequence[int], batch: int = 256) -> dict[str, float]:
     """Per-point mean L_a ('a', = 'loss') on points ``idx``."""
     arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
-    return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), rssnet_terms,
+    return evaluate(model, iter_batches(arrays, _rows(idx), batch), rssnet_terms,
                     {"a": 1.0}, _device_of(model), progress=False)
 
 
 def placenet_metrics(model: PlaceNet, data: PlaceNetData, idx: Sequence[int], batch: int = 4096) -> dict[str, float]:
     """Per-candidate mean Poisson NLL ('nll', = 'loss') on rows ``idx``."""
     arrays = {"features": data.features, "counts": data.counts}
-    return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), placenet_terms,
+    return evaluate(model, iter_batches(arrays, _rows(idx), batch), placenet_terms,
                     {"nll": 1.0}, _device_of(model), progress=False)
 
 
-def placenet_baseline(counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int]) -> dict[str, float]:
+def placenet_baseline(counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
+                      eval_counts: Any = None, batch: int = 1 << 16) -> dict[str, float]:
     """The constant-intensity PlaceNet: the training mean count for every candidate; its mean
-    Poisson NLL ('nll') on rows ``eval_idx`` and the rate ('rate')."""
-    c = np.asarray(counts, np.float64)
-    rate = float(c[np.asarray(train_idx, np.int64)].mean())
-    test = c[np.asarray(eval_idx, np.int64)]
+    Poisson NLL ('nll') on rows ``eval_idx`` of ``eval_counts`` (default ``counts``) and the rate
+    ('rate'). The counts are read WINDOW_BATCHES * ``batch`` rows at a time."""
+    def total(values: Any, idx: Sequence[int]) -> tuple[float, float]:  # (sum of counts, rows)
+        sums = [float(np.asarray(b["c"], np.float64).sum()) for b in iter_batches({"c": values}, _rows(idx), batch)]
+        return math.fsum(sums), len(idx)
+
+    train_sum, n_train = total(counts, train_idx)
+    rate = train_sum / n_train if n_train else math.nan
+    eval_sum, n_eval = total(counts if eval_counts is None else eval_counts, eval_idx)
     log_rate = math.log(rate) if rate > 0 else -30.0
-    return {"nll": float(np.mean(math.exp(log_rate) - test * log_rate)) if len(test) else math.nan, "rate": rate}
+    return {"nll": math.exp(log_rate) - eval_sum / n_eval * log_rate if n_eval else math.nan, "rate": rate}
 
 
 # ------------------------------------------------------------------------------- baselines

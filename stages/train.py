@@ -72,13 +72,14 @@ def rssnet_data(inputs, table, part: int, val_part: int = 1):
     n_train = int(counts[frames[part]].sum())
     n_all = len(rows["rss"])
     return RssNetData(patches=rows["patch"], range_images=rows["range_image"], point_vectors=rows["point"],
-                      rss=rows["rss"], train_idx=np.arange(n_train),
-                      val_idx=np.arange(n_train, n_all) if part != val_part else np.arange(0))
+                      rss=rows["rss"], train_idx=range(n_train),
+                      val_idx=range(n_train, n_all) if part != val_part else range(0))
 
 
 def placenet_data(inputs, table, part: int, val_part: int = 1):
     """PlaceNet rows of the usable frames (radar points in the image) of split ``part`` (train) and
-    ``val_part``; counts loaded into memory, features read per batch."""
+    ``val_part``; features and counts read per batch (row indices as ranges: nothing per row is
+    held in memory)."""
     from pipeline.training import PlaceNetData
 
     store = inputs.store("patches")
@@ -89,8 +90,8 @@ def placenet_data(inputs, table, part: int, val_part: int = 1):
     features = RaggedRows(store.array("place_features"), per_frame, allf)
     counts = RaggedRows(store.array("place_count"), per_frame, allf)
     n_train, n_all = int(per_frame[frames[part]].sum()), len(counts)
-    return PlaceNetData(features=features, counts=counts[np.arange(n_all)], train_idx=np.arange(n_train),
-                        val_idx=np.arange(n_train, n_all) if part != val_part else np.arange(0))
+    return PlaceNetData(features=features, counts=counts, train_idx=range(n_train),
+                        val_idx=range(n_train, n_all) if part != val_part else range(0))
 
 
 def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
@@ -259,10 +260,8 @@ def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
            "test": {}}
     if len(test.train_idx):
         out["test"] = placenet_metrics(model, test, test.train_idx)
-        train_counts = data.counts[np.asarray(data.train_idx)]
-        out["constant_intensity_test_nll"] = placenet_baseline(
-            np.concatenate([train_counts, test.counts]), np.arange(len(train_counts)),
-            np.arange(len(train_counts), len(train_counts) + len(test.counts)))["nll"]
+        out["constant_intensity_test_nll"] = placenet_baseline(data.counts, data.train_idx, test.train_idx,
+                                                               test.counts)["nll"]
     return out
 
 

@@ -381,6 +381,42 @@ def _pipe_with_dataset_stage(tmp_path: Path, run, resumes: bool = False) -> Pipe
     return Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: IDS)
 
 
+def test_cluster_failure_names_the_stage_and_whether_to_drop_force(tmp_path, capsys):
+    """A lost cluster's message said 'run the same command again' (the executor's) or added
+    'without --force' whenever --force was given (the CLI's), whether or not the forced rebuild
+    had begun; a repeated --force starts the stage again."""
+    from pipeline.cli import _handle_errors
+    from pipeline.errors import ClusterFailed
+
+    lost = type("CommClosedError", (Exception,), {"__module__": "distributed.comm.core"})
+
+    def no_worker(inputs, cfg, out, fingerprint):
+        raise ClusterFailed("dask cluster at tcp://x:1 has had no worker for 2 s", after=" (once it has workers)")
+
+    def closed(inputs, cfg, out, fingerprint):
+        raise lost("in <TCP (closed)>: Stream is closed\nmore")
+
+    with pytest.raises(ClusterFailed) as raised:
+        _pipe_with_dataset_stage(tmp_path / "a", no_worker, resumes=True).run("train", force=True)
+    assert str(raised.value) == ("dask cluster at tcp://x:1 has had no worker for 2 s in train; finished frames are "
+                                 "kept: run the same command again without --force to resume (once it has workers)")
+    with pytest.raises(ClusterFailed) as raised:
+        _pipe_with_dataset_stage(tmp_path / "b", closed, resumes=True).run("train")
+    assert str(raised.value) == ("the dask cluster failed (CommClosedError: in <TCP (closed)>: Stream is closed) in "
+                                 "train; finished frames are kept: run the same command again to resume")
+    assert isinstance(raised.value.__cause__, lost)
+
+    @_handle_errors
+    def command(force):  # the cluster lost before any stage ran (the probe): nothing forced had begun
+        raise lost("Stream is closed")
+
+    with pytest.raises(SystemExit) as exit_:
+        command(force=True)
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == ("error: the dask cluster failed (CommClosedError: Stream is closed); finished "
+                                       "frames are kept: run the same command again to resume\n")
+
+
 def test_disk_full_in_a_dataset_stage_names_the_stage_and_its_folder(tmp_path):
     """A failing write(2) raises an OSError without a file name: the message said only
     '[Errno 28] No space left on device'. An error naming a file outside the output is left as is."""
@@ -427,8 +463,13 @@ def test_a_dataset_stage_output_holds_one_runs_files(tmp_path):
     calls.clear()
     with pytest.raises(ValueError):
         _pipe_with_dataset_stage(tmp_path / "resumes", writes, resumes=True).run("train")
-    _pipe_with_dataset_stage(tmp_path / "resumes", writes, resumes=True).run("train")
+    pipe = _pipe_with_dataset_stage(tmp_path / "resumes", writes, resumes=True)
+    logged = []
+    pipe.log = logged.append
+    pipe.run("train")
     assert calls[1] == ["report.json", "report.md"]  # kept for it to resume from; the .tmp file gone
+    assert any(line.startswith("train") and "removed 1 temporary file a killed run left: .last.safetensors.x1y2.tmp"
+               in line for line in logged), logged
 
 
 def test_ctrl_c_says_which_stage_and_whether_to_drop_force(tmp_path, monkeypatch, capsys):

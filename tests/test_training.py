@@ -413,6 +413,57 @@ def test_epoch_order_is_a_seeded_permutation(rows_per_chunk):
     assert not np.array_equal(o1, idx)
 
 
+@pytest.mark.parametrize("start,stop,rows_per_chunk,window", [(0, 1000, 64, 96), (37, 1000, 64, 128),
+                                                               (5, 70, 100, 16), (0, 0, 8, 16), (3, 97, 10, 7)])
+def test_epoch_windows_of_a_range_are_the_arrays_order(start, stop, rows_per_chunk, window):
+    """A range's windows are made one at a time (no order of every row), yet they are the windows
+    of the same rows given as an array, and the generator is left in the same state (training
+    resumes from it)."""
+    r1, r2 = np.random.default_rng(4), np.random.default_rng(4)
+    lazy = list(T.epoch_windows(range(start, stop), rows_per_chunk, window, r1))
+    eager = T.epoch_order(np.arange(start, stop), rows_per_chunk, window, r2)
+    assert all(len(w) == window for w in lazy[:-1])
+    got = np.concatenate(lazy) if lazy else np.zeros(0, np.int64)
+    assert np.array_equal(got, eager) and np.array_equal(np.sort(got), np.arange(start, stop))
+    assert r1.integers(1 << 30) == r2.integers(1 << 30)
+    if stop - start > 2 * rows_per_chunk:  # whole chunks stay together within windows' reach
+        assert not np.array_equal(got, np.arange(start, stop))
+
+
+def test_iter_batches_takes_windows_or_indices():
+    a = np.arange(200, dtype=np.float32).reshape(100, 2)
+    order = np.random.default_rng(0).permutation(100)
+    windows = iter([order[:32], order[32:64], order[64:]])
+    by_windows = list(T.iter_batches({"a": a}, windows, 2))
+    by_index = list(T.iter_batches({"a": a}, order, 2))
+    assert len(by_windows) == len(by_index) == 50
+    assert all(np.array_equal(x["a"], y["a"]) for x, y in zip(by_windows, by_index))
+    assert np.array_equal(np.concatenate([b["a"] for b in T.iter_batches({"a": a}, range(10, 90), 8)]), a[10:90])
+
+
+def test_placenet_baseline_streams_the_same_rates():
+    """Read in batches from two arrays (training rows of one, evaluation rows of another) it gives
+    the definition's numbers: rate = training mean, nll = mean of rate - c log rate."""
+    rng = np.random.default_rng(2)
+    train, test = rng.poisson(0.3, 5000).astype(np.float32), rng.poisson(0.4, 700).astype(np.float32)
+    got = T.placenet_baseline(train, range(5000), range(700), test, batch=333)
+    rate = train.astype(np.float64).mean()
+    assert got["rate"] == pytest.approx(rate, rel=1e-12)
+    assert got["nll"] == pytest.approx(np.mean(rate - test * np.log(rate)), rel=1e-12)
+    one = np.concatenate([train, test])
+    assert T.placenet_baseline(one, np.arange(5000), np.arange(5000, 5700))["nll"] == pytest.approx(got["nll"], rel=1e-12)
+
+
+def test_checked_idx_keeps_ranges_and_checks_them():
+    arrays = {"a": np.zeros(10)}
+    assert T._checked_idx(range(2, 10), "train_idx", arrays, False) == range(2, 10)
+    with pytest.raises(ValueError, match="outside 0..9: 2..10"):
+        T._checked_idx(range(2, 11), "train_idx", arrays, False)
+    with pytest.raises(ValueError, match="empty"):
+        T._checked_idx(range(0), "train_idx", arrays, False)
+    assert np.array_equal(T.evenly_spaced(range(100, 200), 5), T.evenly_spaced(np.arange(100, 200), 5))
+
+
 def test_take_rows_zarr_matches_numpy():
     a = np.arange(60, dtype=np.float32).reshape(20, 3)
     z = _to_zarr(a, chunk=4)
