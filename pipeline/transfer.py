@@ -182,7 +182,8 @@ def comparison(cfg: Config) -> Comparison:
         notes.append(f"Doppler compared modulo the real radar's span {span:g} m/s (the synthesized radar does not wrap)")
     elif span != own.doppler_span_mps:
         notes.append(f"Doppler compared modulo the synthesized radar's span {span:g} m/s (the real radar does not wrap)")
-    overlap = " (with eval.split = all, the evaluated frames among them)" if cfg.eval.split in ("all", "train") else ""
+    overlap = (f" (with eval.split = {cfg.eval.split}, the evaluated frames among them)"
+               if cfg.eval.split in ("all", "train") else "")
     notes.append(f"the baselines' counts and maps come from this dataset's own radar on its train split{overlap}, "
                  f"which the nets of '{cfg.train.nets_from}' never saw: they know this radar's count and layout")
     return Comparison(rss, float(span), float(own.doppler_span_mps), tuple(notes))

@@ -61,6 +61,13 @@ def test_a_run_stopped_part_way_resumes_and_gives_the_same_report(synthesized, t
     assert second["evaluate-frames"].processed == FRAMES - 3   # only the frames left
     resumed = _report(pipe)
     assert resumed["meta"]["frames"] == FRAMES and "frames_not_evaluated" not in resumed["meta"]
+    # the by-speed table's counts: the real radar's points and the model's predicted count (n_hat)
+    by_speed = resumed["by_ego_speed"]
+    assert sum(r["frames"] for r in by_speed) == FRAMES
+    real = np.asarray(pipe.env.store("calibrate").array("radar_count")[:FRAMES], np.float64)
+    n_hat = np.asarray(pipe.env.store("synthesize").array("n_hat")[:FRAMES], np.float64)
+    assert sum(r["frames"] * r["real_count"] for r in by_speed) == pytest.approx(real.sum())
+    assert sum(r["frames"] * r["model_count"] for r in by_speed) == pytest.approx(n_hat.sum(), rel=1e-6)
     whole = _copy(synthesized, tmp_path / "whole")
     assert {r.stage: r for r in whole.run("evaluate")}["evaluate-frames"].processed == FRAMES
     assert resumed == _report(whole)
@@ -206,3 +213,60 @@ def test_static_points_leave_out_boxes_of_unknown_velocity():
     np.testing.assert_array_equal(evaluate._static_mask(real, label_rows([unknown, parked, moving])),
                                   [False, True, False])
     np.testing.assert_array_equal(evaluate._static_mask(real, label_rows([])), [True, True, True])
+
+
+class _FakeStore:
+    """A frame store of whole arrays (status, split, ...) for the functions that read one."""
+
+    def __init__(self, status, **arrays):
+        self._status, self._arrays = np.asarray(status), {k: np.asarray(v) for k, v in arrays.items()}
+
+    def status(self):
+        return self._status
+
+    def array(self, name):
+        return self._status if name == "status" else self._arrays[name]
+
+    def read(self, name, index):
+        return self._arrays[name][index]
+
+
+class _FakeEnv:
+    def __init__(self, **stores):
+        self.stores = stores
+
+    def store(self, name):
+        return self.stores[name]
+
+
+def test_baseline_statistics_come_from_the_train_split_only():
+    """The baselines' mean count and map are 'training-split statistics' (EVALUATION.md): frames of
+    the val and test splits (codes 1, 2), frames without points and unfinished ones are left out."""
+    split = [0, 1, 2, 0, 0, 2]
+    calib = _FakeStore([DONE, DONE, DONE, DONE, PENDING, DONE], split=split)
+    heat = _FakeStore([DONE] * 6, count=[10, 50, 70, 0, 30, 90])
+    train, counts = evaluate._train_counts(_FakeEnv(calibrate=calib, heatmaps=heat))
+    assert list(train) == [0] and list(counts) == [10, 50, 70, 0, 30, 90]
+    assert evaluate._mean_count(train, counts) == 10
+
+
+def test_evaluate_frames_selects_eval_split_not_synth_split():
+    """evaluate-frames works on eval.split's frames that record radar, whatever synth.split is."""
+    calib = _FakeStore([DONE] * 4, split=[0, 2, 2, 1], has_radar=[True, True, False, True])
+    cfg = load_config("synthetic", {"synth.split": "all", "eval.split": "test"}, environ={})
+    assert list(evaluate.select_frames(_FakeEnv(calibrate=calib), cfg)) == [False, True, False, False]
+    cfg = load_config("synthetic", {"synth.split": "test", "eval.split": "val"}, environ={})
+    assert list(evaluate.select_frames(_FakeEnv(calibrate=calib), cfg)) == [False, False, False, True]
+
+
+def test_previous_frame_is_none_across_a_sequence_boundary_or_before_a_frame_not_calibrated():
+    from pipeline.executor import FrameInputs
+
+    calib = _FakeStore([DONE, DONE, DONE, FAILED, DONE], sequence=["a", "a", "b", "b", "b"])
+    env = _FakeEnv(calibrate=calib)
+    ids = [f"{i:06d}" for i in range(5)]
+    prev = evaluate._previous(FrameInputs(env, 1, ids[1]), ids)
+    assert prev is not None and prev.index == 0
+    assert evaluate._previous(FrameInputs(env, 0, ids[0]), ids) is None       # the first frame
+    assert evaluate._previous(FrameInputs(env, 2, ids[2]), ids) is None       # frame 1 is of sequence a
+    assert evaluate._previous(FrameInputs(env, 4, ids[4]), ids) is None       # frame 3 failed in calibrate

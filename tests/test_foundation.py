@@ -148,6 +148,39 @@ def test_real_stage_declarations_invalidate_as_declared():
     assert same == {"calibrate", "patches"}
 
 
+NOT_IN_FINGERPRINTS = {
+    "run.workers": "how many processes run it", "train.threads": "how many threads run it",
+    "synth.device": "where the nets run (pipeline.config: no fingerprint holds it)",
+    "train.nets_from": "in the train stage's extra fingerprint, which every stage after it inherits",
+    "radar.name": "words of a message", "radar.rss_unit": "words of a message or a figure's label"}
+"""Keys a stage's module may read that need not change its fingerprint (and why)."""
+
+
+def test_every_setting_a_stage_module_reads_is_in_its_fingerprint():
+    """ARCHITECTURE.md: a stage's fingerprint hashes the configuration keys it declares and its
+    upstream stages' fingerprints, so that changing a setting recomputes what it changes. Every
+    ``cfg.section.key`` a stage's module reads must be among those keys (a key left out of a
+    declaration leaves stale outputs that look current), unless NOT_IN_FINGERPRINTS says why not."""
+    import inspect
+
+    from pipeline.config import all_keys
+    from stages import all_stages
+
+    stages = {s.name: s for s in all_stages()}
+    report_only = {"evaluate-frames": {"eval.figure_frames", "eval.pooled_rows_max"}}  # the report's (FRAME_KEYS)
+
+    def declared(name):
+        stage = stages[name]
+        return set(stage.config_keys).union(*(declared(u) for u in stage.upstream))
+
+    keys = set(all_keys())
+    for name, stage in stages.items():
+        module = inspect.getmodule(getattr(stage, "process", None) or stage.run)
+        read = {f"{a}.{b}" for a, b in re.findall(r"cfg\.(\w+)\.(\w+)", Path(module.__file__).read_text())} & keys
+        missing = read - declared(name) - set(NOT_IN_FINGERPRINTS) - report_only.get(name, set())
+        assert not missing, f"stage {name} reads {sorted(missing)}, which no fingerprint of it holds"
+
+
 def test_failed_frame_recorded_and_others_continue(tmp_path):
     ids = IDS[:4] + ["bad004"] + IDS[5:8]
     pipe = make_pipeline(tmp_path, ids=ids)
@@ -628,6 +661,25 @@ def test_values_no_stage_could_run_with_are_refused_with_the_key_before_anything
     assert not (tmp_path / "c").exists()
     load_config("synthetic", {"radar.doppler_sign": "-1", "train.ema_decay": "0.99", "placement.map_weight": "0",
                               "eval.gate_rss": "inf"}, environ={})  # values at the limits pass; inf: no gate
+
+
+def test_values_are_parsed_by_their_type_and_each_item_of_a_tuple_is_held_to_its_limit():
+    """pipeline.config: a bool reads 1/0, true/false, yes/no, on/off; a whole number is refused a
+    fraction (not truncated: 2.5 epochs is no setting); every item of a tuple is checked ('each
+    value'); split.fractions sum to 1. The same from --set and from the environment."""
+    for text, want in (("0", False), ("1", True), ("off", False), ("yes", True), ("False", False)):
+        assert load_config("synthetic", {"export.pcd": text}, environ={}).export.pcd is want
+        assert load_config("synthetic", environ={"PIPELINE__EXPORT__PCD": text}).export.pcd is want
+    epochs = load_config("synthetic", {"train.epochs": "3"}, environ={}).train.epochs
+    assert epochs == 3 and isinstance(epochs, int)
+    for bad in ({"train.epochs": "2.5"}, {"heatmap.sigma_px": "5,-5"}, {"split.fractions": "0.5,0.3,0.15"}):
+        key = next(iter(bad))
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            load_config("synthetic", bad, environ={})
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            load_config("synthetic", environ={"PIPELINE__" + key.replace(".", "__").upper(): bad[key]})
+    with pytest.raises(ConfigError, match="train.epochs"):  # a TOML float where a whole number goes
+        load_config("synthetic", environ={}).with_overrides({"train.epochs": 2.5})
 
 
 def test_environment_errors_name_the_variable_and_a_malformed_variable_is_refused(tmp_path):

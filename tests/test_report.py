@@ -231,3 +231,55 @@ def test_a_baseline_with_fewer_frames_is_compared_on_the_frames_it_has():
     assert "- `lidar-subsample`: Chamfer over 3 of its 4 frames (undefined where its output or the real radar" in md
     with pytest.raises(ValueError, match="the columns must share the frames"):
         R.aggregate_columns({"model": model, "previous-frame": {k: v[:3] for k, v in previous.items()}})
+
+
+def test_table_cells_are_mean_then_median_and_the_median_shortfalls_use_medians(tmp_path):
+    """The table's header says 'mean / median'; report.json's model_does_not_beat.median and the
+    paragraph's '(median)' sentences compare medians (hand-computed: the model's Chamfer [1, 1, 10]
+    has mean 4 and median 1; the baseline's [2, 2, 2] both 2)."""
+    rows = {"model": [{"chamfer_m": c, "gospa": 10.0, "f1": 0.5} for c in (1.0, 1.0, 10.0)],
+            "uniform": [{"chamfer_m": 2.0, "gospa": 20.0, "f1": 0.1} for _ in range(3)]}
+    table = R.aggregate(rows)
+    md = R.metrics_table_md(table)
+    model_row = next(line for line in md.splitlines() if line.startswith("| model |"))
+    chamfer_cell = model_row.split("|")[3 + [k for k, _ in R.TABLE_COLUMNS].index("chamfer_m")].strip()
+    assert chamfer_cell == "4 / 1"
+    jp, mp = R.write_report(tmp_path, "vod", "test", table, {}, {}, {})
+    beaten = json.loads(jp.read_text())["model_does_not_beat"]
+    assert [d["method"] for d in beaten["mean"]["chamfer_m"]] == ["uniform"]
+    assert beaten["median"]["chamfer_m"] == []
+    # a median shortfall names the model's median, not its mean
+    rows["model"] = [{"chamfer_m": c, "gospa": 10.0, "f1": 0.5} for c in (1.0, 5.0, 5.0)]
+    rows["uniform"] = [{"chamfer_m": 4.0, "gospa": 20.0, "f1": 0.1} for _ in range(3)]
+    text = R.shortfall_paragraph(R.aggregate(rows))
+    assert "Chamfer distance (median): the model (5) does not beat `uniform` (4)." in text
+    assert "Chamfer distance (mean)" not in text   # mean 3.67 beats 4
+
+
+def test_the_ceiling_row_is_paired_with_a_baseline_on_its_own_frames():
+    """model-oracle-map is compared with previous-frame over the frames both have, with its own
+    values there (not the model's): ceiling [3, 3, 3, 0] vs previous-frame [2, 2, 2, -] is 3 vs 2,
+    so the ceiling does not beat it, while the model [1, 1, 1, 9] does (1 vs 2)."""
+    nan = math.nan
+    table = R.aggregate_columns({"model": {"chamfer_m": np.array([1.0, 1.0, 1.0, 9.0])},
+                                 "model-oracle-map": {"chamfer_m": np.array([3.0, 3.0, 3.0, 0.0])},
+                                 "previous-frame": {"chamfer_m": np.array([2.0, 2.0, 2.0, nan])}})
+    assert R.model_shortfalls(table)["chamfer_m"] == []
+    assert R.model_shortfalls(table, model="model-oracle-map")["chamfer_m"] == [
+        {"method": "previous-frame", "value": 2.0, "model_value": 3.0, "frames": 3}]
+
+
+def test_speed_bins_hold_their_lower_edge_and_a_gospa_tie_scores_no_better():
+    """'< 0.5 m/s' leaves out 0.5 m/s itself, which opens the next bin; a row whose mean GOSPA equals
+    the empty output's scores no better than it."""
+    edges = R.SPEED_EDGES_MPS
+    speeds = np.array(edges, np.float64)            # each exactly on an edge
+    ones = np.ones(len(speeds))
+    rows = R.speed_breakdown(speeds, ones, ones, {})
+    assert [(r["lo_mps"], r["frames"]) for r in rows] == [(e, 1) for e in edges]
+    assert all(r["label"] != f"< {edges[0]:g} m/s" for r in rows)
+    rng = np.random.default_rng(5)
+    table = R.aggregate({"model": _frames(rng, 2, chamfer=2.0, gospa=17.0, f1=0.1),
+                         "uniform": _frames(rng, 2, chamfer=3.0, gospa=16.0, f1=0.1),
+                         "no-points": _frames(rng, 2, chamfer=math.nan, gospa=17.0, f1=math.nan)})
+    assert "1 of the 2 other rows score no better (`model`)" in R.shortfall_paragraph(table)

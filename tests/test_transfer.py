@@ -461,3 +461,49 @@ def test_export_counts_points_on_objects_of_unknown_velocity_on_real_vod_frames(
     assert (cache / "vod" / "export" / UNKNOWN_OBJECT_MOTION_LIST).read_text().split() == ids
     assert f"; {sum(per_frame.values())} of the points (" in summary["message"]
     assert "lie on labelled objects whose velocity the dataset does not record" in summary["message"]
+
+
+def test_the_moved_prior_keeps_the_mass_of_each_part_of_the_source_view():
+    """A uniform source prior seen by a target camera yawed 15 degrees (twice the focal length,
+    inside the source's view): a target region's share is the share of the source image its
+    directions cover there (the cells of the source grid per target cell), hand-computed as the
+    area of the region's corners carried to the source image (a rotation: a homography)."""
+    from pipeline.transfer import SourceCamera, prior_in_target
+
+    h, w = 40, 80
+    K_s = np.array([[100.0, 0, 79.5], [0, 100.0, 19.5], [0, 0, 1]])
+    R_s = R_CAM_D.T
+    source = SourceCamera(K_s, _T(R_s, np.zeros(3)), (160, 40), 20.0)
+    a = np.radians(15.0)
+    R_t = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]) @ R_s
+    K_t = np.array([[200.0, 0, 79.5], [0, 200.0, 19.5], [0, 0, 1]])
+    moved = prior_in_target(np.full((h, w), 1.0 / (h * w)), source, K_t, _T(R_t, np.zeros(3)), (160, 40))
+
+    def source_area(corners):
+        pts = []
+        for u, v in corners:
+            p = K_s @ (R_s.T @ (R_t @ np.linalg.solve(K_t, [u, v, 1.0])))
+            pts.append(p[:2] / p[2])
+        x, y = np.array(pts).T
+        return 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+    left = source_area([(-0.5, -0.5), (79.5, -0.5), (79.5, 39.5), (-0.5, 39.5)])
+    right = source_area([(79.5, -0.5), (159.5, -0.5), (159.5, 39.5), (79.5, 39.5)])
+    assert left / (left + right) > 0.55                       # the yaw stretches one side
+    assert moved[:, :w // 2].sum() == pytest.approx(left / (left + right), abs=2e-3)
+
+
+def test_doppler_is_compared_modulo_the_synthesized_radars_span_when_both_wrap():
+    """comparison(): 'modulo the simulated radar's span when it aliases, else modulo the real
+    radar's'. Astyx's own radar wraps into 10.39 m/s; nets of a radar that wraps into 20 m/s:
+    compared modulo 20, and the note says that the real radar's span differs. With eval.split =
+    train the baselines' training frames are evaluated ones too, and the note says so."""
+    from pipeline.readers.testing import ASTYX_SPAN_MPS
+    from pipeline.transfer import comparison
+
+    cfg = load_config("astyx", {"train.nets_from": "vod", "radar.doppler_span_mps": "20"}, environ={})
+    got = comparison(cfg)
+    assert (got.doppler_span_mps, got.real_doppler_span_mps) == (20.0, ASTYX_SPAN_MPS)
+    assert any("modulo the synthesized radar's span 20 m/s" in n for n in got.notes)
+    train = comparison(load_config("vod", {"train.nets_from": "astyx", "eval.split": "train"}, environ={}))
+    assert "(with eval.split = train, the evaluated frames among them)" in train.notes[-1]
