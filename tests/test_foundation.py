@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cache import DONE, FAILED, PENDING, DirStore, frame_store
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, DirStore, frame_store
 from pipeline.config import load_config
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
@@ -833,3 +833,106 @@ def test_an_output_being_read_is_not_rewritten_and_the_other_way_round(tmp_path)
     with rewriting(url, "stage 'synthesize'", wait_s=10):   # waits for the reader, then rewrites
         assert time.monotonic() - t0 > 0.3
     reader.join()
+
+
+def test_failed_frames_are_retried_only_when_asked(tmp_path, monkeypatch):
+    """A failed frame keeps its failure (and is not tried again) when a later run finishes the
+    frames still pending; --retry-failed runs it again, and only it."""
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    ids = IDS[:2] + ["bad002"] + IDS[3:6]
+    make_pipeline(tmp_path, ids=ids).run("calibrate", frames=[0, 1, 2])
+    assert make_pipeline(tmp_path, ids=ids).env.store("calibrate").status()[2] == FAILED
+    log.unlink()
+    monkeypatch.setenv("FAKE_STAGE_FIXED", "1")  # the file was replaced, but nobody asked for a retry
+    report = make_pipeline(tmp_path, ids=ids).run("calibrate")[0]
+    assert sorted(calls(log)) == sorted(f"calibrate {f}" for f in ids[3:])
+    assert (report.processed, report.failed, report.done) == (3, 1, 5)
+    log.unlink()
+    report = make_pipeline(tmp_path, ids=ids).run("calibrate", retry_failed=True)[0]
+    assert calls(log) == ["calibrate bad002"] and (report.failed, report.done) == (0, len(ids))
+
+
+def test_frames_whose_upstream_frame_is_excluded_are_excluded_not_failed(tmp_path):
+    """A frame the first stage's configuration leaves out is excluded downstream too: not counted
+    as failed (a --strict run would stop on it) nor retried."""
+    import dataclasses
+
+    def even(inputs, cfg):
+        return np.arange(len(inputs.frame_ids)) % 2 == 0
+
+    stages = [dataclasses.replace(s, select=even) if s.name == "calibrate" else s for s in fake_stages.STAGES]
+    cfg = load_config("synthetic", environ={})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
+    pipe = Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+    calibrate, heatmaps = pipe.run("heatmaps", strict=True)
+    odd = np.arange(len(IDS)) % 2 == 1
+    for report in (calibrate, heatmaps):
+        assert (report.done, report.excluded, report.failed) == (len(IDS) // 2, len(IDS) // 2, 0), report.stage
+    assert (pipe.env.store("heatmaps").status()[odd] == EXCLUDED).all()
+
+
+def test_a_run_does_not_read_an_input_another_run_is_rewriting(tmp_path):
+    """The frames of a stage read its upstream outputs: while another run recreates one of them
+    (`run calibrate --force`), a run that would compute frames from it stops instead of reading
+    half-rewritten inputs."""
+    from pipeline.lock import rewriting
+
+    pipe = make_pipeline(tmp_path)
+    pipe.run("calibrate")
+    calibrate_lock = str(Path(pipe.env.cache_root) / "fake" / "locks" / "calibrate.lock")
+    with rewriting(calibrate_lock, "stage 'calibrate' of dataset 'fake'"):
+        with pytest.raises(LockError, match="an input of it is being rewritten"):
+            make_pipeline(tmp_path).run("heatmaps")
+    store = pipe.env.store("heatmaps")
+    assert not store.exists() or not (store.status() == DONE).any()
+
+
+def test_force_recomputes_the_target_only_not_its_current_upstream_stages(tmp_path, monkeypatch):
+    log = tmp_path / "calls.txt"
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
+    make_pipeline(tmp_path).run("heatmaps")
+    log.unlink()
+    calibrate, heatmaps = make_pipeline(tmp_path).run("heatmaps", force=True)
+    assert (calibrate.processed, heatmaps.processed) == (0, len(IDS))
+    assert sorted(calls(log)) == sorted(f"heatmaps {f}" for f in IDS)
+
+
+@pytest.mark.parametrize("n", [1, 5, 7, 8, 9, 31, 33, 100])
+@pytest.mark.parametrize("slots", [1, 2, 3])
+def test_dask_batches_hold_every_frame_once_in_order(n, slots):
+    """A frame left out of every batch would stay pending after a run that reports no error."""
+    from pipeline.executor import _batches
+
+    todo = [(i, f"f{i:03d}") for i in range(n)]
+    batches = _batches(todo, slots)
+    assert [item for batch in batches for item in batch] == todo
+    assert all(batches) and max(len(b) for b in batches) <= 8
+
+
+def test_frame_random_streams_depend_on_seed_salt_and_frame_only():
+    """FrameInputs.rng: the same stream on any worker for (seed, salt, frame), another for another
+    salt (e.g. patches' point sampling against its placement rows) or another frame."""
+    a, b = FrameInputs(None, 3, "003"), FrameInputs(None, 4, "004")
+    draw = lambda f, seed, salt: f.rng(seed, salt).random(4)  # noqa: E731
+    np.testing.assert_array_equal(draw(a, 1, 11), draw(FrameInputs(None, 3, "other id"), 1, 11))
+    assert not np.array_equal(draw(a, 1, 11), draw(a, 1, 12))
+    assert not np.array_equal(draw(a, 1, 11), draw(b, 1, 11))
+    assert not np.array_equal(draw(a, 1, 11), draw(a, 2, 11))
+
+
+def test_a_frames_arrays_of_the_same_name_from_two_stages_are_told_apart(tmp_path):
+    """FrameInputs.get caches each (stage, array) read once per frame: an array of one stage must
+    not be served for the array of the same name of another (e.g. 'points' of calibrate and of
+    synthesize)."""
+    from pipeline.stage import ArraySpec
+
+    pipe = make_pipeline(tmp_path)
+    spec = (ArraySpec("points", (2,), "float32", "-"),)
+    for stage, value in (("calibrate", 1.0), ("synthesize", 2.0)):
+        pipe.env.store(stage).create("fp", IDS, spec, {"points": (2,)}, {})
+        pipe.env.store(stage).write_frame(0, {"points": np.full(2, value, np.float32)}, spec)
+    frame = FrameInputs(pipe.env, 0, IDS[0])
+    assert frame.get("calibrate", "points").tolist() == [1.0, 1.0]
+    assert frame.get("synthesize", "points").tolist() == [2.0, 2.0]
+    assert frame.get("calibrate", "points").tolist() == [1.0, 1.0]

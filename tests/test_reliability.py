@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import zarr
 
-from pipeline.cache import DONE, PENDING, FrameStore, _gather_all, frame_store
+from pipeline.cache import DONE, FAILED, PENDING, FrameStore, _gather_all, frame_store
 from pipeline.config import load_config
 from pipeline.errors import CacheError
 from pipeline.executor import Executor, RunEnv
@@ -521,3 +521,67 @@ def test_ctrl_c_says_which_stage_and_whether_to_drop_force(tmp_path, monkeypatch
     assert exit_.value.code == 130
     assert capsys.readouterr().err == ("interrupted in heatmaps: its finished frames are kept; "
                                        "run the same command again without --force to resume\n")
+
+
+def test_a_forced_run_of_a_resuming_dataset_stage_starts_from_an_empty_folder(tmp_path):
+    """--force on a stage that resumes from its files (train's checkpoints) must not resume: the
+    forced run sees none of the files the earlier run left."""
+    seen = []
+
+    def writes(inputs, cfg, out, fingerprint):
+        seen.append(sorted(p.name for p in Path(out.path).iterdir()))
+        out.write_text("last.json", f"epoch {len(seen)}")
+        return {"message": "ok"}
+
+    _pipe_with_dataset_stage(tmp_path, writes, resumes=True).run("train")
+    _pipe_with_dataset_stage(tmp_path, writes, resumes=True).run("train", force=True)
+    assert seen == [[], []]
+
+
+def test_a_run_killed_while_creating_an_output_leaves_it_to_be_created_again(tmp_path, monkeypatch):
+    """The output's fingerprint is written after its arrays: a run killed between the two leaves an
+    output that is not taken for current, and the next run recreates it and computes every frame."""
+    original = zarr.Group.create_array
+
+    def killed_at_status(self, name, *args, **kwargs):
+        if name == "status":
+            raise KeyboardInterrupt("killed while creating the output")
+        return original(self, name, *args, **kwargs)
+
+    cfg = load_config("synthetic", {}, environ={})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
+    pipe = Pipeline(fake_stages.STAGES, env, Executor(1), progress=False, log=lambda m: None,
+                    frame_lister=lambda: list(IDS))
+    with monkeypatch.context() as patch:
+        patch.setattr(zarr.Group, "create_array", killed_at_status)
+        with pytest.raises(KeyboardInterrupt):
+            pipe.run("calibrate")
+    assert pipe.env.store("calibrate").fingerprint() is None
+    report = Pipeline(fake_stages.STAGES, env, Executor(1), progress=False, log=lambda m: None,
+                      frame_lister=lambda: list(IDS)).run("calibrate")[0]
+    assert (report.processed, report.done) == (len(IDS), len(IDS))
+
+
+def test_a_cache_error_reading_a_frames_input_stops_the_run_and_fails_no_frame(tmp_path, monkeypatch):
+    """A cache problem (here: an input that cannot be opened) is no bad input of one frame: the run
+    stops at once and the frames stay pending, not every one recorded as failed with it."""
+    cfg = load_config("synthetic", {}, environ={})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
+    pipe = Pipeline(fake_stages.STAGES, env, Executor(1), progress=False, log=lambda m: None,
+                    frame_lister=lambda: list(IDS))
+    pipe.run("calibrate")
+    original = FrameStore.read
+
+    def unreadable(self, name, index):
+        if self.url.endswith("/calibrate.zarr"):
+            raise CacheError(f"opening {self.url}: [Errno 5] Input/output error")
+        return original(self, name, index)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(FrameStore, "read", unreadable)
+        with pytest.raises(CacheError, match="Input/output error"):
+            pipe.run("heatmaps")
+    status = pipe.env.store("heatmaps").status()
+    assert not (status == FAILED).any() and pipe.env.store("heatmaps").reasons() == {}
+    pipe.run("heatmaps")
+    assert (pipe.env.store("heatmaps").status() == DONE).all()

@@ -11,7 +11,7 @@ import fsspec
 import numpy as np
 import pytest
 
-from pipeline.cache import DONE
+from pipeline.cache import DONE, PENDING
 from pipeline.config import load_config
 from pipeline.errors import ChunkError
 from pipeline.executor import Executor, RunEnv
@@ -70,3 +70,29 @@ def test_a_damaged_chunk_of_a_remote_cache_is_named(tmp_path, remote):
     pipe.run("heatmaps")  # the frame reading it fails, naming it; the others finish
     reasons = pipe.env.store("heatmaps").reasons()
     assert list(reasons) == [3] and "calibrate.zarr/value, frame 3" in reasons[3]
+
+
+def test_a_failed_array_write_on_a_remote_cache_leaves_the_frame_pending(tmp_path, remote, monkeypatch):
+    """On zarr's path a frame's arrays are written concurrently and its status after them all: one
+    array whose write fails leaves the frame pending (to be redone), never done without its data."""
+    import errno
+
+    import zarr
+
+    from pipeline.errors import CacheError
+
+    original = zarr.AsyncArray.setitem
+
+    async def setitem(self, key, value):
+        if self.path.endswith("points") and key == 3:
+            raise OSError(errno.EIO, "Input/output error")
+        return await original(self, key, value)
+
+    pipe = _pipe(remote, tmp_path)
+    with monkeypatch.context() as patch:
+        patch.setattr(zarr.AsyncArray, "setitem", setitem)
+        with pytest.raises(CacheError, match="writing frame 3 of"):
+            pipe.run("calibrate")
+    assert pipe.env.store("calibrate").status()[3] == PENDING
+    pipe.run("calibrate")
+    assert (pipe.env.store("calibrate").status() == DONE).all()

@@ -601,3 +601,19 @@ def test_ragged_rows_reads_any_rows_of_many_frames_a_window_of_frames_at_a_time(
     assert max(reads) == 8 and sum(reads) >= 50
     with pytest.raises(IndexError):
         rows[np.array([len(laid)])]
+
+
+def test_a_safetensors_file_that_is_no_pipeline_checkpoint_is_refused(tmp_path):
+    """Only files written by save_checkpoint load as checkpoints: another safetensors file (a
+    model downloaded or saved by other code) has no format in its metadata."""
+    from safetensors.torch import save_file
+
+    from pipeline.errors import CacheError
+
+    foreign = tmp_path / "last.safetensors"
+    save_file({"model.w": torch.ones(3)}, str(foreign), metadata={"meta": json.dumps({"epoch": 3})})
+    with pytest.raises(CacheError, match="not a pipeline checkpoint"):
+        ckpt.load_checkpoint(foreign)
+    ckpt.save_checkpoint(tmp_path / "ours.safetensors", {"model.w": torch.ones(3)}, {"epoch": 3})
+    tensors, meta = ckpt.load_checkpoint(tmp_path / "ours.safetensors")
+    assert meta["epoch"] == 3 and torch.equal(tensors["model.w"], torch.ones(3))
