@@ -405,3 +405,126 @@ def test_importing_the_package_keeps_onednn_off_its_avx512_kernels():
     assert subprocess.run([sys.executable, "-c", "import os, pipeline; print(os.environ['ONEDNN_MAX_CPU_ISA'])"],
                           env={**env, "ONEDNN_MAX_CPU_ISA": "ALL"}, capture_output=True, text=True,
                           check=True).stdout.strip() == "ALL"
+
+
+def _bn_eval(bn: torch.nn.BatchNorm2d, x: torch.Tensor) -> torch.Tensor:
+    return torch.nn.functional.batch_norm(x, bn.running_mean, bn.running_var, bn.weight, bn.bias, False, 0.0, bn.eps)
+
+
+def _reference_block(block, x: torch.Tensor, stride: int) -> torch.Tensor:
+    """torchvision's BasicBlock written out (eval mode): relu(bn2(conv2(relu(bn1(conv1(x))))) + shortcut),
+    shortcut = bn(1x1 conv, stride) of x where the shape changes, else x."""
+    F_ = torch.nn.functional
+    out = F_.relu(_bn_eval(block.bn1, F_.conv2d(x, block.conv1.weight, stride=stride, padding=1)))
+    out = _bn_eval(block.bn2, F_.conv2d(out, block.conv2.weight, padding=1))
+    if block.downsample is None:
+        shortcut = x
+    else:
+        shortcut = _bn_eval(block.downsample[1], F_.conv2d(x, block.downsample[0].weight, stride=stride))
+    return F_.relu(out + shortcut)
+
+
+def test_resnet_forward_is_torchvisions_resnet18_written_out():
+    """pyramid() against ResNet-18 computed with functional ops from the same weights: stem conv 7x7
+    stride 2 + BN + ReLU + max-pool 3x3 stride 2, then layer1..4 of two BasicBlocks (first block of
+    layers 2-4 with stride 2), ReLU after the residual sum."""
+    F_ = torch.nn.functional
+    torch.manual_seed(0)
+    net = ResNet18Backbone(8).eval()
+    for m in net.modules():  # non-trivial BN statistics and affine parameters: every BN matters
+        if isinstance(m, torch.nn.BatchNorm2d):
+            with torch.no_grad():
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+                m.weight.uniform_(0.5, 1.5)
+                m.bias.uniform_(-0.5, 0.5)
+    x = torch.randn(2, 3, 64, 96)
+    y = F_.max_pool2d(F_.relu(_bn_eval(net.bn1, F_.conv2d(x, net.conv1.weight, stride=2, padding=3))), 3, 2, 1)
+    want = []
+    for layer, stride in ((net.layer1, 1), (net.layer2, 2), (net.layer3, 2), (net.layer4, 2)):
+        y = _reference_block(layer[1], _reference_block(layer[0], y, stride), 1)
+        want.append(y)
+    with torch.no_grad():
+        got = net.pyramid(x)
+    assert len(got) == 4
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-5)
+
+
+def test_resnet_initialisation_is_torchvisions():
+    """Convolutions: Kaiming normal, fan_out mode, ReLU gain (std sqrt(2 / (out_channels k^2)));
+    BN weight 1, bias 0."""
+    torch.manual_seed(0)
+    net = ResNet18Backbone(64)
+    for name in ("conv1", "layer1.0.conv1", "layer4.1.conv2", "layer2.0.downsample.0"):
+        w = net.get_submodule(name).weight.detach()
+        fan_out = w.shape[0] * w.shape[2] * w.shape[3]
+        assert float(w.std()) == pytest.approx(np.sqrt(2.0 / fan_out), rel=0.05), name
+        assert abs(float(w.mean())) < 0.1 * np.sqrt(2.0 / fan_out), name
+    bn = net.get_submodule("layer3.1.bn2")
+    assert torch.equal(bn.weight, torch.ones_like(bn.weight)) and not bn.bias.any()
+
+
+def test_networks_normalise_rgb_with_imagenet_statistics():
+    """Dis-Net's image and RSS-Net's patch reach their first convolution ImageNet-normalised: the
+    ImageNet mean colour as 0, one standard deviation above it as 1."""
+    from pipeline.models.disnet import IMAGENET_MEAN, IMAGENET_STD
+
+    mean, std = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    disnet = DisNet(width=8, out_hw=(32, 64)).eval()
+    rssnet = RSSNet(True, False, False, patch_size=16, rss_min=0.0, rss_max=1.0).eval()
+    seen: dict[str, list[torch.Tensor]] = {"disnet": [], "rssnet": []}
+    disnet.backbone.conv1.register_forward_pre_hook(lambda m, args: seen["disnet"].append(args[0]))
+    rssnet.patch_branch[0].register_forward_pre_hook(lambda m, args: seen["rssnet"].append(args[0]))
+    with torch.no_grad():
+        for k in (0.0, 1.0):
+            disnet((mean + k * std).expand(1, 3, 32, 64), torch.tensor([5.0]))
+            rssnet((mean + k * std).expand(1, 3, 16, 16), None, None)
+    for net, (zero, one) in seen.items():
+        torch.testing.assert_close(zero, torch.zeros_like(zero), atol=1e-6, rtol=0, msg=net)
+        torch.testing.assert_close(one, torch.ones_like(one), atol=1e-5, rtol=0, msg=net)
+
+
+def test_rssnet_point_vector_scaling():
+    """[x, y, z] enter divided by 50 m, the Doppler by 10 m/s."""
+    from pipeline.models.rssnet import normalise_point
+
+    got = normalise_point(torch.tensor([[50.0, -25.0, 5.0, -10.0], [0.0, 10.0, -50.0, 2.5]]))
+    torch.testing.assert_close(got, torch.tensor([[1.0, -0.5, 0.1, -1.0], [0.0, 0.2, -1.0, 0.25]]))
+
+
+def test_disnet_speed_map_is_film_of_the_decoded_features():
+    """disnet.speed_map: the decoder reads F * (1 + gamma(s)) + beta(s) per channel, s = speed / 10 m/s."""
+    torch.manual_seed(0)
+    film = DisNet(width=8, use_speed=True, out_hw=(32, 64), speed_map=True).eval()
+    torch.nn.init.normal_(film.speed_film[-1].weight, std=0.5)
+    torch.nn.init.normal_(film.speed_film[-1].bias, std=0.5)
+    seen = []
+    film.decoder.register_forward_pre_hook(lambda m, args: seen.append(args[0]))
+    img, speed = torch.rand(2, 3, 32, 64), torch.tensor([3.0, 14.0])
+    with torch.no_grad():
+        film(img, speed)
+        feat = film.backbone((img - film.mean) / film.std)
+        gamma, beta = film.speed_film(speed[:, None] / 10.0).chunk(2, dim=1)
+    assert gamma.abs().max() > 0.1 and beta.abs().max() > 0.1
+    torch.testing.assert_close(seen[0], feat * (1 + gamma[:, :, None, None]) + beta[:, :, None, None])
+
+
+def test_count_prior_follows_np_interp_of_the_logit_also_outside_the_knots():
+    """A full table of COUNT_PRIOR_KNOTS knots (no padding): the prior is np.interp of the logit,
+    flat below the first knot (slow frames are common: a knot sits at its bin's mean speed) and
+    beyond the last."""
+    from pipeline.models.disnet import COUNT_PRIOR_KNOTS
+
+    torch.manual_seed(0)
+    model = DisNet(width=8, use_speed=True, max_points=500, out_hw=(32, 64)).eval()
+    knots = np.array([2.0, 4.0, 5.0, 7.0, 8.0, 10.0, 13.0, 20.0])
+    counts = np.array([60.0, 120.0, 90.0, 200.0, 150.0, 100.0, 80.0, 300.0])
+    assert knots.size == COUNT_PRIOR_KNOTS
+    model.set_count_prior(counts, knots)
+    speeds = np.array([0.0, 1.0, 2.0, 3.0, 4.5, 9.0, 16.0, 20.0, 25.0, 40.0])
+    grid = torch.randn(speeds.size, 64, 5, 18)  # a zero head: the features do not matter
+    got = model.count_from_grid(grid, torch.tensor(speeds, dtype=torch.float32)).detach().numpy()
+    q = counts / 500
+    want = 500 / (1 + np.exp(-np.interp(speeds, knots, np.log(q / (1 - q)))))
+    np.testing.assert_allclose(got, want, rtol=1e-4)

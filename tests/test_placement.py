@@ -462,3 +462,32 @@ def test_placenet_epochs_are_its_own(tmp_path):
     assert fp(tiny_cfg(**cos, **{"train.epochs": "3"}), "placenet") == fp(tiny_cfg(**cos), "placenet")
     assert fp(tiny_cfg(**cos, **{"placement.epochs": "3"}), "disnet") == fp(tiny_cfg(**cos), "disnet")
     assert fp(tiny_cfg(**{"placement.epochs": "3"}), "placenet") == fp(tiny_cfg(), "placenet")  # constant: resumes
+
+
+def test_placenet_output_does_not_depend_on_the_features_units():
+    """Standardised with its training statistics, the net sees the same input whatever the
+    features' units: a * x + b (per feature, a > 0) with the statistics recomputed on it gives the
+    same output as x."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(0, 1, (50, 3)) * [1.0, 3.0, 0.2] + [0.0, 10.0, -4.0]
+    torch.manual_seed(0)
+    net = PlaceNet(n_features=3, width=4, depth=1)
+    net.set_standardisation(x)
+    before = net(torch.tensor(x, dtype=torch.float32))
+    rescaled = x * [100.0, 0.01, 7.0] + [5.0, -3.0, 1000.0]
+    net.set_standardisation(rescaled)
+    torch.testing.assert_close(net(torch.tensor(rescaled, dtype=torch.float32)), before, rtol=1e-4, atol=1e-4)
+
+
+def test_placenet_cosine_schedule_spans_placement_epochs(tmp_path):
+    """Under a cosine schedule PlaceNet's learning rate in epoch e of placement.epochs E is
+    lr * (1 + cos(pi (e - 1) / E)) / 2, whatever train.epochs says."""
+    import math
+
+    from pipeline import checkpoint as ckpt
+
+    data = make_place_data(p=400)
+    cfg = tiny_cfg(**{"train.lr_schedule": "cosine", "placement.epochs": "3", "train.epochs": "8"})
+    T.train_placenet(cfg, data, tmp_path, progress=False)
+    groups = ckpt.read_meta(tmp_path / "last.safetensors")["optimizer"]["param_groups"]
+    assert groups[0]["lr"] == pytest.approx(1e-2 * 0.5 * (1 + math.cos(math.pi * 2 / 3)))  # epoch 3 of 3

@@ -106,3 +106,14 @@ def test_empty_and_errors():
         assign_split(["a"], ["s"], "block", (0.5, 0.2, 0.2))
     with pytest.raises(ValueError, match="block_len"):
         assign_split(["a"], ["s"], "block", block_len=0)
+
+
+@pytest.mark.parametrize("lengths", [[50, 50, 50], [100, 20, 60], [30, 200, 45, 80]])
+def test_each_part_gets_a_unit_before_any_part_gets_a_second(lengths):
+    """Units go to the part furthest below its target *relative* to that target: a part without a
+    unit is 100% short, so with as many sequences as parts each part gets one (the small
+    validation share is not left empty while train and test take them all)."""
+    fids, sids = _frames(lengths)
+    for seed in range(5):
+        parts = assign_split(fids, sids, "sequence", (0.6, 0.1, 0.3), seed=seed)
+        assert set(parts.tolist()) == {TRAIN, VAL, TEST}, seed

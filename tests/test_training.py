@@ -617,3 +617,112 @@ def test_a_safetensors_file_that_is_no_pipeline_checkpoint_is_refused(tmp_path):
     ckpt.save_checkpoint(tmp_path / "ours.safetensors", {"model.w": torch.ones(3)}, {"epoch": 3})
     tensors, meta = ckpt.load_checkpoint(tmp_path / "ours.safetensors")
     assert meta["epoch"] == 3 and torch.equal(tensors["model.w"], torch.ones(3))
+
+
+def test_ema_update_is_decay_times_the_average_plus_the_rest_times_the_model():
+    """train.ema_decay d: after the first update (a copy), each update gives d * average + (1 - d) *
+    current, for parameters and BatchNorm statistics alike; d = 0 means no average."""
+    assert T.make_ema(torch.nn.Linear(2, 3), 0.0) is None
+    torch.manual_seed(0)
+    model = torch.nn.Sequential(torch.nn.Linear(2, 3), torch.nn.BatchNorm1d(3))
+    ema = T.make_ema(model, 0.75)
+    first = {k: v.clone() for k, v in model.state_dict().items()}
+    ema.update_parameters(model)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(1.0)
+    model.train()
+    model(torch.randn(16, 2) * 3 + 1)  # moves the BatchNorm running statistics
+    second = model.state_dict()
+    ema.update_parameters(model)
+    averaged = ema.module.state_dict()
+    for k in ("0.weight", "0.bias", "1.weight", "1.running_mean", "1.running_var"):
+        assert not torch.allclose(first[k], second[k]), k
+        torch.testing.assert_close(averaged[k], 0.75 * first[k] + 0.25 * second[k]), k
+
+
+def test_train_one_epoch_steps_on_the_batch_mean_and_reports_per_sample_means():
+    """One SGD step per batch on the mean over the batch of the weighted terms (fresh gradients
+    each step); the returned values are means over samples, not over batches."""
+    model = torch.nn.Linear(1, 1, bias=False)
+    with torch.no_grad():
+        model.weight.zero_()
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+
+    def terms(m, batch, device):
+        x, y = torch.tensor(batch["x"]), torch.tensor(batch["y"])
+        return {"se": (m(x[:, None]).squeeze(1) - y) ** 2}
+
+    batches = [{"x": np.array([1.0, 2.0, 3.0], np.float32), "y": np.ones(3, np.float32)},
+               {"x": np.array([2.0], np.float32), "y": np.ones(1, np.float32)}]
+    out = T.train_one_epoch(model, opt, batches, terms, {"se": 2.0}, torch.device("cpu"), progress=False)
+    # step 1 at w = 0: d/dw mean(2 (w x - 1)^2) = mean(4 x (w x - 1)) = -8 -> w = 0.8
+    # step 2 at w = 0.8, x = 2: d/dw 2 (2 w - 1)^2 = 8 (2 w - 1) = 4.8 -> w = 0.32
+    assert model.weight.item() == pytest.approx(0.32, rel=1e-6)
+    se = [1.0, 1.0, 1.0, (2 * 0.8 - 1) ** 2]  # per sample, each at the weight of its step
+    assert out["se"] == pytest.approx(np.mean(se), rel=1e-6)
+    assert out["loss"] == pytest.approx(2 * np.mean(se), rel=1e-6)
+    ev = T.evaluate(model, batches, terms, {"se": 2.0}, torch.device("cpu"), progress=False)
+    se = [(0.32 * x - 1) ** 2 for x in (1.0, 2.0, 3.0, 2.0)]
+    assert ev["se"] == pytest.approx(np.mean(se), rel=1e-6) and ev["loss"] == pytest.approx(2 * np.mean(se), rel=1e-6)
+
+
+def test_network_inputs_are_rgb_in_the_unit_interval_channels_first():
+    """uint8 images and patches (B, H, W, 3) reach the nets as float (B, 3, H, W) in [0, 1]."""
+    from pipeline.models.rssnet import RSSNet
+
+    img = np.zeros((2, 4, 5, 3), np.uint8)
+    img[0, 1, 2] = [255, 0, 51]
+    x, speed = T._disnet_inputs({"images": img, "speeds": np.array([1.0, 2.0])}, torch.device("cpu"))
+    assert x.shape == (2, 3, 4, 5) and x.dtype == torch.float32 and speed.tolist() == [1.0, 2.0]
+    torch.testing.assert_close(x[0, :, 1, 2], torch.tensor([1.0, 0.0, 0.2]))
+    assert float(x.sum()) == pytest.approx(1.2)
+    rss = RSSNet(True, False, True, patch_size=4, rss_min=0.0, rss_max=1.0)
+    patch, range_image, point = T._rssnet_inputs(rss, {"patches": img[:, :4, :4], "point_vectors": np.ones((2, 4))},
+                                                 torch.device("cpu"))
+    assert patch.shape == (2, 3, 4, 4) and range_image is None and point.shape == (2, 4)
+    torch.testing.assert_close(patch[0, :, 1, 2], torch.tensor([1.0, 0.0, 0.2]))
+    assert float(patch.sum()) == pytest.approx(1.2)
+
+
+def test_disnet_prior_map_is_the_mean_of_the_training_heatmaps_only(tmp_path, monkeypatch):
+    """disnet.prior: the map prior comes from the training frames, never the validation frames."""
+    data = make_disnet_data(n=16)
+    seen = {}
+    monkeypatch.setattr(T.DisNet, "set_prior", lambda self, p, floor=1e-6: seen.update(p=np.asarray(p)))
+    T.train_disnet(tiny_cfg(**{"train.epochs": "0"}), data, tmp_path, progress=False)
+    brute = data.heatmaps[data.train_idx].astype(np.float64).mean(axis=0)
+    eps = T.BASELINE_UNIFORM_MIX
+    np.testing.assert_allclose(seen["p"], (1 - eps) * brute / brute.sum() + eps / brute.size, rtol=1e-5)
+
+
+def test_rssnet_baseline_predicts_the_training_median():
+    rss = np.array([0.0, 1.0, 11.0, 4.0])
+    out = T.rssnet_baseline(rss, [0, 1, 2], [3], rss_min=-10, rss_max=10)
+    assert out["median"] == 1.0 and out["a"] == pytest.approx(((4.0 - 1.0) / 20) ** 2)
+
+
+def test_count_refit_keeps_the_given_branch_when_no_pass_beats_it():
+    """refit_count_branch leaves the number branch at the pass with the lowest selection L_n: pass 0
+    (the weights as given) when training only moves it away from the selection frames' counts."""
+    torch.manual_seed(0)
+    model = T.DisNet(width=8, use_speed=True, max_points=500, out_hw=(32, 64))
+    model.set_count_prior(100.0)  # zero head weights: n_hat = 100 on every frame
+    rng = np.random.default_rng(0)
+    arrays = {"images": rng.integers(0, 256, (12, 32, 64, 3)).astype(np.uint8),
+              "counts": np.r_[np.full(8, 10.0), np.full(4, 100.0)], "speeds": rng.uniform(0, 15, 12)}
+    before = [p.detach().clone() for p in model.count_parameters()]
+    rec = T.refit_count_branch(model, arrays, np.arange(8), np.arange(8, 12), epochs=3, lr=0.1, batch_size=4,
+                               seed=0, device=torch.device("cpu"))
+    assert rec["curve"][0] == pytest.approx(0.0, abs=1e-8) and min(rec["curve"][1:]) > 0.01
+    assert rec["best_pass"] == 0 and rec["select_n_after"] == rec["curve"][0]
+    assert all(torch.equal(a, b) for a, b in zip(before, model.count_parameters()))
+
+
+def test_speed_count_prior_never_exceeds_n_knots():
+    rng = np.random.default_rng(0)
+    speed = np.r_[np.zeros(40), rng.uniform(1, 15, 300)]
+    for n_knots in (1, 2, 3):
+        knots, means = T.speed_count_prior(speed, 100 + 5 * speed, n_knots=n_knots, min_frames=30)
+        assert knots.size == means.size == n_knots
+    assert T.speed_count_prior(speed, 100 + 5 * speed, n_knots=1)[1][0] == pytest.approx(np.mean(100 + 5 * speed))
