@@ -351,3 +351,45 @@ def test_kitti_label_alpha_is_the_observation_angle():
     alphas, rys = np.array([float(f[3]) for f in lines]), np.array([float(f[14]) for f in lines])
     np.testing.assert_allclose(alphas, -np.pi / 2, atol=1e-4)
     assert np.ptp(rys) > 0.6
+
+
+def test_exported_v_r_is_the_range_rate_whatever_the_radars_doppler_convention():
+    """synthesize's column 6 is the Doppler in the simulated radar's convention (Astyx: positive
+    approaching, aliased), column 8 the range rate; VoD's v_r is a range rate (positive receding).
+    A static world seen at 8 m/s: v_r = -(u . v_ego) wrapped, v_r_compensated 0."""
+    from stages.export import radar_rows
+
+    span = 10.3936
+    ego = np.array([8.0, 0.0, 0.0])
+    xyz = np.array([[10.0, 0.0, 0.0], [10.0, 10.0, 0.0], [3.0, -4.0, 1.0], [0.0, 7.0, 0.0]])
+    unit = xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
+    rate = np.mod(-(unit @ ego) + span / 2, span) - span / 2
+    points = np.zeros((4, 9), np.float32)
+    points[:, :3] = xyz
+    points[:, 6] = np.mod(-rate + span / 2, span) - span / 2       # Astyx's sign -1
+    points[:, 7] = [50.0, 60.0, 70.0, 80.0]
+    points[:, 8] = rate
+    rows = radar_rows(points, ego, span)
+    np.testing.assert_allclose(rows[:, 3], points[:, 7])
+    np.testing.assert_allclose(rows[:, 4], rate, atol=1e-6)
+    assert rows[0, 4] == pytest.approx(-8.0 + span, abs=1e-5)      # approaching at 8 m/s, aliased once
+    np.testing.assert_allclose(rows[:, 5], 0.0, atol=1e-5)
+
+
+def test_a_generated_calib_holds_the_full_resolution_camera():
+    """Astyx has no calib files: the generated P2 goes with the exported full-size image, so it is
+    the dataset's own camera, not the cropped, resized working camera the stages use."""
+    from pipeline.config import load_config
+    from pipeline.export import calib_P2
+    from pipeline.working import working_K
+    from stages.export import generated_calib
+
+    cfg = load_config("astyx", environ={})
+    c = cfg.camera
+    K = np.array([[1200.0, 0.0, 1010.0], [0.0, 1190.0, 300.0], [0.0, 0.0, 1.0]])
+    K_w = working_K(K, c.crop_rows, c.full_size, c.working_size)
+    assert not np.allclose(K_w, K)
+    T_cam_radar = np.array([[0.0, -1.0, 0.0, 0.1], [0.0, 0.0, -1.0, 0.2], [1.0, 0.0, 0.0, -0.3], [0, 0, 0, 1.0]])
+    P2 = calib_P2(generated_calib(K_w, T_cam_radar, cfg))
+    np.testing.assert_allclose(P2[:, :3], K, atol=1e-9)
+    np.testing.assert_allclose(P2[:, 3], 0.0)
