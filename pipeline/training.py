@@ -927,7 +927,7 @@ def placenet_metrics(model: PlaceNet, data: PlaceNetData, idx: Sequence[int], ba
 
 
 def placenet_baseline(counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
-                      eval_counts: Any = None, batch: int = 1 << 16) -> dict[str, float]:
+                      eval_counts: Any = None, batch: int = 1 << 14) -> dict[str, float]:
     """The constant-intensity PlaceNet: the training mean count for every candidate; its mean
     Poisson NLL ('nll') on rows ``eval_idx`` of ``eval_counts`` (default ``counts``) and the rate
     ('rate'). The counts are read WINDOW_BATCHES * ``batch`` rows at a time."""
