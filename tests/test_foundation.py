@@ -781,21 +781,23 @@ def test_unlock_refuses_a_lock_of_a_running_process(tmp_path):
     assert remove_lock(str(lock)) is False
 
 
-def test_frames_the_configuration_leaves_out_are_excluded_whatever_frames_says(tmp_path):
-    """With --frames the pending count is still what is left to do: frames the stage's select
-    leaves out are excluded at once, not left pending."""
-    import dataclasses
 
-    from pipeline.runner import Pipeline as P
+def _even_frames_only(tmp_path, stage: str) -> Pipeline:
+    """The fake stages over IDS, ``stage`` selecting the even frames only."""
+    import dataclasses
 
     def even(inputs, cfg):
         return np.arange(len(inputs.frame_ids)) % 2 == 0
 
-    stages = [dataclasses.replace(s, select=even) if s.name == "heatmaps" else s for s in fake_stages.STAGES]
-    cfg = load_config("synthetic", environ={})
-    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
-    pipe = P(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
-    report = pipe.run("heatmaps", frames=[0, 1])[1]
+    stages = [dataclasses.replace(s, select=even) if s.name == stage else s for s in fake_stages.STAGES]
+    env = RunEnv(cfg=load_config("synthetic", environ={}), cache_root=str(tmp_path / "cache"), dataset="fake",
+                 data_root=str(tmp_path))
+    return Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+
+def test_frames_the_configuration_leaves_out_are_excluded_whatever_frames_says(tmp_path):
+    """With --frames the pending count is still what is left to do: frames the stage's select
+    leaves out are excluded at once, not left pending."""
+    report = _even_frames_only(tmp_path, "heatmaps").run("heatmaps", frames=[0, 1])[1]
     assert (report.done, report.excluded, report.pending) == (1, 6, 5)
 
 
@@ -856,15 +858,7 @@ def test_failed_frames_are_retried_only_when_asked(tmp_path, monkeypatch):
 def test_frames_whose_upstream_frame_is_excluded_are_excluded_not_failed(tmp_path):
     """A frame the first stage's configuration leaves out is excluded downstream too: not counted
     as failed (a --strict run would stop on it) nor retried."""
-    import dataclasses
-
-    def even(inputs, cfg):
-        return np.arange(len(inputs.frame_ids)) % 2 == 0
-
-    stages = [dataclasses.replace(s, select=even) if s.name == "calibrate" else s for s in fake_stages.STAGES]
-    cfg = load_config("synthetic", environ={})
-    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="fake", data_root=str(tmp_path))
-    pipe = Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+    pipe = _even_frames_only(tmp_path, "calibrate")
     calibrate, heatmaps = pipe.run("heatmaps", strict=True)
     odd = np.arange(len(IDS)) % 2 == 1
     for report in (calibrate, heatmaps):
