@@ -36,9 +36,12 @@ def _handle_errors(fn):
         except Exception as exc:
             if not from_dask(exc):
                 raise
-            # the cluster failed outside a stage's run (which says ClusterFailed): no stage had begun
+            # the cluster failed outside a stage's run (a stage's says ClusterFailed): while closing
+            # it after the stages, which --force, if given, had rebuilt
             first = str(exc).splitlines()[0] if str(exc) else ""
-            click.echo(f"error: {ClusterFailed(f'the dask cluster failed ({type(exc).__name__}: {first})')}", err=True)
+            failed = ClusterFailed(f"the dask cluster failed ({type(exc).__name__}: {first})",
+                                   forced=bool(kwargs.get("force")))
+            click.echo(f"error: {failed}", err=True)
             sys.exit(2)
         except StageInterrupted as exc:
             click.echo(exc.advice(), err=True)

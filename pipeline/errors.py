@@ -73,22 +73,6 @@ class ChunkError(PipelineError):
         return type(self), (self.array, self.index, self.frame, self.chunk, self.problem, self.remedy)
 
 
-class ClusterFailed(PipelineError):
-    """The dask cluster failed while a stage's frames were computed (no worker left, the scheduler
-    lost, workers killed). ``what``: what failed; ``stage``: the stage it failed in (None: not
-    known yet, the runner adds it); ``forced``: a recomputation that --force asked for had begun,
-    which a repeated --force would start again; ``after``: a condition for the rerun."""
-
-    def __init__(self, what: str, stage: str | None = None, forced: bool = False, after: str = "") -> None:
-        self.what, self.stage, self.forced, self.after = what, stage, forced, after
-        again = "run the same command again" + (" without --force" if forced else "")
-        where = f" in {stage}" if stage else ""
-        super().__init__(f"{what}{where}; finished frames are kept: {again} to resume{after}")
-
-    def __reduce__(self):
-        return type(self), (self.what, self.stage, self.forced, self.after)
-
-
 def from_dask(exc: BaseException) -> bool:
     """Whether ``exc`` is dask's or dask.distributed's own (the cluster failed, not the work)."""
     return type(exc).__module__.startswith(("distributed", "dask"))
@@ -119,10 +103,32 @@ class StageInterrupted(KeyboardInterrupt):
 
     def advice(self) -> str:
         """One line for the person who pressed Ctrl-C."""
-        again = "run the same command again" + (" without --force" if self.forced else "")
-        if self.kind == "frame":
-            return f"interrupted in {self.stage}: its finished frames are kept; {again} to resume"
-        if self.kind == "resumes":
-            return f"interrupted in {self.stage}: what it saved is kept; {again} to resume from its last checkpoint"
-        return (f"interrupted in {self.stage}: the stages before it are kept, {self.stage} starts over "
-                f"when you run the same command again")
+        return f"interrupted in {self.stage}: {resume_advice(self.stage, self.kind, self.forced)}"
+
+
+def resume_advice(stage: str | None, kind: InterruptedKind, forced: bool) -> str:
+    """What a stopped run of ``stage`` leaves and how to go on (the kinds of
+    :class:`StageInterrupted`); ``forced``: a recomputation --force asked for had begun, so the
+    rerun must leave --force out."""
+    again = "run the same command again" + (" without --force" if forced else "")
+    if kind == "frame":
+        return f"its finished frames are kept; {again} to resume"
+    if kind == "resumes":
+        return f"what it saved is kept; {again} to resume from its last checkpoint"
+    return f"the stages before it are kept, {stage} starts over when you run the same command again"
+
+
+class ClusterFailed(PipelineError):
+    """The dask cluster failed while a stage ran (no worker left, the scheduler lost, workers
+    killed). ``what``: what failed; ``stage``: the stage it failed in (None: not known where it is
+    raised, the runner adds it) and ``kind``, ``forced`` as for :class:`StageInterrupted`;
+    ``after``: a condition for the rerun."""
+
+    def __init__(self, what: str, stage: str | None = None, kind: InterruptedKind = "frame", forced: bool = False,
+                 after: str = "") -> None:
+        self.what, self.stage, self.kind, self.forced, self.after = what, stage, kind, forced, after
+        where = f"{stage}: " if stage else ""
+        super().__init__(f"{where}{what}; {resume_advice(stage, kind, forced)}{after}")
+
+    def __reduce__(self):
+        return type(self), (self.what, self.stage, self.kind, self.forced, self.after)

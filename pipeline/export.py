@@ -34,6 +34,7 @@ from pipeline.errors import ReaderError
 from pipeline.fileio import atomic_path, write_atomic
 from pipeline.frame import Object3D, check_shape
 from pipeline.geometry import spherical_to_cartesian, wrap_doppler
+from pipeline.working import full_K
 
 VOD_COLUMNS = ("x_m", "y_m", "z_m", "rcs", "v_r_mps", "v_r_compensated_mps", "time_s")
 """Columns of a VoD radar .bin point (7 float32, 28 bytes)."""
@@ -63,6 +64,15 @@ def vod_points(
     unit = points / np.where(norm > 0, norm, 1.0)
     v_comp = wrap_doppler(v_r + unit @ ego, doppler_span_mps)
     return np.column_stack([points, rss, v_r, v_comp, np.zeros(n)]).astype(np.float32)
+
+
+def radar_rows(points: np.ndarray, ego_velocity_D: np.ndarray, doppler_span_mps: float = 0.0) -> np.ndarray:
+    """The VoD rows (n, 7) of a frame's synthesize ``points`` (n, 9; stages.synthesize): v_r from
+    their range rate (column 8, positive receding), not their Doppler in the simulated radar's
+    convention (column 6: Astyx's is positive approaching), which is the same only for a radar of
+    Doppler sign +1; RSS column 7; the rest as :func:`vod_points`."""
+    points = check_shape("points", np.asarray(points), (None, 9))
+    return vod_points(points[:, :3], points[:, 7], points[:, 8], ego_velocity_D, doppler_span_mps)
 
 
 def write_vod_bin(
@@ -459,6 +469,16 @@ def kitti_calib_text(P2: np.ndarray, T_cam_radar: np.ndarray) -> str:
     T = check_shape("T_cam_radar", np.asarray(T_cam_radar, dtype=np.float64), (4, 4))
     return calib_text({**{f"P{i}": P2 for i in range(4)}, "R0_rect": np.eye(3), "Tr_velo_to_cam": T[:3],
                        "Tr_imu_to_velo": np.eye(4)[:3]})
+
+
+def generated_calib(K_working: np.ndarray, T_cam_radar: np.ndarray, crop_rows: Sequence[int],
+                    full_wh: Sequence[int], working_wh: Sequence[int]) -> str:
+    """KITTI calib text for a dataset without calib files (Astyx): P2 the camera at the reader's full
+    resolution ``full_wh`` (the images exported beside it), not the cropped (``crop_rows``), resized
+    (``working_wh``) camera ``K_working`` the stages use; Tr_velo_to_cam ``T_cam_radar`` ({D} to
+    camera)."""
+    K_full = full_K(K_working, crop_rows, full_wh, working_wh)
+    return kitti_calib_text(np.column_stack([K_full, np.zeros(3)]), T_cam_radar)
 
 
 def write_image_sets(out_root: str | os.PathLike, split: Mapping[str, Sequence[str]]) -> dict[str, Path]:

@@ -604,12 +604,13 @@ class Pipeline:
         except KeyboardInterrupt:
             raise StageInterrupted(stage.name, _interrupted_kind(stage), begun) from None
         except ClusterFailed as exc:
-            raise ClusterFailed(exc.what, stage.name, begun, exc.after) from None
+            raise ClusterFailed(exc.what, stage.name, _interrupted_kind(stage), begun, exc.after) from None
         except Exception as exc:
             if not from_dask(exc):
                 raise
             first = str(exc).splitlines()[0] if str(exc) else ""
-            raise ClusterFailed(f"the dask cluster failed ({type(exc).__name__}: {first})", stage.name, begun) from exc
+            raise ClusterFailed(f"the dask cluster failed ({type(exc).__name__}: {first})", stage.name,
+                                _interrupted_kind(stage), begun) from exc
 
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:
         """Run a dataset stage when ``rebuild`` (forced or not current, as run() found), else report it current."""
@@ -625,10 +626,11 @@ class Pipeline:
         if force or not stage.resumes:
             out.clear()  # from scratch: nothing of an earlier run is reused or left (forced: train's checkpoints too)
         else:  # a killed run's half-written files
-            left = [name.rstrip("/").rsplit("/", 1)[-1] for name in out.remove_temporaries()]
+            left = [os.path.relpath(name, out.path) for name in out.remove_temporaries()]
             if left:
-                self.log(f"{stage.name:<{NAME_WIDTH}} removed {len(left)} temporary file{'s' * (len(left) > 1)} a killed "
-                         f"run left: {', '.join(left[:3])}{' ...' * (len(left) > 3)}")
+                files = f"file{'s' * (len(left) > 1)}"
+                self.log(f"{stage.name:<{NAME_WIDTH}} removed {len(left)} temporary {files} a killed run left: "
+                         f"{', '.join(left[:3])}{' ...' * (len(left) > 3)}")
         out.ensure()
         out.invalidate()
         try:

@@ -147,13 +147,17 @@ def evenly_spaced(idx: Rows, n: int) -> np.ndarray:
 
 
 def _rows(idx: Sequence[int]) -> Rows:
-    """``idx`` as row indices for :func:`iter_batches`: a ``range`` (step 1) as it is, else int64."""
-    return idx if isinstance(idx, range) and idx.step == 1 else np.asarray(idx, np.int64)
+    """``idx`` as row indices: a ``range`` (step 1) as it is, else a flat int64 array."""
+    if isinstance(idx, range) and idx.step == 1:
+        return idx
+    if isinstance(idx, range):
+        return np.arange(idx.start, idx.stop, idx.step)
+    return np.asarray(idx, np.int64).reshape(-1)
 
 
-def take_rows(array: Any, idx: np.ndarray) -> np.ndarray:
+def take_rows(array: Any, idx: Rows) -> np.ndarray:
     """Rows ``idx`` (any order, repeats allowed) of a numpy or zarr array, read with sorted indices."""
-    idx = np.asarray(idx, dtype=np.int64)
+    idx = np.arange(idx.start, idx.stop, idx.step) if isinstance(idx, range) else np.asarray(idx, dtype=np.int64)
     if isinstance(array, np.ndarray):
         return array[idx]
     uniq, inverse = np.unique(idx, return_inverse=True)
@@ -175,38 +179,44 @@ def chunk_len(array: Any) -> int:
     return int(first[0] if isinstance(first, tuple) else first)
 
 
-def epoch_order(idx: Rows, rows_per_chunk: int, window: int, rng: np.random.Generator) -> np.ndarray:
-    """Shuffled order of ``idx`` for one epoch: chunk groups in random order, then a full shuffle
-    inside each window of ``window`` rows (a plain permutation when rows_per_chunk == 1)."""
-    windows = list(epoch_windows(idx, rows_per_chunk, window, rng))
-    return np.concatenate(windows) if windows else np.zeros(0, np.int64)
-
-
 def epoch_windows(idx: Rows, rows_per_chunk: int, window: int, rng: np.random.Generator) -> Iterator[np.ndarray]:
-    """:func:`epoch_order` in consecutive pieces of ``window`` rows (the last may be shorter), each
-    made when it is asked for, drawing from ``rng`` as epoch_order does. For a ``range`` (step 1)
-    with rows_per_chunk > 1 only one window is held at a time, not the order of every row (8 bytes
-    a row, and several times that while sorting: 2.9 GB for 49 million rows)."""
+    """One epoch's shuffled order of the rows ``idx``, in consecutive pieces of ``window`` rows (the
+    last may be shorter), each made when it is asked for: with ``rows_per_chunk`` > 1 the storage
+    chunks' groups of rows in a random order, then the rows inside each window shuffled (reads stay
+    within few chunks); with 1, a plain permutation. For a ``range`` (step 1) only one window is held
+    at a time, not an order of every row (8 bytes a row and several times that while sorting: 2.9 GB
+    for 49 million rows). The windows and the generator's state after the last one are the same
+    whether ``idx`` is a range or an array of the same rows (a resumed training goes on the same)."""
     if window <= 0:
         raise ValueError(f"epoch_windows: window must be > 0, got {window}")
     if len(idx) == 0:
+        return iter(())
+    if isinstance(idx, range) and idx.step == 1 and rows_per_chunk > 1:
+        return _range_windows(idx, rows_per_chunk, window, rng)
+    return _array_windows(np.asarray(_rows(idx)), rows_per_chunk, window, rng)
+
+
+def _array_windows(idx: np.ndarray, rows_per_chunk: int, window: int, rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """:func:`epoch_windows` of an array: its whole order made first."""
+    if rows_per_chunk <= 1:
+        order = rng.permutation(idx)
+        yield from (order[start:start + window] for start in range(0, len(order), window))
         return
-    if not (isinstance(idx, range) and idx.step == 1 and rows_per_chunk > 1):
-        idx = np.asarray(idx, dtype=np.int64)
-        if rows_per_chunk <= 1:
-            order = rng.permutation(idx)
-        else:
-            _, group = np.unique(idx // rows_per_chunk, return_inverse=True)
-            rank = rng.permutation(group.max() + 1)
-            order = idx[np.argsort(rank[group], kind="stable")]
-        for start in range(0, len(order), window):
-            yield order[start:start + window] if rows_per_chunk <= 1 else rng.permutation(order[start:start + window])
-        return
+    _, group = np.unique(idx // rows_per_chunk, return_inverse=True)
+    rank = rng.permutation(group.max() + 1)
+    order = idx[np.argsort(rank[group], kind="stable")]
+    for start in range(0, len(order), window):
+        yield rng.permutation(order[start:start + window])
+
+
+def _range_windows(idx: range, rows_per_chunk: int, window: int, rng: np.random.Generator) -> Iterator[np.ndarray]:
+    """:func:`epoch_windows` of a range (step 1): each chunk's rows are consecutive numbers, so the
+    chunks' order is all that is held."""
     first = idx.start // rows_per_chunk
     rank = rng.permutation((idx.stop - 1) // rows_per_chunk - first + 1)
     pending: list[np.ndarray] = []
     held = 0
-    for chunk in first + np.argsort(rank):  # chunk c holds rank[c - first]-th place
+    for chunk in first + np.argsort(rank):  # the chunk of rank 0 first, then rank 1, ...
         rows = np.arange(max(chunk * rows_per_chunk, idx.start), min((chunk + 1) * rows_per_chunk, idx.stop))
         pending.append(rows)
         held += len(rows)
@@ -219,10 +229,10 @@ def epoch_windows(idx: Rows, rows_per_chunk: int, window: int, rng: np.random.Ge
 
 
 def iter_batches(arrays: dict[str, Any], order: Rows | Iterator[np.ndarray], batch_size: int) -> Iterator[Batch]:
-    """Yield ``{name: rows}`` batches in ``order``: row indices, or an iterator of windows of them
-    (:func:`epoch_windows`, WINDOW_BATCHES batches each). A window is read in one go per array, the
-    next one in a background thread while the current one is consumed (windows are taken from the
-    iterator in this thread)."""
+    """Yield ``{name: rows}`` batches in ``order``: row indices (an array or a range), or an iterator
+    (not a list) of windows of them (:func:`epoch_windows`, WINDOW_BATCHES batches each). A window is
+    read in one go per array, the next one in a background thread while the current one is consumed
+    (windows are taken from the iterator in this thread)."""
     if isinstance(order, Iterator):
         windows = order
     else:
@@ -318,8 +328,8 @@ class _NetSpec:
     model: nn.Module
     arch: dict[str, Any]
     arrays: dict[str, Any]
-    train_idx: np.ndarray
-    val_idx: np.ndarray
+    train_idx: Rows
+    val_idx: Rows
     batch_size: int
     terms_fn: TermsFn
     weights: dict[str, float]
@@ -566,7 +576,7 @@ def _checked_idx(idx: Sequence[int], name: str, arrays: dict[str, Any], allow_em
     if len(set(lengths.values())) > 1:
         raise ValueError(f"training arrays differ in length along axis 0: {lengths}")
     n = next(iter(lengths.values()))
-    arr = idx if isinstance(idx, range) and idx.step == 1 else np.asarray(idx, dtype=np.int64).reshape(-1)
+    arr = _rows(idx)
     if not allow_empty and len(arr) == 0:
         raise ValueError(f"{name} is empty: nothing to train on")
     if len(arr):
@@ -644,7 +654,7 @@ def _refit_best_count(cfg, spec: _NetSpec, best: Path, epochs: int, progress: bo
     ckpt.save_checkpoint(best, ckpt.model_tensors(model), {**meta, "count_refit": record})
 
 
-def refit_count_branch(model: DisNet, arrays: dict[str, Any], train_idx: np.ndarray, select_idx: np.ndarray,
+def refit_count_branch(model: DisNet, arrays: dict[str, Any], train_idx: Rows, select_idx: Rows,
                        epochs: int, lr: float, batch_size: int, seed: int, device: torch.device,
                        progress: bool = False) -> dict[str, Any]:
     """Train ``model``'s number branch alone (DisNet.count_parameters) on L_n over ``train_idx``
@@ -691,7 +701,7 @@ def refit_count_branch(model: DisNet, arrays: dict[str, Any], train_idx: np.ndar
 
 
 @torch.no_grad()
-def _count_inputs(model: DisNet, arrays: dict[str, Any], idx: np.ndarray, device: torch.device,
+def _count_inputs(model: DisNet, arrays: dict[str, Any], idx: Rows, device: torch.device,
                   batch: int = 8) -> tuple[Tensor, Tensor, Tensor]:
     """(pooled features (N, C, 5, 18), speeds (N,), counts (N,)) of frames ``idx`` on ``device``."""
     grids, speeds, counts = [], [], []
@@ -931,7 +941,7 @@ def placenet_baseline(counts: Any, train_idx: Sequence[int], eval_idx: Sequence[
     """The constant-intensity PlaceNet: the training mean count for every candidate; its mean
     Poisson NLL ('nll') on rows ``eval_idx`` of ``eval_counts`` (default ``counts``) and the rate
     ('rate'). The counts are read WINDOW_BATCHES * ``batch`` rows at a time."""
-    def total(values: Any, idx: Sequence[int]) -> tuple[float, float]:  # (sum of counts, rows)
+    def total(values: Any, idx: Sequence[int]) -> tuple[float, int]:  # (sum of counts, rows)
         sums = [float(np.asarray(b["c"], np.float64).sum()) for b in iter_batches({"c": values}, _rows(idx), batch)]
         return math.fsum(sums), len(idx)
 

@@ -58,7 +58,7 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
             t0 = time.perf_counter()
             res = train_rssnet(c, train_val, out_root / _slug(name), progress=inputs.progress,
                                fingerprint=training_fingerprint(inputs, c, "rssnet"))
-            m = rssnet_metrics(load_rssnet(c, res.best_path, device="cpu"), test, np.arange(len(test.rss)))
+            m = rssnet_metrics(load_rssnet(c, res.best_path, device="cpu"), test, test.train_idx)
             results["table3"].append({"variant": name, "L_a": m["a"], "best_epoch": res.best_epoch,
                                       "seconds": time.perf_counter() - t0})
     results["meta"] = {"dataset": inputs.env.dataset, "frames": {k: int(v) for k, v in zip(

@@ -61,8 +61,9 @@ SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_P2, calib_text, detector_label_text,
-                                 kitti_label_text, label_classes, parse_class_map, preview_png, rename_classes,
-                                 write_image, write_image_sets, write_kitti_layout, write_pcd)
+                                 generated_calib, kitti_label_text, label_classes, parse_class_map, preview_png,
+                                 radar_rows, rename_classes, write_image, write_image_sets, write_kitti_layout,
+                                 write_pcd)
     from pipeline.synthesis import on_objects_of_unknown_velocity
     from pipeline.working import full_K
 
@@ -109,7 +110,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         image_src = src.image if cfg.export.images and as_is else None
         K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)  # goes with the reader's full-size image
         if calib_src is None:
-            calib_src = generated_calib(K, T_cam_radar, cfg)
+            calib_src = generated_calib(K, T_cam_radar, c.crop_rows, c.full_size, c.working_size)
         generated = src.calib is None and src.label is None and src.objects_labelled
         record = f.reader.read(fid) if generated or (cfg.export.images and image_src is None) else None
         if src.label is not None:
@@ -168,27 +169,6 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                           f"voxelisation may fail): {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}"
                           if empty else "")
                        + ("" if lists["train"] else _no_train_hint(cfg))}
-
-
-def radar_rows(points: np.ndarray, ego_velocity_D: np.ndarray, doppler_span_mps: float) -> np.ndarray:
-    """The VoD rows (n, 7) of a frame's synthesize ``points`` (n, 9): v_r from its range rate
-    (column 8, positive receding), not its Doppler in the simulated radar's convention (column 6:
-    Astyx's is positive approaching), which is the same only for a radar of sign +1."""
-    from pipeline.export import vod_points
-
-    return vod_points(points[:, :3], points[:, 7], points[:, 8], ego_velocity_D, doppler_span_mps)
-
-
-def generated_calib(K_working: np.ndarray, T_cam_radar: np.ndarray, cfg: Config) -> str:
-    """KITTI calib text for a dataset without calib files (Astyx): P2 the camera at the reader's full
-    resolution (the images exported beside it), not the cropped, resized working camera ``K_working``
-    the stages use; Tr_velo_to_cam ``T_cam_radar``."""
-    from pipeline.export import kitti_calib_text
-    from pipeline.working import full_K
-
-    c = cfg.camera
-    return kitti_calib_text(np.column_stack([full_K(K_working, c.crop_rows, c.full_size, c.working_size),
-                                             np.zeros(3)]), T_cam_radar)
 
 
 def _classes_note(classes: dict[str, Counter[str]], cfg: Config) -> str:

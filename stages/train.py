@@ -167,7 +167,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         model = load_rssnet(cfg, res.best_path, device="cpu")
         test = rssnet_data(inputs, table, 2, 2)
         summary["rssnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
-                             "test": rssnet_metrics(model, test, np.arange(len(test.rss))) if len(test.rss) else {}}
+                             "test": rssnet_metrics(model, test, test.train_idx) if len(test.rss) else {}}
     if "placenet" in nets:
         summary["placenet"] = _train_placenet(inputs, cfg, table, root)
     (root / "metrics.json").write_text(json.dumps(summary, indent=2, default=float))

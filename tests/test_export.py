@@ -357,7 +357,7 @@ def test_exported_v_r_is_the_range_rate_whatever_the_radars_doppler_convention()
     """synthesize's column 6 is the Doppler in the simulated radar's convention (Astyx: positive
     approaching, aliased), column 8 the range rate; VoD's v_r is a range rate (positive receding).
     A static world seen at 8 m/s: v_r = -(u . v_ego) wrapped, v_r_compensated 0."""
-    from stages.export import radar_rows
+    from pipeline.export import radar_rows
 
     span = 10.3936
     ego = np.array([8.0, 0.0, 0.0])
@@ -380,9 +380,8 @@ def test_a_generated_calib_holds_the_full_resolution_camera():
     """Astyx has no calib files: the generated P2 goes with the exported full-size image, so it is
     the dataset's own camera, not the cropped, resized working camera the stages use."""
     from pipeline.config import load_config
-    from pipeline.export import calib_P2
+    from pipeline.export import calib_P2, generated_calib
     from pipeline.working import working_K
-    from stages.export import generated_calib
 
     cfg = load_config("astyx", environ={})
     c = cfg.camera
@@ -390,6 +389,6 @@ def test_a_generated_calib_holds_the_full_resolution_camera():
     K_w = working_K(K, c.crop_rows, c.full_size, c.working_size)
     assert not np.allclose(K_w, K)
     T_cam_radar = np.array([[0.0, -1.0, 0.0, 0.1], [0.0, 0.0, -1.0, 0.2], [1.0, 0.0, 0.0, -0.3], [0, 0, 0, 1.0]])
-    P2 = calib_P2(generated_calib(K_w, T_cam_radar, cfg))
+    P2 = calib_P2(generated_calib(K_w, T_cam_radar, c.crop_rows, c.full_size, c.working_size))
     np.testing.assert_allclose(P2[:, :3], K, atol=1e-9)
     np.testing.assert_allclose(P2[:, 3], 0.0)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import errno
 import os
+import pickle
 import random
 import shutil
 import signal
@@ -398,23 +399,29 @@ def test_cluster_failure_names_the_stage_and_whether_to_drop_force(tmp_path, cap
 
     with pytest.raises(ClusterFailed) as raised:
         _pipe_with_dataset_stage(tmp_path / "a", no_worker, resumes=True).run("train", force=True)
-    assert str(raised.value) == ("dask cluster at tcp://x:1 has had no worker for 2 s in train; finished frames are "
-                                 "kept: run the same command again without --force to resume (once it has workers)")
+    assert str(raised.value) == ("train: dask cluster at tcp://x:1 has had no worker for 2 s; what it saved is kept; "
+                                 "run the same command again without --force to resume from its last checkpoint "
+                                 "(once it has workers)")
     with pytest.raises(ClusterFailed) as raised:
         _pipe_with_dataset_stage(tmp_path / "b", closed, resumes=True).run("train")
-    assert str(raised.value) == ("the dask cluster failed (CommClosedError: in <TCP (closed)>: Stream is closed) in "
-                                 "train; finished frames are kept: run the same command again to resume")
+    assert str(raised.value) == ("train: the dask cluster failed (CommClosedError: in <TCP (closed)>: Stream is "
+                                 "closed); what it saved is kept; run the same command again to resume from its last "
+                                 "checkpoint")
     assert isinstance(raised.value.__cause__, lost)
+    assert str(ClusterFailed("lost", "heatmaps", "frame", True)) == (
+        "heatmaps: lost; its finished frames are kept; run the same command again without --force to resume")
+    assert pickle.loads(pickle.dumps(ClusterFailed("lost", "heatmaps", "frame", True))).forced
 
     @_handle_errors
-    def command(force):  # the cluster lost before any stage ran (the probe): nothing forced had begun
+    def command(force):  # lost while closing it after the stages (a probe's failure is a PipelineError)
         raise lost("Stream is closed")
 
     with pytest.raises(SystemExit) as exit_:
         command(force=True)
     assert exit_.value.code == 2
-    assert capsys.readouterr().err == ("error: the dask cluster failed (CommClosedError: Stream is closed); finished "
-                                       "frames are kept: run the same command again to resume\n")
+    assert capsys.readouterr().err == ("error: the dask cluster failed (CommClosedError: Stream is closed); its "
+                                       "finished frames are kept; run the same command again without --force to "
+                                       "resume\n")
 
 
 def test_disk_full_in_a_dataset_stage_names_the_stage_and_its_folder(tmp_path):
@@ -451,7 +458,8 @@ def test_a_dataset_stage_output_holds_one_runs_files(tmp_path):
         out.write_text("report.json", f"run {len(calls)}")
         if len(calls) == 1:
             out.write_text("report.md", "run 1")
-            (Path(out.path) / ".last.safetensors.x1y2.tmp").write_bytes(b"half")
+            (Path(out.path) / "disnet").mkdir()
+            (Path(out.path) / "disnet" / ".last.safetensors.x1y2.tmp").write_bytes(b"half")
             raise ValueError("failed between the two files")
         return {"message": "ok"}
 
@@ -467,9 +475,10 @@ def test_a_dataset_stage_output_holds_one_runs_files(tmp_path):
     logged = []
     pipe.log = logged.append
     pipe.run("train")
-    assert calls[1] == ["report.json", "report.md"]  # kept for it to resume from; the .tmp file gone
-    assert any(line.startswith("train") and "removed 1 temporary file a killed run left: .last.safetensors.x1y2.tmp"
-               in line for line in logged), logged
+    assert calls[1] == ["disnet", "report.json", "report.md"]  # kept for it to resume from
+    assert not (Path(pipe.env.dir("train").path) / "disnet" / ".last.safetensors.x1y2.tmp").exists()
+    assert any(line.startswith("train") and "removed 1 temporary file a killed run left: "
+               "disnet/.last.safetensors.x1y2.tmp" in line for line in logged), logged
 
 
 def test_ctrl_c_says_which_stage_and_whether_to_drop_force(tmp_path, monkeypatch, capsys):

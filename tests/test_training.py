@@ -3,6 +3,7 @@ data reading helpers, baselines against brute-force oracles."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -339,11 +340,14 @@ def test_rssnet_learns_from_zarr_and_resumes(tmp_path):
     ref = T.train_rssnet(cfg, data, tmp_path / "a", progress=False)
     base = T.rssnet_baseline(data.rss, data.train_idx, data.val_idx, cfg.radar.rss_min, cfg.radar.rss_max)
     assert min(c["val_a"] for c in ref.curves) < 0.5 * base["a"]
-    T.train_rssnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "b", progress=False)
-    res = T.train_rssnet(cfg, data, tmp_path / "b", progress=False)
+    # the stage passes ranges (nothing per row): the same run, and the same run resumed
+    ranges = dataclasses.replace(data, train_idx=range(300), val_idx=range(300, 400))
+    T.train_rssnet(tiny_cfg(**{"train.epochs": "2"}), ranges, tmp_path / "b", progress=False)
+    res = T.train_rssnet(cfg, ranges, tmp_path / "b", progress=False)
     assert res.resumed_from == 2
     a, b = _all_tensors(ref.last_path), _all_tensors(res.last_path)
     assert all(torch.equal(a[k], b[k]) for k in a if k.startswith(("model.", "optim.")))
+    assert ckpt.read_meta(ref.last_path)["numpy_rng"] == ckpt.read_meta(res.last_path)["numpy_rng"]
     model = T.load_rssnet(cfg, res.best_path)
     pred = T.rssnet_predict(model, data.patches, data.range_images, data.point_vectors, batch=100)
     assert pred.shape == (400,) and pred.dtype == np.float32
@@ -404,30 +408,51 @@ def test_optimizer_and_numpy_rng_round_trip_through_json():
     assert np.array_equal(rng.random(10), clone.random(10))
 
 
+def reference_epoch_order(idx, rows_per_chunk: int, window: int, rng: np.random.Generator) -> np.ndarray:
+    """The epoch order as training made it until 2026-12-05 (the whole order at once): checkpoints
+    written then resume with the same order only if epoch_windows still gives it."""
+    idx = np.asarray(idx, dtype=np.int64)
+    if rows_per_chunk <= 1:
+        return rng.permutation(idx)
+    _, group = np.unique(idx // rows_per_chunk, return_inverse=True)
+    rank = rng.permutation(group.max() + 1)
+    order = idx[np.argsort(rank[group], kind="stable")]
+    for start in range(0, len(order), window):
+        order[start:start + window] = rng.permutation(order[start:start + window])
+    return order
+
+
 @pytest.mark.parametrize("rows_per_chunk", [1, 10])
-def test_epoch_order_is_a_seeded_permutation(rows_per_chunk):
+def test_epoch_windows_are_a_seeded_permutation(rows_per_chunk):
     idx = np.arange(3, 97)
-    o1 = T.epoch_order(idx, rows_per_chunk, 16, np.random.default_rng(1))
-    o2 = T.epoch_order(idx, rows_per_chunk, 16, np.random.default_rng(1))
+    o1 = np.concatenate(list(T.epoch_windows(idx, rows_per_chunk, 16, np.random.default_rng(1))))
+    o2 = np.concatenate(list(T.epoch_windows(idx, rows_per_chunk, 16, np.random.default_rng(1))))
     assert np.array_equal(np.sort(o1), idx) and np.array_equal(o1, o2)
     assert not np.array_equal(o1, idx)
 
 
 @pytest.mark.parametrize("start,stop,rows_per_chunk,window", [(0, 1000, 64, 96), (37, 1000, 64, 128),
-                                                               (5, 70, 100, 16), (0, 0, 8, 16), (3, 97, 10, 7)])
-def test_epoch_windows_of_a_range_are_the_arrays_order(start, stop, rows_per_chunk, window):
-    """A range's windows are made one at a time (no order of every row), yet they are the windows
-    of the same rows given as an array, and the generator is left in the same state (training
-    resumes from it)."""
-    r1, r2 = np.random.default_rng(4), np.random.default_rng(4)
-    lazy = list(T.epoch_windows(range(start, stop), rows_per_chunk, window, r1))
-    eager = T.epoch_order(np.arange(start, stop), rows_per_chunk, window, r2)
-    assert all(len(w) == window for w in lazy[:-1])
-    got = np.concatenate(lazy) if lazy else np.zeros(0, np.int64)
-    assert np.array_equal(got, eager) and np.array_equal(np.sort(got), np.arange(start, stop))
-    assert r1.integers(1 << 30) == r2.integers(1 << 30)
-    if stop - start > 2 * rows_per_chunk:  # whole chunks stay together within windows' reach
-        assert not np.array_equal(got, np.arange(start, stop))
+                                                               (5, 70, 100, 16), (3, 97, 10, 7), (3, 97, 1, 16),
+                                                               (10, 500, 64, 32)])
+def test_epoch_windows_are_the_order_training_always_had(start, stop, rows_per_chunk, window):
+    """A range's windows are made one at a time (no order of every row), an array's from its whole
+    order; both are the order training made before (reference_epoch_order), cut into windows, and
+    leave the generator in the same state (training resumes from it); so does an array of rows out
+    of order."""
+    ref_rng = np.random.default_rng(4)
+    reference = reference_epoch_order(np.arange(start, stop), rows_per_chunk, window, ref_rng)
+    after = ref_rng.integers(1 << 30)
+    for rows in (range(start, stop), np.arange(start, stop)):
+        rng = np.random.default_rng(4)
+        windows = list(T.epoch_windows(rows, rows_per_chunk, window, rng))
+        assert all(len(w) == window for w in windows[:-1]) and len(windows[-1]) <= window
+        assert np.array_equal(np.concatenate(windows), reference) and rng.integers(1 << 30) == after
+    scattered = np.random.default_rng(9).permutation(np.arange(start, stop))[: (stop - start) // 2]
+    rng, ref_rng = np.random.default_rng(5), np.random.default_rng(5)
+    got = np.concatenate(list(T.epoch_windows(scattered, rows_per_chunk, window, rng)))
+    assert np.array_equal(got, reference_epoch_order(scattered, rows_per_chunk, window, ref_rng))
+    assert rng.integers(1 << 30) == ref_rng.integers(1 << 30)
+    assert list(T.epoch_windows(range(start, start), rows_per_chunk, window, rng)) == []
 
 
 def test_iter_batches_takes_windows_or_indices():
@@ -451,7 +476,8 @@ def test_placenet_baseline_streams_the_same_rates():
     assert got["rate"] == pytest.approx(rate, rel=1e-12)
     assert got["nll"] == pytest.approx(np.mean(rate - test * np.log(rate)), rel=1e-12)
     one = np.concatenate([train, test])
-    assert T.placenet_baseline(one, np.arange(5000), np.arange(5000, 5700))["nll"] == pytest.approx(got["nll"], rel=1e-12)
+    again = T.placenet_baseline(one, np.arange(5000), np.arange(5000, 5700))
+    assert again["nll"] == pytest.approx(got["nll"], rel=1e-12)
 
 
 def test_checked_idx_keeps_ranges_and_checks_them():

@@ -6,10 +6,11 @@ frames of 1,500 to 2,048 rows, a chunk per frame).
 The stage now keeps row sets as ranges, reads the counts per batch window like the features, and
 makes an epoch's order one window at a time (``epoch_windows``). The reference is the same work
 done with an array per row, as the stage did until 2026-12-05: the counts read into memory
-through one index of every row, the order of every row made at once (``epoch_order``) and the
-baseline computed over arrays. Each runs in a child process that reports its peak resident
-memory above what it held before; both must give the same order and the same baseline. Prints one
-line ending in the ratio of the reference's memory to the stage's.
+through one index of every row, the order of every row made at once
+(``tests.test_training.reference_epoch_order``) and the baseline computed over arrays. Each runs
+in a child process that reports its peak resident memory above what it held before; both must
+give the same order and the same baseline. Prints one line ending in the ratio of the
+reference's memory to the stage's.
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ def child(path: str, how: str) -> None:
     """One way of holding the rows: prints its peak memory above the start, the order's digest and
     the baseline."""
     from pipeline.cache import FrameStore, RaggedRows
-    from pipeline.training import epoch_order, epoch_windows, placenet_baseline
+    from pipeline.training import epoch_windows, placenet_baseline
+    from tests.test_training import reference_epoch_order  # the order of every row at once, as before
 
     store = FrameStore(path)
     per_frame = np.asarray(store.array("place_count_count")[:])
@@ -66,7 +68,8 @@ def child(path: str, how: str) -> None:
     if how == "rows":  # until 2026-12-05
         counts = train_rows[np.arange(len(train_rows))]
         test_counts = test_rows[np.arange(len(test_rows))]
-        digest.update(epoch_order(np.arange(len(counts)), CAPACITY, WINDOW, np.random.default_rng(7)).tobytes())
+        order = reference_epoch_order(np.arange(len(counts)), CAPACITY, WINDOW, np.random.default_rng(7))
+        digest.update(order.tobytes())
         both = np.concatenate([counts, test_counts])
         base = placenet_baseline(both, np.arange(len(counts)), np.arange(len(counts), len(both)))
     else:
