@@ -38,10 +38,7 @@ def _handle_errors(fn):
                 raise
             # the cluster failed outside a stage's run (a stage's says ClusterFailed): while closing
             # it after the stages, which --force, if given, had rebuilt
-            first = str(exc).splitlines()[0] if str(exc) else ""
-            failed = ClusterFailed(f"the dask cluster failed ({type(exc).__name__}: {first})",
-                                   forced=bool(kwargs.get("force")))
-            click.echo(f"error: {failed}", err=True)
+            click.echo(f"error: {ClusterFailed.from_dask(exc, forced=bool(kwargs.get('force')))}", err=True)
             sys.exit(2)
         except StageInterrupted as exc:
             click.echo(exc.advice(), err=True)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 
 class PipelineError(Exception):
@@ -129,6 +129,17 @@ class ClusterFailed(PipelineError):
         self.what, self.stage, self.kind, self.forced, self.after = what, stage, kind, forced, after
         where = f"{stage}: " if stage else ""
         super().__init__(f"{where}{what}; {resume_advice(stage, kind, forced)}{after}")
+
+    @classmethod
+    def from_dask(cls, exc: BaseException, **kwargs: Any) -> "ClusterFailed":
+        """The failure dask's own error ``exc`` reports (its type and first line); ``kwargs`` as
+        for the constructor."""
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        return cls(f"the dask cluster failed ({type(exc).__name__}: {first})", **kwargs)
+
+    def in_stage(self, stage: str, kind: InterruptedKind, forced: bool) -> "ClusterFailed":
+        """The same failure, placed in ``stage`` (of ``kind``, ``forced`` as for the constructor)."""
+        return ClusterFailed(self.what, stage, kind, forced, self.after)
 
     def __reduce__(self):
         return type(self), (self.what, self.stage, self.kind, self.forced, self.after)

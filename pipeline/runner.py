@@ -604,13 +604,11 @@ class Pipeline:
         except KeyboardInterrupt:
             raise StageInterrupted(stage.name, _interrupted_kind(stage), begun) from None
         except ClusterFailed as exc:
-            raise ClusterFailed(exc.what, stage.name, _interrupted_kind(stage), begun, exc.after) from None
+            raise exc.in_stage(stage.name, _interrupted_kind(stage), begun) from None
         except Exception as exc:
             if not from_dask(exc):
                 raise
-            first = str(exc).splitlines()[0] if str(exc) else ""
-            raise ClusterFailed(f"the dask cluster failed ({type(exc).__name__}: {first})", stage.name,
-                                _interrupted_kind(stage), begun) from exc
+            raise ClusterFailed.from_dask(exc, stage=stage.name, kind=_interrupted_kind(stage), forced=begun) from exc
 
     def _run_dataset(self, stage: DatasetStage, force: bool, rebuild: bool) -> StageReport:
         """Run a dataset stage when ``rebuild`` (forced or not current, as run() found), else report it current."""
