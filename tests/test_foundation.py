@@ -901,7 +901,21 @@ def test_dask_batches_hold_every_frame_once_in_order(n, slots):
     todo = [(i, f"f{i:03d}") for i in range(n)]
     batches = _batches(todo, slots)
     assert [item for batch in batches for item in batch] == todo
-    assert all(batches) and max(len(b) for b in batches) <= 8
+    sizes = [len(b) for b in batches]
+    assert all(sizes) and max(sizes) <= 8
+    # they shrink (large ones are handed out first) down to one frame per worker at the end, so
+    # that no worker idles while another finishes a large batch
+    assert sizes == sorted(sizes, reverse=True)
+    assert sizes[-min(n, slots):] == [1] * min(n, slots)
+    if n >= 100:
+        assert len(batches) <= n / 3  # still batched: one task per frame scheduled too slowly
+
+
+def test_dask_batches_of_a_long_run_are_large_until_its_end():
+    from pipeline.executor import _batches
+
+    sizes = [len(b) for b in _batches([(i, str(i)) for i in range(20_000)], 2)]
+    assert sizes.count(8) > 2480 and len(sizes) < 20_000 / 7.9
 
 
 def test_frame_random_streams_depend_on_seed_salt_and_frame_only():

@@ -216,7 +216,7 @@ def test_ema_weights_are_the_ones_validated_and_saved_as_best(tmp_path):
     assert m["loss"] == pytest.approx(res.curves[res.best_epoch - 1]["val_loss"], rel=1e-4)
 
 
-def test_select_on_picks_the_best_epoch_by_that_validation_loss(tmp_path):
+def test_select_on_picks_the_best_epoch_by_that_validation_loss(tmp_path, monkeypatch):
     """train.select_on=kl: Dis-Net's best epoch minimises the val L_KL (the map), not L; RSS-Net,
     which has no KL, keeps its loss; unknown values are refused before training."""
     data = make_disnet_data(n=24)
@@ -226,9 +226,25 @@ def test_select_on_picks_the_best_epoch_by_that_validation_loss(tmp_path):
         res = T.train_disnet(cfg, data, tmp_path / select_on, progress=False)
         column = [c[f"val_{select_on}"] for c in res.curves]
         assert res.best_epoch == int(np.argmin(column)) + 1 and res.best_metric == min(column)
-        picked[select_on] = ([{k: v for k, v in c.items() if k != "seconds"} for c in res.curves], res.best_epoch)
-    assert picked["loss"][0] == picked["kl"][0]  # the same training run, only the choice differs
-    assert picked["loss"][1] != picked["kl"][1]  # and here the two losses disagree on the best epoch
+        picked[select_on] = [{k: v for k, v in c.items() if k != "seconds"} for c in res.curves]
+    assert picked["loss"] == picked["kl"]  # the same training run, only the choice differs
+    # validation losses that disagree by construction (a real run's may happen to agree): L is
+    # lowest after epoch 2, L_KL after epoch 3; the best checkpoint is the chosen epoch's
+    real_evaluate, calls = T.evaluate, []
+
+    def scripted(*args, **kwargs):
+        out = real_evaluate(*args, **kwargs)
+        calls.append(None)
+        return {**out, "loss": [3.0, 1.0, 2.0, 4.0][len(calls) - 1], "kl": [3.0, 2.0, 1.0, 4.0][len(calls) - 1]}
+
+    monkeypatch.setattr(T, "evaluate", scripted)
+    for select_on, epoch in (("loss", 2), ("kl", 3)):
+        calls.clear()
+        cfg = tiny_cfg(**{"train.select_on": select_on, "train.epochs": "4"})
+        res = T.train_disnet(cfg, data, tmp_path / f"scripted-{select_on}", progress=False)
+        assert (res.best_epoch, res.best_metric) == (epoch, 1.0)
+        assert ckpt.read_meta(res.best_path)["best_epoch"] == epoch
+    monkeypatch.undo()
     assert (tiny_cfg(**{"train.select_on": "kl"}).fingerprint(["train.select_on"])
             != tiny_cfg().fingerprint(["train.select_on"]))
     assert T.default_fingerprint(tiny_cfg(**{"train.select_on": "kl"}), "disnet") != T.default_fingerprint(

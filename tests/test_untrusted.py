@@ -244,8 +244,10 @@ def test_index_paths_cannot_leave_the_data_root(tmp_path, shared):
         with pytest.raises(ReaderError, match="outside the dataset root"):
             check(bad)
     (root / "link").symlink_to(tmp_path)
-    with pytest.raises(ReaderError, match="outside the dataset root"):
-        check("link/secret.txt")
+    for bad in ("link/secret.txt", "link/missing.txt"):  # a missing file: its folder still decides
+        with pytest.raises(ReaderError, match="outside the dataset root"):
+            check(bad)
+    assert check("radar/missing.txt") == root / "radar" / "missing.txt"  # a partial download's index
     (root / "radar" / "out.txt").symlink_to(tmp_path / "secret.txt")  # in a folder resolved before
     for bad in ("radar/out.txt", "missing/../radar/out.txt", "radar/missing/../out.txt"):
         with pytest.raises(ReaderError, match="outside the dataset root"):

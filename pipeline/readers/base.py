@@ -119,17 +119,22 @@ def inside_root(root: Path, relative: str, frame: str | None, index_file: Path,
 
     ``resolved``: the resolved folders of the calls so far ({folder: resolved}), for an index of
     many entries in a few folders: only the file itself is then looked at (the folders of 546
-    Astyx entries resolved anew each time took 1 ms an entry). An entry with a '..' part, or whose
-    file is a link or cannot be looked at, is resolved whole; a folder replaced by a link while
+    Astyx entries resolved anew each time took 1 ms an entry; a missing file is no link, and
+    its folder's resolution decides too). An entry with a '..' part, or whose file is a link or
+    cannot be looked at for another reason than its absence, is resolved whole; a folder replaced by a link while
     one index is read is not noticed (as a file replaced between this check and its read)."""
     rel = Path(relative)
     cache = {} if resolved is None else resolved
     try:
         path = root / rel
-        try:
-            whole = ".." in rel.parts or rel.name in ("", ".") or stat.S_ISLNK(os.lstat(path).st_mode)
-        except OSError:  # missing, or a part of the path is no folder: resolve() decides
-            whole = True
+        whole = ".." in rel.parts or rel.name in ("", ".")
+        if not whole:
+            try:
+                whole = stat.S_ISLNK(os.lstat(path).st_mode)
+            except FileNotFoundError:  # a missing file is no link: its folder decides, as for a file
+                pass
+            except OSError:  # a part of the path is no folder, a loop: resolve() decides
+                whole = True
         if whole:
             target = path.resolve()
         else:
