@@ -61,7 +61,26 @@ def load_checkpoint(path: str | Path, prefix: str = "") -> tuple[dict[str, Tenso
         raise CacheError(f"{path}: unreadable checkpoint ({exc})") from None
     if meta.get("format") != FORMAT:
         raise CacheError(f"{path}: not a pipeline checkpoint (format {meta.get('format')!r})")
+    check_finite_weights(path, tensors)
     return tensors, meta
+
+
+WEIGHTS = (".weight", ".bias", ".running_mean", ".running_var")
+"""Name endings of a net's weights and batch norm statistics: never NaN or inf in a checkpoint.
+Other buffers may be (PlaceNet's and RSS-Net's training ranges hold NaN where not known)."""
+
+
+def check_finite_weights(path: str | Path, tensors: dict[str, Tensor]) -> None:
+    """CacheError naming the checkpoint ``path`` and the tensor when a weight (``model.*`` ending in
+    WEIGHTS) holds a NaN or inf: the file is damaged, since training never saves one (it stops on
+    a non-finite loss). Such an RSS-Net gave NaN RSS to every synthesized point without a word."""
+    for name, t in tensors.items():
+        if name.startswith("model.") and name.endswith(WEIGHTS) and t.is_floating_point():
+            bad = int((~torch.isfinite(t)).sum())
+            if bad:
+                raise CacheError(f"{path}: {bad} of {t.numel()} values of {name[len('model.'):]} are not finite (NaN "
+                                 f"or inf): the checkpoint is damaged; retrain it: `pipeline run train --force` (with "
+                                 f"the same --dataset and --cache)")
 
 
 def read_meta(path: str | Path) -> dict[str, Any]:

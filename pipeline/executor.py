@@ -172,6 +172,12 @@ def _check_outputs(stage: FrameStage, cfg: Config, specs, out: dict[str, np.ndar
             ok = value.shape == shape
         if not ok:
             raise ValueError(f"{spec.name}: expected per-frame shape {shape}, got {value.shape}")
+        if spec.finite and value.dtype.kind in "fc":
+            bad = ~np.isfinite(value)
+            if bad.any():
+                first = np.unravel_index(int(np.argmax(bad)), bad.shape)
+                raise ValueError(f"{spec.name}: {int(bad.sum())} of {value.size} values are not finite (NaN or inf; "
+                                 f"the first at index {tuple(int(i) for i in first)}): not written")
 
 
 def _worker_probe(marker_url: str) -> bool:

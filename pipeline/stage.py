@@ -31,6 +31,9 @@ class ArraySpec:
     ``shape`` is the per-frame shape (the frame axis is prepended), either a tuple or a function of
     the configuration. ``ragged``: the first per-frame axis is a capacity; the frame function
     returns fewer rows, the executor pads with ``fill`` and writes ``<name>_count`` (int32).
+    ``finite``: every value the frame function returns must be finite; a NaN or inf fails the frame
+    (naming the array and the first bad row) instead of reaching the stages after it and the export
+    (a damaged checkpoint's NaN weight gave NaN RSS without a word).
     """
 
     name: str
@@ -39,6 +42,7 @@ class ArraySpec:
     units: str
     fill: Any = 0
     ragged: bool = False
+    finite: bool = False
 
     def frame_shape(self, cfg: "Config") -> tuple[int, ...]:
         """Per-frame shape under ``cfg``."""

@@ -24,7 +24,7 @@ CONFIG_KEYS = ("heatmap.sigma_px", "camera.full_size", "camera.crop_rows", "came
 
 def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
     w, h = cfg.camera.working_size
-    return (ArraySpec("heatmap", (h, w), "float32", "probability per pixel (sums to 1)"),
+    return (ArraySpec("heatmap", (h, w), "float32", "probability per pixel (sums to 1)", finite=True),
             ArraySpec("count", (), "int32", "radar points in the working image"))
 
 

@@ -43,11 +43,14 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
     n, s, c = cfg.patches.points_per_frame, cfg.patches.patch_size_px, cfg.placement.points_per_frame
     rw, rh = cfg.patches.range_image_size
     return (ArraySpec("patch", (n, s, s, 3), "uint8", "RGB 0-255", ragged=True),
-            ArraySpec("range_image", (n, rh, rw), "float32", "local range image 0..255", ragged=True),
-            ArraySpec("point", (n, 4), "float32", "x,y,z m in {D}; range rate m/s", fill=np.nan, ragged=True),
-            ArraySpec("rss", (n,), "float32", "dataset RSS units", fill=np.nan, ragged=True),
-            ArraySpec("place_features", (c, len(FEATURES)), "float32", ",".join(FEATURES), fill=np.nan, ragged=True),
-            ArraySpec("place_count", (c,), "float32", "real radar points per candidate", fill=np.nan, ragged=True))
+            ArraySpec("range_image", (n, rh, rw), "float32", "local range image 0..255", ragged=True, finite=True),
+            ArraySpec("point", (n, 4), "float32", "x,y,z m in {D}; range rate m/s", fill=np.nan, ragged=True,
+                      finite=True),
+            ArraySpec("rss", (n,), "float32", "dataset RSS units", fill=np.nan, ragged=True, finite=True),
+            ArraySpec("place_features", (c, len(FEATURES)), "float32", ",".join(FEATURES), fill=np.nan, ragged=True,
+                      finite=True),
+            ArraySpec("place_count", (c,), "float32", "real radar points per candidate", fill=np.nan, ragged=True,
+                      finite=True))
 
 
 def point_inputs(image: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray, lidar_D: np.ndarray,

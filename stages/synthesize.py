@@ -93,9 +93,9 @@ def capacity(cfg: Config) -> int:
 def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
     w, h = cfg.camera.working_size
     return (ArraySpec("points", (capacity(cfg), len(POINT_COLUMNS)), "float32", ",".join(POINT_COLUMNS),
-                      fill=np.nan, ragged=True),
-            ArraySpec("pred_map", (h, w), "float32", "probability per pixel"),
-            ArraySpec("n_hat", (), "float32", "predicted point count"),
+                      fill=np.nan, ragged=True, finite=True),
+            ArraySpec("pred_map", (h, w), "float32", "probability per pixel", finite=True),
+            ArraySpec("n_hat", (), "float32", "predicted point count", finite=True),
             ArraySpec("counts", (5,), "int32", "requested, no support, out of fov, beyond range, widened"),
             ArraySpec("candidates", (), "int32", "lidar candidates (lidar placement)", fill=-1),
             ArraySpec("outside_training", (len(FEATURES),), "int32",

@@ -580,6 +580,15 @@ def test_verify_reports_unreadable_metadata_and_checkpoints(tmp_path):
     assert rows["train"]["checkpoints"] == 2
     assert rows["train"]["problem"].startswith(f"{folder / 'net' / 'last.safetensors'}: unreadable checkpoint")
     assert [r["stage"] for r in pipe.verify(["calibrate"])] == ["calibrate"]
+    # a readable file whose weights hold a NaN is damaged too; a NaN buffer that means 'not known' is not
+    weights = {"model.fc.weight": torch.zeros(64), "model.feature_low": torch.full((4,), float("nan"))}
+    save_checkpoint(folder / "net" / "last.safetensors", weights, {"epoch": 1})
+    assert "problem" not in {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+    weights["model.fc.weight"][3] = float("nan")
+    save_checkpoint(folder / "net" / "last.safetensors", weights, {"epoch": 1})
+    assert {r["stage"]: r for r in pipe.verify(["train"])}["train"]["problem"] == (
+        f"{folder / 'net' / 'last.safetensors'}: 1 of 64 values of fc.weight are not finite (NaN or inf): the "
+        f"checkpoint is damaged; retrain it: `pipeline run train --force` (with the same --dataset and --cache)")
 
 
 def test_cli_verify_prints_the_repair_command_and_exits_2(tmp_path, fake_cli):

@@ -944,3 +944,47 @@ def test_a_frames_arrays_of_the_same_name_from_two_stages_are_told_apart(tmp_pat
     assert frame.get("calibrate", "points").tolist() == [1.0, 1.0]
     assert frame.get("synthesize", "points").tolist() == [2.0, 2.0]
     assert frame.get("calibrate", "points").tolist() == [1.0, 1.0]
+
+
+def test_a_frame_function_output_is_checked_before_it_is_written():
+    """A missing array, a wrong shape, too many rows, and a NaN or inf in an array declared finite
+    each fail the frame with the array's name; NaN elsewhere (a metric that does not apply) is kept."""
+    from pipeline.executor import _check_outputs
+    from pipeline.stage import ArraySpec, FrameStage
+
+    specs = (ArraySpec("points", (4, 3), "float32", "m", fill=np.nan, ragged=True, finite=True),
+             ArraySpec("metric", (2,), "float64", "m", fill=np.nan))
+    stage = FrameStage(name="s", upstream=(), config_keys=(), outputs=lambda cfg: specs, process=None)
+    cfg = load_config("synthetic", environ={})
+
+    def check(points, metric=np.zeros(2)):
+        _check_outputs(stage, cfg, specs, {"points": points, "metric": metric})
+
+    check(np.zeros((2, 3)), np.array([np.nan, 1.0]))
+    with pytest.raises(FrameError, match="no 'metric'"):
+        _check_outputs(stage, cfg, specs, {"points": np.zeros((2, 3))})
+    with pytest.raises(ValueError, match=r"points: expected per-frame shape \(4, 3\), got \(2, 2\)"):
+        check(np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="points: 5 rows exceed the capacity 4"):
+        check(np.zeros((5, 3)))
+    for bad in (np.nan, np.inf, -np.inf):
+        points = np.zeros((3, 3))
+        points[1, 2] = bad
+        with pytest.raises(ValueError, match=r"points: 1 of 9 values are not finite .* at index \(1, 2\)"):
+            check(points)
+
+
+def test_the_outputs_the_next_stages_and_the_export_read_are_declared_finite():
+    """Those a NaN would reach a detector through (points, RSS, maps, PlaceNet's rows); calibrate's
+    labels are not (NaN is an unknown object velocity), nor evaluate's metrics (a metric that does
+    not apply)."""
+    from stages import all_stages
+
+    cfg = load_config("synthetic", environ={})
+    finite = {(s.name, a.name) for s in all_stages() if hasattr(s, "outputs") for a in s.outputs(cfg) if a.finite}
+    assert {("calibrate", "lidar"), ("calibrate", "radar"), ("calibrate", "K"), ("calibrate", "T_radar_cam"),
+            ("calibrate", "T_radar_lidar"), ("calibrate", "ego_velocity"), ("heatmaps", "heatmap"),
+            ("patches", "point"), ("patches", "rss"), ("patches", "range_image"), ("patches", "place_features"),
+            ("patches", "place_count"), ("synthesize", "points"), ("synthesize", "pred_map"),
+            ("synthesize", "n_hat")} <= finite
+    assert ("calibrate", "labels") not in finite and not any(stage == "evaluate-frames" for stage, _ in finite)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -768,3 +769,27 @@ def test_speed_count_prior_never_exceeds_n_knots():
         knots, means = T.speed_count_prior(speed, 100 + 5 * speed, n_knots=n_knots, min_frames=30)
         assert knots.size == means.size == n_knots
     assert T.speed_count_prior(speed, 100 + 5 * speed, n_knots=1)[1][0] == pytest.approx(np.mean(100 + 5 * speed))
+
+
+def test_a_checkpoint_with_a_non_finite_weight_is_refused_when_loaded(tmp_path):
+    """A damaged file (training never saves one: it stops on a non-finite loss) gave NaN RSS to every
+    synthesized point without a word; now loading it names the file and the tensor. PlaceNet's
+    training range, NaN where it is not known, is no weight."""
+    from pipeline.errors import CacheError
+
+    cfg = tiny_cfg(**{"train.epochs": "1"})
+    res = T.train_rssnet(cfg, make_rss_data(p=120), tmp_path, progress=False)
+    tensors, meta = ckpt.load_checkpoint(res.best_path)
+    T.load_rssnet(cfg, res.best_path)
+    for bad, key in ((float("nan"), "weight"), (float("inf"), "running_var")):
+        name = next(k for k in tensors if k.startswith("model.") and k.endswith(key) and tensors[k].is_floating_point())
+        damaged = {**tensors, name: tensors[name].clone()}
+        damaged[name].view(-1)[0] = bad
+        path = tmp_path / f"damaged-{key}.safetensors"
+        ckpt.save_checkpoint(path, damaged, {k: v for k, v in meta.items() if k != "format"})
+        with pytest.raises(CacheError, match=rf"damaged-{key}.safetensors: 1 of \d+ values of "
+                                             rf"{re.escape(name[len('model.'):])} are not finite"):
+            T.load_rssnet(cfg, path)
+    placenet = T.build_placenet(cfg)
+    assert not torch.isfinite(placenet.feature_low).all()  # not known before training
+    ckpt.check_finite_weights("placenet.safetensors", {f"model.{k}": v for k, v in placenet.state_dict().items()})
