@@ -138,22 +138,24 @@ def needed_nets(cfg: Config) -> tuple[str, ...]:
 
 
 def check_checkpoints(train_dir, cfg: Config) -> None:
-    """PipelineError naming what is missing unless the train stage's output ``train_dir`` holds
-    every checkpoint generation needs (:func:`needed_nets`)."""
+    """PipelineError naming what is missing or damaged unless the train stage's output
+    ``train_dir`` holds every checkpoint generation needs (:func:`needed_nets`), readable and with
+    finite weights (the Dis-Net's 14 MB read in about 20 ms)."""
     nets = needed_nets(cfg)
     missing = [n for n in nets if not train_dir.fs.exists(train_dir.file(f"{n}/best.safetensors"))]
     if missing:
         hint = RAY_HINT if missing == ["placenet"] else ""
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
                             f"train stage with {', '.join(missing)} in train.nets{hint}")
-    from pipeline.checkpoint import read_meta
+    from pipeline.checkpoint import load_checkpoint
 
-    for net in nets:  # the header only: a truncated or overwritten file fails here, not in every frame
+    for net in nets:  # a truncated, overwritten or otherwise damaged file fails here, not in every frame
         try:
-            read_meta(train_dir.file(f"{net}/best.safetensors"))
+            load_checkpoint(train_dir.file(f"{net}/best.safetensors"))
         except PipelineError as exc:
-            raise PipelineError(f"{exc}; retrain it: `pipeline run train --force` (with the same --dataset and "
-                                f"--cache)") from None
+            retrain = "retrain it: `pipeline run train --force`"
+            raise PipelineError(str(exc) if retrain in str(exc) else
+                                f"{exc}; {retrain} (with the same --dataset and --cache)") from None
 
 
 def ready(inputs, cfg: Config) -> None:

@@ -57,3 +57,25 @@ def test_synthesize_names_an_unreadable_checkpoint_and_how_to_retrain(tmp_path, 
     else:
         assert "disnet/best.safetensors: unreadable checkpoint" in str(exc.value)
         assert "`pipeline run train --force`" in str(exc.value)
+
+
+def test_synthesize_checks_the_weights_before_its_output_is_recreated(tmp_path):
+    """check_checkpoints (synthesize's ready hook, above) reads the weights, not only the header: a
+    checkpoint with an inf weight stops a forced run before the finished frames are wiped (a frame's
+    model load found it only after)."""
+    import torch
+
+    from pipeline.checkpoint import save_checkpoint
+
+    cfg = load_config("synthetic", {}, environ={})
+    train = dir_store(str(tmp_path / "cache"), "synthetic", "train")
+    weights = {"model.fc.weight": torch.zeros(8), "model.feature_low": torch.full((2,), float("nan"))}
+    for net in ("disnet", "rssnet", "placenet"):
+        save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / net / "best.safetensors", weights, {"epoch": 1})
+    check_checkpoints(train, cfg)  # a NaN buffer is no weight
+    weights["model.fc.weight"][0] = float("inf")
+    save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / "rssnet" / "best.safetensors", weights, {"epoch": 1})
+    with pytest.raises(PipelineError) as exc:
+        check_checkpoints(train, cfg)
+    assert "rssnet/best.safetensors: 1 of 8 values of fc.weight are not finite" in str(exc.value)
+    assert str(exc.value).count("`pipeline run train --force`") == 1
