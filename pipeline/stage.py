@@ -32,7 +32,7 @@ class ArraySpec:
     the configuration. ``ragged``: the first per-frame axis is a capacity; the frame function
     returns fewer rows, the executor pads with ``fill`` and writes ``<name>_count`` (int32).
     ``finite``: every value the frame function returns must be finite; a NaN or inf fails the frame
-    (naming the array and the first bad row) instead of reaching the stages after it and the export
+    (naming the array and the first bad value's index) instead of reaching the stages after it and the export
     (a damaged checkpoint's NaN weight gave NaN RSS without a word).
     """
 

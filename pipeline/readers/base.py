@@ -121,8 +121,9 @@ def inside_root(root: Path, relative: str, frame: str | None, index_file: Path,
     many entries in a few folders: only the file itself is then looked at (the folders of 546
     Astyx entries resolved anew each time took 1 ms an entry; a missing file is no link, and
     its folder's resolution decides too). An entry with a '..' part, or whose file is a link or
-    cannot be looked at for another reason than its absence, is resolved whole; a folder replaced by a link while
-    one index is read is not noticed (as a file replaced between this check and its read)."""
+    cannot be looked at for another reason than its absence, is resolved whole; a folder
+    replaced by a link while one index is read is not noticed (as a file replaced between this
+    check and its read)."""
     rel = Path(relative)
     cache = {} if resolved is None else resolved
     try:
