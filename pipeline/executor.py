@@ -494,8 +494,9 @@ def _batches(todo: list[tuple[int, str]], slots: int, per_slot: int = 2,
     shares the machine with the workers; short per-frame work (heatmaps: ~5 ms) then scales badly.
     Batches of equal size left one worker idle at the end of a stage while the other finished a
     whole batch (8 Astyx frames of calibrate, 0.4 s); the last batches now hold one frame each.
-    Dask hands tasks out in the order they were submitted, so the large batches go first. Each
-    frame still writes its own status, so resuming after a kill is unchanged.
+    Dask starts the tasks in the order they were submitted, up to the workers' concurrency (seen
+    in its task stream on Astyx), so the large batches go first. Each frame still writes its own
+    status, so resuming after a kill is unchanged.
     """
     batches, start, parts = [], 0, max(1, slots * per_slot)
     while start < len(todo):
