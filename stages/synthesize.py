@@ -137,21 +137,24 @@ def needed_nets(cfg: Config) -> tuple[str, ...]:
     return ("disnet", "rssnet") + (("placenet",) if cfg.synth.placement == "lidar" else ())
 
 
-def check_checkpoints(train_dir, cfg: Config) -> None:
+def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
     """PipelineError naming what is missing or damaged unless the train stage's output
-    ``train_dir`` holds every checkpoint generation needs (:func:`needed_nets`), readable and with
-    finite weights (the demo's 14 MB Dis-Net checkpoint read and checked in 15-16 ms)."""
+    ``train_dir`` holds every checkpoint generation needs (:func:`needed_nets`), readable; with
+    ``weights`` their weights are read and must be finite too (the demo's 14 MB Dis-Net checkpoint
+    in 15-16 ms; once per run, before the output is recreated: the nets' loaders check them again
+    when they load)."""
     nets = needed_nets(cfg)
     missing = [n for n in nets if not train_dir.fs.exists(train_dir.file(f"{n}/best.safetensors"))]
     if missing:
         hint = RAY_HINT if missing == ["placenet"] else ""
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
                             f"train stage with {', '.join(missing)} in train.nets{hint}")
-    from pipeline.checkpoint import load_checkpoint
+    from pipeline.checkpoint import load_checkpoint, read_meta
 
+    read = load_checkpoint if weights else read_meta
     for net in nets:  # a truncated, overwritten or otherwise damaged file fails here, not in every frame
         try:
-            load_checkpoint(train_dir.file(f"{net}/best.safetensors"))
+            read(train_dir.file(f"{net}/best.safetensors"))
         except PipelineError as exc:
             retrain = "retrain it: `pipeline run train --force`"
             raise PipelineError(str(exc) if retrain in str(exc) else
@@ -159,8 +162,9 @@ def check_checkpoints(train_dir, cfg: Config) -> None:
 
 
 def ready(inputs, cfg: Config) -> None:
-    """Before synthesize's output is recreated: the train stage's checkpoints are there and readable."""
-    check_checkpoints(inputs.dir("train"), cfg)
+    """Before synthesize's output is recreated: the train stage's checkpoints are there, readable and
+    with finite weights."""
+    check_checkpoints(inputs.dir("train"), cfg, weights=True)
 
 
 def select(inputs, cfg: Config) -> np.ndarray:

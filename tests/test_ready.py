@@ -5,6 +5,7 @@ after it untouched, instead of wiping them first."""
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import pytest
 
@@ -13,7 +14,7 @@ from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.executor import Executor, RunEnv
 from pipeline.runner import Pipeline
-from stages.synthesize import check_checkpoints
+from stages.synthesize import check_checkpoints, ready
 from tests import fake_stages
 from tests.test_damaged_cache import IDS
 
@@ -60,7 +61,7 @@ def test_synthesize_names_an_unreadable_checkpoint_and_how_to_retrain(tmp_path, 
 
 
 def test_synthesize_checks_the_weights_before_its_output_is_recreated(tmp_path):
-    """check_checkpoints (synthesize's ready hook, above) reads the weights, not only the header: a
+    """synthesize's ready hook (run as above) reads the weights, not only the header: a
     checkpoint with an inf weight stops a forced run before the finished frames are wiped (a frame's
     model load found it only after)."""
     import torch
@@ -72,10 +73,11 @@ def test_synthesize_checks_the_weights_before_its_output_is_recreated(tmp_path):
     weights = {"model.fc.weight": torch.zeros(8), "model.feature_low": torch.full((2,), float("nan"))}
     for net in ("disnet", "rssnet", "placenet"):
         save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / net / "best.safetensors", weights, {"epoch": 1})
-    check_checkpoints(train, cfg)  # a NaN buffer is no weight
+    inputs = SimpleNamespace(dir=lambda name: train)
+    ready(inputs, cfg)  # a NaN buffer is no weight
     weights["model.fc.weight"][0] = float("inf")
     save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / "rssnet" / "best.safetensors", weights, {"epoch": 1})
     with pytest.raises(PipelineError) as exc:
-        check_checkpoints(train, cfg)
+        ready(inputs, cfg)
     assert "rssnet/best.safetensors: 1 of 8 values of fc.weight are not finite" in str(exc.value)
     assert str(exc.value).count("`pipeline run train --force`") == 1
