@@ -13,7 +13,7 @@ from pipeline.errors import ConfigError
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.readers import get_reader
 from pipeline.readers.kitti_format import label_to_object, parse_label_file
-from pipeline.readers.testing import T_CAM_RADAR, make_vod_dataset, rigid, write_pose
+from pipeline.readers.testing import T_CAM_RADAR, kitti_label_line, make_vod_dataset, rigid, write_pose
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 VOD = DATA / "vod_example"
@@ -134,9 +134,10 @@ def test_fixture_ego_object_velocity_and_time(tmp_path):
 
 def test_a_0_1_flag_in_the_second_label_column_is_not_taken_for_track_ids(tmp_path):
     """VoD's detection release writes a 0 / 1 flag where the tracking release writes track ids: a
-    frame whose values are all 0 or 1 is untracked (velocity NaN) rather than given the velocity
-    between two different objects, and a track id whose class changes between frames is not the
-    same track."""
+    frame whose values are all 0 or 1 is untracked (its boxes matched by position, here to none:
+    the neighbours' boxes are another class or 3 m away, farther than an object moves in 0.1 s,
+    so its velocity stays NaN rather than one between two different objects), and a track id whose
+    class changes between frames is not the same track."""
     truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
     labels = {fid: tmp_path / "lidar/training/label_2" / f"{fid}.txt" for fid in truth.frame_ids}
     car = {fid: path.read_text().split() for fid, path in labels.items()}
@@ -155,6 +156,44 @@ def test_a_0_1_flag_in_the_second_label_column_is_not_taken_for_track_ids(tmp_pa
     dont_care = "DontCare -1 -1 -10 0 0 0 0 -1 -1 -1 -1000 -1000 -1000 -10\n"
     labels[truth.frame_ids[1]].write_text(labels[truth.frame_ids[1]].read_text() + dont_care)
     assert [o.class_name for o in get_reader(_fixture_cfg(), tmp_path).read(truth.frame_ids[1]).labels] == ["Car"]
+
+
+def test_boxes_without_track_ids_get_velocities_by_matching_across_frames(tmp_path):
+    """VoD's detection release: no track ids (a 0 / 1 flag in their place). A moving car, a parked
+    car and a walking pedestrian, listed in a different order in each frame, get their velocities
+    over ground in {D} by matching each box to its nearest box of the class in the neighbouring
+    frames (exact for constant motion), the parked car 0; a box with no partner stays NaN."""
+    truth = make_vod_dataset(tmp_path, n_frames=4, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    t0 = int(truth.frame_ids[0]) / 10.0
+    movers = {"car": ("Car", np.array([15.0, -2.0, 0.0]), truth.object_velocity_D),
+              "parked": ("Car", np.array([20.0, 4.0, 0.0]), np.zeros(3)),
+              "walker": ("Pedestrian", np.array([12.0, -6.0, 0.0]), np.array([0.0, 1.2, 0.0]))}
+    rng = np.random.default_rng(1)
+    for fid in truth.frame_ids:
+        dt = int(fid) / 10.0 - t0
+        lines = [kitti_label_line(cls, 0, start + v * dt - truth.ego_velocity_D * dt, np.array([4.0, 1.8, 1.5]),
+                                  0.2, T_CAM_RADAR) for cls, start, v in movers.values()]
+        order = rng.permutation(len(lines))
+        (tmp_path / "lidar/training/label_2" / f"{fid}.txt").write_text("\n".join(lines[k] for k in order) + "\n")
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    for fid in truth.frame_ids:
+        rec = reader.read(fid)
+        dt = int(fid) / 10.0 - t0
+        for cls, start, v in movers.values():
+            here = start + v * dt - truth.ego_velocity_D * dt
+            obj = min(rec.labels, key=lambda o: np.linalg.norm(o.center_D - here))
+            assert obj.class_name == cls and obj.track_id == -1
+            np.testing.assert_allclose(obj.velocity_D, v, atol=1e-4)
+    assert reader.report()["objects_velocity_by_box_matching"] == 12
+    # the walker turns into a Cyclist in the last frame: no partner there, one-sided before it
+    last = tmp_path / "lidar/training/label_2" / f"{truth.frame_ids[-1]}.txt"
+    last.write_text(last.read_text().replace("Pedestrian ", "Cyclist "))
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    cyclist = [o for o in reader.read(truth.frame_ids[-1]).labels if o.class_name == "Cyclist"]
+    assert len(cyclist) == 1 and np.all(np.isnan(cyclist[0].velocity_D))
+    walker = [o for o in reader.read(truth.frame_ids[-2]).labels if o.class_name == "Pedestrian"]
+    np.testing.assert_allclose(walker[0].velocity_D, [0.0, 1.2, 0.0], atol=1e-4)
+    assert reader.report()["objects_velocity_unknown"] == 1
 
 
 def test_fixture_pose_fallback_with_too_few_radar_points(tmp_path):

@@ -25,9 +25,11 @@ is listed once, under the first of its complete ids, and refused on read naming 
 
 Ego velocity: least squares on ``v_r - v_r_compensated = -(u . v_D)`` over the current scan's
 points (exact on the real files); pose differencing (odometry, central difference) when the fit
-has fewer than 3 points or is ill-conditioned. Object velocities: the same track id in the
-neighbouring frames' labels and poses (central difference where both neighbours exist, one-sided
-where one does), else NaN.
+has fewer than 3 points or is ill-conditioned. Object velocities: the box of the same object in
+the neighbouring frames' labels, with their poses (central difference where both neighbours have
+it, one-sided where one does), else NaN. The same object is the same track id and class where both
+frames hold track ids; otherwise (the detection release) the nearest box of the class, where that
+is unambiguous (:func:`pipeline.boxmatch.match_boxes`).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.boxmatch import MAX_OBJECT_SPEED_MPS, match_boxes
 from pipeline.config import Config
 from pipeline.egomotion import fit_compensation_pair
 from pipeline.errors import ReaderError
@@ -58,9 +61,10 @@ class VodReader(Reader):
     """View-of-Delft in its KITTI layout; see the module docstring for files and conventions."""
 
     name = "vod"
-    version = 2
+    version = 3
     """2: a 0 / 1 flag in the second label column is not taken for track ids; a track keeps its class;
-    boxes upright in the lidar frame, as the devkit reads them (centres moved 6-12 cm)."""
+    boxes upright in the lidar frame, as the devkit reads them (centres moved 6-12 cm). 3: boxes
+    without track ids get velocities by matching them to the neighbouring frames' boxes."""
 
     def __init__(self, cfg: Config, data_root: str | Path, radar_folder: str = "radar",
                  with_meta: bool = False) -> None:
@@ -336,17 +340,16 @@ class VodReader(Reader):
         path = self.root / "lidar" / "training" / "label_2" / f"{fid}.txt"
         if not path.is_file():
             return []
-        labels = [lab for lab in parse_label_file(path, fid) if lab.class_name != "DontCare"]  # placeholders, no box
+        labels = self._label_lines(path, fid)
         tracked = self._has_track_ids(labels)
         if self.labels_lidar_boxes:
             objects = [lidar_box_label_to_object(lab, T_radar_rect, T_radar_lidar, lab.column2 if tracked else -1)
                        for lab in labels]
         else:
             objects = [label_to_object(lab, T_radar_rect, lab.column2 if tracked else -1) for lab in labels]
-        if tracked:
-            self._object_velocities(fid, labels, objects, T_cam_radar)
-        else:
-            self._counts["frames_without_track_ids"] += bool(labels)
+        if labels and not tracked:
+            self._counts["frames_without_track_ids"] += 1
+        self._object_velocities(fid, labels, objects, T_cam_radar)
         return objects
 
     labels_lidar_boxes = True
@@ -356,45 +359,78 @@ class VodReader(Reader):
     """Whether the second label column always holds track ids (the generated world). For VoD it is
     a track id in the tracking release but a 0 / 1 flag in the detection release, so there it
     counts as a track id only where the values are unique within the frame and one exceeds 1 (a
-    frame whose ids are all 0 or 1 is read as untracked: no object velocities rather than wrong ones)."""
+    frame whose ids are all 0 or 1 is read as untracked: its boxes are then matched by position)."""
 
     def _has_track_ids(self, labels: list[KittiLabel]) -> bool:
         ids = [lab.column2 for lab in labels]
         unique = len(set(ids)) == len(ids) and all(i >= 0 for i in ids)
         return unique and (self.labels_hold_track_ids or max(ids, default=0) > 1)
 
-    def _track_centres_world(self, fid: str | None) -> tuple[dict[int, np.ndarray], float] | None:
-        """{track id: (class, box centre in the odometry world frame)} and the time of a neighbouring
-        frame."""
+    @staticmethod
+    def _label_lines(path: Path, fid: str) -> list[KittiLabel]:
+        return [lab for lab in parse_label_file(path, fid) if lab.class_name != "DontCare"]  # placeholders, no box
+
+    @staticmethod
+    def _centres_world(labels: list[KittiLabel], T_world_cam: np.ndarray) -> np.ndarray:
+        """(N, 3) m: the boxes' centres in the odometry world frame (the label frame taken as the
+        pose's camera: a constant offset between them cancels in a velocity)."""
+        centres = np.array([lab.location_cam - [0.0, lab.size_hwl_m[0] / 2, 0.0] for lab in labels]).reshape(-1, 3)
+        return centres @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+
+    def _neighbour_boxes(self, fid: str | None) -> tuple[list[KittiLabel], np.ndarray, float] | None:
+        """(labels, their centres (N, 3) m in the odometry world, time s) of a neighbouring frame
+        with a pose and a label file; None otherwise."""
         if fid is None:
             return None
         path = self.root / "lidar" / "training" / "label_2" / f"{fid}.txt"
         T = self._T_world_cam(fid)
         if T is None or not path.is_file():
             return None
-        labels = [lab for lab in parse_label_file(path, fid) if lab.class_name != "DontCare"]
-        if not self._has_track_ids(labels):
-            return None
-        centres = {lab.column2: (lab.class_name, T[:3, :3] @ (lab.location_cam - [0, lab.size_hwl_m[0] / 2, 0]) + T[:3, 3])
-                   for lab in labels}
-        return centres, self._timestamp(fid)
+        labels = self._label_lines(path, fid)
+        return labels, self._centres_world(labels, T), self._timestamp(fid)
+
+    def _same_objects(self, labels: list[KittiLabel], centres: np.ndarray, t: float,
+                      other: tuple[list[KittiLabel], np.ndarray, float]) -> tuple[np.ndarray, bool]:
+        """((N,) index of each box's object among ``other``'s boxes or -1, whether by position): by
+        track id and class where both frames hold track ids, else by
+        :func:`pipeline.boxmatch.match_boxes`."""
+        other_labels, other_centres, t_other = other
+        if self._has_track_ids(labels) and self._has_track_ids(other_labels):
+            where = {(lab.column2, lab.class_name): k for k, lab in enumerate(other_labels)}
+            return np.array([where.get((lab.column2, lab.class_name), -1) for lab in labels], np.int64), False
+        return match_boxes(centres, [lab.class_name for lab in labels], other_centres,
+                           [lab.class_name for lab in other_labels], MAX_OBJECT_SPEED_MPS * abs(t_other - t)), True
 
     def _object_velocities(self, fid: str, labels: list[KittiLabel], objects: list[Object3D],
                            T_cam_radar: np.ndarray) -> None:
-        here = self._track_centres_world(fid)
-        if here is None:
+        """Set each object's velocity over ground in {D} from its box in the neighbouring frames
+        (central difference where both have it, one-sided where one does); NaN stays where neither
+        has it, or the frame has no pose. Counted by how the boxes were associated."""
+        T_now = self._T_world_cam(fid)
+        if not labels or T_now is None:
+            if labels:
+                self._counts["objects_velocity_unknown"] += len(labels)
             return
-        before = self._track_centres_world(self._neighbour(fid, -1))
-        after = self._track_centres_world(self._neighbour(fid, 1))
-        R_radar_world = ((self._T_world_cam(fid) @ T_cam_radar)[:3, :3]).T
-        for lab, obj in zip(labels, objects):
-            ends = [side for side in (before, here, after)  # the same track: its id and class
-                    if side is not None and side[0].get(lab.column2, ("",))[0] == lab.class_name]
-            first, last = ends[0], ends[-1]
-            if first is last:
+        centres, t = self._centres_world(labels, T_now), self._timestamp(fid)
+        first, last = (centres.copy(), np.full(len(labels), t)), (centres.copy(), np.full(len(labels), t))
+        by_position = np.zeros(len(labels), bool)
+        for step, (ends, times) in ((-1, first), (1, last)):
+            other = self._neighbour_boxes(self._neighbour(fid, step))
+            if other is None:
                 continue
-            v_world = (last[0][lab.column2][1] - first[0][lab.column2][1]) / (last[1] - first[1])
-            obj.velocity_D = (R_radar_world @ v_world).astype(np.float32)
+            same, positional = self._same_objects(labels, centres, t, other)
+            ends[same >= 0] = other[1][same[same >= 0]]
+            times[same >= 0] = other[2]
+            by_position |= positional & (same >= 0)
+        known = first[1] != last[1]
+        v_world = (last[0] - first[0])[known] / (last[1] - first[1])[known, None]
+        v_D = v_world @ (T_now @ T_cam_radar)[:3, :3]  # R_radar_world @ v for each row
+        for obj, v in zip((o for o, k in zip(objects, known) if k), v_D):
+            obj.velocity_D = v.astype(np.float32)
+        for key, count in (("by_track_id", known & ~by_position), ("by_box_matching", known & by_position),
+                           ("unknown", ~known)):
+            if count.any():
+                self._counts[f"objects_velocity_{key}"] += int(count.sum())
 
 
 class SyntheticReader(VodReader):
