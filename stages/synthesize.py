@@ -7,7 +7,9 @@ Writes (synthesize.zarr) per frame of split synth.split:
   points (<= capacity, 9) float32 in {D}: x, y, z (m), range (m), azimuth (rad), elevation (rad),
   doppler (m/s, in the simulated radar's convention: radar.doppler_sign * range rate, wrapped into
   radar.doppler_span_mps), rss (dataset units), range_rate (m/s, internal convention, wrapped);
-  pred_map (h, w) float32 Dis-Net's distribution; n_hat float32; counts (5,) int32 [requested,
+  pred_map (h, w) float32 Dis-Net's distribution; n_hat float32, the model's count (synth.count
+  predicted or disnet; with oracle Dis-Net's, while the real count is drawn); n_parts (2,)
+  float32, Dis-Net's count and PlaceNet's (-1 where not computed); counts (5,) int32 [requested,
   no lidar support, outside the field of view, beyond max range, found by widening the window]
   (with lidar placement: points without a candidate left count as without support);
   candidates int32, the frame's lidar candidates (lidar placement; 0 with the ray placement);
@@ -55,8 +57,10 @@ CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synt
 SPLITS = {"train": 0, "val": 1, "test": 2}
 
 
-COUNTS = ("predicted", "oracle")
-"""synth.count: Dis-Net's count, or the frame's real one (an oracle for experiments)."""
+COUNTS = ("predicted", "disnet", "oracle")
+"""synth.count: 'predicted', the geometric mean of Dis-Net's count and PlaceNet's (:func:`frame_count`)
+with the lidar placement, Dis-Net's alone with the ray placement; 'disnet', Dis-Net's alone (the
+paper); 'oracle', the frame's real one (for experiments)."""
 
 
 def check_split(key: str, name: str) -> None:
@@ -71,11 +75,12 @@ def split_mask(split: np.ndarray, name: str) -> np.ndarray:
     return np.ones(len(split), bool) if name == "all" else np.asarray(split) == SPLITS[name]
 
 
-VERSION = 5
+VERSION = 6
 """2: refill rounds oversample (pipeline.synthesis.REFILL_OVERSAMPLE), so the points differ from version 1's.
 3: lidar placement (synth.placement). 4: candidates and outside_training (the same points); with
 train.nets_from, Dis-Net's prior moved to this dataset's camera. 5: rss_points and rss_outside (the
-same points)."""
+same points). 6: synth.count = predicted blends Dis-Net's count with PlaceNet's (lidar placement);
+n_parts."""
 OUTSIDE_NOTE_SHARE = 0.05
 """summarise() names a PlaceNet or RSS-Net input outside its training range on more than this share
 of the candidates or points (1% by construction on the training data:
@@ -95,7 +100,9 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
     return (ArraySpec("points", (capacity(cfg), len(POINT_COLUMNS)), "float32", ",".join(POINT_COLUMNS),
                       fill=np.nan, ragged=True, finite=True),
             ArraySpec("pred_map", (h, w), "float32", "probability per pixel", finite=True),
-            ArraySpec("n_hat", (), "float32", "predicted point count", finite=True),
+            ArraySpec("n_hat", (), "float32", "the model's point count", finite=True),
+            ArraySpec("n_parts", (2,), "float32", "Dis-Net's count, PlaceNet's count (-1: not computed)",
+                      fill=np.nan, finite=True),
             ArraySpec("counts", (5,), "int32", "requested, no support, out of fov, beyond range, widened"),
             ArraySpec("candidates", (), "int32", "lidar candidates (lidar placement)", fill=-1),
             ArraySpec("outside_training", (len(FEATURES),), "int32",
@@ -153,12 +160,37 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
 
     read = load_checkpoint if weights else read_meta
     for net in nets:  # a truncated, overwritten or otherwise damaged file fails here, not in every frame
+        path = train_dir.file(f"{net}/best.safetensors")
         try:
-            read(train_dir.file(f"{net}/best.safetensors"))
+            meta = read(path)
         except PipelineError as exc:
             retrain = "retrain it: `pipeline run train --force`"
             raise PipelineError(str(exc) if retrain in str(exc) else
                                 f"{exc}; {retrain} (with the same --dataset and --cache)") from None
+        meta = meta[1] if weights else meta
+        if net == "placenet" and uses_placenet_count(cfg) and not _finite_number(meta.get("count_scale")):
+            raise PipelineError(f"{path}: PlaceNet's checkpoint holds no count scale (trained before 2026-12-05), "
+                                f"which synth.count = predicted needs: retrain it, `pipeline run train --force` "
+                                f"(with the same --dataset and --cache), or set synth.count=disnet")
+
+
+def _finite_number(value) -> bool:
+    return isinstance(value, (int, float)) and bool(np.isfinite(value))
+
+
+def uses_placenet_count(cfg: Config) -> bool:
+    """Whether the frames' count blends in PlaceNet's (synth.count = predicted, lidar placement)."""
+    return cfg.synth.count == "predicted" and cfg.synth.placement == "lidar"
+
+
+def frame_count(n_disnet: float, intensity: np.ndarray, count_scale: float) -> tuple[float, float]:
+    """(the count a frame's points are drawn to, PlaceNet's count): the geometric mean of Dis-Net's
+    count ``n_disnet`` (from the image and the ego speed) and PlaceNet's, ``count_scale`` times its
+    intensity (C,) summed over the frame's candidates (from the lidar, whose objects and surfaces it
+    sees). Their errors differ: on the held-out frames of the synthetic world and of Astyx the
+    mean's is lower than either's (README, "The count")."""
+    n_placenet = float(count_scale) * float(np.sum(intensity))
+    return float(np.sqrt(max(n_disnet, 0.0) * n_placenet)), n_placenet
 
 
 def ready(inputs, cfg: Config) -> None:
@@ -212,15 +244,14 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
     return process_memo(key, build)
 
 
-def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, placenet, rng) -> dict:
-    """synth.placement = 'lidar': points on the frame's lidar candidates (pipeline.placement). The
-    candidates and their PlaceNet intensities are computed once per frame and PlaceNet: evaluate
-    places the points of several maps on them."""
+def lidar_candidates(inputs: FrameInputs, cfg: Config,
+                     placenet) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The frame's lidar candidates (C, 3) m in {D}, their pixels (C, 2), PlaceNet's intensities
+    (C,) and how many of them have each input outside PlaceNet's training range (len(FEATURES),):
+    computed once per frame and PlaceNet (the count, and evaluate's several maps, use them again)."""
     import torch
 
-    from pipeline.placement import place_on_lidar
     from pipeline.training import placenet_predict
-    from stages.heatmaps import working_sigma
     from stages.patches import candidates, features
 
     def build() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -233,7 +264,15 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
                    else np.full(len(FEATURES), -1))  # -1: saved without its range, not checked
         return points, uv, intensity, outside.astype(np.int32)
 
-    points, uv, intensity, outside = inputs.memo(("lidar-candidates", placenet), build)
+    return inputs.memo(("lidar-candidates", placenet), build)
+
+
+def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, placenet, rng) -> dict:
+    """synth.placement = 'lidar': points on the frame's lidar candidates (pipeline.placement)."""
+    from pipeline.placement import place_on_lidar
+    from stages.heatmaps import working_sigma
+
+    points, uv, intensity, outside = lidar_candidates(inputs, cfg, placenet)
     placed = place_on_lidar(prob_map, float(n), points, uv, intensity, image_wh=tuple(cfg.camera.working_size),
                             sigma_px=working_sigma(cfg), voxel_m=cfg.placement.voxel_m,
                             map_weight=cfg.placement.map_weight,
@@ -295,9 +334,13 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     speed = np.float32(np.linalg.norm(inputs.get("calibrate", "ego_velocity")))
     maps, n_hat = disnet_predict(nets.disnet, inputs.get("calibrate", "image")[None], np.array([speed], np.float32))
     pred_map = resize_distribution(_with_own_camera(inputs, cfg, nets, maps[0]), cfg.camera.working_size)
-    n = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else float(n_hat[0])
-    out = generate(inputs, cfg, pred_map, min(n, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
-    return {"points": out["points"], "pred_map": pred_map, "n_hat": np.float32(n_hat[0]), "counts": out["counts"],
+    n, n_placenet = float(n_hat[0]), -1.0
+    if uses_placenet_count(cfg):
+        n, n_placenet = frame_count(n, lidar_candidates(inputs, cfg, nets.placenet)[2], nets.placenet.count_scale)
+    drawn = float(inputs.get("heatmaps", "count")) if cfg.synth.count == "oracle" else n
+    out = generate(inputs, cfg, pred_map, min(drawn, capacity(cfg)), nets, inputs.rng(cfg.synth.seed, 21))
+    return {"points": out["points"], "pred_map": pred_map, "n_hat": np.float32(n),
+            "n_parts": np.array([n_hat[0], n_placenet], np.float32), "counts": out["counts"],
             "candidates": out["candidates"], "outside_training": out["outside_training"],
             "rss_points": out["rss_points"], "rss_outside": out["rss_outside"]}
 

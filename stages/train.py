@@ -29,8 +29,9 @@ from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config, check_profile, n
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
-VERSION = 2
-"""Bump when the training code changes what a net learns: stage outputs and checkpoints are redone."""
+VERSION = 3
+"""Bump when the training code changes what a net learns: stage outputs and checkpoints are redone.
+3: PlaceNet's checkpoint holds its count scale (pipeline.training.placenet_count_scale)."""
 
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
@@ -91,7 +92,10 @@ def placenet_data(inputs, table, part: int, val_part: int = 1):
     counts = RaggedRows(store.array("place_count"), per_frame, allf)
     n_train, n_all = int(per_frame[frames[part]].sum()), len(counts)
     return PlaceNetData(features=features, counts=counts, train_idx=range(n_train),
-                        val_idx=range(n_train, n_all) if part != val_part else range(0))
+                        val_idx=range(n_train, n_all) if part != val_part else range(0),
+                        train_frame_rows=per_frame[frames[part]],
+                        train_frame_candidates=np.asarray(store.array("place_candidates")[:])[frames[part]],
+                        train_frame_counts=np.asarray(table["count"])[frames[part]])
 
 
 def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
@@ -256,6 +260,7 @@ def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
     model = load_placenet(cfg, res.best_path, device="cpu")
     test = placenet_data(inputs, table, 2, 2)
     out = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
+           "count_scale": model.count_scale,
            "rows": {"train": int(len(data.train_idx)), "val": int(len(data.val_idx)), "test": int(len(test.train_idx))},
            "test": {}}
     if len(test.train_idx):

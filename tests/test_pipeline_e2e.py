@@ -71,6 +71,19 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     assert min(placenet["rows"].values()) > 0 and np.isfinite(placenet["test"]["nll"])
     patches = arrays(tmp_path / "serial", "patches")
     assert patches["place_count"][np.isfinite(patches["place_count"])].sum() > 0
+    # its count scale (saved with it) turns the summed intensity into a count; the frames' count is
+    # the geometric mean of Dis-Net's and PlaceNet's (synth.count = predicted, lidar placement)
+    from pipeline.checkpoint import read_meta
+
+    best = tmp_path / "serial" / "synthetic" / "train" / "placenet" / "best.safetensors"
+    assert placenet["count_scale"] == read_meta(best)["count_scale"] > 0
+    assert np.all(patches["place_candidates"][patches["status"] == DONE] >= patches["place_count_count"][
+        patches["status"] == DONE])
+    synthesized = arrays(tmp_path / "serial", "synthesize")
+    parts = synthesized["n_parts"][synthesized["status"] == DONE]
+    assert np.all(parts > 0)
+    np.testing.assert_allclose(synthesized["n_hat"][synthesized["status"] == DONE], np.sqrt(parts.prod(axis=1)),
+                               rtol=1e-5)
     # the synthesized points are lidar points of their frame (lidar placement, the default)
     syn, calib = serial.env.store("synthesize"), serial.env.store("calibrate")
     done = [int(i) for i in np.flatnonzero(syn.status() == DONE)]

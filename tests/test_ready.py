@@ -72,7 +72,8 @@ def test_synthesize_checks_the_weights_before_its_output_is_recreated(tmp_path):
     train = dir_store(str(tmp_path / "cache"), "synthetic", "train")
     weights = {"model.fc.weight": torch.zeros(8), "model.feature_low": torch.full((2,), float("nan"))}
     for net in ("disnet", "rssnet", "placenet"):
-        save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / net / "best.safetensors", weights, {"epoch": 1})
+        save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / net / "best.safetensors", weights,
+                        {"epoch": 1, "count_scale": 1.2})
     inputs = SimpleNamespace(dir=lambda name: train)
     ready(inputs, cfg)  # a NaN buffer is no weight
     weights["model.fc.weight"][0] = float("inf")
@@ -81,3 +82,34 @@ def test_synthesize_checks_the_weights_before_its_output_is_recreated(tmp_path):
         ready(inputs, cfg)
     assert "rssnet/best.safetensors: 1 of 8 values of fc.weight are not finite" in str(exc.value)
     assert str(exc.value).count("`pipeline run train --force`") == 1
+
+
+def test_synthesize_needs_placenets_count_scale_only_for_the_blended_count(tmp_path):
+    """A PlaceNet checkpoint saved without its count scale (before 2026-12-05) is refused, naming
+    the retraining and synth.count=disnet, where synth.count = predicted blends PlaceNet's count in;
+    Dis-Net's count alone and the ray placement need none."""
+    import numpy as np
+    import torch
+
+    from pipeline.checkpoint import save_checkpoint
+    from stages.synthesize import frame_count
+
+    train = dir_store(str(tmp_path / "cache"), "synthetic", "train")
+    weights = {"model.fc.weight": torch.zeros(8)}
+    for net, meta in (("disnet", {}), ("rssnet", {}), ("placenet", {"count_scale": float("nan")})):
+        save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / net / "best.safetensors", weights, meta)
+    inputs = SimpleNamespace(dir=lambda name: train)
+    cfg = load_config("synthetic", {}, environ={})
+    refused = (r"placenet/best.safetensors: PlaceNet's checkpoint holds no count scale.*"
+               r"`pipeline run train --force`.*synth.count=disnet")
+    with pytest.raises(PipelineError, match=refused):
+        ready(inputs, cfg)  # before the output is recreated
+    with pytest.raises(PipelineError, match=refused):
+        check_checkpoints(train, cfg)  # select, which reads the headers only
+    for overrides in ({"synth.count": "disnet"}, {"synth.count": "oracle"}, {"synth.placement": "ray"}):
+        ready(inputs, load_config("synthetic", overrides, environ={}))
+    # the blend: the geometric mean of Dis-Net's count and the scaled summed intensity
+    n, n_placenet = frame_count(50.0, np.array([10.0, 20.0, 2.0]), 2.5)
+    assert n_placenet == 80.0 and n == pytest.approx(np.sqrt(50.0 * 80.0))
+    assert frame_count(50.0, np.zeros(0), 2.5) == (0.0, 0.0)  # no candidate: nothing can be placed
+

@@ -793,3 +793,40 @@ def test_a_checkpoint_with_a_non_finite_weight_is_refused_when_loaded(tmp_path):
     placenet = T.build_placenet(cfg)
     assert not torch.isfinite(placenet.feature_low).all()  # not known before training
     ckpt.check_finite_weights("placenet.safetensors", {f"model.{k}": v for k, v in placenet.state_dict().items()})
+
+
+def test_placenet_count_scale_and_its_place_in_the_checkpoint(tmp_path, monkeypatch):
+    """The count scale is the frames' real points over their estimated summed intensity, each
+    frame's rows scaled up to all of its candidates; frames without rows are left out. Training
+    saves it in the best checkpoint's metadata and the loader gives it back."""
+    cfg = load_config("synthetic", {"placement.epochs": "1", "train.threads": "1", "train.device": "cpu"},
+                      environ={})
+    net = T.build_placenet(cfg)
+    with torch.no_grad():
+        for p in net.mlp.parameters():
+            p.zero_()
+        net.mlp[-1].bias.fill_(np.log(0.5))  # lambda = 0.5 for every candidate
+    rng = np.random.default_rng(0)
+    rows = np.array([4, 0, 3, 5])
+    features = rng.normal(size=(int(rows.sum()), net.n_features)).astype(np.float32)
+    candidates, counts = np.array([40, 9, 3, 10]), np.array([10.0, 7.0, 2.0, 6.0])
+    expected = (10 + 2 + 6) / (0.5 * (40 + 3 + 10))  # the frame without rows is left out
+    assert T.placenet_count_scale(net, features, rows, candidates, counts) == pytest.approx(expected)
+    monkeypatch.setattr(T, "COUNT_SCALE_ROWS", 5)  # read in pieces that cut through frames: the same sums
+    assert T.placenet_count_scale(net, features, rows, candidates, counts) == pytest.approx(expected)
+    assert np.isnan(T.placenet_count_scale(net, features[:0], np.zeros(2, int), np.array([5, 5]), np.ones(2)))
+    # training writes it into the best checkpoint; loading gives it back
+    n = 600
+    x = rng.normal(size=(n, net.n_features)).astype(np.float32)
+    y = rng.poisson(0.3, n).astype(np.float32)
+    frame_rows = np.full(6, 100)
+    data = T.PlaceNetData(features=x, counts=y, train_idx=range(n), val_idx=range(0), train_frame_rows=frame_rows,
+                          train_frame_candidates=np.full(6, 400), train_frame_counts=np.full(6, 50.0))
+    res = T.train_placenet(cfg, data, tmp_path / "placenet", progress=False)
+    model = T.load_placenet(cfg, res.best_path, device="cpu")
+    summed = T.placenet_predict(model, x).reshape(6, 100).sum(1) * 4
+    assert model.count_scale == pytest.approx(300 / summed.sum())
+    assert ckpt.read_meta(res.best_path)["count_scale"] == model.count_scale
+    without = T.train_placenet(cfg, dataclasses.replace(data, train_frame_candidates=None), tmp_path / "bare",
+                               progress=False)
+    assert T.load_placenet(cfg, without.best_path, device="cpu").count_scale is None

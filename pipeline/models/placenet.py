@@ -37,6 +37,10 @@ class PlaceNet(nn.Module):
         for k in range(depth):
             layers += [nn.Linear(n_features if k == 0 else width, width), nn.ReLU()]
         self.mlp = nn.Sequential(*layers, nn.Linear(width, 1))
+        self.count_scale: float | None = None
+        """s: s times the intensity summed over a frame's candidates estimates its real radar
+        points (pipeline.training.placenet_count_scale); saved in the checkpoint's metadata since
+        2026-12-05, None before."""
 
     def set_standardisation(self, features: np.ndarray) -> None:
         """Mean and standard deviation of training features (N, n_features), a constant column
