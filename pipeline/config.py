@@ -324,9 +324,9 @@ class SynthSection:
     the maximum range) up to this many more times, so that n_hat points come out; 0: the paper's
     single draw (about 15% fewer points than n_hat on the synthetic world)."""
     count: str = "predicted"
-    """'predicted' (the geometric mean of Dis-Net's count and PlaceNet's with synth.placement = lidar,
-    Dis-Net's with ray), 'disnet' (Dis-Net's alone, the paper) or 'oracle' (the real count, for
-    evaluation)."""
+    """'predicted' (the geometric mean of Dis-Net's count and PlaceNet's with synth.placement = lidar
+    and nets trained on this dataset; Dis-Net's with ray or train.nets_from), 'disnet' (Dis-Net's
+    alone, the paper) or 'oracle' (the real count, for evaluation)."""
     placement: str = "lidar"
     """Where a sampled point goes: 'lidar' (onto a lidar point chosen by the map and PlaceNet's
     intensity, pipeline.placement; an improvement over the paper) or 'ray' (the paper: on the

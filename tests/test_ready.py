@@ -92,7 +92,7 @@ def test_synthesize_needs_placenets_count_scale_only_for_the_blended_count(tmp_p
     import torch
 
     from pipeline.checkpoint import save_checkpoint
-    from stages.synthesize import frame_count
+    from stages.synthesize import frame_count, uses_placenet_count
 
     train = dir_store(str(tmp_path / "cache"), "synthetic", "train")
     weights = {"model.fc.weight": torch.zeros(8)}
@@ -106,8 +106,11 @@ def test_synthesize_needs_placenets_count_scale_only_for_the_blended_count(tmp_p
         ready(inputs, cfg)  # before the output is recreated
     with pytest.raises(PipelineError, match=refused):
         check_checkpoints(train, cfg)  # select, which reads the headers only
-    for overrides in ({"synth.count": "disnet"}, {"synth.count": "oracle"}, {"synth.placement": "ray"}):
+    for overrides in ({"synth.count": "disnet"}, {"synth.count": "oracle"}, {"synth.placement": "ray"},
+                      {"train.nets_from": "astyx"}):  # another dataset's PlaceNet counts another lidar's points
         ready(inputs, load_config("synthetic", overrides, environ={}))
+        assert not uses_placenet_count(load_config("synthetic", overrides, environ={}))
+    assert uses_placenet_count(cfg)
     # the blend: the geometric mean of Dis-Net's count and the scaled summed intensity
     n, n_placenet = frame_count(50.0, np.array([10.0, 20.0, 2.0]), 2.5)
     assert n_placenet == 80.0 and n == pytest.approx(np.sqrt(50.0 * 80.0))
