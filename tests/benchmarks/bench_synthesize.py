@@ -34,7 +34,7 @@ from pipeline.training import (disnet_predict, load_disnet, load_placenet, load_
 from pipeline.world import generate as generate_world  # noqa: E402
 from stages import all_stages  # noqa: E402
 from stages.patches import point_inputs  # noqa: E402
-from stages.synthesize import Nets, generate  # noqa: E402
+from stages.synthesize import Nets, frame_count, generate, lidar_candidates, uses_placenet_count  # noqa: E402
 
 
 TRAINED_CACHE = "cache"
@@ -71,7 +71,8 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
     'network' samples the random network's own map (n = 300), 'radar' the frame's real-radar
     heatmap with the real count: the distribution a trained Dis-Net approximates, so samples fall
     where the lidar has support as they do in use; 'trained network' the map and count of the
-    demo's trained Dis-Net, as the stage does."""
+    demo's trained Dis-Net, as the stage does (blended with PlaceNet's count where the stage blends
+    it: stages.synthesize.uses_placenet_count)."""
     t_net = t_rest = 0.0
     n_frames = n_points = 0
     placenet = Timed(placenet)
@@ -90,6 +91,8 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
                 prob, n = f.get("heatmaps", "heatmap"), float(f.get("heatmaps", "count"))
             placenet.seconds = 0.0
             f.clear_memo()  # each pass computes the candidates and PlaceNet's intensities again
+            if source == "trained network" and uses_placenet_count(cfg) and placenet.count_scale is not None:
+                n = frame_count(n, lidar_candidates(f, cfg, placenet)[2], placenet.count_scale)[0]  # as the stage
             out = generate(f, cfg, prob, n, nets, f.rng(rep, 1), rss=False)
             pts = out["points"][:, :3].astype(np.float64)
             patches, ranges = point_inputs(image, f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam"),
