@@ -408,7 +408,7 @@ def test_many_failed_frames_are_marked_in_one_write_logged_up_to_a_limit_and_the
     assert list(rows["heatmaps"]["reasons"]) == bad[:3]
 
 
-def test_cli_help_and_errors():
+def test_cli_help_and_errors(tmp_path):
     from pipeline.cli import main
 
     runner = CliRunner()
@@ -419,7 +419,8 @@ def test_cli_help_and_errors():
     assert "synthetic" in runner.invoke(main, ["datasets"]).output
     bad = runner.invoke(main, ["run", "heatmaps", "--set", "heatmap.sigma=3"])
     assert bad.exit_code == 2 and "did you mean 'heatmap.sigma_px'" in bad.output
-    missing = runner.invoke(main, ["run", "heatmaps", "--dataset", "vod"])
+    # a cache of its own: the working tree's cache/vod, where one exists, remembers its data root
+    missing = runner.invoke(main, ["run", "heatmaps", "--dataset", "vod", "--cache", str(tmp_path / "cache")])
     assert missing.exit_code == 2 and "--data-root" in missing.output
 
 
