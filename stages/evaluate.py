@@ -65,10 +65,11 @@ says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; 
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
 wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on (13: with another dataset's
 nets the report says that the baselines know this dataset's own radar)."""
-REPORT_VERSION = 15
+REPORT_VERSION = 16
 """The evaluate report's version (12: the RSS histogram bins each set apart when the units differ;
 14: the model compared with a baseline on the frames both have, the frames per row in the table;
-15: not compared with one that has none of its frames); evaluate-frames keeps VERSION."""
+15: not compared with one that has none of its frames; 16: the count's parts, count_parts);
+evaluate-frames keeps VERSION."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the
@@ -377,6 +378,11 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
             "placement": cfg.synth.placement, "train_mean_count": _mean_count(*_train_counts(inputs)),
             "synthesize_counts": _synth_counts(syn_store, frames)}
+    parts = count_parts(np.asarray(syn_store.array("n_parts").oindex[frames]),
+                        np.asarray(syn_store.array("n_hat").oindex[frames]),
+                        np.asarray(inputs.store("heatmaps").array("count").oindex[frames]))
+    if parts:
+        meta["count_parts"] = parts
     if compared.notes:
         meta["compared"] = "; ".join(compared.notes)
     if summary.sampled:
@@ -513,6 +519,27 @@ def _pooled(part, name: str, frames: np.ndarray, rows_max: int, bar) -> tuple[np
             out[offsets[j]:offsets[j + 1]] = values
         bar.update(len(block))
     return out, total
+
+
+def count_parts(parts: np.ndarray, n_hat: np.ndarray, real: np.ndarray) -> str:
+    """The model's count and its parts against the real counts, one line: mean relative error and
+    L_n (mean squared relative error) of Dis-Net's count, PlaceNet's and the geometric mean used
+    (synthesize's n_parts (F, 2), n_hat (F,); PlaceNet's only where every frame has it), over the
+    frames with real points (F,); '' without any."""
+    real = np.asarray(real, np.float64)
+    has = real > 0
+    if not has.any():
+        return ""
+
+    def errors(n: np.ndarray) -> str:
+        rel = (np.asarray(n, np.float64)[has] - real[has]) / real[has]
+        return f"{np.mean(np.abs(rel)):.3g} (L_n {np.mean(rel ** 2):.3g})"
+
+    disnet, placenet = parts[:, 0], parts[:, 1]
+    line = f"mean relative error of Dis-Net's count {errors(disnet)}"
+    if np.all(placenet[has] >= 0):
+        line += f", PlaceNet's {errors(placenet)}, their geometric mean (the model's) {errors(n_hat)}"
+    return line + f", over {int(has.sum())} frames with real points"
 
 
 def _synth_counts(syn_store, frames) -> dict:

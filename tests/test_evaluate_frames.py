@@ -270,3 +270,20 @@ def test_previous_frame_is_none_across_a_sequence_boundary_or_before_a_frame_not
     assert evaluate._previous(FrameInputs(env, 0, ids[0]), ids) is None       # the first frame
     assert evaluate._previous(FrameInputs(env, 2, ids[2]), ids) is None       # frame 1 is of sequence a
     assert evaluate._previous(FrameInputs(env, 4, ids[4]), ids) is None       # frame 3 failed in calibrate
+
+
+def test_the_report_gives_the_counts_parts_errors():
+    """Mean relative error and L_n of Dis-Net's count, PlaceNet's and the model's, over the frames
+    with real points; PlaceNet's left out where it was not computed (-1)."""
+    from stages.evaluate import count_parts
+
+    parts = np.array([[12.0, 8.0], [5.0, 5.0], [3.0, 3.0]])
+    real = np.array([10.0, 5.0, 0.0])  # the third frame has no real point: left out
+    n_hat = np.sqrt(parts.prod(axis=1))
+    line = count_parts(parts, n_hat, real)
+    assert line.startswith("mean relative error of Dis-Net's count 0.1 (L_n 0.02), PlaceNet's 0.1 (L_n 0.02), ")
+    assert f"their geometric mean (the model's) {abs(np.sqrt(96) - 10) / 20:.3g}" in line
+    assert line.endswith("over 2 frames with real points")
+    parts[0, 1] = -1
+    assert "PlaceNet" not in count_parts(parts, n_hat, real)
+    assert count_parts(parts, n_hat, np.zeros(3)) == ""

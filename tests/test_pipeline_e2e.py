@@ -84,6 +84,8 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     assert np.all(parts > 0)
     np.testing.assert_allclose(synthesized["n_hat"][synthesized["status"] == DONE], np.sqrt(parts.prod(axis=1)),
                                rtol=1e-5)
+    report_meta = json.loads((tmp_path / "serial" / "synthetic" / "evaluate" / "report.json").read_text())["meta"]
+    assert "PlaceNet's" in report_meta["count_parts"] and "geometric mean (the model's)" in report_meta["count_parts"]
     # the synthesized points are lidar points of their frame (lidar placement, the default)
     syn, calib = serial.env.store("synthesize"), serial.env.store("calibrate")
     done = [int(i) for i in np.flatnonzero(syn.status() == DONE)]
