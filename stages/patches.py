@@ -11,9 +11,7 @@ generator seeded by (patches.seed, frame index) (identical on any worker):
   [x, y, z m in {D}, range rate m/s]; rss (n,) float32 in dataset units;
 and for up to placement.points_per_frame lidar candidates sampled uniformly the same way:
   place_features (c, len(pipeline.placement.FEATURES)) float32; place_count (c,) float32, the real
-  radar points whose nearest candidate (among all of the frame's) it is, within placement.gate_m;
-  place_candidates int32, the frame's candidates (c is a sample of them: the train stage scales
-  PlaceNet's summed intensity to a count with it).
+  radar points whose nearest candidate (among all of the frame's) it is, within placement.gate_m.
 Config: patches.*, placement.points_per_frame / gate_m, radar field of view and range, camera.*
 (r_c is scaled to the working resolution).
 """
@@ -35,10 +33,10 @@ CONFIG_KEYS = ("patches.points_per_frame", "patches.r_c_px", "patches.r_l_m", "p
                "patches.patch_size_px", "patches.seed", "camera.full_size", "camera.crop_rows",
                "camera.working_size", "placement.points_per_frame", "placement.gate_m", "radar.fov_az_deg",
                "radar.fov_el_deg", "radar.max_range_m")
-VERSION = 3
+VERSION = 2
 """2: PlaceNet's training rows (place_features, place_count). Not bumped when their surface normal
 moved to closed form (pipeline.placement.smallest_eigenpair_sym3): the same values to about 1e-8,
-and a bump would retrain RSS-Net, whose rows did not change. 3: place_candidates."""
+and a bump would retrain RSS-Net, whose rows did not change."""
 
 
 def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
@@ -52,8 +50,7 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
             ArraySpec("place_features", (c, len(FEATURES)), "float32", ",".join(FEATURES), fill=np.nan, ragged=True,
                       finite=True),
             ArraySpec("place_count", (c,), "float32", "real radar points per candidate", fill=np.nan, ragged=True,
-                      finite=True),
-            ArraySpec("place_candidates", (), "int32", "lidar candidates of the frame", fill=-1))
+                      finite=True))
 
 
 def point_inputs(image: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray, lidar_D: np.ndarray,
@@ -78,12 +75,11 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
                                    inputs.get("calibrate", "T_radar_cam"), inputs.get("calibrate", "lidar"),
                                    chosen[:, :3].astype(np.float64), cfg)
     if inputs.get("calibrate", "has_radar"):
-        features, counts, n_candidates = placement_rows(inputs, cfg, inputs.rng(cfg.patches.seed, 12))
+        features, counts = placement_rows(inputs, cfg, inputs.rng(cfg.patches.seed, 12))
     else:  # no radar, nothing to learn where it returns (a dataset that takes another's nets)
-        features, counts, n_candidates = np.zeros((0, len(FEATURES)), np.float32), np.zeros(0, np.float32), 0
+        features, counts = np.zeros((0, len(FEATURES)), np.float32), np.zeros(0, np.float32)
     return {"patch": patches, "range_image": ranges, "point": chosen[:, :4].astype(np.float32),
-            "rss": chosen[:, 4].astype(np.float32), "place_features": features, "place_count": counts,
-            "place_candidates": np.int32(n_candidates)}
+            "rss": chosen[:, 4].astype(np.float32), "place_features": features, "place_count": counts}
 
 
 def candidates(inputs: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
@@ -103,15 +99,13 @@ def features(inputs: FrameInputs, points_D: np.ndarray, uv: np.ndarray, workers:
                               inputs.get("calibrate", "ego_velocity"), inputs.get("calibrate", "labels"), workers)
 
 
-def placement_rows(inputs: FrameInputs, cfg: Config,
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, int]:
+def placement_rows(inputs: FrameInputs, cfg: Config, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """PlaceNet training rows of one frame: features (c, F) float32 and counts (c,) float32 of up to
-    placement.points_per_frame candidates drawn uniformly without replacement, and the number of
-    candidates they were drawn from."""
+    placement.points_per_frame candidates drawn uniformly without replacement."""
     points, uv = candidates(inputs, cfg)
     counts = radar_counts(points, inputs.get("calibrate", "radar")[:, :3], cfg.placement.gate_m)
     keep = sample_points(rng, len(points), cfg.placement.points_per_frame)
-    return features(inputs, points[keep], uv[keep]), counts[keep].astype(np.float32), len(points)
+    return features(inputs, points[keep], uv[keep]), counts[keep].astype(np.float32)
 
 
 STAGE = FrameStage(name="patches", upstream=("calibrate",), config_keys=CONFIG_KEYS, outputs=outputs,

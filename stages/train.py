@@ -1,6 +1,7 @@
 """train: Dis-Net and RSS-Net on the train split, model selection on val, figures on test.
 
-Reads: calibrate (image, ego_velocity, split), heatmaps (heatmap, count), patches (patch,
+Reads: calibrate (image, ego_velocity, split; lidar, K, T_radar_cam of the training frames, whose
+lidar candidates PlaceNet's count scale needs), heatmaps (heatmap, count), patches (patch,
 range_image, point, rss, place_features, place_count).
 Writes (train/): disnet/{last,best}.safetensors (+ .json sidecars), rssnet/..., placenet/...,
 training curves (CSV, JSON, PNG) per net, metrics.json: held-out test metrics of the best epochs
@@ -30,8 +31,12 @@ from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
 VERSION = 3
-"""Bump when the training code changes what a net learns: stage outputs and checkpoints are redone.
-3: PlaceNet's checkpoint holds its count scale (pipeline.training.placenet_count_scale)."""
+"""Bump when the stage's outputs change (3: PlaceNet's checkpoint holds its count scale,
+pipeline.training.placenet_count_scale); :data:`NET_VERSIONS` says which nets it retrains."""
+NET_VERSIONS = {"disnet": 2, "rssnet": 2, "placenet": 3}
+"""Bump a net's when the training code changes what it learns or what its checkpoint holds: its
+checkpoints are redone, the other nets' are resumed as they are (a cache trained before the count
+scale retrains PlaceNet alone)."""
 
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
@@ -77,10 +82,11 @@ def rssnet_data(inputs, table, part: int, val_part: int = 1):
                       val_idx=range(n_train, n_all) if part != val_part else range(0))
 
 
-def placenet_data(inputs, table, part: int, val_part: int = 1):
+def placenet_data(inputs, table, part: int, val_part: int = 1, cfg: Config | None = None):
     """PlaceNet rows of the usable frames (radar points in the image) of split ``part`` (train) and
     ``val_part``; features and counts read per batch (row indices as ranges: nothing per row is
-    held in memory)."""
+    held in memory). With ``cfg``, the training frames' candidates too, for the count scale."""
+    with_candidates = cfg is not None
     from pipeline.training import PlaceNetData
 
     store = inputs.store("patches")
@@ -94,8 +100,20 @@ def placenet_data(inputs, table, part: int, val_part: int = 1):
     return PlaceNetData(features=features, counts=counts, train_idx=range(n_train),
                         val_idx=range(n_train, n_all) if part != val_part else range(0),
                         train_frame_rows=per_frame[frames[part]],
-                        train_frame_candidates=np.asarray(store.array("place_candidates")[:])[frames[part]],
+                        train_frame_candidates=candidate_counts(inputs, cfg, frames[part]) if with_candidates else None,
                         train_frame_counts=np.asarray(table["count"])[frames[part]])
+
+
+def candidate_counts(inputs, cfg: Config, frames: np.ndarray) -> np.ndarray:
+    """(F,) the lidar candidates of each of ``frames`` (their PlaceNet rows are a sample of them),
+    from calibrate's lidar and camera (stages.patches.candidates: a projection, no features)."""
+    from tqdm import tqdm
+
+    from stages.patches import candidates
+
+    return np.array([len(candidates(inputs.frame(int(i)), cfg)[0])
+                     for i in tqdm(frames, desc="train (PlaceNet's candidates)", unit="frame",
+                                   disable=not inputs.progress)], np.int64)
 
 
 def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
@@ -132,7 +150,7 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
 
     stores = ("calibrate", "heatmaps") if net == "disnet" else ("calibrate", "heatmaps", "patches")
     data = [f"{inputs.store(s).fingerprint()}:{inputs.store(s).done_digest()}" for s in stores]  # Dis-Net reads no patches
-    return f"v{VERSION}-{default_fingerprint(cfg, net)}-" + "-".join(str(d) for d in data)
+    return f"v{NET_VERSIONS[net]}-{default_fingerprint(cfg, net)}-" + "-".join(str(d) for d in data)
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
@@ -251,7 +269,7 @@ def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
     """Train PlaceNet; its summary with the test NLL next to the constant intensity's."""
     from pipeline.training import load_placenet, placenet_baseline, placenet_metrics, train_placenet
 
-    data = placenet_data(inputs, table, 0, 1)
+    data = placenet_data(inputs, table, 0, 1, cfg)
     if len(data.train_idx) == 0:
         raise PipelineError("train: PlaceNet has no training row (no lidar point in the radar's field of view "
                             "of any usable training frame)")

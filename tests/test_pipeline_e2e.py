@@ -77,8 +77,6 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
 
     best = tmp_path / "serial" / "synthetic" / "train" / "placenet" / "best.safetensors"
     assert placenet["count_scale"] == read_meta(best)["count_scale"] > 0
-    assert np.all(patches["place_candidates"][patches["status"] == DONE] >= patches["place_count_count"][
-        patches["status"] == DONE])
     synthesized = arrays(tmp_path / "serial", "synthesize")
     parts = synthesized["n_parts"][synthesized["status"] == DONE]
     assert np.all(parts > 0)
