@@ -143,7 +143,8 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
 
 def summarise(store, cfg: Config) -> list[str]:
     """What the finished frames lost or lack, one line each (none when nothing): radar points
-    dropped beyond radar.max_range_m, frames without a recorded ego motion."""
+    dropped beyond radar.max_range_m, frames without a recorded ego motion, labelled objects of
+    unknown velocity."""
     done = store.status() == DONE
     n_done = int(done.sum())
     if not n_done:
@@ -160,6 +161,12 @@ def summarise(store, cfg: Config) -> list[str]:
     if not known.all():
         lines.append(f"ego velocity unknown on {np.count_nonzero(~known)} of {n_done} frames (the dataset records no "
                      f"motion for them): their Doppler is synthesized as for a stopped car")
+    labels = np.asarray(store.array("labels")[:])[done]  # (F, MAX_LABELS, 11), NaN beyond each frame's count
+    real = np.arange(labels.shape[1])[None, :] < np.asarray(store.array("labels_count")[:])[done][:, None]
+    unknown = real & ~np.isfinite(labels[..., LABEL_COLUMNS.index("vx")])
+    if unknown.any():
+        lines.append(f"labelled objects of unknown velocity: {int(unknown.sum()):,} of {int(real.sum()):,}: their "
+                     f"points get a static object's Doppler (the export lists their frames)")
     return lines
 
 

@@ -172,6 +172,10 @@ def test_calibrate_says_how_many_frames_have_no_ego_motion(tmp_path):
     Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lines.append).run("calibrate")
     assert not np.asarray(env.store("calibrate").array("ego_velocity_known")[:]).any()
     assert any("ego velocity unknown on 1 of 1 frames" in line and "stopped car" in line for line in lines), lines
+    # KITTI's object set records no object motion either: the run says how many objects that leaves
+    n_labels = int(np.asarray(env.store("calibrate").array("labels_count")[:]).sum())
+    assert n_labels > 0
+    assert any(f"labelled objects of unknown velocity: {n_labels} of {n_labels}" in line for line in lines), lines
 
 
 def test_a_failed_frame_is_named_once_in_its_reason(tmp_path):

@@ -194,6 +194,16 @@ def test_boxes_without_track_ids_get_velocities_by_matching_across_frames(tmp_pa
     walker = [o for o in reader.read(truth.frame_ids[-2]).labels if o.class_name == "Pedestrian"]
     np.testing.assert_allclose(walker[0].velocity_D, [0.0, 1.2, 0.0], atol=1e-4)
     assert reader.report()["objects_velocity_unknown"] == 1
+    # the calibrate run says how many labelled objects that leaves with a static object's Doppler
+    from pipeline.executor import Executor, RunEnv
+    from pipeline.runner import Pipeline
+    from stages import calibrate
+
+    cfg = _fixture_cfg().with_overrides({"camera.crop_rows": "0,48", "camera.working_size": "64,48"})
+    lines: list[str] = []
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset="vod", data_root=str(tmp_path))
+    Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lines.append).run("calibrate")
+    assert any("labelled objects of unknown velocity: 1 of 12:" in line and "static" in line for line in lines), lines
 
 
 def test_fixture_pose_fallback_with_too_few_radar_points(tmp_path):
