@@ -95,8 +95,8 @@ class PlaceNetData:
     nearest candidate this is (pipeline.placement.radar_counts); train_idx / val_idx: row indices.
     Optional, for the count scale (:func:`placenet_count_scale`), per training frame in row order
     (the training rows are the first sum(train_frame_rows)): train_frame_rows (F,) its rows,
-    train_frame_candidates (F,) the candidates they were sampled from, train_frame_counts (F,) its
-    real radar points.
+    train_frame_candidates () -> (F,) the candidates they were sampled from (called only when the
+    scale is computed), train_frame_counts (F,) its real radar points.
     """
 
     features: Any
@@ -104,7 +104,7 @@ class PlaceNetData:
     train_idx: Sequence[int]
     val_idx: Sequence[int]
     train_frame_rows: np.ndarray | None = None
-    train_frame_candidates: np.ndarray | None = None
+    train_frame_candidates: Callable[[], np.ndarray] | None = None
     train_frame_counts: np.ndarray | None = None
 
 
@@ -814,14 +814,21 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr)
     res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
-    if data.train_frame_candidates is not None:
+    meta = ckpt.read_meta(res.best_path)
+    if data.train_frame_candidates is not None and "count_scale" not in meta:  # a new best is written without it
         tensors, meta = ckpt.load_checkpoint(res.best_path)
         model.load_state_dict(_model_state(model, tensors), strict=True)
         scale = placenet_count_scale(model.to("cpu"), data.features, data.train_frame_rows,
-                                     data.train_frame_candidates, data.train_frame_counts)
-        if meta.get("count_scale") != scale:  # a best checkpoint is written without it
-            ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, "count_scale": scale})
+                                     data.train_frame_candidates(), data.train_frame_counts)
+        ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, "count_scale": scale})
     return res
+
+
+def saved_count_scale(meta: dict) -> float | None:
+    """PlaceNet's count scale from its checkpoint's metadata; None where it holds none (saved
+    before 2026-12-05) or not a finite number."""
+    scale = meta.get("count_scale")
+    return float(scale) if isinstance(scale, (int, float)) and math.isfinite(scale) else None
 
 
 COUNT_SCALE_ROWS = 1 << 18
@@ -909,8 +916,7 @@ def load_placenet(cfg, path: str | Path, device: str | None = None, saved_arch: 
     ``saved_arch`` as for :func:`load_disnet`."""
     arch = _arch(cfg, placenet_kwargs, path, saved_arch)
     model = _load_into(PlaceNet(**arch), arch, path, select_device(device or cfg.train.device))
-    scale = ckpt.read_meta(path).get("count_scale")
-    model.count_scale = float(scale) if isinstance(scale, (int, float)) and math.isfinite(scale) else None
+    model.count_scale = saved_count_scale(ckpt.read_meta(path))
     return model
 
 

@@ -157,6 +157,7 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
                             f"train stage with {', '.join(missing)} in train.nets{hint}")
     from pipeline.checkpoint import load_checkpoint, read_meta
+    from pipeline.training import saved_count_scale
 
     read = load_checkpoint if weights else read_meta
     for net in nets:  # a truncated, overwritten or otherwise damaged file fails here, not in every frame
@@ -168,14 +169,10 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
             raise PipelineError(str(exc) if retrain in str(exc) else
                                 f"{exc}; {retrain} (with the same --dataset and --cache)") from None
         meta = meta[1] if weights else meta
-        if net == "placenet" and uses_placenet_count(cfg) and not _finite_number(meta.get("count_scale")):
+        if net == "placenet" and uses_placenet_count(cfg) and saved_count_scale(meta) is None:
             raise PipelineError(f"{path}: PlaceNet's checkpoint holds no count scale (trained before 2026-12-05), "
                                 f"which synth.count = predicted needs: retrain it, `pipeline run train --force` "
                                 f"(with the same --dataset and --cache), or set synth.count=disnet")
-
-
-def _finite_number(value) -> bool:
-    return isinstance(value, (int, float)) and bool(np.isfinite(value))
 
 
 def uses_placenet_count(cfg: Config) -> bool:

@@ -85,8 +85,8 @@ def rssnet_data(inputs, table, part: int, val_part: int = 1):
 def placenet_data(inputs, table, part: int, val_part: int = 1, cfg: Config | None = None):
     """PlaceNet rows of the usable frames (radar points in the image) of split ``part`` (train) and
     ``val_part``; features and counts read per batch (row indices as ranges: nothing per row is
-    held in memory). With ``cfg``, the training frames' candidates too, for the count scale."""
-    with_candidates = cfg is not None
+    held in memory). With ``cfg``, the training frames' candidates too (counted when the count scale
+    is computed)."""
     from pipeline.training import PlaceNetData
 
     store = inputs.store("patches")
@@ -100,7 +100,7 @@ def placenet_data(inputs, table, part: int, val_part: int = 1, cfg: Config | Non
     return PlaceNetData(features=features, counts=counts, train_idx=range(n_train),
                         val_idx=range(n_train, n_all) if part != val_part else range(0),
                         train_frame_rows=per_frame[frames[part]],
-                        train_frame_candidates=candidate_counts(inputs, cfg, frames[part]) if with_candidates else None,
+                        train_frame_candidates=(lambda: candidate_counts(inputs, cfg, frames[part])) if cfg is not None else None,
                         train_frame_counts=np.asarray(table["count"])[frames[part]])
 
 

@@ -821,7 +821,7 @@ def test_placenet_count_scale_and_its_place_in_the_checkpoint(tmp_path, monkeypa
     y = rng.poisson(0.3, n).astype(np.float32)
     frame_rows = np.full(6, 100)
     data = T.PlaceNetData(features=x, counts=y, train_idx=range(n), val_idx=range(0), train_frame_rows=frame_rows,
-                          train_frame_candidates=np.full(6, 400), train_frame_counts=np.full(6, 50.0))
+                          train_frame_candidates=lambda: np.full(6, 400), train_frame_counts=np.full(6, 50.0))
     res = T.train_placenet(cfg, data, tmp_path / "placenet", progress=False)
     model = T.load_placenet(cfg, res.best_path, device="cpu")
     summed = T.placenet_predict(model, x).reshape(6, 100).sum(1) * 4
