@@ -364,9 +364,18 @@ def datasets():
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Output folder (View-of-Delft layout).")
 @click.option("--scene-mix", default="residential,urban,highway", show_default=True, help="Comma list of scene types.")
 @click.option("--resolution", default="640x384", show_default=True, help="Image size WxH.")
+@click.option("--sequence-len", type=click.IntRange(min=1),
+              default=lambda: load_config("synthetic", environ={}).dataset.world_sequence_len,
+              show_default="the synthetic profile's dataset.world_sequence_len",
+              help="Frames per sequence (each sequence is another scene).")
+@click.option("--lidar-lines", type=click.Choice(["16", "64", "128"]), default="64", show_default=True,
+              help="The lidar's lines (VLP-16, HDL-64 or OS1-128 pattern). The same seed gives the same "
+                   "scenes, images and radar with any of them.")
 @_handle_errors
-def generate_world(frames, seed, out, scene_mix, resolution):
-    """Generate the built-in synthetic world (camera, lidar and a hidden radar model)."""
+def generate_world(frames, seed, out, scene_mix, resolution, sequence_len, lidar_lines):
+    """Generate the built-in synthetic world (camera, lidar and a hidden radar model).
+
+    With the defaults it is the world `make demo` generates into its cache."""
     from pipeline.world import generate
 
     try:
@@ -375,7 +384,7 @@ def generate_world(frames, seed, out, scene_mix, resolution):
         raise ConfigError(f"--resolution: expected WxH, got '{resolution}'") from None
     summary = generate(out, frames=frames, seed=seed, resolution_wh=(w, h),
                        scene_mix=tuple(s.strip() for s in scene_mix.split(",") if s.strip()),
-                       progress=sys.stderr.isatty())
+                       lidar_lines=int(lidar_lines), sequence_len=sequence_len, progress=sys.stderr.isatty())
     click.echo(json.dumps(summary, indent=2, default=str))
 
 

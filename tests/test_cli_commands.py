@@ -4,6 +4,7 @@ generated world (each was exercised only through the functions behind it)."""
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 from pathlib import Path
 
@@ -33,6 +34,32 @@ def test_generate_world_is_the_same_bytes_for_the_same_seed(world, tmp_path):
     assert _digest(world) == _digest(tmp_path / "w") and len(_digest(world)) >= 4 * 3
     other = CliRunner().invoke(main, ["generate-world", "--frames", "4", "--seed", "2", "--out", str(tmp_path / "o")])
     assert other.exit_code == 0 and _digest(world) != _digest(tmp_path / "o")
+
+
+def test_generate_world_defaults_to_the_demo_world_and_changes_only_the_lidar_with_its_lines(world, tmp_path):
+    """The CLI's world has the synthetic profile's sequences (the world `make demo` generates;
+    until 2026-12-06 its sequences were 40 frames, the profile's 20), and another lidar changes the
+    lidar files alone: the same scenes, images, labels, poses and radar to the byte."""
+    from pipeline.config import load_config
+
+    meta = json.loads((world / "world.json").read_text())
+    assert meta["sequence_len"] == load_config("synthetic", environ={}).dataset.world_sequence_len
+    assert meta["lidar_lines"] == 64
+    sparse = tmp_path / "w16"
+    out = CliRunner().invoke(main, ["generate-world", "--frames", "4", "--seed", "1", "--out", str(sparse),
+                                    "--lidar-lines", "16"])
+    assert out.exit_code == 0, out.output
+    assert json.loads((sparse / "world.json").read_text())["lidar_lines"] == 16
+    dense, thin = _digest(world), _digest(sparse)
+    assert dense.keys() == thin.keys()
+    lidar = {k for k in dense if k.startswith("lidar/training/velodyne/")}
+    assert len(lidar) == 4 and all(dense[k] != thin[k] for k in lidar)
+    assert sum((world / k).stat().st_size for k in lidar) > 2 * sum((sparse / k).stat().st_size for k in lidar)
+    same = [k for k in dense if k not in lidar and k != "world.json"]
+    assert len(same) >= 4 * 5 and any(k.startswith("radar/") for k in same)
+    assert all(dense[k] == thin[k] for k in same)
+    bad = CliRunner().invoke(main, ["generate-world", "--frames", "2", "--out", str(tmp_path / "b"), "--lidar-lines", "32"])
+    assert bad.exit_code == 2 and "'32' is not one of '16', '64', '128'" in bad.output
 
 
 def test_generate_world_refuses_a_malformed_resolution_in_one_line(tmp_path):
