@@ -206,6 +206,39 @@ def test_boxes_without_track_ids_get_velocities_by_matching_across_frames(tmp_pa
     assert any("labelled objects of unknown velocity: 1 of 12:" in line and "static" in line for line in lines), lines
 
 
+def test_each_label_file_is_parsed_once_per_reader_until_it_changes(tmp_path, monkeypatch):
+    """A frame's velocities read its neighbours' labels and poses: the reader keeps what it parsed
+    (each label file was parsed three times), parses a file again once it changes, and raises a
+    malformed file's error on each read instead of keeping it."""
+    import pipeline.readers.vod as vod
+    from pipeline.errors import ReaderError
+
+    truth = make_vod_dataset(tmp_path, n_frames=4, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    parsed: list[str] = []
+
+    def counting(path, frame):
+        parsed.append(Path(path).stem)
+        return parse_label_file(path, frame)
+
+    monkeypatch.setattr(vod, "parse_label_file", counting)
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    first = [reader.read(fid).labels[0].velocity_D for fid in truth.frame_ids]
+    assert sorted(parsed) == sorted(truth.frame_ids)  # each once, though each frame reads its neighbours'
+    np.testing.assert_allclose(first, [truth.object_velocity_D] * 4, atol=1e-4)
+    # the next frame's box moved 1 m along the camera's x (another size on disk): the middle frame sees it
+    path = tmp_path / "lidar/training/label_2" / f"{truth.frame_ids[2]}.txt"
+    fields = path.read_text().split()
+    path.write_text(" ".join([*fields[:11], f"{float(fields[11]) + 1.0:.6f}", *fields[12:]]) + "\n")
+    parsed.clear()
+    moved = reader.read(truth.frame_ids[1]).labels[0].velocity_D
+    assert parsed == [truth.frame_ids[2]]
+    assert np.linalg.norm(moved - truth.object_velocity_D) == pytest.approx(1.0 / 0.2, abs=1e-3)  # central, over 0.2 s
+    path.write_text("Car 7 0 0\n")  # malformed: raised on every read, never kept
+    for _ in range(2):
+        with pytest.raises(ReaderError, match="label line 1 has 4 columns"):
+            reader.read(truth.frame_ids[2])
+
+
 def test_fixture_pose_fallback_with_too_few_radar_points(tmp_path):
     truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=7.0, n_radar=2)
     reader = get_reader(_fixture_cfg(), tmp_path)

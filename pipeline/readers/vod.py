@@ -35,8 +35,11 @@ is unambiguous (:func:`pipeline.boxmatch.match_boxes`).
 from __future__ import annotations
 
 import json
+import threading
+from collections import OrderedDict
 from functools import cached_property
 from pathlib import Path
+from typing import Callable, TypeVar
 
 import numpy as np
 
@@ -54,6 +57,11 @@ from pipeline.readers.kitti_format import (KittiLabel, camera_calib, label_to_ob
 RADAR_FOLDERS = ("radar", "radar_3frames", "radar_5frames")
 FRAME_RATE_HZ = 10.0
 MAX_FIT_CONDITION = 1e3
+PARSED_FILES_KEPT = 16
+"""Parsed label and pose files a reader keeps (:meth:`VodReader._parsed`): a frame reads its
+neighbours' too (timestamps, ego and object velocities), so without it each label file was parsed
+three times and each pose file about eight."""
+_T = TypeVar("_T")
 """Compensation-pair fits with a worse condition number fall back to pose differencing."""
 
 
@@ -73,6 +81,25 @@ class VodReader(Reader):
             raise ReaderError(self.root, f"radar_folder must be one of {RADAR_FOLDERS}, got '{radar_folder}'")
         self.radar_folder = radar_folder
         self.with_meta = with_meta
+        self._parsed_files: OrderedDict[tuple, object] = OrderedDict()
+        self._parsed_lock = threading.Lock()  # a dask worker's threads share one reader
+
+    def _parsed(self, path: Path, parse: Callable[[], _T]) -> _T:
+        """``parse()`` of ``path``, kept for the next call while the file keeps its modification time
+        and size (the last PARSED_FILES_KEPT files; a reader outlives a run on a cluster's workers).
+        A file that fails to parse is not kept: its error is raised again each time."""
+        st = path.stat()
+        key = (str(path), st.st_mtime_ns, st.st_size)
+        with self._parsed_lock:
+            if key in self._parsed_files:
+                self._parsed_files.move_to_end(key)
+                return self._parsed_files[key]  # type: ignore[return-value]
+        value = parse()
+        with self._parsed_lock:
+            self._parsed_files[key] = value
+            while len(self._parsed_files) > PARSED_FILES_KEPT:
+                self._parsed_files.popitem(last=False)
+        return value
 
     def detector_files(self, frame_id: str) -> DetectorFiles:
         """The radar tree's calib (Tr_velo_to_cam: radar -> camera), the lidar tree's labels (whether
@@ -261,14 +288,18 @@ class VodReader(Reader):
         path = self._pose(fid)
         if path is None:
             return None
-        merged: dict = {}
-        try:
-            for line in path.read_text().splitlines():
-                if line.strip():
-                    merged.update(json.loads(line))
-        except (json.JSONDecodeError, AttributeError, TypeError, ValueError):
-            raise ReaderError(path, "pose file is not JSON lines of objects", frame=fid) from None
-        return merged
+
+        def parse() -> dict:
+            merged: dict = {}
+            try:
+                for line in path.read_text().splitlines():
+                    if line.strip():
+                        merged.update(json.loads(line))
+            except (json.JSONDecodeError, AttributeError, TypeError, ValueError):
+                raise ReaderError(path, "pose file is not JSON lines of objects", frame=fid) from None
+            return merged
+
+        return dict(self._parsed(path, parse))
 
     def _timestamp(self, fid: str) -> float:
         pose = self._pose_lines(fid)
@@ -366,9 +397,9 @@ class VodReader(Reader):
         unique = len(set(ids)) == len(ids) and all(i >= 0 for i in ids)
         return unique and (self.labels_hold_track_ids or max(ids, default=0) > 1)
 
-    @staticmethod
-    def _label_lines(path: Path, fid: str) -> list[KittiLabel]:
-        return [lab for lab in parse_label_file(path, fid) if lab.class_name != "DontCare"]  # placeholders, no box
+    def _label_lines(self, path: Path, fid: str) -> list[KittiLabel]:
+        return list(self._parsed(path, lambda: [lab for lab in parse_label_file(path, fid)
+                                                if lab.class_name != "DontCare"]))  # placeholders, no box
 
     @staticmethod
     def _centres_world(labels: list[KittiLabel], T_world_cam: np.ndarray) -> np.ndarray:
