@@ -57,12 +57,12 @@ from pipeline.readers.kitti_format import (KittiLabel, camera_calib, label_to_ob
 RADAR_FOLDERS = ("radar", "radar_3frames", "radar_5frames")
 FRAME_RATE_HZ = 10.0
 MAX_FIT_CONDITION = 1e3
+"""Compensation-pair fits with a worse condition number fall back to pose differencing."""
 PARSED_FILES_KEPT = 16
 """Parsed label and pose files a reader keeps (:meth:`VodReader._parsed`): a frame reads its
 neighbours' too (timestamps, ego and object velocities), so without it each label file was parsed
 three times and each pose file about eight."""
 _T = TypeVar("_T")
-"""Compensation-pair fits with a worse condition number fall back to pose differencing."""
 
 
 class VodReader(Reader):
