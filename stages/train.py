@@ -100,7 +100,8 @@ def placenet_data(inputs, table, part: int, val_part: int = 1, cfg: Config | Non
     return PlaceNetData(features=features, counts=counts, train_idx=range(n_train),
                         val_idx=range(n_train, n_all) if part != val_part else range(0),
                         train_frame_rows=per_frame[frames[part]],
-                        train_frame_candidates=(lambda: candidate_counts(inputs, cfg, frames[part])) if cfg is not None else None,
+                        train_frame_candidates=(None if cfg is None else
+                                                lambda: candidate_counts(inputs, cfg, frames[part])),
                         train_frame_counts=np.asarray(table["count"])[frames[part]])
 
 

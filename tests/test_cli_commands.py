@@ -58,7 +58,8 @@ def test_generate_world_defaults_to_the_demo_world_and_changes_only_the_lidar_wi
     same = [k for k in dense if k not in lidar and k != "world.json"]
     assert len(same) >= 4 * 5 and any(k.startswith("radar/") for k in same)
     assert all(dense[k] == thin[k] for k in same)
-    bad = CliRunner().invoke(main, ["generate-world", "--frames", "2", "--out", str(tmp_path / "b"), "--lidar-lines", "32"])
+    bad = CliRunner().invoke(main, ["generate-world", "--frames", "2", "--out", str(tmp_path / "b"),
+                                    "--lidar-lines", "32"])
     assert bad.exit_code == 2 and "'32' is not one of '16', '64', '128'" in bad.output
 
 
