@@ -49,3 +49,32 @@ def test_ambiguous_or_one_sided_nearest_boxes_stay_unmatched():
     a = np.array([[0.0, 0, 0], [0.3, 0, 0]])
     b = np.array([[0.18, 0, 0]])
     assert match_boxes(a, ["Car", "Car"], b, ["Car"], 2.0).tolist() == [-1, -1]
+
+
+def test_the_gate_and_the_ambiguity_margin_are_inclusive():
+    """A partner exactly ``max_shift_m`` away is within the gate; another box exactly
+    ``ambiguity_ratio`` (default 2) times farther, in b or in a, leaves the match standing."""
+    a = np.array([[0.0, 0, 0]])
+    assert match_boxes(a, ["Car"], np.array([[2.0, 0, 0]]), ["Car"], 2.0).tolist() == [0]
+    assert match_boxes(a, ["Car"], np.array([[2.0, 0, 0]]), ["Car"], 1.999).tolist() == [-1]
+    b = np.array([[0.5, 0, 0], [-1.0, 0, 0]])  # the other box of b exactly twice as far from a0
+    assert match_boxes(a, ["Car"], b, ["Car", "Car"], 1.0).tolist() == [0]
+    assert match_boxes(a, ["Car"], b + [0.01, 0, 0], ["Car", "Car"], 1.0).tolist() == [-1]
+    a2 = np.array([[0.0, 0, 0], [1.5, 0, 0]])  # the other box of a exactly twice as far from b0
+    assert match_boxes(a2, ["Car", "Car"], np.array([[0.5, 0, 0]]), ["Car"], 1.0).tolist() == [0, -1]
+    assert match_boxes(a2, ["Car", "Car"], np.array([[0.51, 0, 0]]), ["Car"], 1.0).tolist() == [-1, -1]
+
+
+def test_without_a_gate_a_class_absent_from_b_stays_unmatched():
+    a = np.array([[0.0, 0, 0], [5.0, 0, 0]])
+    b = np.array([[0.2, 0, 0]])
+    assert match_boxes(a, ["Car", "Pedestrian"], b, ["Car"], np.inf).tolist() == [0, -1]
+    assert match_boxes(a[1:], ["Pedestrian"], b, ["Car"], np.inf).tolist() == [-1]
+
+
+def test_each_box_of_b_goes_to_one_box_of_a_even_without_a_margin():
+    """With ambiguity_ratio 1 (no margin asked) the pair must still be mutual nearest neighbours:
+    a0's nearest box, b0, is nearer to a1, so only a1 gets it."""
+    a = np.array([[0.0, 0, 0], [0.3, 0, 0]])
+    b = np.array([[0.25, 0, 0]])
+    assert match_boxes(a, ["Car", "Car"], b, ["Car"], 2.0, ambiguity_ratio=1.0).tolist() == [-1, 0]

@@ -63,6 +63,19 @@ def test_generate_world_defaults_to_the_demo_world_and_changes_only_the_lidar_wi
     assert bad.exit_code == 2 and "'32' is not one of '16', '64', '128'" in bad.output
 
 
+def test_generate_world_passes_its_sequence_length_and_lidar_lines_on(tmp_path):
+    """--sequence-len 1 (the least) and --lidar-lines 128 reach the world; --sequence-len 0 is
+    refused before anything is written."""
+    out = CliRunner().invoke(main, ["generate-world", "--frames", "2", "--seed", "1", "--out", str(tmp_path / "w"),
+                                    "--resolution", "64x32", "--sequence-len", "1", "--lidar-lines", "128"])
+    assert out.exit_code == 0, out.output
+    meta = json.loads((tmp_path / "w" / "world.json").read_text())
+    assert meta["sequence_len"] == 1 and len(meta["sequences"]) == 2 and meta["lidar_lines"] == 128
+    bad = CliRunner().invoke(main, ["generate-world", "--frames", "2", "--out", str(tmp_path / "b"),
+                                    "--sequence-len", "0"])
+    assert bad.exit_code == 2 and not (tmp_path / "b").exists()
+
+
 def test_generate_world_refuses_a_malformed_resolution_in_one_line(tmp_path):
     out = CliRunner().invoke(main, ["generate-world", "--frames", "2", "--out", str(tmp_path / "w"),
                                     "--resolution", "640by384"])

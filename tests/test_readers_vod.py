@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -371,3 +372,183 @@ def test_lidar_box_labels_are_upright_in_a_tilted_lidar(tmp_path):
     heading_D = R_radar_lidar @ [np.cos(yaw_L), np.sin(yaw_L), 0.0]
     assert obj.yaw_rad == pytest.approx(np.arctan2(heading_D[1], heading_D[0]), abs=1e-9)
     np.testing.assert_allclose(obj.size_lwh_m, [l, w, h])
+
+
+def _relabel(path: Path, cls: str | None = None, column2: str | None = None, dx_cam: float = 0.0) -> None:
+    """Rewrite a one-line label file with fixed-width numbers (class, second column or the box
+    moved ``dx_cam`` m along the camera's x changed)."""
+    f = path.read_text().split()
+    values = [float(v) for v in f[2:]]
+    values[9] += dx_cam
+    path.write_text(" ".join([cls or f[0], column2 or f[1], *(f"{v:.6f}" for v in values)]) + "\n")
+
+
+def test_a_kept_parse_is_keyed_by_path_modification_time_and_size(tmp_path):
+    """The reader parses a label file again when its modification time changes at the same size
+    (an edited coordinate), or its size changes at the same modification time (a coarse clock),
+    and never takes one file's parse for another's of the same size and time (an unpacked archive)."""
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    labels = [tmp_path / "lidar/training/label_2" / f"{fid}.txt" for fid in truth.frame_ids]
+    for path in labels:
+        _relabel(path)
+    middle = truth.frame_ids[1]
+    # three files of one size and one modification time: each is still its own
+    assert len({p.stat().st_size for p in labels}) == 1
+    stamp = labels[0].stat().st_mtime_ns
+    for path in labels:
+        os.utime(path, ns=(stamp, stamp))
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    np.testing.assert_allclose(reader.read(middle).labels[0].velocity_D, truth.object_velocity_D, atol=1e-4)
+    # the next frame's box moved 1 m (same size on disk), its modification time later: seen
+    size = labels[2].stat().st_size
+    _relabel(labels[2], dx_cam=1.0)
+    assert labels[2].stat().st_size == size
+    os.utime(labels[2], ns=(stamp + 10**9, stamp + 10**9))
+    moved = reader.read(middle).labels[0].velocity_D
+    assert np.linalg.norm(moved - truth.object_velocity_D) == pytest.approx(1.0 / 0.2, abs=1e-3)
+    # moved back 1 m and written longer, with the same modification time as before: seen too
+    _relabel(labels[2], dx_cam=-1.0)
+    labels[2].write_text(labels[2].read_text() + "\n")
+    assert labels[2].stat().st_size != size
+    os.utime(labels[2], ns=(stamp + 10**9, stamp + 10**9))
+    np.testing.assert_allclose(reader.read(middle).labels[0].velocity_D, truth.object_velocity_D, atol=1e-4)
+
+
+def test_a_reader_keeps_only_the_last_parsed_files(tmp_path, monkeypatch):
+    """After a pass over 12 frames (24 label and pose files) the first frame's label file is no
+    longer kept (parsed again) and the last frame's still is (not parsed again)."""
+    import pipeline.readers.vod as vod
+
+    truth = make_vod_dataset(tmp_path, n_frames=12, speed_mps=5.0, n_radar=10)
+    parsed: list[str] = []
+
+    def counting(path, frame):
+        parsed.append(Path(path).stem)
+        return parse_label_file(path, frame)
+
+    monkeypatch.setattr(vod, "parse_label_file", counting)
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    for fid in truth.frame_ids:
+        reader.read(fid)
+    assert sorted(parsed) == sorted(truth.frame_ids)
+    parsed.clear()
+    reader.read(truth.frame_ids[-1])
+    assert parsed == []
+    reader.read(truth.frame_ids[0])
+    assert sorted(parsed) == sorted(truth.frame_ids[:2])
+    assert len(reader._parsed_files) <= vod.PARSED_FILES_KEPT
+
+
+def test_frames_with_and_without_track_ids_side_by_side_are_matched_by_position(tmp_path):
+    """The tracking release reads a frame whose ids are all 0 or 1 as untracked: a tracked frame
+    beside it (and it beside the tracked one) matches its boxes by position, not by an id that
+    the other frame lacks."""
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    for fid, column2 in zip(truth.frame_ids, ("1", "7", "1")):
+        _relabel(tmp_path / "lidar/training/label_2" / f"{fid}.txt", column2=column2)
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    for fid, track in zip(truth.frame_ids, (-1, 7, -1)):
+        obj = reader.read(fid).labels[0]
+        assert obj.track_id == track
+        np.testing.assert_allclose(obj.velocity_D, truth.object_velocity_D, atol=1e-4)
+    assert reader.report()["objects_velocity_by_box_matching"] == 3
+    assert "objects_velocity_by_track_id" not in reader.report()
+
+
+def test_a_fast_car_in_frames_further_apart_is_matched_within_its_time_gap(tmp_path):
+    """Detection release (no track ids), frames 0.2 s apart by their poses' timestamps (a dropped
+    scan): a car at 15 m/s (3 m per frame) is searched within 20 m/s times the frames' own time
+    gap and gets its velocity over that gap."""
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0)
+    v_car, start = np.array([15.0, 0.0, 0.0]), np.array([15.0, -2.0, 0.0])
+    for k, fid in enumerate(truth.frame_ids):
+        ego_x, t = 0.5 * k, 0.2 * k
+        write_pose(tmp_path / "lidar/training/pose" / f"{fid}.json",
+                   rigid(np.eye(3), np.array([ego_x, 0.0, 0.0])) @ np.linalg.inv(T_CAM_RADAR), 100.0 + t)
+        line = kitti_label_line("Car", 0, start + v_car * t - [ego_x, 0.0, 0.0], np.array([4.0, 1.8, 1.5]), 0.0,
+                                T_CAM_RADAR)
+        (tmp_path / "lidar/training/label_2" / f"{fid}.txt").write_text(line + "\n")
+    reader = get_reader(_fixture_cfg(), tmp_path)
+    for fid in truth.frame_ids:
+        obj = reader.read(fid).labels[0]
+        assert obj.track_id == -1
+        np.testing.assert_allclose(obj.velocity_D, v_car, atol=1e-4)
+    assert reader.report()["objects_velocity_by_box_matching"] == 3
+
+
+def test_a_neighbour_without_a_pose_is_left_out_of_the_velocity(tmp_path):
+    """The next frame has a label file but no pose: the middle frame's velocity is the one-sided
+    difference with the previous frame (exact for constant motion), with or without track ids."""
+    truth = make_vod_dataset(tmp_path, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    (tmp_path / "lidar/training/pose" / f"{truth.frame_ids[2]}.json").unlink()
+    for column2 in ("7", "0"):
+        for fid in truth.frame_ids:
+            _relabel(tmp_path / "lidar/training/label_2" / f"{fid}.txt", column2=column2)
+        reader = get_reader(_fixture_cfg(), tmp_path)
+        np.testing.assert_allclose(reader.read(truth.frame_ids[1]).labels[0].velocity_D, truth.object_velocity_D,
+                                   atol=1e-4)
+
+
+def test_object_velocity_counts_say_how_each_box_was_associated(tmp_path):
+    """The reader's report counts each labelled object once: by track id, by box matching or of
+    unknown velocity, and the frames with labels but no track ids."""
+    def dataset(name: str, **kw):
+        return make_vod_dataset(tmp_path / name, n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0), **kw)
+
+    def label(root: Path, fid: str) -> Path:
+        return root / "lidar/training/label_2" / f"{fid}.txt"
+
+    def report(root: Path, fids: list[str]) -> dict:
+        reader = get_reader(_fixture_cfg(), root)
+        for fid in fids:
+            reader.read(fid)
+        return {k: v for k, v in reader.report().items() if k.startswith(("objects_velocity", "frames_without"))}
+
+    truth = dataset("tracked")
+    assert report(tmp_path / "tracked", truth.frame_ids) == {"objects_velocity_by_track_id": 3}
+    # the next frame's box has a 0 / 1 flag and lies 5 m away: the earlier end, by track id, alone counts
+    truth = dataset("next_untracked")
+    _relabel(label(tmp_path / "next_untracked", truth.frame_ids[2]), column2="1", dx_cam=5.0)
+    assert report(tmp_path / "next_untracked", truth.frame_ids[1:2]) == {"objects_velocity_by_track_id": 1}
+    # no track ids; the box turns into a Van in the next frame: matched by position to the earlier one
+    truth = dataset("untracked")
+    for fid, cls in zip(truth.frame_ids, ("Car", "Car", "Van")):
+        _relabel(label(tmp_path / "untracked", fid), cls=cls, column2="1")
+    assert report(tmp_path / "untracked", truth.frame_ids[1:2]) == {"objects_velocity_by_box_matching": 1,
+                                                                     "frames_without_track_ids": 1}
+    # no poses: every object's velocity is unknown; an empty label file is no frame without track ids
+    truth = dataset("no_poses", with_poses=False)
+    label(tmp_path / "no_poses", truth.frame_ids[2]).write_text("")
+    assert report(tmp_path / "no_poses", truth.frame_ids) == {"objects_velocity_unknown": 2}
+
+
+def test_calibrate_counts_unknown_velocities_on_finished_frames_only(tmp_path):
+    """The calibrate summary's count of labelled objects of unknown velocity covers the frames
+    that finished (a frame whose radar file is cut short fails and is left out), and says
+    nothing when every object's velocity is known."""
+    from pipeline.executor import Executor, RunEnv
+    from pipeline.runner import Pipeline
+    from stages import calibrate
+
+    cfg = _fixture_cfg().with_overrides({"camera.crop_rows": "0,48", "camera.working_size": "64,48"})
+
+    def run(root: Path) -> tuple[list[str], object]:
+        lines: list[str] = []
+        env = RunEnv(cfg=cfg, cache_root=str(root / "cache"), dataset="vod", data_root=str(root / "data"))
+        report, = Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lines.append).run("calibrate")
+        return lines, report
+
+    make_vod_dataset(tmp_path / "known/data", n_frames=3, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    lines, report = run(tmp_path / "known")
+    assert report.done == 3 and not any("velocity" in note for note in report.notes), report.notes
+    assert not any("unknown velocity" in line for line in lines), lines
+    # a pedestrian (track 9) in the second frame alone, and the last frame's radar cut short
+    data = tmp_path / "mixed/data"
+    truth = make_vod_dataset(data, n_frames=4, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    second = data / "lidar/training/label_2" / f"{truth.frame_ids[1]}.txt"
+    second.write_text(second.read_text() + kitti_label_line("Pedestrian", 9, np.array([12.0, 3.0, 0.0]),
+                                                            np.array([0.6, 0.6, 1.7]), 0.0, T_CAM_RADAR) + "\n")
+    (data / "radar/training/velodyne" / f"{truth.frame_ids[3]}.bin").write_bytes(b"\0" * 10)
+    lines, report = run(tmp_path / "mixed")
+    assert report.done == 3 and report.failed == 1
+    assert any("labelled objects of unknown velocity: 1 of 4:" in line for line in lines), (lines, report.notes)

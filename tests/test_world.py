@@ -318,6 +318,49 @@ def test_an_interrupted_generation_resumes_its_finished_sequences(tmp_path: Path
     assert generate(tmp_path / "w", **{**kw, "seed": 5})["resumed_sequences"] == 0 and calls == [0, 1, 2]
 
 
+@pytest.mark.parametrize("change", [dict(lidar_lines=64), dict(sequence_len=1)])
+def test_an_interrupted_generation_is_not_resumed_with_another_lidar_or_sequence_length(tmp_path: Path, monkeypatch,
+                                                                                       change: dict) -> None:
+    """A sequence finished with 16 lidar lines is not kept by a run asked for 64 (the world would
+    mix two lidars), nor one finished with 2-frame sequences by a run asked for 1-frame ones
+    (sequence k would name other frames)."""
+    import pipeline.world.generator as gen
+
+    kw = dict(frames=4, seed=4, resolution_wh=(64, 32), lidar_lines=16, sequence_len=2, scene_mix=("highway",))
+    real, calls = gen.run_sequence, []
+
+    def stop_at_second(*job):
+        calls.append(job[1])
+        if job[1] == 1 and len(calls) == 2:
+            raise KeyboardInterrupt("killed")
+        return real(*job)
+
+    monkeypatch.setattr(gen, "MAX_WORKERS", 1)
+    monkeypatch.setattr(gen, "run_sequence", stop_at_second)
+    with pytest.raises(KeyboardInterrupt):
+        generate(tmp_path, **kw)
+    assert (tmp_path / "partial" / "seq00000.json").exists()
+    summary = generate(tmp_path, **{**kw, **change})
+    assert summary["resumed_sequences"] == 0
+    world = json.loads((tmp_path / "world.json").read_text())
+    assert {k: world[k] for k in change} == change
+
+
+def test_each_lidar_pattern_spans_its_sensor_and_fits_the_profile_budget() -> None:
+    """VLP-16: +-15 deg, HDL-64: +2 .. -24.8 deg, OS1-128: +-22.5 deg, one elevation per line; every
+    scan has at most the synthetic profile's lidar.store_max_points rays (no reader truncates it)."""
+    from pipeline.config import load_config
+
+    budget = load_config("synthetic", environ={}).lidar.store_max_points
+    for lines, (top, bottom) in {16: (15.0, -15.0), 64: (2.0, -24.8), 128: (22.5, -22.5)}.items():
+        rig = make_rig((64, 32), lines)
+        el = np.degrees(rig.lidar_el_rad)
+        assert el.size == lines and el[0] == pytest.approx(top) and el[-1] == pytest.approx(bottom)
+        assert lines * rig.lidar_az_rad.size <= budget, lines
+    with pytest.raises(ValueError, match="lidar_lines"):
+        make_rig((64, 32), 32)
+
+
 @pytest.mark.parametrize("kwargs", [dict(frames=0), dict(lidar_lines=32), dict(scene_mix=("moon",)),
                                     dict(sequence_len=0), dict(resolution_wh=(8, 8))])
 def test_bad_arguments_raise_config_error(tmp_path: Path, kwargs: dict) -> None:
