@@ -284,6 +284,8 @@ def test_the_report_gives_the_counts_parts_errors():
     assert line.startswith("mean relative error of Dis-Net's count 0.1 (L_n 0.02), PlaceNet's 0.1 (L_n 0.02), ")
     assert f"their geometric mean (the model's) {abs(np.sqrt(96) - 10) / 20:.3g}" in line
     assert line.endswith("over 2 frames with real points")
+    parts[0, 1] = 0.0  # a frame without a lidar candidate: PlaceNet's count is 0, computed
+    assert "PlaceNet's 0.5 (L_n 0.5)" in count_parts(parts, n_hat, real)
     parts[0, 1] = -1
     assert "PlaceNet" not in count_parts(parts, n_hat, real)
     assert count_parts(parts, n_hat, np.zeros(3)) == ""

@@ -973,6 +973,10 @@ def test_a_frame_function_output_is_checked_before_it_is_written():
         points[1, 2] = bad
         with pytest.raises(ValueError, match=r"points: 1 of 9 values are not finite .* at index \(1, 2\)"):
             check(points)
+    points = np.zeros((3, 3))
+    points[2] = np.nan
+    with pytest.raises(ValueError, match=r"points: 3 of 9 values are not finite .* at index \(2, 0\)"):
+        check(points)
 
 
 def test_the_outputs_the_next_stages_and_the_export_read_are_declared_finite():

@@ -84,6 +84,12 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
                                rtol=1e-5)
     report_meta = json.loads((tmp_path / "serial" / "synthetic" / "evaluate" / "report.json").read_text())["meta"]
     assert "PlaceNet's" in report_meta["count_parts"] and "geometric mean (the model's)" in report_meta["count_parts"]
+    from stages.evaluate import count_parts
+
+    evaluated = arrays(tmp_path / "serial", "evaluate-frames")["status"] == DONE
+    assert int(evaluated.sum()) == report_meta["frames"]
+    assert report_meta["count_parts"] == count_parts(synthesized["n_parts"][evaluated], synthesized["n_hat"][evaluated],
+                                                     arrays(tmp_path / "serial", "heatmaps")["count"][evaluated])
     # the synthesized points are lidar points of their frame (lidar placement, the default)
     syn, calib = serial.env.store("synthesize"), serial.env.store("calibrate")
     done = [int(i) for i in np.flatnonzero(syn.status() == DONE)]

@@ -107,7 +107,8 @@ def test_synthesize_needs_placenets_count_scale_only_for_the_blended_count(tmp_p
     with pytest.raises(PipelineError, match=refused):
         check_checkpoints(train, cfg)  # select, which reads the headers only
     for overrides in ({"synth.count": "disnet"}, {"synth.count": "oracle"}, {"synth.placement": "ray"},
-                      {"train.nets_from": "astyx"}):  # another dataset's PlaceNet counts another lidar's points
+                      {"train.nets_from": "astyx"},  # another dataset's PlaceNet counts another lidar's points
+                      {"train.nets_from": "vod"}):
         ready(inputs, load_config("synthetic", overrides, environ={}))
         assert not uses_placenet_count(load_config("synthetic", overrides, environ={}))
     assert uses_placenet_count(cfg)
@@ -115,4 +116,54 @@ def test_synthesize_needs_placenets_count_scale_only_for_the_blended_count(tmp_p
     n, n_placenet = frame_count(50.0, np.array([10.0, 20.0, 2.0]), 2.5)
     assert n_placenet == 80.0 and n == pytest.approx(np.sqrt(50.0 * 80.0))
     assert frame_count(50.0, np.zeros(0), 2.5) == (0.0, 0.0)  # no candidate: nothing can be placed
+    assert frame_count(0.25, np.array([1.0, 3.0]), 4.0) == (2.0, 16.0)  # a count under 1 is not raised to 1
+    assert frame_count(-3.0, np.array([1.0]), 4.0) == (0.0, 4.0)  # a negative count is none
+
+
+def test_synthesize_draws_the_blended_count_and_records_its_parts(monkeypatch):
+    """A frame's points are drawn to the geometric mean of Dis-Net's count and PlaceNet's (the
+    count scale times the intensity summed over the frame's candidates); n_hat is that mean and
+    n_parts holds Dis-Net's count and PlaceNet's, in that order. Dis-Net's count alone, the ray
+    placement and another dataset's nets draw Dis-Net's count, PlaceNet's recorded as -1 (not
+    computed: the report leaves it out); the oracle draws the real count, n_hat Dis-Net's."""
+    import numpy as np
+
+    import pipeline.training
+    import stages.synthesize as S
+
+    w, h = load_config("synthetic", {}, environ={}).camera.working_size
+    placenet = SimpleNamespace(count_scale=2.0)
+    nets = S.Nets(disnet=SimpleNamespace(use_prior=False), rssnet=None, placenet=placenet)
+    # candidates whose coordinates and outside-range counts sum to other than their intensities (8)
+    candidates = (np.full((3, 3), 7.0), np.zeros((3, 2)), np.array([1.0, 2.0, 5.0]), np.array([9, 9], np.int32))
+    frame = {("calibrate", "ego_velocity"): np.array([3.0, 4.0, 0.0]),
+             ("calibrate", "image"): np.zeros((h, w, 3), np.uint8), ("heatmaps", "count"): np.int32(11)}
+    inputs = SimpleNamespace(get=lambda stage, name: frame[(stage, name)],
+                             rng=lambda seed, salt: np.random.default_rng([seed, salt]))
+    drawn = []
+
+    def generate(inputs, cfg, prob_map, n, nets, rng):
+        drawn.append(n)
+        return {"points": np.zeros((0, 9), np.float32), "counts": np.zeros(5, np.int32), "candidates": np.int32(3),
+                "outside_training": np.zeros(2, np.int32), "rss_points": np.int32(0), "rss_outside": np.int32(0)}
+
+    def disnet_predict(net, images, speeds):
+        assert speeds.tolist() == [5.0]
+        return np.full((1, h, w), 1.0 / (h * w), np.float32), np.array([4.0], np.float32)
+
+    monkeypatch.setattr(S, "models", lambda inputs, cfg: nets)
+    monkeypatch.setattr(S, "lidar_candidates", lambda inputs, cfg, net: candidates if net is placenet else None)
+    monkeypatch.setattr(S, "generate", generate)
+    monkeypatch.setattr(pipeline.training, "disnet_predict", disnet_predict)
+
+    def run(**overrides: str) -> tuple[float, float, list[float]]:
+        drawn.clear()
+        out = S.process(inputs, load_config("synthetic", overrides, environ={}))
+        assert len(drawn) == 1
+        return drawn[0], float(out["n_hat"]), out["n_parts"].tolist()
+
+    assert run() == (8.0, 8.0, [4.0, 16.0])  # PlaceNet's 2 * (1 + 2 + 5) = 16, sqrt(4 * 16) = 8
+    for overrides in ({"synth.count": "disnet"}, {"synth.placement": "ray"}, {"train.nets_from": "astyx"}):
+        assert run(**overrides) == (4.0, 4.0, [4.0, -1.0]), overrides
+    assert run(**{"synth.count": "oracle"}) == (11.0, 4.0, [4.0, -1.0])
 

@@ -609,6 +609,65 @@ def test_training_fingerprint_follows_which_frames_are_done(tmp_path):
     assert training_fingerprint(Inputs(), cfg, "rssnet") != before["rssnet"]
 
 
+def test_a_nets_training_version_retrains_that_net_alone(tmp_path, monkeypatch):
+    """NET_VERSIONS: a net's version bumped changes its training fingerprint only (a cache trained
+    before PlaceNet's count scale retrains PlaceNet alone, not Dis-Net and RSS-Net); the stage's
+    VERSION is no net's."""
+    from pipeline.cache import frame_store
+    from pipeline.stage import ArraySpec
+    from stages import train
+
+    class Inputs:
+        def store(self, stage):
+            return frame_store(str(tmp_path), "d", stage)
+
+    for stage in ("calibrate", "heatmaps", "patches"):
+        frame_store(str(tmp_path), "d", stage).create("fp-" + stage, ["a"], (ArraySpec("x", (), "float32", "-"),),
+                                                      {"x": ()}, {})
+    cfg = tiny_cfg()
+    fingerprints = lambda: {net: train.training_fingerprint(Inputs(), cfg, net) for net in train.NETS}  # noqa: E731
+    before = fingerprints()
+    monkeypatch.setitem(train.NET_VERSIONS, "placenet", train.NET_VERSIONS["placenet"] + 1)
+    after = fingerprints()
+    assert after["placenet"] != before["placenet"]
+    assert (after["disnet"], after["rssnet"]) == (before["disnet"], before["rssnet"])
+    monkeypatch.setattr(train, "VERSION", train.VERSION + 1)
+    assert fingerprints() == after
+
+
+def test_placenet_data_gives_each_training_frame_its_rows_candidates_and_real_count(monkeypatch):
+    """The count scale's inputs from the train stage, per usable training frame in row order: its
+    PlaceNet rows, its own lidar candidates (counted from calibrate only when the scale asks) and
+    its real radar points; frames of another split, failed or without a real point are left out."""
+    from types import SimpleNamespace
+
+    import stages.patches
+    from stages.train import placenet_data
+
+    rows = np.array([3, 2, 4, 1, 2, 5])
+    table = {"ok": np.array([True, True, True, False, True, True]), "count": np.array([7, 0, 9, 4, 6, 8]),
+             "split": np.array([0, 0, 1, 0, 0, 0])}  # training frames 0, 4 and 5; 2 is val
+    arrays = {"place_count_count": rows, "place_features": np.zeros((6, 5, 3), np.float32),
+              "place_count": np.zeros((6, 5), np.float32)}
+    inputs = SimpleNamespace(store=lambda stage: SimpleNamespace(array=arrays.__getitem__),
+                             frame=lambda i: SimpleNamespace(index=i), progress=False)
+    n_candidates, counted = [30, 20, 40, 10, 50, 60], []
+
+    def candidates(frame, cfg):
+        counted.append(frame.index)
+        n = n_candidates[frame.index]
+        return np.zeros((n, 3)), np.zeros((n, 2))
+
+    monkeypatch.setattr(stages.patches, "candidates", candidates)
+    data = placenet_data(inputs, table, 0, 1, tiny_cfg())
+    assert counted == []  # not before the scale is computed
+    assert (len(data.train_idx), len(data.val_idx)) == (10, 4)
+    assert data.train_frame_rows.tolist() == [3, 2, 5]
+    assert data.train_frame_counts.tolist() == [7, 6, 8]
+    assert data.train_frame_candidates().tolist() == [30, 50, 60] and counted == [0, 4, 5]
+    assert placenet_data(inputs, table, 0, 1).train_frame_candidates is None
+
+
 def test_ragged_rows_reads_any_rows_of_many_frames_a_window_of_frames_at_a_time(tmp_path):
     """RaggedRows (the training rows of ragged per-frame arrays) gives row k of the frames' rows
     laid end to end, in any order and with repeats, reading at most FRAMES_PER_READ frames at once
@@ -781,7 +840,8 @@ def test_a_checkpoint_with_a_non_finite_weight_is_refused_when_loaded(tmp_path):
     res = T.train_rssnet(cfg, make_rss_data(p=120), tmp_path, progress=False)
     tensors, meta = ckpt.load_checkpoint(res.best_path)
     T.load_rssnet(cfg, res.best_path)
-    for bad, key in ((float("nan"), "weight"), (float("inf"), "running_var")):
+    for bad, key in ((float("nan"), "weight"), (float("inf"), "running_var"), (float("nan"), "bias"),
+                     (float("-inf"), "running_mean")):
         name = next(k for k in tensors if k.startswith("model.") and k.endswith(key) and tensors[k].is_floating_point())
         damaged = {**tensors, name: tensors[name].clone()}
         damaged[name].view(-1)[0] = bad
@@ -830,3 +890,52 @@ def test_placenet_count_scale_and_its_place_in_the_checkpoint(tmp_path, monkeypa
     without = T.train_placenet(cfg, dataclasses.replace(data, train_frame_candidates=None), tmp_path / "bare",
                                progress=False)
     assert T.load_placenet(cfg, without.best_path, device="cpu").count_scale is None
+
+
+def test_placenet_count_scale_sums_each_frames_own_rows(monkeypatch):
+    """Frame k's rows are the frame_rows[k] after the previous frames' (row order), scaled up by its
+    own candidates over rows: intensities that differ per row count in their own frame, also read in
+    pieces that cut through frames."""
+    lam = np.array([1.0, 1.0, 1.0, 1.0, 4.0, 4.0, 4.0, 2.0, 2.0])  # frames of 4, 3 and 2 rows
+    monkeypatch.setattr(T, "placenet_predict", lambda model, x: lam[np.asarray(x)[:, 0].astype(int)])
+    features = np.arange(9, dtype=np.float32)[:, None]  # a row's only feature: its index
+    rows, candidates, counts = np.array([4, 3, 2]), np.array([40, 3, 20]), np.array([5.0, 6.0, 7.0])
+    expected = 18.0 / (4 * 10 + 12 * 1 + 4 * 10)
+    assert T.placenet_count_scale(None, features, rows, candidates, counts) == pytest.approx(expected)
+    monkeypatch.setattr(T, "COUNT_SCALE_ROWS", 2)
+    assert T.placenet_count_scale(None, features, rows, candidates, counts) == pytest.approx(expected)
+
+
+def test_placenet_count_scale_is_the_best_checkpoints_and_computed_once(tmp_path, monkeypatch):
+    """The scale comes from the best checkpoint's weights, which its rewrite keeps, not from the
+    weights the model holds after training (here made to differ, as after a later, worse epoch); a
+    finished PlaceNet resumed keeps the scale its best checkpoint holds without counting the
+    training frames' candidates again."""
+    cfg = load_config("synthetic", {"placement.epochs": "1", "train.threads": "1", "train.device": "cpu"},
+                      environ={})
+    real_run, best = T.run, {}
+
+    def run(spec, *args):
+        res = real_run(spec, *args)
+        best.update(ckpt.load_checkpoint(res.best_path)[0])
+        with torch.no_grad():
+            spec.model.mlp[-1].bias.add_(1.0)
+        return res
+
+    monkeypatch.setattr(T, "run", run)
+    rng = np.random.default_rng(1)
+    n = 600
+    x = rng.normal(size=(n, len(T.build_placenet(cfg).feature_low))).astype(np.float32)
+    y = rng.poisson(0.3, n).astype(np.float32)
+    calls = []
+    data = T.PlaceNetData(features=x, counts=y, train_idx=range(n), val_idx=range(0), train_frame_rows=np.full(6, 100),
+                          train_frame_candidates=lambda: calls.append(1) or np.full(6, 400),
+                          train_frame_counts=np.full(6, 50.0))
+    res = T.train_placenet(cfg, data, tmp_path, progress=False)
+    tensors, meta = ckpt.load_checkpoint(res.best_path)
+    assert best and all(torch.equal(tensors[k], v) for k, v in best.items() if k.startswith("model."))
+    model = T.load_placenet(cfg, res.best_path, device="cpu")
+    assert meta["count_scale"] == pytest.approx(300 / (T.placenet_predict(model, x).sum() * 4))
+    assert calls == [1]
+    again = T.train_placenet(cfg, data, tmp_path, progress=False)
+    assert calls == [1] and ckpt.read_meta(again.best_path)["count_scale"] == meta["count_scale"]
