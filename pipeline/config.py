@@ -331,6 +331,11 @@ class SynthSection:
     """Where a sampled point goes: 'lidar' (onto a lidar point chosen by the map and PlaceNet's
     intensity, pipeline.placement; an improvement over the paper) or 'ray' (the paper: on the
     pixel's camera ray at the lidar range of its angular window, synth.range_estimator)."""
+    rss_sampling: str = "mean"
+    """A synthesized point's RSS: 'mean' (RSS-Net's prediction, the paper) or 'residual' (plus a
+    residual drawn from RSS-Net's real-minus-predicted RSS on the validation points, kept in its
+    checkpoint, clipped to radar.rss_min..rss_max): the real radar's RSS spread, at the cost of
+    per-point accuracy (README, "RSS spread")."""
     device: str = "cpu"
     """Where synthesize and evaluate run the nets: 'cpu', 'cuda' or 'auto' (CUDA when present). The
     CPU by default: on a 16-core GPU machine dask workers running the nets on the CPU were as fast
@@ -407,6 +412,11 @@ SECTIONS: dict[str, type] = {
 }
 
 
+ADDED_KEYS: dict[str, Any] = {"synth.rss_sampling": "mean"}
+"""Keys added to stages' fingerprints after outputs were made, with the value those outputs were
+made with: at that value a key is left out of the fingerprint, so adding it recomputes nothing."""
+
+
 @dataclass(frozen=True)
 class Config:
     """A complete configuration: the profile name plus one frozen section per concern."""
@@ -434,8 +444,10 @@ class Config:
         return getattr(getattr(self, section), name)
 
     def fingerprint(self, keys: tuple[str, ...] | list[str]) -> str:
-        """Stable hash (16 hex digits) of the values of ``keys``."""
-        payload = json.dumps({k: _jsonable(self.get(k)) for k in sorted(keys)}, sort_keys=True)
+        """Stable hash (16 hex digits) of the values of ``keys``; a key of ADDED_KEYS at the value
+        it names is left out (outputs made before the key existed stay current)."""
+        payload = json.dumps({k: _jsonable(self.get(k)) for k in sorted(keys)
+                              if k not in ADDED_KEYS or self.get(k) != ADDED_KEYS[k]}, sort_keys=True)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
     def with_overrides(self, overrides: dict[str, str]) -> "Config":

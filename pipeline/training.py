@@ -767,7 +767,9 @@ INPUT_RANGE_ROWS = 20_000
 
 def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = True,
                  fingerprint: str | None = None) -> TrainResult:
-    """Train RSS-Net with L_a (Adam, cfg.train.*, batch cfg.train.rss_batch_size); resumes."""
+    """Train RSS-Net with L_a (Adam, cfg.train.*, batch cfg.train.rss_batch_size); resumes. The best
+    checkpoint keeps the quantiles of its residuals on the validation points
+    (:func:`rssnet_residual_quantiles`; none without validation points)."""
     _setup(cfg)
     model = build_rssnet(cfg)
     arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
@@ -783,7 +785,52 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
         train_idx=train_idx,
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.train.rss_batch_size, terms_fn=rssnet_terms, weights={"a": 1.0})
-    return run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress)
+    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress)
+    meta = ckpt.read_meta(res.best_path)
+    if len(data.val_idx) and RESIDUAL_KEY not in meta:  # a new best is written without them
+        tensors, meta = ckpt.load_checkpoint(res.best_path)
+        model.load_state_dict(_model_state(model, tensors), strict=True)
+        quantiles = rssnet_residual_quantiles(model.to("cpu"), data, data.val_idx)
+        ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, RESIDUAL_KEY: quantiles})
+    return res
+
+
+RESIDUAL_KEY = "rss_residual_quantiles"
+"""RSS-Net checkpoint metadata: the quantiles of its validation residuals (synth.rss_sampling)."""
+RESIDUAL_LEVELS = np.linspace(0.0, 1.0, 101)
+"""Levels of the residual quantiles a checkpoint keeps (0 and 1: the smallest and largest)."""
+
+
+@torch.no_grad()
+def rssnet_residual_quantiles(model: RSSNet, data: RssNetData, idx: Sequence[int], batch: int = 256) -> list[float]:
+    """Quantiles at RESIDUAL_LEVELS of real minus predicted RSS (dataset units) over rows ``idx``
+    of ``data`` (RSS-Net's validation points): the spread its prediction, a conditional mean, leaves
+    out."""
+    model.eval()
+    device = _device_of(model)
+    arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
+    residuals = [np.asarray(b["rss"], np.float64) - model.to_rss(model(*_rssnet_inputs(model, b, device))).double()
+                 .cpu().numpy() for b in iter_batches(arrays, _rows(idx), batch)]
+    return np.quantile(np.concatenate(residuals), RESIDUAL_LEVELS).tolist()
+
+
+def saved_residual_quantiles(meta: dict) -> np.ndarray | None:
+    """RSS-Net's residual quantiles (len(RESIDUAL_LEVELS),) from its checkpoint's metadata; None
+    where it holds none (saved before 2026-12-06, or trained without validation points) or not
+    finite, non-decreasing numbers."""
+    q = meta.get(RESIDUAL_KEY)
+    try:
+        q = np.asarray(q, np.float64)
+    except (TypeError, ValueError):
+        return None
+    ok = q.shape == RESIDUAL_LEVELS.shape and np.all(np.isfinite(q)) and np.all(np.diff(q) >= 0)
+    return q if ok else None
+
+
+def draw_residuals(quantiles: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n,) residuals drawn from the distribution whose quantiles at RESIDUAL_LEVELS are
+    ``quantiles`` (inverse transform, linear between the levels)."""
+    return np.interp(rng.random(n), RESIDUAL_LEVELS, np.asarray(quantiles, np.float64))
 
 
 # ------------------------------------------------------------------------------- PlaceNet
@@ -908,7 +955,9 @@ def load_rssnet(cfg, path: str | Path, device: str | None = None, saved_arch: bo
     """RSS-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``);
     ``saved_arch`` as for :func:`load_disnet`."""
     arch = _arch(cfg, rssnet_kwargs, path, saved_arch)
-    return _load_into(RSSNet(**arch), arch, path, select_device(device or cfg.train.device))
+    model = _load_into(RSSNet(**arch), arch, path, select_device(device or cfg.train.device))
+    model.residual_quantiles = saved_residual_quantiles(ckpt.read_meta(path))
+    return model
 
 
 def load_placenet(cfg, path: str | Path, device: str | None = None, saved_arch: bool = False) -> PlaceNet:

@@ -6,7 +6,8 @@ checkpoints).
 Writes (synthesize.zarr) per frame of split synth.split:
   points (<= capacity, 9) float32 in {D}: x, y, z (m), range (m), azimuth (rad), elevation (rad),
   doppler (m/s, in the simulated radar's convention: radar.doppler_sign * range rate, wrapped into
-  radar.doppler_span_mps), rss (dataset units), range_rate (m/s, internal convention, wrapped);
+  radar.doppler_span_mps), rss (dataset units: RSS-Net's, plus a drawn residual with
+  synth.rss_sampling = residual), range_rate (m/s, internal convention, wrapped);
   pred_map (h, w) float32 Dis-Net's distribution; n_hat float32, the model's count (synth.count
   predicted or disnet; with oracle Dis-Net's, while the real count is drawn); n_parts (2,)
   float32, Dis-Net's count and PlaceNet's (-1 where not computed); counts (5,) int32 [requested,
@@ -49,7 +50,8 @@ from stages.patches import point_inputs
 POINT_COLUMNS = ("x_m", "y_m", "z_m", "range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss",
                  "range_rate_mps")
 CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.count",
-               "synth.sampling", "synth.refill_rounds", "synth.placement", "placement.voxel_m", "placement.map_weight",
+               "synth.sampling", "synth.rss_sampling", "synth.refill_rounds", "synth.placement", "placement.voxel_m",
+               "placement.map_weight",
                "heatmap.sigma_px", "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",
                "radar.max_range_m", "radar.doppler_sign", "radar.doppler_span_mps", "radar.max_points",
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
@@ -87,6 +89,8 @@ of the candidates or points (1% by construction on the training data:
 pipeline.input_range.RANGE_PERCENTILES)."""
 PLACEMENTS = ("lidar", "ray")
 """Values of synth.placement."""
+RSS_SAMPLINGS = ("mean", "residual")
+"""Values of synth.rss_sampling."""
 RAY_HINT = " (or set synth.placement=ray, which needs no PlaceNet)"
 """Said where PlaceNet alone is missing."""
 
@@ -122,7 +126,8 @@ def check_generation(cfg: Config) -> None:
     s = cfg.synth
     for key, value, allowed in (("range_estimator", s.range_estimator, ESTIMATORS),
                                 ("no_support", s.no_support, NO_SUPPORT_RULES), ("sampling", s.sampling, SAMPLINGS),
-                                ("placement", s.placement, PLACEMENTS), ("count", s.count, COUNTS)):
+                                ("placement", s.placement, PLACEMENTS), ("count", s.count, COUNTS),
+                                ("rss_sampling", s.rss_sampling, RSS_SAMPLINGS)):
         if value not in allowed:
             raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
     # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set
@@ -157,7 +162,7 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
                             f"train stage with {', '.join(missing)} in train.nets{hint}")
     from pipeline.checkpoint import load_checkpoint, read_meta
-    from pipeline.training import saved_count_scale
+    from pipeline.training import saved_count_scale, saved_residual_quantiles
 
     read = load_checkpoint if weights else read_meta
     for net in nets:  # a truncated, overwritten or otherwise damaged file fails here, not in every frame
@@ -173,6 +178,11 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
             raise PipelineError(f"{path}: PlaceNet's checkpoint holds no count scale (trained before 2026-12-05), "
                                 f"which synth.count = predicted needs: retrain it, `pipeline run train --force` "
                                 f"(with the same --dataset and --cache), or set synth.count=disnet")
+        if net == "rssnet" and cfg.synth.rss_sampling == "residual" and saved_residual_quantiles(meta) is None:
+            raise PipelineError(f"{path}: RSS-Net's checkpoint holds no residual quantiles (trained before 2026-12-06, "
+                                f"or without validation points), which synth.rss_sampling = residual needs: retrain "
+                                f"it, `pipeline run train --force` (with the same --dataset and --cache), or set "
+                                f"synth.rss_sampling=mean")
 
 
 def uses_placenet_count(cfg: Config) -> bool:
@@ -286,9 +296,10 @@ def _place(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, pla
 def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, nets: Nets, rng,
              rss: bool = True) -> dict:
     """Points of one frame from a map and a count (shared with evaluate's baselines): placed as
-    synth.placement says, RSS from RSS-Net (``rss`` False: zeros, for a caller that sets its own)."""
+    synth.placement says, RSS from RSS-Net, with a drawn residual where synth.rss_sampling says
+    (``rss`` False: zeros, for a caller that sets its own)."""
     from pipeline.synthesis import synthesize_frame
-    from pipeline.training import rssnet_predict
+    from pipeline.training import draw_residuals, rssnet_predict
 
     r = cfg.radar
     image, K = inputs.get("calibrate", "image"), inputs.get("calibrate", "K")
@@ -311,6 +322,9 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
         patches, ranges = point_inputs(image, K, T_radar_cam, lidar, pts, cfg)
         vectors = np.column_stack([pts, range_rate]).astype(np.float32)
         values = rssnet_predict(nets.rssnet, patches, ranges, vectors)
+        if cfg.synth.rss_sampling == "residual":  # the checkpoint's quantiles were checked before any frame
+            values = np.clip(values + draw_residuals(nets.rssnet.residual_quantiles, len(values), rng),
+                             r.rss_min, r.rss_max)
         if nets.rssnet.has_input_range():
             rss_outside = nets.rssnet.outside_range(input_summaries(patches, ranges, vectors)).sum(0).astype(np.int32)
         else:  # saved without its training range: not checked

@@ -993,3 +993,23 @@ def test_the_outputs_the_next_stages_and_the_export_read_are_declared_finite():
             ("patches", "place_count"), ("synthesize", "points"), ("synthesize", "pred_map"),
             ("synthesize", "n_hat")} <= finite
     assert ("calibrate", "labels") not in finite and not any(stage == "evaluate-frames" for stage, _ in finite)
+
+
+def test_a_key_added_later_is_left_out_of_fingerprints_at_its_old_value():
+    """synth.rss_sampling joined synthesize's and evaluate's fingerprints on 2026-12-06: at 'mean'
+    (what every earlier output was made with) the fingerprint is the one without the key, so no
+    output recomputes; at 'residual' it differs."""
+    from pipeline.config import ADDED_KEYS
+
+    from stages.evaluate import CONFIG_KEYS as EVALUATE_KEYS
+    from stages.synthesize import CONFIG_KEYS as SYNTHESIZE_KEYS
+
+    cfg = load_config("synthetic", {}, environ={})
+    residual = cfg.with_overrides({"synth.rss_sampling": "residual"})
+    assert ADDED_KEYS["synth.rss_sampling"] == cfg.synth.rss_sampling == "mean"
+    for keys in (SYNTHESIZE_KEYS, EVALUATE_KEYS):
+        assert "synth.rss_sampling" in keys
+        without = tuple(k for k in keys if k != "synth.rss_sampling")
+        assert cfg.fingerprint(keys) == cfg.fingerprint(without)
+        assert residual.fingerprint(keys) != cfg.fingerprint(keys)
+        assert residual.fingerprint(without) == cfg.fingerprint(without)

@@ -97,6 +97,23 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
         lidar = {tuple(p) for p in calib.read("lidar", i).astype(np.float32).tolist()}
         assert all(tuple(p) in lidar for p in syn.read("points", i)[:, :3].tolist()), i
     assert sum(len(syn.read("points", i)) for i in done) > 0
+    # synth.rss_sampling = residual (on the dask run's cache, which nothing reads after this): the
+    # same points, RSS-Net's RSS plus a residual drawn from its validation residuals' quantiles
+    from pipeline.training import RESIDUAL_KEY
+
+    quantiles = read_meta(tmp_path / "dask" / "synthetic" / "train" / "rssnet" / "best.safetensors")[RESIDUAL_KEY]
+    residual_env = RunEnv(serial.env.cfg.with_overrides({"synth.rss_sampling": "residual"}), str(tmp_path / "dask"),
+                          "synthetic", str(world))
+    Pipeline(all_stages(), residual_env, Executor(1, progress=False), progress=False,
+             log=lambda m: None).run("synthesize")
+    mean_rows, drawn_rows = synthesized["points"], arrays(tmp_path / "dask", "synthesize")["points"]
+    np.testing.assert_array_equal(np.delete(drawn_rows, 7, axis=-1), np.delete(mean_rows, 7, axis=-1))
+    rss = np.isfinite(mean_rows[..., 7])
+    added = drawn_rows[..., 7][rss] - mean_rows[..., 7][rss]
+    r = serial.env.cfg.radar
+    clipped = np.isin(drawn_rows[..., 7][rss], np.float32([r.rss_min, r.rss_max]))
+    assert np.all(clipped | ((added >= quantiles[0] - 1e-3) & (added <= quantiles[-1] + 1e-3)))
+    assert np.mean(added != 0) > 0.9 and drawn_rows[..., 7][rss].std() > mean_rows[..., 7][rss].std()
     # evaluate wrote a report with every method and the figures
     report = json.loads((tmp_path / "serial" / "synthetic" / "evaluate" / "report.json").read_text())
     assert "model" in json.dumps(report) and "mean-map" in json.dumps(report)

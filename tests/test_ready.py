@@ -167,3 +167,36 @@ def test_synthesize_draws_the_blended_count_and_records_its_parts(monkeypatch):
         assert run(**overrides) == (4.0, 4.0, [4.0, -1.0]), overrides
     assert run(**{"synth.count": "oracle"}) == (11.0, 4.0, [4.0, -1.0])
 
+
+
+def test_residual_rss_sampling_needs_rssnets_residual_quantiles(tmp_path):
+    """synth.rss_sampling = residual refuses an RSS-Net checkpoint without its residual quantiles
+    (saved before 2026-12-06, or trained without validation points), naming the retraining and
+    synth.rss_sampling=mean; the default (RSS-Net's prediction) needs none; a misspelt value is
+    refused before anything runs."""
+    import numpy as np
+    import torch
+
+    from pipeline.checkpoint import save_checkpoint
+    from pipeline.errors import ConfigError
+    from pipeline.training import RESIDUAL_KEY, RESIDUAL_LEVELS
+    from stages.synthesize import check_generation
+
+    train = dir_store(str(tmp_path / "cache"), "synthetic", "train")
+    weights = {"model.fc.weight": torch.zeros(8)}
+    for net, meta in (("disnet", {}), ("rssnet", {}), ("placenet", {"count_scale": 1.0})):
+        save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / net / "best.safetensors", weights, meta)
+    inputs = SimpleNamespace(dir=lambda name: train)
+    residual = load_config("synthetic", {"synth.rss_sampling": "residual"}, environ={})
+    refused = (r"rssnet/best.safetensors: RSS-Net's checkpoint holds no residual quantiles.*"
+               r"`pipeline run train --force`.*synth.rss_sampling=mean")
+    with pytest.raises(PipelineError, match=refused):
+        ready(inputs, residual)
+    with pytest.raises(PipelineError, match=refused):
+        check_checkpoints(train, residual)
+    ready(inputs, load_config("synthetic", {}, environ={}))  # the default: RSS-Net's prediction
+    save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / "rssnet" / "best.safetensors", weights,
+                    {RESIDUAL_KEY: np.linspace(-5, 5, len(RESIDUAL_LEVELS)).tolist()})
+    ready(inputs, residual)
+    with pytest.raises(ConfigError, match="synth.rss_sampling must be one of mean, residual"):
+        check_generation(load_config("synthetic", {"synth.rss_sampling": "residuals"}, environ={}))

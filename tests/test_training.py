@@ -939,3 +939,41 @@ def test_placenet_count_scale_is_the_best_checkpoints_and_computed_once(tmp_path
     assert calls == [1]
     again = T.train_placenet(cfg, data, tmp_path, progress=False)
     assert calls == [1] and ckpt.read_meta(again.best_path)["count_scale"] == meta["count_scale"]
+
+
+def test_rssnets_checkpoint_keeps_the_quantiles_of_its_validation_residuals(tmp_path):
+    """The best RSS-Net checkpoint holds the quantiles of real minus predicted RSS on the validation
+    points (synth.rss_sampling = residual draws from them), loaded with the net; a net trained
+    without validation points holds none."""
+    from pipeline.checkpoint import read_meta
+
+    data = make_rss_data(p=120)
+    res = T.train_rssnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "a", progress=False)
+    model = T.load_rssnet(tiny_cfg(), res.best_path, device="cpu")
+    val = np.asarray(data.val_idx)
+    pred = T.rssnet_predict(model, data.patches[val], data.range_images[val], data.point_vectors[val])
+    expected = np.quantile(data.rss[val].astype(np.float64) - pred, T.RESIDUAL_LEVELS)
+    np.testing.assert_allclose(read_meta(res.best_path)[T.RESIDUAL_KEY], expected, rtol=1e-5, atol=1e-4)
+    np.testing.assert_allclose(model.residual_quantiles, expected, rtol=1e-5, atol=1e-4)
+    no_val = T.RssNetData(data.patches, data.range_images, data.point_vectors, data.rss, data.train_idx, [])
+    res = T.train_rssnet(tiny_cfg(**{"train.epochs": "1"}), no_val, tmp_path / "b", progress=False)
+    assert T.RESIDUAL_KEY not in read_meta(res.best_path)
+    assert T.load_rssnet(tiny_cfg(), res.best_path, device="cpu").residual_quantiles is None
+
+
+def test_residuals_are_drawn_from_their_quantiles_and_bad_ones_refused():
+    """draw_residuals inverts the quantile function: from the quantiles of a uniform 0..10 it draws
+    values spread over 0..10 with mean 5, the same ones from the same generator; quantiles of the
+    wrong length, decreasing or not finite are taken as none."""
+    q = np.linspace(0.0, 10.0, len(T.RESIDUAL_LEVELS))
+    draws = T.draw_residuals(q, 20_000, np.random.default_rng(1))
+    assert draws.min() >= 0.0 and draws.max() <= 10.0
+    assert draws.mean() == pytest.approx(5.0, abs=0.1) and np.mean(draws < 2.5) == pytest.approx(0.25, abs=0.02)
+    np.testing.assert_array_equal(draws[:50], T.draw_residuals(q, 50, np.random.default_rng(1)))
+    steep = np.r_[np.zeros(50), np.full(51, 8.0)]  # half the mass at 0, half at 8, 1% between
+    two = T.draw_residuals(steep, 10_000, np.random.default_rng(2))
+    assert np.mean(two == 0.0) == pytest.approx(0.49, abs=0.02) and np.mean(two == 8.0) == pytest.approx(0.5, abs=0.02)
+    np.testing.assert_array_equal(T.saved_residual_quantiles({T.RESIDUAL_KEY: q.tolist()}), q)
+    for bad in (q[:-1].tolist(), q[::-1].tolist(), [*q[:-1], float("nan")], "x", None):
+        assert T.saved_residual_quantiles({T.RESIDUAL_KEY: bad}) is None
+    assert T.saved_residual_quantiles({}) is None
