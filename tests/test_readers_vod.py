@@ -207,14 +207,11 @@ def test_boxes_without_track_ids_get_velocities_by_matching_across_frames(tmp_pa
     assert any("labelled objects of unknown velocity: 1 of 12:" in line and "static" in line for line in lines), lines
 
 
-def test_each_label_file_is_parsed_once_per_reader_until_it_changes(tmp_path, monkeypatch):
-    """A frame's velocities read its neighbours' labels and poses: the reader keeps what it parsed
-    (each label file was parsed three times), parses a file again once it changes, and raises a
-    malformed file's error on each read instead of keeping it."""
+def _count_label_parses(monkeypatch) -> list[str]:
+    """The ids of the label files the VoD reader parses from now on, in order (parse_label_file
+    wrapped)."""
     import pipeline.readers.vod as vod
-    from pipeline.errors import ReaderError
 
-    truth = make_vod_dataset(tmp_path, n_frames=4, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
     parsed: list[str] = []
 
     def counting(path, frame):
@@ -222,6 +219,17 @@ def test_each_label_file_is_parsed_once_per_reader_until_it_changes(tmp_path, mo
         return parse_label_file(path, frame)
 
     monkeypatch.setattr(vod, "parse_label_file", counting)
+    return parsed
+
+
+def test_each_label_file_is_parsed_once_per_reader_until_it_changes(tmp_path, monkeypatch):
+    """A frame's velocities read its neighbours' labels and poses: the reader keeps what it parsed
+    (each label file was parsed three times), parses a file again once it changes, and raises a
+    malformed file's error on each read instead of keeping it."""
+    from pipeline.errors import ReaderError
+
+    truth = make_vod_dataset(tmp_path, n_frames=4, speed_mps=5.0, object_velocity_D=(1.0, 0.5, 0.0))
+    parsed = _count_label_parses(monkeypatch)
     reader = get_reader(_fixture_cfg(), tmp_path)
     first = [reader.read(fid).labels[0].velocity_D for fid in truth.frame_ids]
     assert sorted(parsed) == sorted(truth.frame_ids)  # each once, though each frame reads its neighbours'
@@ -420,13 +428,7 @@ def test_a_reader_keeps_only_the_last_parsed_files(tmp_path, monkeypatch):
     import pipeline.readers.vod as vod
 
     truth = make_vod_dataset(tmp_path, n_frames=12, speed_mps=5.0, n_radar=10)
-    parsed: list[str] = []
-
-    def counting(path, frame):
-        parsed.append(Path(path).stem)
-        return parse_label_file(path, frame)
-
-    monkeypatch.setattr(vod, "parse_label_file", counting)
+    parsed = _count_label_parses(monkeypatch)
     reader = get_reader(_fixture_cfg(), tmp_path)
     for fid in truth.frame_ids:
         reader.read(fid)
