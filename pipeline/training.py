@@ -786,13 +786,21 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.train.rss_batch_size, terms_fn=rssnet_terms, weights={"a": 1.0})
     res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress)
-    meta = ckpt.read_meta(res.best_path)
-    if len(data.val_idx) and RESIDUAL_KEY not in meta:  # a new best is written without them
-        tensors, meta = ckpt.load_checkpoint(res.best_path)
-        model.load_state_dict(_model_state(model, tensors), strict=True)
-        quantiles = rssnet_residual_quantiles(model.to("cpu"), data, data.val_idx)
-        ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, RESIDUAL_KEY: quantiles})
+    if len(data.val_idx):
+        _add_to_best_meta(res, model, RESIDUAL_KEY, lambda best: rssnet_residual_quantiles(best, data, data.val_idx))
     return res
+
+
+def _add_to_best_meta(res: TrainResult, model: nn.Module, key: str, compute: Callable[[nn.Module], Any]) -> None:
+    """Give the best checkpoint's metadata ``key`` = ``compute(model)``, the best weights loaded into
+    ``model`` on the CPU, where it lacks the key (a new best is written without it; a resumed,
+    finished run's best keeps it)."""
+    if key in ckpt.read_meta(res.best_path):
+        return
+    tensors, meta = ckpt.load_checkpoint(res.best_path)
+    model.load_state_dict(_model_state(model, tensors), strict=True)
+    model = model.to("cpu")
+    ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, key: compute(model)})
 
 
 RESIDUAL_KEY = "rss_residual_quantiles"
@@ -861,13 +869,9 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr)
     res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
-    meta = ckpt.read_meta(res.best_path)
-    if data.train_frame_candidates is not None and "count_scale" not in meta:  # a new best is written without it
-        tensors, meta = ckpt.load_checkpoint(res.best_path)
-        model.load_state_dict(_model_state(model, tensors), strict=True)
-        scale = placenet_count_scale(model.to("cpu"), data.features, data.train_frame_rows,
-                                     data.train_frame_candidates(), data.train_frame_counts)
-        ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, "count_scale": scale})
+    if data.train_frame_candidates is not None:
+        _add_to_best_meta(res, model, "count_scale", lambda best: placenet_count_scale(
+            best, data.features, data.train_frame_rows, data.train_frame_candidates(), data.train_frame_counts))
     return res
 
 

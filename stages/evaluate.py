@@ -85,8 +85,7 @@ world); the read's peak is 2-4 times as much (the block, the decoded bytes, the 
 
 CONFIG_KEYS = ("eval.split", "eval.figure_frames", "eval.pooled_rows_max", "eval.gate_m", "eval.gate_rss",
                "eval.gate_doppler_mps", "synth.range_estimator", "synth.no_support", "synth.seed", "synth.sampling",
-               "synth.rss_sampling",
-               "synth.refill_rounds",
+               "synth.rss_sampling", "synth.refill_rounds",
                "synth.placement", "placement.voxel_m", "placement.map_weight", "heatmap.sigma_px",
                "radar.doppler_span_mps", "radar.az_res_deg", "radar.el_res_deg")
 FRAME_KEYS = tuple(k for k in CONFIG_KEYS if k not in ("eval.figure_frames", "eval.pooled_rows_max"))
