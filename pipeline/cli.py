@@ -224,20 +224,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     closure = pipe.upstream_closure(stage)
     pipe.check_config(stage)
     if dry_run:
-        rows = {r["stage"]: r for r in pipe.status(reasons=0)}
-        for name in closure:
-            _print_status_row(rows[name])
-        if force and frames_spec and isinstance(pipe.stages[stage], FrameStage):
-            click.echo(f"--force --frames {frames_spec}: those frames of {stage} would be recomputed in place, "
-                       f"the same frames of the frame stages after it marked to recompute, the dataset stages "
-                       f"after it marked stale")
-        elif force:
-            click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
-        if frames_spec:
-            click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames"
-                       f"{_whole_dataset_note(pipe, closure)}")
-        rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
-        _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
+        _dry_run(pipe, stage, closure, force, frames_spec)
         return
     pipe.executor.check_cluster(env.cache_root)  # before the world is generated or any output touched
     _ensure_world(env, pipe.progress)
@@ -260,19 +247,44 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
         for key in ("report", "figures", "checkpoints", "output"):
             if key in r.summary:
                 click.echo(f"{r.stage} {key}: {r.summary[key]}")
-    # a frame stage with failed frames and none done made nothing (the run stopped after it unless it
-    # was the target): no success for a script (some failed frames beside done ones are: see --strict)
+    _exit_if_nothing_done(reports, status_cmd)
+
+
+def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None) -> None:
+    """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
+    --frames would do; exit 3 (as status) when an output it would read is damaged."""
+    rows = {r["stage"]: r for r in pipe.status(reasons=0)}
+    for name in closure:
+        _print_status_row(rows[name])
+    if force and frames_spec and isinstance(pipe.stages[stage], FrameStage):
+        click.echo(f"--force --frames {frames_spec}: those frames of {stage} would be recomputed in place, "
+                   f"the same frames of the frame stages after it marked to recompute, the dataset stages "
+                   f"after it marked stale")
+    elif force:
+        click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
+    if frames_spec:
+        click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames"
+                   f"{_whole_dataset_note(pipe, closure)}")
+    rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
+    _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
+
+
+def _exit_if_nothing_done(reports, status_cmd: str) -> None:
+    """Exit 1 when a frame stage with failed frames has none done: it made nothing (the run stopped
+    after it unless it was the target), which is no success for a script (some failed frames beside
+    done ones are: see --strict)."""
     nothing = [r for r in reports if r.action != "dataset" and r.done == 0 and r.failed]
-    if nothing:
-        r = nothing[0]
-        if r.failures:
-            first = (r.failures[0][1] or "no reason recorded").splitlines()[0]
-            why = f"all {r.processed} frame(s) it tried in this run failed, e.g. {first}"
-        else:
-            why = f"its {r.failed} failed frame(s) failed in an earlier run (`{status_cmd}` lists why; " \
-                  f"--retry-failed tries them again)"
-        click.echo(f"error: stage {r.stage} has no frame done: {why}", err=True)
-        sys.exit(1)
+    if not nothing:
+        return
+    r = nothing[0]
+    if r.failures:
+        first = (r.failures[0][1] or "no reason recorded").splitlines()[0]
+        why = f"all {r.processed} frame(s) it tried in this run failed, e.g. {first}"
+    else:
+        why = f"its {r.failed} failed frame(s) failed in an earlier run (`{status_cmd}` lists why; " \
+              f"--retry-failed tries them again)"
+    click.echo(f"error: stage {r.stage} has no frame done: {why}", err=True)
+    sys.exit(1)
 
 
 def _whole_dataset_note(pipe, names: list[str]) -> str:

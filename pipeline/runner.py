@@ -515,15 +515,13 @@ class Pipeline:
         store.create(fp, self.frame_ids(), specs, {s.name: s.frame_shape(cfg) for s in specs}, attrs)
         return True
 
-    def _run_frames(self, stage: FrameStage, frames: list[int] | None, strict: bool, force: bool,
-                    retry_failed: bool) -> StageReport:
-        created = self._ensure_created(stage, force)
-        store = self.env.store(stage.name)
-        if not created:  # resumed: an array whose metadata is damaged stops the run before any frame
-            store.check_metadata()
+    def _frames_to_do(self, stage: FrameStage, store, status: np.ndarray, frames: list[int] | None,
+                      retry_failed: bool) -> np.ndarray:
+        """Mask (F,) of the frames of ``stage`` to compute now: pending ones (and failed ones with
+        ``retry_failed``; else those blocked by an upstream that is done now), limited to ``frames``.
+        Marks in ``store`` the frames an upstream failure or exclusion blocks, and the pending frames
+        the stage's configuration does not select (excluded), with the reason."""
         ids = self.frame_ids()
-        status = store.status()
-        report = StageReport(stage.name, "recomputed" if created else "resumed")
         todo_mask = status == PENDING
         if retry_failed:
             todo_mask |= status == FAILED
@@ -549,6 +547,18 @@ class Pipeline:
             store.mark_many(np.flatnonzero((todo_mask | (status == PENDING)) & ~chosen), EXCLUDED,
                             "not selected by this stage's configuration")
             todo_mask &= chosen
+        return todo_mask
+
+    def _run_frames(self, stage: FrameStage, frames: list[int] | None, strict: bool, force: bool,
+                    retry_failed: bool) -> StageReport:
+        created = self._ensure_created(stage, force)
+        store = self.env.store(stage.name)
+        if not created:  # resumed: an array whose metadata is damaged stops the run before any frame
+            store.check_metadata()
+        ids = self.frame_ids()
+        status = store.status()
+        report = StageReport(stage.name, "recomputed" if created else "resumed")
+        todo_mask = self._frames_to_do(stage, store, status, frames, retry_failed)
         todo = [(int(i), ids[int(i)]) for i in np.flatnonzero(todo_mask)]
         for index, code, reason in self.executor.map(stage, self.env, todo, strict):
             report.processed += 1

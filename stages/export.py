@@ -29,6 +29,7 @@ camera.* (the full-resolution K of a generated calib).
 from __future__ import annotations
 
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -59,13 +60,22 @@ the image edge were rated 'Easy' by OpenPCDet).
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
+@dataclass
+class _Tally:
+    """What the export has written so far: the image sets and the summary's counts."""
+
+    lists: dict[str, list[str]] = field(default_factory=lambda: {name: [] for name in SPLIT_NAMES.values()})
+    no_motion: list[str] = field(default_factory=list)  # frames whose dataset records no ego motion
+    empty: list[str] = field(default_factory=list)      # frames written without a point
+    unknown_motion: dict[str, int] = field(default_factory=dict)  # frame -> points on objects of unknown velocity
+    classes: dict[str, Counter[str]] = field(default_factory=lambda: {"training": Counter(), "testing": Counter()})
+    unused: set[str] = field(default_factory=set)  # names of export.class_names no label holds (a misspelt class)
+    points: int = 0
+    noise: int = 0
+
+
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
-    from pipeline.export import (IMAGE_FORMATS, add_uniform_noise, calib_P2, calib_text, detector_label_text,
-                                 generated_calib, kitti_label_text, label_classes, parse_class_map, preview_png,
-                                 radar_rows, rename_classes, write_image, write_image_sets, write_kitti_layout,
-                                 write_pcd)
-    from pipeline.synthesis import on_objects_of_unknown_velocity
-    from pipeline.working import full_K
+    from pipeline.export import parse_class_map, write_image_sets
 
     syn, calib = inputs.store("synthesize"), inputs.store("calibrate")
     done = np.flatnonzero(syn.status() == DONE)
@@ -73,102 +83,133 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         raise PipelineError(f"export: synthesize has no finished frame (synth.split = '{cfg.synth.split}')")
     split = np.asarray(calib.array("split")[:])
     root = Path(out.path)
-    radar_root = root / "radar"
-    lists: dict[str, list[str]] = {name: [] for name in SPLIT_NAMES.values()}
-    no_motion: list[str] = []   # frames whose dataset records no ego motion: Doppler as if stopped
-    empty: list[str] = []       # frames written without a point
-    unknown_motion: dict[str, int] = {}  # frame -> points on labelled objects of unknown velocity: static Doppler
-    n_points = n_noise = 0
     class_map = parse_class_map(cfg.export.class_names)  # checked by check()
-    classes: dict[str, Counter[str]] = {"training": Counter(), "testing": Counter()}  # boxes per class written
-    unused = set(class_map)  # names of export.class_names no label holds (a misspelt class)
+    tally = _Tally(unused=set(class_map))
     for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
         i = int(i)
-        fid = inputs.frame_ids[i]
-        f = inputs.frame(i)
-        pts = syn.read("points", i)
-        ego = f.get("calibrate", "ego_velocity")
-        span = cfg.radar.doppler_span_mps
-        rows = radar_rows(pts, ego, span)
-        if cfg.export.noise_fraction > 0:
-            r = cfg.radar
-            before = len(rows)
-            rows = add_uniform_noise(rows, cfg.export.noise_fraction, f.rng(cfg.synth.seed, 31),
-                                     fov_az_deg=r.fov_az_deg, fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m,
-                                     rss_range=(r.rss_min, r.rss_max),
-                                     doppler_range_mps=(-span / 2, span / 2) if span > 0 else (-15.0, 15.0),
-                                     ego_velocity_D=ego, doppler_span_mps=span)
-            n_noise += len(rows) - before
-        K, T_radar_cam = f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam")
-        T_cam_radar = invert_transform(T_radar_cam)
-        name = SPLIT_NAMES.get(int(split[i]), "test")
-        subset = "testing" if name == "test" else "training"
-        c, src = cfg.camera, f.reader.detector_files(fid)
-        calib_src = calib_text(src.calib) if isinstance(src.calib, dict) else src.calib
+        export_frame(inputs.frame(i), inputs.frame_ids[i], syn.read("points", i),
+                     SPLIT_NAMES.get(int(split[i]), "test"), cfg, root, class_map, tally)
+    write_image_sets(root / "radar", tally.lists)
+    if tally.no_motion:
+        (root / NO_MOTION_LIST).write_text("\n".join(tally.no_motion) + "\n")
+    if tally.unknown_motion:
+        (root / UNKNOWN_OBJECT_MOTION_LIST).write_text("\n".join(tally.unknown_motion) + "\n")
+    n_unknown = sum(tally.unknown_motion.values())
+    return {"frames": int(len(done)), "points": int(tally.points), "noise_points": int(tally.noise),
+            "output": str(root), "no_ego_motion": len(tally.no_motion), "empty_frames": tally.empty,
+            "object_motion_unknown": {"frames": len(tally.unknown_motion), "points": int(n_unknown)},
+            "classes": {subset: dict(counts) for subset, counts in tally.classes.items()},
+            "classes_not_found": sorted(tally.unused), "message": _message(tally, len(done), root, cfg)}
+
+
+def export_frame(f, fid: str, pts: np.ndarray, split_name: str, cfg: Config, root: Path,
+                 class_map: dict[str, str], tally: _Tally) -> None:
+    """Write one frame's files under ``root`` (its synthesized ``pts`` (N, 9) in synthesize's
+    columns, its calib, label, image, and the optional PCD and preview) and add it to ``tally``.
+    ``f``: the frame's inputs (FrameInputs); ``split_name``: 'train', 'val' or 'test'."""
+    from pipeline.export import label_classes, preview_png, rename_classes, write_kitti_layout, write_pcd
+    from pipeline.synthesis import on_objects_of_unknown_velocity
+
+    rows, n_noise = _radar_rows(f, pts, cfg)
+    K, T_cam_radar = f.get("calibrate", "K"), invert_transform(f.get("calibrate", "T_radar_cam"))
+    subset = "testing" if split_name == "test" else "training"
+    calib_src, label, image_src, record = _detector_files(f, fid, K, T_cam_radar, cfg)
+    if label is not None:
+        found = label_classes(label)
+        tally.unused -= set(found)
+        tally.classes[subset].update({class_map.get(kind, kind): n for kind, n in found.items()})
+        label = rename_classes(label, class_map)
+    radar_root = root / "radar"
+    write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
+    if len(rows) == 0:
+        tally.empty.append(fid)
+    if cfg.export.images and image_src is None:  # the reader's image, in the chosen format
+        from pipeline.export import IMAGE_FORMATS, write_image
+
         suffix = IMAGE_FORMATS[cfg.export.image_format]
-        as_is = src.image is not None and suffix in (None, src.image.suffix.lower().replace(".jpeg", ".jpg"))
-        image_src = src.image if cfg.export.images and as_is else None
-        K_full = full_K(K, c.crop_rows, c.full_size, c.working_size)  # goes with the reader's full-size image
-        if calib_src is None:
-            calib_src = generated_calib(K, T_cam_radar, c.crop_rows, c.full_size, c.working_size)
-        generated = src.calib is None and src.label is None and src.objects_labelled
-        record = f.reader.read(fid) if generated or (cfg.export.images and image_src is None) else None
-        if src.label is not None:
-            label = detector_label_text(src.label.read_text(), src.label_track_ids, calib_P2(calib_src),
-                                        tuple(c.full_size))
-        elif generated:  # the dataset's own annotation, for the generated calib's camera
-            label = kitti_label_text(record.labels, T_cam_radar, K_full, tuple(c.full_size))
-        else:
-            label = None
-        if label is not None:
-            found = label_classes(label)
-            unused -= set(found)
-            classes[subset].update({class_map.get(kind, kind): n for kind, n in found.items()})
-            label = rename_classes(label, class_map)
-        write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
-        if len(rows) == 0:
-            empty.append(fid)
-        if cfg.export.images and image_src is None:  # the reader's image, in the chosen format
-            write_image(radar_root / subset / "image_2" / f"{fid}{suffix or '.png'}", record.image)
-        if cfg.export.pcd:
-            write_pcd(root / "pcd" / f"{fid}.pcd", pts[:, :3], pts[:, 7], pts[:, 6])
-        if cfg.export.previews:
-            image = f.get("calibrate", "image")
-            uv, _, valid = project_to_image(pts[:, :3], K, T_cam_radar, (image.shape[1], image.shape[0]))
-            preview_png(root / "preview" / f"{fid}.png", image, uv[valid], pts[valid, 3], cfg.radar.max_range_m)
-        lists[name].append(fid)
-        if not f.get("calibrate", "ego_velocity_known"):
-            no_motion.append(fid)
-        on_unknown = int(on_objects_of_unknown_velocity(pts[:, :3], f.get("calibrate", "labels")).sum())
-        if on_unknown:
-            unknown_motion[fid] = on_unknown
-        n_points += len(pts)
-    write_image_sets(radar_root, lists)
-    if no_motion:
-        (root / NO_MOTION_LIST).write_text("\n".join(no_motion) + "\n")
-    if unknown_motion:
-        (root / UNKNOWN_OBJECT_MOTION_LIST).write_text("\n".join(unknown_motion) + "\n")
-    n_unknown = sum(unknown_motion.values())
-    return {"frames": int(len(done)), "points": int(n_points), "noise_points": int(n_noise), "output": str(root),
-            "no_ego_motion": len(no_motion), "empty_frames": empty,
-            "object_motion_unknown": {"frames": len(unknown_motion), "points": int(n_unknown)},
-            "classes": {subset: dict(counts) for subset, counts in classes.items()},
-            "classes_not_found": sorted(unused),
-            "message": f"exported {len(done)} frame(s), {n_points} points (+{n_noise} noise) to {root} (the RCS "
-                       f"column in {cfg.radar.rss_unit}, the unit of the simulated {cfg.radar.name})"
-                       + _classes_note(classes, cfg)
-                       + (f"; export.class_names renames {', '.join(sorted(unused))}, which no written label holds"
-                          if unused else "")
-                       + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
-                          f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
-                       + (f"; {n_unknown} of the points ({n_unknown / max(n_points, 1):.0%}), in {len(unknown_motion)} "
-                          f"frame(s), lie on labelled objects whose velocity the dataset does not record: their "
-                          f"Doppler is a static object's, so a moving object's points read as parked (frames listed "
-                          f"in {root / UNKNOWN_OBJECT_MOTION_LIST})" if unknown_motion else "")
-                       + (f"; {len(empty)} of them without a point (an empty .bin, on which a detector's "
-                          f"voxelisation may fail): {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}"
-                          if empty else "")
-                       + ("" if lists["train"] else _no_train_hint(cfg))}
+        write_image(radar_root / subset / "image_2" / f"{fid}{suffix or '.png'}", record.image)
+    if cfg.export.pcd:
+        write_pcd(root / "pcd" / f"{fid}.pcd", pts[:, :3], pts[:, 7], pts[:, 6])
+    if cfg.export.previews:
+        image = f.get("calibrate", "image")
+        uv, _, valid = project_to_image(pts[:, :3], K, T_cam_radar, (image.shape[1], image.shape[0]))
+        preview_png(root / "preview" / f"{fid}.png", image, uv[valid], pts[valid, 3], cfg.radar.max_range_m)
+    tally.lists[split_name].append(fid)
+    if not f.get("calibrate", "ego_velocity_known"):
+        tally.no_motion.append(fid)
+    on_unknown = int(on_objects_of_unknown_velocity(pts[:, :3], f.get("calibrate", "labels")).sum())
+    if on_unknown:
+        tally.unknown_motion[fid] = on_unknown
+    tally.points += len(pts)
+    tally.noise += n_noise
+
+
+def _radar_rows(f, pts: np.ndarray, cfg: Config) -> tuple[np.ndarray, int]:
+    """The frame's VoD radar rows (pipeline.export.radar_rows) with export.noise_fraction of uniform
+    noise points added, and how many were added."""
+    from pipeline.export import add_uniform_noise, radar_rows
+
+    ego, span, r = f.get("calibrate", "ego_velocity"), cfg.radar.doppler_span_mps, cfg.radar
+    rows = radar_rows(pts, ego, span)
+    if cfg.export.noise_fraction <= 0:
+        return rows, 0
+    noisy = add_uniform_noise(rows, cfg.export.noise_fraction, f.rng(cfg.synth.seed, 31),
+                              fov_az_deg=r.fov_az_deg, fov_el_deg=r.fov_el_deg, max_range_m=r.max_range_m,
+                              rss_range=(r.rss_min, r.rss_max),
+                              doppler_range_mps=(-span / 2, span / 2) if span > 0 else (-15.0, 15.0),
+                              ego_velocity_D=ego, doppler_span_mps=span)
+    return noisy, len(noisy) - len(rows)
+
+
+def _detector_files(f, fid: str, K: np.ndarray, T_cam_radar: np.ndarray, cfg: Config) -> tuple:
+    """(calib, label, image, record) of a frame for the detector layout: the dataset's calib (text,
+    or a path to carry over) or one generated from the working ``K`` and ``T_cam_radar``; its label
+    text (track ids replaced by truncation) or one written from the reader's objects for a generated
+    calib, else None; the dataset's image file to carry over where export.image_format keeps its
+    format, else None; the reader's record where the label or the image must come from it, else None."""
+    from pipeline.export import (IMAGE_FORMATS, calib_P2, calib_text, detector_label_text, generated_calib,
+                                 kitti_label_text)
+    from pipeline.working import full_K
+
+    c, src = cfg.camera, f.reader.detector_files(fid)
+    calib_src = calib_text(src.calib) if isinstance(src.calib, dict) else src.calib
+    suffix = IMAGE_FORMATS[cfg.export.image_format]
+    as_is = src.image is not None and suffix in (None, src.image.suffix.lower().replace(".jpeg", ".jpg"))
+    image_src = src.image if cfg.export.images and as_is else None
+    if calib_src is None:
+        calib_src = generated_calib(K, T_cam_radar, c.crop_rows, c.full_size, c.working_size)
+    generated = src.calib is None and src.label is None and src.objects_labelled
+    record = f.reader.read(fid) if generated or (cfg.export.images and image_src is None) else None
+    if src.label is not None:
+        label = detector_label_text(src.label.read_text(), src.label_track_ids, calib_P2(calib_src),
+                                    tuple(c.full_size))
+    elif generated:  # the dataset's own annotation, for the generated calib's camera
+        label = kitti_label_text(record.labels, T_cam_radar, full_K(K, c.crop_rows, c.full_size, c.working_size),
+                                 tuple(c.full_size))
+    else:
+        label = None
+    return calib_src, label, image_src, record
+
+
+def _message(tally: _Tally, frames: int, root: Path, cfg: Config) -> str:
+    """The run's one-line summary: what was written where, and what a detector's user must know."""
+    n_points, n_unknown = tally.points, sum(tally.unknown_motion.values())
+    no_motion, empty, unused = tally.no_motion, tally.empty, tally.unused
+    return (f"exported {frames} frame(s), {n_points} points (+{tally.noise} noise) to {root} (the RCS "
+            f"column in {cfg.radar.rss_unit}, the unit of the simulated {cfg.radar.name})"
+            + _classes_note(tally.classes, cfg)
+            + (f"; export.class_names renames {', '.join(sorted(unused))}, which no written label holds"
+               if unused else "")
+            + (f"; {len(no_motion)} of them without a recorded ego motion, their Doppler a stopped "
+               f"car's (listed in {root / NO_MOTION_LIST})" if no_motion else "")
+            + (f"; {n_unknown} of the points ({n_unknown / max(n_points, 1):.0%}), in {len(tally.unknown_motion)} "
+               f"frame(s), lie on labelled objects whose velocity the dataset does not record: their "
+               f"Doppler is a static object's, so a moving object's points read as parked (frames listed "
+               f"in {root / UNKNOWN_OBJECT_MOTION_LIST})" if tally.unknown_motion else "")
+            + (f"; {len(empty)} of them without a point (an empty .bin, on which a detector's "
+               f"voxelisation may fail): {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}"
+               if empty else "")
+            + ("" if tally.lists["train"] else _no_train_hint(cfg)))
 
 
 def _classes_note(classes: dict[str, Counter[str]], cfg: Config) -> str:
