@@ -195,7 +195,7 @@ class DisNetSection:
     network)."""
     speed_count_prior: bool = False
     """With ``prior`` and ``use_speed``: start the count at the training mean count AT THE FRAME'S
-    EGO SPEED (``pipeline.training.speed_count_prior``: a knot for a stopped ego, speed quantiles
+    EGO SPEED (``pipeline.net_baselines.speed_count_prior``: a knot for a stopped ego, speed quantiles
     of at least 30 frames for the rest, linear between) instead of the overall mean; the number
     branch learns the per-frame deviation from it. A radar's count depends strongly on its speed
     (static returns at zero Doppler when stopped). For large training sets: on the 2400-frame

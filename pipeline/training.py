@@ -1,8 +1,11 @@
-"""Resumable training of Dis-Net and RSS-Net (torchvision-reference style: train_one_epoch,
-evaluate, run), inference helpers and the baselines the models must beat.
+"""Resumable training of Dis-Net, RSS-Net and PlaceNet (torchvision-reference style:
+train_one_epoch, evaluate, run), their test metrics and what the best checkpoints add (Dis-Net's
+refitted count branch, PlaceNet's count scale, RSS-Net's residual quantiles). Loading and
+prediction are in pipeline.inference, the nets' baselines in pipeline.net_baselines.
 
 Data are array-likes (numpy or zarr arrays) indexed by frame / point along axis 0; they are read
-one window of batches at a time (sorted reads, one chunk-group order per epoch), never all at once.
+one window of batches at a time (pipeline.rows: sorted reads, one chunk-group order per epoch),
+never all at once.
 
 Files in ``out_dir`` (one folder per net; a folder holding the other net's checkpoint is refused):
 ``last.safetensors`` (+ ``last.json`` sidecar): weights, optimizer, RNG, epoch, curves - the
@@ -22,10 +25,9 @@ import logging
 import math
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 import torch
@@ -35,20 +37,20 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from pipeline import augment
 from pipeline import checkpoint as ckpt
 from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS
-from pipeline.egomotion import STOPPED_MPS
 from pipeline.errors import ConfigError
-from pipeline.models.disnet import COUNT_PRIOR_KNOTS, DisNet, build_disnet, disnet_kwargs
+from pipeline.net_baselines import mean_map_baseline, speed_count_prior
+from pipeline.inference import (RESIDUAL_KEY, RESIDUAL_LEVELS, device_of, disnet_inputs, jsonable_arch,
+                                model_state, placenet_predict, rss_arrays, rssnet_inputs, select_device)
+from pipeline.models.disnet import DisNet, build_disnet, disnet_kwargs
 from pipeline.models.losses import count_loss, kl_loss, poisson_loss, rss_loss
 from pipeline.models.placenet import PlaceNet, build_placenet, placenet_kwargs
-from pipeline.models.resnet import resnet18_backbone
 from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
 from pipeline.patches import input_summaries
+from pipeline.rows import (WINDOW_BATCHES, Batch, Rows, as_rows, chunk_len, epoch_windows, evenly_spaced,
+                           iter_batches, n_rows, take_rows)
 
 log = logging.getLogger(__name__)
-Batch = dict[str, np.ndarray]
 TermsFn = Callable[[nn.Module, Batch, torch.device], dict[str, Tensor]]
-WINDOW_BATCHES = 16
-"""Batches read from the arrays in one go (one sorted read per array)."""
 
 
 @dataclass
@@ -122,146 +124,6 @@ class TrainResult:
     best_epoch: int
     best_metric: float
     curves: list[dict[str, float]] = field(default_factory=list)
-
-
-# ----------------------------------------------------------------------------------------- data
-
-
-def select_device(name: str, key: str = "train.device") -> torch.device:
-    """'auto' -> cuda when available else cpu; 'cpu' / 'cuda' as given (ConfigError naming the
-    setting ``key`` if unusable)."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"{key} = '{name}' but CUDA is not available (use 'auto' or 'cpu')")
-    if not (name == "cpu" or name.startswith("cuda")):
-        raise ConfigError(f"{key} must be 'auto', 'cpu' or 'cuda', got '{name}'")
-    return torch.device(name)
-
-
-Rows = np.ndarray | range
-"""Row indices: an int array, or a ``range`` (step 1) for the contiguous row sets of RSS-Net and
-PlaceNet, which are never materialised (8 bytes a row: 390 MB at 24,000 frames of 2,048 rows)."""
-
-
-def evenly_spaced(idx: Rows, n: int) -> np.ndarray:
-    """At most ``n`` of the indices ``idx``, evenly spaced along it (all of them when fewer)."""
-    pick = np.unique(np.linspace(0, len(idx) - 1, min(len(idx), n)).astype(np.int64)) if len(idx) else []
-    if isinstance(idx, range):
-        return idx.start + idx.step * np.asarray(pick, np.int64)
-    idx = np.asarray(idx, dtype=np.int64)
-    return idx[pick] if len(idx) else idx
-
-
-def _index_array(idx: Sequence[int]) -> np.ndarray:
-    """``idx`` as a flat int64 array (a range by arange: np.asarray of one is 20x slower)."""
-    if isinstance(idx, range):
-        return np.arange(idx.start, idx.stop, idx.step, dtype=np.int64)
-    return np.asarray(idx, np.int64).reshape(-1)
-
-
-def _rows(idx: Sequence[int]) -> Rows:
-    """``idx`` as row indices: a ``range`` (step 1) as it is, else a flat int64 array."""
-    return idx if isinstance(idx, range) and idx.step == 1 else _index_array(idx)
-
-
-def take_rows(array: Any, idx: Rows) -> np.ndarray:
-    """Rows ``idx`` (any order, repeats allowed) of a numpy or zarr array, read with sorted indices."""
-    idx = _index_array(idx)
-    if isinstance(array, np.ndarray):
-        return array[idx]
-    uniq, inverse = np.unique(idx, return_inverse=True)
-    rows = array.oindex[uniq] if hasattr(array, "oindex") else array[uniq]
-    return np.asarray(rows)[inverse]
-
-
-def n_rows(array: Any) -> int:
-    """Length of axis 0 of a numpy / zarr array."""
-    return int(array.shape[0])
-
-
-def chunk_len(array: Any) -> int:
-    """Rows per storage chunk along axis 0 (1 for in-memory arrays)."""
-    chunks = getattr(array, "chunks", None)
-    if not chunks:
-        return 1
-    first = chunks[0]
-    return int(first[0] if isinstance(first, tuple) else first)
-
-
-def epoch_windows(idx: Rows, rows_per_chunk: int, window: int, rng: np.random.Generator) -> Iterator[np.ndarray]:
-    """One epoch's shuffled order of the rows ``idx``, in consecutive pieces of ``window`` rows (the
-    last may be shorter), each made when it is asked for: with ``rows_per_chunk`` > 1 the storage
-    chunks' groups of rows in a random order, then the rows inside each window shuffled (reads stay
-    within few chunks); with 1, a plain permutation. For a ``range`` (step 1) only one window is held
-    at a time, not an order of every row (8 bytes a row and several times that while sorting: 2.9 GB
-    for 49 million rows). The windows and the generator's state after the last one are the same
-    whether ``idx`` is a range or an array of the same rows (a resumed training goes on the same)."""
-    if window <= 0:
-        raise ValueError(f"epoch_windows: window must be > 0, got {window}")
-    if len(idx) == 0:
-        return iter(())
-    if isinstance(idx, range) and idx.step == 1 and rows_per_chunk > 1:
-        return _range_windows(idx, rows_per_chunk, window, rng)
-    return _array_windows(_index_array(idx), rows_per_chunk, window, rng)
-
-
-def _array_windows(idx: np.ndarray, rows_per_chunk: int, window: int, rng: np.random.Generator) -> Iterator[np.ndarray]:
-    """:func:`epoch_windows` of an array: its whole order made first."""
-    if rows_per_chunk <= 1:
-        order = rng.permutation(idx)
-        yield from (order[start:start + window] for start in range(0, len(order), window))
-        return
-    _, group = np.unique(idx // rows_per_chunk, return_inverse=True)
-    rank = rng.permutation(group.max() + 1)
-    order = idx[np.argsort(rank[group], kind="stable")]
-    for start in range(0, len(order), window):
-        yield rng.permutation(order[start:start + window])
-
-
-def _range_windows(idx: range, rows_per_chunk: int, window: int, rng: np.random.Generator) -> Iterator[np.ndarray]:
-    """:func:`epoch_windows` of a range (step 1): each chunk's rows are consecutive numbers, so the
-    chunks' order is all that is held."""
-    first = idx.start // rows_per_chunk
-    rank = rng.permutation((idx.stop - 1) // rows_per_chunk - first + 1)
-    pending: list[np.ndarray] = []
-    held = 0
-    for chunk in first + np.argsort(rank):  # the chunk of rank 0 first, then rank 1, ...
-        rows = np.arange(max(chunk * rows_per_chunk, idx.start), min((chunk + 1) * rows_per_chunk, idx.stop))
-        pending.append(rows)
-        held += len(rows)
-        while held >= window:
-            rows = np.concatenate(pending)
-            yield rng.permutation(rows[:window])
-            pending, held = [rows[window:]], held - window
-    if held:
-        yield rng.permutation(np.concatenate(pending))
-
-
-def iter_batches(arrays: dict[str, Any], order: Rows | Iterator[np.ndarray], batch_size: int) -> Iterator[Batch]:
-    """Yield ``{name: rows}`` batches in ``order``: row indices (an array or a range), or an iterator
-    (not a list) of windows of them (:func:`epoch_windows`, WINDOW_BATCHES batches each). A window is
-    read in one go per array, the next one in a background thread while the current one is consumed
-    (windows are taken from the iterator in this thread)."""
-    if isinstance(order, Iterator):
-        windows = order
-    else:
-        window = batch_size * WINDOW_BATCHES
-        windows = (order[s:s + window] for s in range(0, len(order), window))
-
-    def read(sel: Rows) -> Batch:
-        return {k: take_rows(a, sel) for k, a in arrays.items()}
-
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        sel = next(windows, None)
-        pending = pool.submit(read, sel) if sel is not None else None
-        while pending is not None:
-            block = pending.result()
-            sel = next(windows, None)
-            pending = pool.submit(read, sel) if sel is not None else None
-            n = len(next(iter(block.values())))
-            for s in range(0, n, batch_size):
-                yield {k: v[s:s + batch_size] for k, v in block.items()}
 
 
 def _progress(iterable: Iterable, total: int, desc: str, enabled: bool):
@@ -484,7 +346,7 @@ def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optim
             p.unlink(missing_ok=True)
         return None
     tensors, meta = ckpt.load_checkpoint(last)
-    spec.model.load_state_dict(_model_state(spec.model, tensors), strict=True)
+    spec.model.load_state_dict(model_state(spec.model, tensors), strict=True)
     spec.model.to(device)
     optimizer.load_state_dict(ckpt.unflatten_optimizer(tensors, meta["optimizer"]))
     if ema is not None:
@@ -534,20 +396,12 @@ def _plot_curves(path: Path, net: str, curves: list[dict[str, float]]) -> None:
 # ------------------------------------------------------------------------------- Dis-Net
 
 
-def _disnet_inputs(batch: Batch, device: torch.device) -> tuple[Tensor, Tensor]:
-    """uint8 (B, H, W, 3) -> float (B, 3, H, W) in [0, 1] on device; speeds (B,) float32."""
-    img = torch.from_numpy(np.ascontiguousarray(batch["images"])).to(device)
-    img = img.permute(0, 3, 1, 2).float() / 255.0
-    speed = torch.from_numpy(np.asarray(batch["speeds"], np.float32)).to(device)
-    return img, speed
-
-
 def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: bool = False,
                  cutmix: float = 0.0, jitter: float = 0.0) -> dict[str, Tensor]:
     """Per-frame L_KL ('kl') and L_n ('n') of one batch; in training mode, ``flip`` mirrors,
     ``cutmix`` mixes frames and ``jitter`` varies brightness and contrast (pipeline.augment), in
     that order."""
-    img, speed = _disnet_inputs(batch, device)
+    img, speed = disnet_inputs(batch, device)
     target = torch.from_numpy(np.asarray(batch["heatmaps"], np.float32)).to(device)
     counts = torch.from_numpy(np.asarray(batch["counts"], np.float32)).to(device)
     if model.training and flip:
@@ -570,10 +424,6 @@ def default_fingerprint(cfg, net: str) -> str:
     return cfg.fingerprint(list(TRAINING_KEYS[net]) + common)
 
 
-def _jsonable_arch(kwargs: dict[str, Any]) -> dict[str, Any]:
-    return {k: (list(v) if isinstance(v, tuple) else v) for k, v in kwargs.items()}
-
-
 def _setup(cfg) -> None:
     torch.set_num_threads(max(1, int(cfg.train.threads)))
     torch.manual_seed(cfg.train.seed)
@@ -586,7 +436,7 @@ def _checked_idx(idx: Sequence[int], name: str, arrays: dict[str, Any], allow_em
     if len(set(lengths.values())) > 1:
         raise ValueError(f"training arrays differ in length along axis 0: {lengths}")
     n = next(iter(lengths.values()))
-    arr = _rows(idx)
+    arr = as_rows(idx)
     if not allow_empty and len(arr) == 0:
         raise ValueError(f"{name} is empty: nothing to train on")
     if len(arr):
@@ -622,7 +472,7 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
         raise ConfigError(f"train.count_refit_epochs must be >= 0, got {refit_epochs}")
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     spec = _NetSpec(
-        name="disnet", model=model, arch=_jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
+        name="disnet", model=model, arch=jsonable_arch(disnet_kwargs(cfg)), arrays=arrays,
         train_idx=_checked_idx(data.train_idx, "train_idx", arrays, False),
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.train.batch_size,
@@ -717,7 +567,7 @@ def _count_inputs(model: DisNet, arrays: dict[str, Any], idx: Rows, device: torc
     grids, speeds, counts = [], [], []
     sub = {k: arrays[k] for k in ("images", "speeds", "counts")}
     for b in iter_batches(sub, idx, batch):
-        img, speed = _disnet_inputs(b, device)
+        img, speed = disnet_inputs(b, device)
         grids.append(model.count_grid_features(img))
         speeds.append(speed)
         counts.append(torch.from_numpy(np.asarray(b["counts"], np.float32)).to(device))
@@ -729,36 +579,11 @@ def _count_inputs(model: DisNet, arrays: dict[str, Any], idx: Rows, device: torc
 # ------------------------------------------------------------------------------- RSS-Net
 
 
-def _rssnet_inputs(model: RSSNet, batch: Batch, device: torch.device) -> tuple[Tensor | None, ...]:
-    patch = range_image = point = None
-    if model.use_camera:
-        patch = torch.from_numpy(np.ascontiguousarray(batch["patches"])).to(device)
-        patch = patch.permute(0, 3, 1, 2).float() / 255.0                 # (B, 3, ps, ps)
-    if model.use_lidar:
-        range_image = torch.from_numpy(np.asarray(batch["range_images"], np.float32)).to(device)
-    if model.use_radar_point:
-        point = torch.from_numpy(np.asarray(batch["point_vectors"], np.float32)).to(device)
-    return patch, range_image, point
-
-
 def rssnet_terms(model: nn.Module, batch: Batch, device: torch.device) -> dict[str, Tensor]:
     """Per-point L_a ('a') of one batch, in normalised RSS units (eq. 22)."""
-    a_hat = model(*_rssnet_inputs(model, batch, device))
+    a_hat = model(*rssnet_inputs(model, batch, device))
     rss = torch.from_numpy(np.asarray(batch["rss"], np.float32)).to(device)
     return {"a": rss_loss(a_hat, model.normalise_rss(rss))}
-
-
-def _rss_arrays(model: RSSNet, patches: Any, range_images: Any, point_vectors: Any) -> dict[str, Any]:
-    """The arrays the enabled branches read (dropped branches read nothing)."""
-    named = {"patches": (model.use_camera, patches), "range_images": (model.use_lidar, range_images),
-             "point_vectors": (model.use_radar_point, point_vectors)}
-    out = {}
-    for name, (used, array) in named.items():
-        if used:
-            if array is None:
-                raise ValueError(f"RSS-Net uses '{name}' (see rssnet.*) but no array was given")
-            out[name] = array
-    return out
 
 
 INPUT_RANGE_ROWS = 20_000
@@ -772,7 +597,7 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
     (:func:`rssnet_residual_quantiles`; none without validation points)."""
     _setup(cfg)
     model = build_rssnet(cfg)
-    arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
+    arrays = {**rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
     train_idx = _checked_idx(data.train_idx, "train_idx", arrays, False)
     if len(train_idx):
         rows = evenly_spaced(train_idx, INPUT_RANGE_ROWS)
@@ -781,7 +606,7 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
             None if data.range_images is None else take_rows(data.range_images, rows),
             take_rows(data.point_vectors, rows)))
     spec = _NetSpec(
-        name="rssnet", model=model, arch=_jsonable_arch(rssnet_kwargs(cfg)), arrays=arrays,
+        name="rssnet", model=model, arch=jsonable_arch(rssnet_kwargs(cfg)), arrays=arrays,
         train_idx=train_idx,
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.train.rss_batch_size, terms_fn=rssnet_terms, weights={"a": 1.0})
@@ -798,15 +623,9 @@ def _add_to_best_meta(res: TrainResult, model: nn.Module, key: str, compute: Cal
     if key in ckpt.read_meta(res.best_path):
         return
     tensors, meta = ckpt.load_checkpoint(res.best_path)
-    model.load_state_dict(_model_state(model, tensors), strict=True)
+    model.load_state_dict(model_state(model, tensors), strict=True)
     model = model.to("cpu")
     ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, key: compute(model)})
-
-
-RESIDUAL_KEY = "rss_residual_quantiles"
-"""RSS-Net checkpoint metadata: the quantiles of its validation residuals (synth.rss_sampling)."""
-RESIDUAL_LEVELS = np.linspace(0.0, 1.0, 101)
-"""Levels of the residual quantiles a checkpoint keeps (0 and 1: the smallest and largest)."""
 
 
 @torch.no_grad()
@@ -815,30 +634,11 @@ def rssnet_residual_quantiles(model: RSSNet, data: RssNetData, idx: Sequence[int
     of ``data`` (RSS-Net's validation points): the spread its prediction, a conditional mean, leaves
     out."""
     model.eval()
-    device = _device_of(model)
-    arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
-    residuals = [np.asarray(b["rss"], np.float64) - model.to_rss(model(*_rssnet_inputs(model, b, device))).double()
-                 .cpu().numpy() for b in iter_batches(arrays, _rows(idx), batch)]
+    device = device_of(model)
+    arrays = {**rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
+    residuals = [np.asarray(b["rss"], np.float64) - model.to_rss(model(*rssnet_inputs(model, b, device))).double()
+                 .cpu().numpy() for b in iter_batches(arrays, as_rows(idx), batch)]
     return np.quantile(np.concatenate(residuals), RESIDUAL_LEVELS).tolist()
-
-
-def saved_residual_quantiles(meta: dict) -> np.ndarray | None:
-    """RSS-Net's residual quantiles (len(RESIDUAL_LEVELS),) from its checkpoint's metadata; None
-    where it holds none (saved before 2026-12-06, or trained without validation points) or not
-    finite, non-decreasing numbers."""
-    q = meta.get(RESIDUAL_KEY)
-    try:
-        q = np.asarray(q, np.float64)
-    except (TypeError, ValueError):
-        return None
-    ok = q.shape == RESIDUAL_LEVELS.shape and np.all(np.isfinite(q)) and np.all(np.diff(q) >= 0)
-    return q if ok else None
-
-
-def draw_residuals(quantiles: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n,) residuals drawn from the distribution whose quantiles at RESIDUAL_LEVELS are
-    ``quantiles`` (inverse transform, linear between the levels)."""
-    return np.interp(rng.random(n), RESIDUAL_LEVELS, np.asarray(quantiles, np.float64))
 
 
 # ------------------------------------------------------------------------------- PlaceNet
@@ -865,7 +665,7 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
     train_idx = _checked_idx(data.train_idx, "train_idx", arrays, False)
     model.set_standardisation(take_rows(data.features, evenly_spaced(train_idx, STANDARDISATION_ROWS)))
     spec = _NetSpec(
-        name="placenet", model=model, arch=_jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
+        name="placenet", model=model, arch=jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr)
     res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
@@ -873,13 +673,6 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
         _add_to_best_meta(res, model, "count_scale", lambda best: placenet_count_scale(
             best, data.features, data.train_frame_rows, data.train_frame_candidates(), data.train_frame_counts))
     return res
-
-
-def saved_count_scale(meta: dict) -> float | None:
-    """PlaceNet's count scale from its checkpoint's metadata; None where it holds none (saved
-    before 2026-12-05) or not a finite number."""
-    scale = meta.get("count_scale")
-    return float(scale) if isinstance(scale, (int, float)) and math.isfinite(scale) else None
 
 
 COUNT_SCALE_ROWS = 1 << 18
@@ -908,116 +701,7 @@ def placenet_count_scale(model: PlaceNet, features: Any, frame_rows: np.ndarray,
     return real / estimate if estimate > 0 else float("nan")
 
 
-# ------------------------------------------------------------------------------- inference
-
-
-def _model_state(model: nn.Module, tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The ``model.`` tensors of a checkpoint as ``model``'s state dict; buffers that later versions
-    added (``OPTIONAL_BUFFERS``, absent from older checkpoints) keep the model's defaults."""
-    state = ckpt.strip_prefix(tensors, "model.")
-    for name in getattr(model, "OPTIONAL_BUFFERS", ()):
-        state.setdefault(name, model.state_dict()[name])
-    return state
-
-
-def _load_into(model: nn.Module, arch: dict[str, Any], path: str | Path, device: torch.device) -> nn.Module:
-    tensors, meta = ckpt.load_checkpoint(path, prefix="model.")
-    if meta.get("arch") != arch:
-        diff = {k: (meta.get("arch", {}).get(k), v) for k, v in arch.items()
-                if meta.get("arch", {}).get(k) != v}
-        raise ConfigError(f"{path}: checkpoint architecture differs from the configuration "
-                          f"(saved, configured): {diff}")
-    try:
-        model.load_state_dict(_model_state(model, tensors), strict=True)
-    except RuntimeError as exc:  # e.g. a checkpoint of an older version of the network
-        raise ConfigError(f"{path}: the checkpoint does not fit this version's network (written by an "
-                          f"older version? run the train stage again): {exc}") from exc
-    return model.to(device).eval()
-
-
-def _arch(cfg, kwargs, path: str | Path, saved: bool) -> dict[str, Any]:
-    """A net's constructor arguments: ``kwargs(cfg)``, or with ``saved`` those its checkpoint
-    ``path`` was written with (nets trained on another dataset, train.nets_from)."""
-    if not saved:
-        return _jsonable_arch(kwargs(cfg))
-    arch = ckpt.read_meta(path).get("arch")
-    if not isinstance(arch, dict):
-        raise ConfigError(f"{path}: the checkpoint records no architecture (written by an older version?)")
-    return arch
-
-
-def load_disnet(cfg, path: str | Path, device: str | None = None, saved_arch: bool = False) -> DisNet:
-    """Dis-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``);
-    ``saved_arch``: built as the checkpoint says, not as ``cfg`` (its map then has the size it was
-    trained at, the working size of its dataset)."""
-    arch = _arch(cfg, disnet_kwargs, path, saved_arch)
-    model = DisNet(backbone=resnet18_backbone(None, width=arch["width"]), **arch)
-    return _load_into(model, arch, path, select_device(device or cfg.train.device))
-
-
-def load_rssnet(cfg, path: str | Path, device: str | None = None, saved_arch: bool = False) -> RSSNet:
-    """RSS-Net from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``);
-    ``saved_arch`` as for :func:`load_disnet`."""
-    arch = _arch(cfg, rssnet_kwargs, path, saved_arch)
-    model = _load_into(RSSNet(**arch), arch, path, select_device(device or cfg.train.device))
-    model.residual_quantiles = saved_residual_quantiles(ckpt.read_meta(path))
-    return model
-
-
-def load_placenet(cfg, path: str | Path, device: str | None = None, saved_arch: bool = False) -> PlaceNet:
-    """PlaceNet from a checkpoint (best or last), eval mode, on cfg.train.device (or ``device``);
-    ``saved_arch`` as for :func:`load_disnet`."""
-    arch = _arch(cfg, placenet_kwargs, path, saved_arch)
-    model = _load_into(PlaceNet(**arch), arch, path, select_device(device or cfg.train.device))
-    model.count_scale = saved_count_scale(ckpt.read_meta(path))
-    return model
-
-
-def _device_of(model: nn.Module) -> torch.device:
-    return next(model.parameters()).device
-
-
-@torch.no_grad()
-def disnet_predict(model: DisNet, images: Any, speeds: Any, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """images (B, H, W, 3) uint8 RGB, speeds (B,) m/s -> (prob_map (B, h, w) float32 summing to 1
-    per frame at the model's out_hw, n_hat (B,) float32 expected point count)."""
-    model.eval()
-    device = _device_of(model)
-    n = n_rows(images)
-    maps = np.empty((n, *model.out_hw), np.float32)
-    counts = np.empty(n, np.float32)
-    arrays = {"images": images, "speeds": np.asarray(speeds, np.float32).reshape(-1)}
-    for s, b in zip(range(0, n, batch), iter_batches(arrays, np.arange(n), batch)):
-        log_map, n_hat = model(*_disnet_inputs(b, device))
-        maps[s:s + len(n_hat)] = log_map.exp().cpu().numpy()
-        counts[s:s + len(n_hat)] = n_hat.cpu().numpy()
-    return maps, counts
-
-
-@torch.no_grad()
-def rssnet_predict(model: RSSNet, patches: Any, range_images: Any, point_vectors: Any,
-                   batch: int = 256) -> np.ndarray:
-    """RSS (N,) float32 in dataset units for N points; inputs of dropped branches may be None."""
-    model.eval()
-    device = _device_of(model)
-    arrays = _rss_arrays(model, patches, range_images, point_vectors)
-    n = n_rows(next(iter(arrays.values())))
-    out = np.empty(n, np.float32)
-    for s, b in zip(range(0, n, batch), iter_batches(arrays, np.arange(n), batch)):
-        a_hat = model(*_rssnet_inputs(model, b, device))
-        out[s:s + len(a_hat)] = model.to_rss(a_hat).cpu().numpy()
-    return out
-
-
-@torch.no_grad()
-def placenet_predict(model: PlaceNet, features: np.ndarray, batch: int = 65536) -> np.ndarray:
-    """Intensity lambda (C,) float64 >= 0 of candidates with features (C, n_features)."""
-    model.eval()
-    x = np.asarray(features, np.float32)
-    out = np.empty(len(x), np.float64)
-    for s in range(0, len(x), batch):
-        out[s:s + batch] = model(torch.from_numpy(x[s:s + batch]).to(_device_of(model))).exp().double().cpu().numpy()
-    return out
+# ------------------------------------------------------------------------------- test metrics
 
 
 def disnet_metrics(model: DisNet, data: DisNetData, idx: Sequence[int], alpha: float,
@@ -1025,116 +709,18 @@ def disnet_metrics(model: DisNet, data: DisNetData, idx: Sequence[int], alpha: f
     """Per-frame mean L_KL ('kl'), L_n ('n') and L_KL + alpha L_n ('loss') on frames ``idx``."""
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), disnet_terms,
-                    {"kl": 1.0, "n": alpha}, _device_of(model), progress=False)
+                    {"kl": 1.0, "n": alpha}, device_of(model), progress=False)
 
 
 def rssnet_metrics(model: RSSNet, data: RssNetData, idx: Sequence[int], batch: int = 256) -> dict[str, float]:
     """Per-point mean L_a ('a', = 'loss') on points ``idx``."""
-    arrays = {**_rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
-    return evaluate(model, iter_batches(arrays, _rows(idx), batch), rssnet_terms,
-                    {"a": 1.0}, _device_of(model), progress=False)
+    arrays = {**rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
+    return evaluate(model, iter_batches(arrays, as_rows(idx), batch), rssnet_terms,
+                    {"a": 1.0}, device_of(model), progress=False)
 
 
 def placenet_metrics(model: PlaceNet, data: PlaceNetData, idx: Sequence[int], batch: int = 4096) -> dict[str, float]:
     """Per-candidate mean Poisson NLL ('nll', = 'loss') on rows ``idx``."""
     arrays = {"features": data.features, "counts": data.counts}
-    return evaluate(model, iter_batches(arrays, _rows(idx), batch), placenet_terms,
-                    {"nll": 1.0}, _device_of(model), progress=False)
-
-
-def placenet_baseline(counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
-                      eval_counts: Any = None, batch: int = 1 << 14) -> dict[str, float]:
-    """The constant-intensity PlaceNet: the training mean count for every candidate; its mean
-    Poisson NLL ('nll') on rows ``eval_idx`` of ``eval_counts`` (default ``counts``) and the rate
-    ('rate'). The counts are read WINDOW_BATCHES * ``batch`` rows at a time."""
-    def total(values: Any, idx: Sequence[int]) -> tuple[float, int]:  # (sum of counts, rows)
-        sums = [float(np.asarray(b["c"], np.float64).sum()) for b in iter_batches({"c": values}, _rows(idx), batch)]
-        return math.fsum(sums), len(idx)
-
-    train_sum, n_train = total(counts, train_idx)
-    rate = train_sum / n_train if n_train else math.nan
-    eval_sum, n_eval = total(counts if eval_counts is None else eval_counts, eval_idx)
-    log_rate = math.log(rate) if rate > 0 else -30.0
-    return {"nll": math.exp(log_rate) - eval_sum / n_eval * log_rate if n_eval else math.nan, "rate": rate}
-
-
-# ------------------------------------------------------------------------------- baselines
-
-BASELINE_UNIFORM_MIX = 1e-6
-"""Share of a uniform map mixed into the mean map so that its KL stays finite where it is 0."""
-
-
-def mean_map_baseline(heatmaps: Any, train_idx: Sequence[int], batch: int = 64) -> np.ndarray:
-    """Average training heatmap (H, W) float64, summing to 1 (with a 1e-6 uniform share mixed in)."""
-    idx = np.asarray(train_idx, np.int64)
-    if idx.size == 0:
-        raise ValueError("mean_map_baseline: train_idx is empty")
-    total = None
-    for b in iter_batches({"h": heatmaps}, idx, batch):
-        part = b["h"].astype(np.float64).sum(axis=0)
-        total = part if total is None else total + part
-    mean = total / total.sum()
-    return (1 - BASELINE_UNIFORM_MIX) * mean + BASELINE_UNIFORM_MIX / mean.size
-
-
-MIN_FRAMES_PER_KNOT = 30
-"""Fewest training frames behind one knot of the count prior."""
-
-
-def speed_count_prior(speeds_mps: Any, counts: Any, n_knots: int = COUNT_PRIOR_KNOTS,
-                      stopped_mps: float = STOPPED_MPS, min_frames: int = MIN_FRAMES_PER_KNOT
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """The mean radar point count as a function of the ego speed, from training frames' speeds
-    (F,) m/s and counts (F,): (knot speeds (K,) m/s strictly increasing, mean counts (K,)), K <=
-    ``n_knots``. Frames below ``stopped_mps`` get a knot of their own when there are
-    ``min_frames`` of them (a stopped radar sees its static world at zero Doppler); the others
-    are cut into speed quantiles of at least ``min_frames`` frames each (fewer bins when frames are
-    few). A knot sits at its frames' mean speed with their mean count. Too few frames for two
-    knots give one: the mean count.
-    """
-    v = np.asarray(speeds_mps, np.float64).ravel()
-    n = np.asarray(counts, np.float64).ravel()
-    if v.size == 0 or v.shape != n.shape or not (np.all(np.isfinite(v)) and np.all(np.isfinite(n))):
-        raise ValueError(f"speed_count_prior: need as many finite speeds as counts, got {v.size} and {n.size}")
-    if n_knots < 1 or min_frames < 1:
-        raise ValueError(f"speed_count_prior: n_knots and min_frames must be >= 1, got {n_knots}, {min_frames}")
-    stopped = v < stopped_mps
-    groups = [np.flatnonzero(stopped)] if stopped.sum() >= min_frames and n_knots > 1 else []
-    moving = np.flatnonzero(~stopped) if groups else np.arange(v.size)
-    bins = max(1, min(n_knots - len(groups), moving.size // min_frames))
-    groups += [g for g in np.array_split(moving[np.argsort(v[moving], kind="stable")], bins) if g.size]
-    merged = [groups[0]]  # groups with the same mean speed (e.g. a constant speed) become one knot
-    for g in groups[1:]:
-        if v[g].mean() - v[merged[-1]].mean() > 1e-6:
-            merged.append(g)
-        else:
-            merged[-1] = np.concatenate([merged[-1], g])
-    return np.array([v[g].mean() for g in merged]), np.array([n[g].mean() for g in merged])
-
-
-def disnet_baseline(heatmaps: Any, counts: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
-                    batch: int = 64, mean_map: np.ndarray | None = None) -> dict[str, float]:
-    """Per-frame mean L_KL of the mean training map ('kl') and L_n of the mean training count ('n')
-    on frames ``eval_idx``. ``mean_map``: mean_map_baseline's, when the caller has it (it reads
-    every training heatmap)."""
-    mean_map = mean_map_baseline(heatmaps, train_idx, batch) if mean_map is None else mean_map
-    n_bar = float(np.mean(take_rows(counts, np.asarray(train_idx, np.int64))))
-    log_q = np.log(mean_map)
-    kl_sum, n_sum, m = 0.0, 0.0, 0
-    for b in iter_batches({"h": heatmaps, "n": counts}, np.asarray(eval_idx, np.int64), batch):
-        p = b["h"].astype(np.float64)
-        kl = (np.where(p > 0, p * np.log(np.where(p > 0, p, 1.0)), 0.0) - p * log_q).sum(axis=(1, 2))
-        n = b["n"].astype(np.float64)
-        kl_sum += kl.sum()
-        n_sum += (((n_bar - n) / n) ** 2).sum()
-        m += len(n)
-    return {"kl": kl_sum / m if m else math.nan, "n": n_sum / m if m else math.nan, "n_bar": n_bar}
-
-
-def rssnet_baseline(rss: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
-                    rss_min: float, rss_max: float) -> dict[str, float]:
-    """L_a ('a') of predicting the training median RSS for every point of ``eval_idx``."""
-    median = float(np.median(take_rows(rss, np.asarray(train_idx, np.int64))))
-    a = take_rows(rss, np.asarray(eval_idx, np.int64)).astype(np.float64)
-    err = ((a - median) / (rss_max - rss_min)) ** 2
-    return {"a": float(err.mean()) if err.size else math.nan, "median": median}
+    return evaluate(model, iter_batches(arrays, as_rows(idx), batch), placenet_terms,
+                    {"nll": 1.0}, device_of(model), progress=False)

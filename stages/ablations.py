@@ -12,8 +12,6 @@ import platform
 import time
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.config import Config
 from stages.train import disnet_data, frame_table, rssnet_data, training_fingerprint
 
@@ -35,8 +33,8 @@ def _slug(name: str) -> str:
 
 def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] = ("2", "3")) -> dict:
     """Train every variant of the requested tables; returns the results and writes the report."""
-    from pipeline.training import disnet_metrics, load_disnet, load_rssnet, rssnet_metrics, train_disnet, \
-        train_rssnet
+    from pipeline.inference import load_disnet, load_rssnet
+    from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
 
     table = frame_table(inputs)
     results: dict = {"table2": [], "table3": []}

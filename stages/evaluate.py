@@ -248,7 +248,7 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     """Every method's metrics, points and the physics residuals of one frame (FRAMES' arrays)."""
     from pipeline.baselines import METHODS
     from pipeline.metrics import FRAME_METRICS, frame_metrics, to_spherical
-    from pipeline.training import rssnet_predict
+    from pipeline.inference import rssnet_predict
     from stages.patches import point_inputs
 
     from pipeline.transfer import comparison

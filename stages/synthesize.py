@@ -139,7 +139,7 @@ def check_generation(cfg: Config) -> None:
             raise ConfigError(f"train.nets = '{cfg.train.nets}' leaves out {', '.join(left_out)}, which synthesis "
                               f"with synth.placement = '{s.placement}' needs: add it to train.nets{hint}")
     if s.device not in ("auto", "cpu"):  # only these need no check (nor torch imported for it)
-        from pipeline.training import select_device
+        from pipeline.inference import select_device
 
         select_device(s.device, "synth.device")
 
@@ -162,7 +162,7 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
                             f"train stage with {', '.join(missing)} in train.nets{hint}")
     from pipeline.checkpoint import load_checkpoint, read_meta
-    from pipeline.training import saved_count_scale, saved_residual_quantiles
+    from pipeline.inference import saved_count_scale, saved_residual_quantiles
 
     read = load_checkpoint if weights else read_meta
     for net in nets:  # a truncated, overwritten or otherwise damaged file fails here, not in every frame
@@ -233,7 +233,7 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
     run)."""
     import torch
 
-    from pipeline.training import load_disnet, load_placenet, load_rssnet, select_device
+    from pipeline.inference import load_disnet, load_placenet, load_rssnet, select_device
 
     out = inputs.env.dir("train")
     meta = out.meta() or {}
@@ -262,7 +262,7 @@ def lidar_candidates(inputs: FrameInputs, cfg: Config,
     computed once per frame and PlaceNet (the count, and evaluate's several maps, use them again)."""
     import torch
 
-    from pipeline.training import placenet_predict
+    from pipeline.inference import placenet_predict
     from stages.patches import candidates, features
 
     def build() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -299,7 +299,7 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
     synth.placement says, RSS from RSS-Net, with a drawn residual where synth.rss_sampling says
     (``rss`` False: zeros, for a caller that sets its own)."""
     from pipeline.synthesis import synthesize_frame
-    from pipeline.training import draw_residuals, rssnet_predict
+    from pipeline.inference import draw_residuals, rssnet_predict
 
     r = cfg.radar
     image, K = inputs.get("calibrate", "image"), inputs.get("calibrate", "K")
@@ -343,7 +343,7 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
 
 def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     from pipeline.heatmap import resize_distribution
-    from pipeline.training import disnet_predict
+    from pipeline.inference import disnet_predict
 
     nets = models(inputs, cfg)
     speed = np.float32(np.linalg.norm(inputs.get("calibrate", "ego_velocity")))

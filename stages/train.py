@@ -119,7 +119,7 @@ def candidate_counts(inputs, cfg: Config, frames: np.ndarray) -> np.ndarray:
 
 def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
     """Held-out test losses of the trivial predictors the networks must beat."""
-    from pipeline.training import disnet_baseline, mean_map_baseline, rssnet_baseline
+    from pipeline.net_baselines import disnet_baseline, mean_map_baseline, rssnet_baseline
 
     heat = inputs.store("heatmaps").array("heatmap")
     mean_map = mean_map_baseline(heat, idx["train"])  # read once: every training heatmap
@@ -156,8 +156,8 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     """Train the configured nets; returns the summary (test metrics next to baselines)."""
-    from pipeline.training import (disnet_metrics, load_disnet, load_rssnet, rssnet_metrics, train_disnet,
-                                   train_rssnet)
+    from pipeline.inference import load_disnet, load_rssnet
+    from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
 
     check(cfg)
     if cfg.train.nets_from:
@@ -242,7 +242,7 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
 def _save_mean_map(inputs, root: Path) -> None:
     """The mean training heatmap of this dataset, for evaluate's baselines, where its train split has
     radar (a dataset without radar has nothing to evaluate against)."""
-    from pipeline.training import mean_map_baseline
+    from pipeline.net_baselines import mean_map_baseline
 
     table = frame_table(inputs)
     train = np.flatnonzero(table["ok"] & (table["count"] > 0) & (table["split"] == 0))
@@ -268,7 +268,9 @@ def nets_from_fingerprint(cfg: Config, env) -> str:
 
 def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
     """Train PlaceNet; its summary with the test NLL next to the constant intensity's."""
-    from pipeline.training import load_placenet, placenet_baseline, placenet_metrics, train_placenet
+    from pipeline.net_baselines import placenet_baseline
+    from pipeline.inference import load_placenet
+    from pipeline.training import placenet_metrics, train_placenet
 
     data = placenet_data(inputs, table, 0, 1, cfg)
     if len(data.train_idx) == 0:

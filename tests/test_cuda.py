@@ -18,6 +18,8 @@ import pytest
 import torch
 
 from pipeline import checkpoint as ckpt
+from pipeline import inference as Inf
+from pipeline import net_baselines as B
 from pipeline import training as T
 from tests.test_placement import make_place_data
 from tests.test_placement import tiny_cfg as place_cfg
@@ -63,30 +65,30 @@ def test_disnet_learns_on_the_gpu_and_its_checkpoint_loads_on_the_cpu(tmp_path):
     data = make_disnet_data()
     cfg = tiny_cfg(**{"train.epochs": "8", **CUDA})
     res = T.train_disnet(cfg, data, tmp_path, progress=False)
-    base = T.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
+    base = B.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
     assert res.curves[res.best_epoch - 1]["val_kl"] < 0.6 * base["kl"]
     assert res.curves[-1]["train_loss"] < 0.5 * res.curves[0]["train_loss"]
     assert "rng.cuda.0" in _all_tensors(res.last_path)
-    _assert_loads_on_cpu_alike(T.load_disnet, cfg, res.best_path,
-                               lambda m: T.disnet_predict(m, data.images, data.speeds))
+    _assert_loads_on_cpu_alike(Inf.load_disnet, cfg, res.best_path,
+                               lambda m: Inf.disnet_predict(m, data.images, data.speeds))
 
 
 def test_rssnet_and_placenet_learn_on_the_gpu_and_load_on_the_cpu(tmp_path):
     rss = make_rss_data(p=400, as_zarr=True)
     cfg = tiny_cfg(**{"train.epochs": "3", **CUDA})
     res = T.train_rssnet(cfg, rss, tmp_path / "rss", progress=False)
-    base = T.rssnet_baseline(rss.rss, rss.train_idx, rss.val_idx, cfg.radar.rss_min, cfg.radar.rss_max)
+    base = B.rssnet_baseline(rss.rss, rss.train_idx, rss.val_idx, cfg.radar.rss_min, cfg.radar.rss_max)
     assert min(c["val_a"] for c in res.curves) < 0.5 * base["a"]
-    _assert_loads_on_cpu_alike(T.load_rssnet, cfg, res.best_path,
-                               lambda m: [T.rssnet_predict(m, rss.patches, rss.range_images, rss.point_vectors)])
+    _assert_loads_on_cpu_alike(Inf.load_rssnet, cfg, res.best_path,
+                               lambda m: [Inf.rssnet_predict(m, rss.patches, rss.range_images, rss.point_vectors)])
 
     place = make_place_data()
     pcfg = place_cfg(**CUDA)
     res = T.train_placenet(pcfg, place, tmp_path / "place", progress=False)
-    const = T.placenet_baseline(place.counts, place.train_idx, place.val_idx)
-    assert T.placenet_metrics(T.load_placenet(pcfg, res.best_path), place, place.val_idx)["nll"] < const["nll"]
-    _assert_loads_on_cpu_alike(T.load_placenet, pcfg, res.best_path,
-                               lambda m: [T.placenet_predict(m, place.features)])
+    const = B.placenet_baseline(place.counts, place.train_idx, place.val_idx)
+    assert T.placenet_metrics(Inf.load_placenet(pcfg, res.best_path), place, place.val_idx)["nll"] < const["nll"]
+    _assert_loads_on_cpu_alike(Inf.load_placenet, pcfg, res.best_path,
+                               lambda m: [Inf.placenet_predict(m, place.features)])
 
 
 def test_placenet_killed_on_the_gpu_resumes_to_the_uninterrupted_weights(tmp_path):

@@ -99,7 +99,7 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     assert sum(len(syn.read("points", i)) for i in done) > 0
     # synth.rss_sampling = residual (on the dask run's cache, which nothing reads after this): the
     # same points, RSS-Net's RSS plus a residual drawn from its validation residuals' quantiles
-    from pipeline.training import RESIDUAL_KEY
+    from pipeline.inference import RESIDUAL_KEY
 
     quantiles = read_meta(tmp_path / "dask" / "synthetic" / "train" / "rssnet" / "best.safetensors")[RESIDUAL_KEY]
     residual_env = RunEnv(serial.env.cfg.with_overrides({"synth.rss_sampling": "residual"}), str(tmp_path / "dask"),
@@ -167,7 +167,7 @@ def test_all_stages_serial_equals_dask_and_export_round_trips(world, tmp_path, m
     summary = {r.stage: r for r in Pipeline(all_stages(), serial.env, Executor(1, progress=False), progress=False,
                                             log=lambda m: None).run("export", force=True)}["export"].summary
     fid = serial.frame_ids()[done[0]]
-    assert summary["empty_frames"] == [fid] and f"1 of them without a point (an empty .bin" in summary["message"]
+    assert summary["empty_frames"] == [fid] and "1 of them without a point (an empty .bin" in summary["message"]
     bins = list((tmp_path / "serial" / "synthetic" / "export" / "radar").glob(f"*/velodyne/{fid}.bin"))
     assert len(bins) == 1 and bins[0].stat().st_size == 0
     # a report over part of the split says so (here synthesize deleted and redone for 3 frames only)

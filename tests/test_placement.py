@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 import torch
 
+from pipeline import inference as Inf
+from pipeline import net_baselines as B
 from pipeline import placement as P
 from pipeline import training as T
 from pipeline.config import load_config
@@ -394,13 +396,13 @@ def test_a_placenet_saved_without_its_training_range_loads_unbounded(tmp_path):
     net = PlaceNet(**placenet_kwargs(cfg))
     net.set_standardisation(np.random.default_rng(0).normal(0, 1, (100, net.n_features)))
     state = {f"model.{k}": v for k, v in net.state_dict().items() if k not in PlaceNet.OPTIONAL_BUFFERS}
-    ckpt.save_checkpoint(tmp_path / "old.safetensors", state, {"net": "placenet", "arch": T._jsonable_arch(placenet_kwargs(cfg))})
-    old = T.load_placenet(cfg, tmp_path / "old.safetensors")
+    ckpt.save_checkpoint(tmp_path / "old.safetensors", state, {"net": "placenet", "arch": Inf.jsonable_arch(placenet_kwargs(cfg))})
+    old = Inf.load_placenet(cfg, tmp_path / "old.safetensors")
     torch.testing.assert_close(old.feature_mean, net.feature_mean)
     assert not old.outside_range(np.full((2, net.n_features), 1e6)).any() and not old.has_training_range()
     state = {f"model.{k}": v for k, v in net.state_dict().items()}
-    ckpt.save_checkpoint(tmp_path / "new.safetensors", state, {"net": "placenet", "arch": T._jsonable_arch(placenet_kwargs(cfg))})
-    assert T.load_placenet(cfg, tmp_path / "new.safetensors").outside_range(np.full((2, net.n_features), 1e6)).all()
+    ckpt.save_checkpoint(tmp_path / "new.safetensors", state, {"net": "placenet", "arch": Inf.jsonable_arch(placenet_kwargs(cfg))})
+    assert Inf.load_placenet(cfg, tmp_path / "new.safetensors").outside_range(np.full((2, net.n_features), 1e6)).all()
 
 
 def make_place_data(p: int = 3000, seed: int = 0) -> T.PlaceNetData:
@@ -423,15 +425,15 @@ def test_placenet_learns_beats_the_constant_rate_and_resumes(tmp_path):
     data = make_place_data()
     cfg = tiny_cfg()
     ref = T.train_placenet(cfg, data, tmp_path / "a", progress=False)
-    model = T.load_placenet(cfg, ref.best_path)
+    model = Inf.load_placenet(cfg, ref.best_path)
     got = T.placenet_metrics(model, data, data.val_idx)["nll"]
-    const = T.placenet_baseline(data.counts, data.train_idx, data.val_idx)
+    const = B.placenet_baseline(data.counts, data.train_idx, data.val_idx)
     assert const["rate"] == pytest.approx(data.counts[data.train_idx].mean())
     truth = np.exp(1.5 * (data.features[:, 0] - 50) / 10 - 1.0)[data.val_idx]
     c = data.counts[data.val_idx]
     oracle = np.mean(truth - c * np.log(truth))
     assert got < const["nll"] - 0.5 * (const["nll"] - oracle)   # more than half of the way to the truth
-    lam = T.placenet_predict(model, data.features[:10], batch=3)
+    lam = Inf.placenet_predict(model, data.features[:10], batch=3)
     assert lam.shape == (10,) and np.all(lam > 0)
     np.testing.assert_allclose(model.feature_mean.numpy()[0], data.features[data.train_idx, 0].mean(), rtol=1e-4)
     np.testing.assert_allclose(model.feature_high.numpy()[0], np.percentile(data.features[data.train_idx, 0], 99.5),

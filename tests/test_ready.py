@@ -128,7 +128,7 @@ def test_synthesize_draws_the_blended_count_and_records_its_parts(monkeypatch):
     computed: the report leaves it out); the oracle draws the real count, n_hat Dis-Net's."""
     import numpy as np
 
-    import pipeline.training
+    import pipeline.inference
     import stages.synthesize as S
 
     w, h = load_config("synthetic", {}, environ={}).camera.working_size
@@ -154,7 +154,7 @@ def test_synthesize_draws_the_blended_count_and_records_its_parts(monkeypatch):
     monkeypatch.setattr(S, "models", lambda inputs, cfg: nets)
     monkeypatch.setattr(S, "lidar_candidates", lambda inputs, cfg, net: candidates if net is placenet else None)
     monkeypatch.setattr(S, "generate", generate)
-    monkeypatch.setattr(pipeline.training, "disnet_predict", disnet_predict)
+    monkeypatch.setattr(pipeline.inference, "disnet_predict", disnet_predict)
 
     def run(**overrides: str) -> tuple[float, float, list[float]]:
         drawn.clear()
@@ -179,7 +179,7 @@ def test_residual_rss_sampling_needs_rssnets_residual_quantiles(tmp_path):
 
     from pipeline.checkpoint import save_checkpoint
     from pipeline.errors import ConfigError
-    from pipeline.training import RESIDUAL_KEY, RESIDUAL_LEVELS
+    from pipeline.inference import RESIDUAL_KEY, RESIDUAL_LEVELS
     from stages.synthesize import check_generation
 
     train = dir_store(str(tmp_path / "cache"), "synthetic", "train")

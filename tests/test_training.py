@@ -15,6 +15,9 @@ from safetensors import safe_open
 from scipy.special import rel_entr
 
 from pipeline import checkpoint as ckpt
+from pipeline import inference as Inf
+from pipeline import net_baselines as B
+from pipeline import rows as R
 from pipeline import training as T
 from pipeline.config import load_config
 from pipeline.errors import ConfigError
@@ -75,7 +78,7 @@ def test_disnet_learns_and_beats_mean_map(tmp_path):
     data = make_disnet_data()
     cfg = tiny_cfg(**{"train.epochs": "8"})
     res = T.train_disnet(cfg, data, tmp_path, progress=False)
-    base = T.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
+    base = B.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
     best = res.curves[res.best_epoch - 1]
     assert best["val_kl"] < 0.6 * base["kl"]
     assert res.curves[-1]["train_loss"] < 0.5 * res.curves[0]["train_loss"]
@@ -83,11 +86,11 @@ def test_disnet_learns_and_beats_mean_map(tmp_path):
                  "curves.csv", "curves.json", "curves.png"):
         assert (tmp_path / name).is_file(), name
     # the best checkpoint reproduces the validation metrics recorded for its epoch
-    model = T.load_disnet(cfg, res.best_path)
+    model = Inf.load_disnet(cfg, res.best_path)
     m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
     assert m["kl"] == pytest.approx(best["val_kl"], rel=1e-4)
     assert m["n"] == pytest.approx(best["val_n"], rel=1e-4)
-    maps, n_hat = T.disnet_predict(model, data.images[:5], data.speeds[:5], batch=2)
+    maps, n_hat = Inf.disnet_predict(model, data.images[:5], data.speeds[:5], batch=2)
     assert maps.shape == (5, 32, 64) and maps.dtype == np.float32 and n_hat.shape == (5,)
     np.testing.assert_allclose(maps.sum(axis=(1, 2)), 1.0, atol=1e-4)
 
@@ -213,7 +216,7 @@ def test_ema_weights_are_the_ones_validated_and_saved_as_best(tmp_path):
     conv = "model.backbone.conv1.weight"
     assert not torch.equal(last[conv], last["ema.module.backbone.conv1.weight"])
     assert not torch.equal(last["model.backbone.bn1.running_mean"], last["ema.module.backbone.bn1.running_mean"])
-    m = T.disnet_metrics(T.load_disnet(cfg, res.best_path), data, data.val_idx, cfg.train.alpha)
+    m = T.disnet_metrics(Inf.load_disnet(cfg, res.best_path), data, data.val_idx, cfg.train.alpha)
     assert m["loss"] == pytest.approx(res.curves[res.best_epoch - 1]["val_loss"], rel=1e-4)
 
 
@@ -269,8 +272,8 @@ def test_count_refit_improves_val_L_n_keeps_the_map_and_survives_a_kill(tmp_path
     fp = T.default_fingerprint(tiny_cfg(**{"train.epochs": "2"}), "disnet")
     res = T.train_disnet(cfg, data, tmp_path / "refit", progress=False, fingerprint=fp)
     record = ckpt.read_meta(res.best_path)["count_refit"]
-    before = T.disnet_metrics(T.load_disnet(cfg, plain.best_path), data, data.val_idx, cfg.train.alpha)
-    after = T.disnet_metrics(T.load_disnet(cfg, res.best_path), data, data.val_idx, cfg.train.alpha)
+    before = T.disnet_metrics(Inf.load_disnet(cfg, plain.best_path), data, data.val_idx, cfg.train.alpha)
+    after = T.disnet_metrics(Inf.load_disnet(cfg, res.best_path), data, data.val_idx, cfg.train.alpha)
     assert record["curve"][0] == pytest.approx(before["n"], rel=1e-4)
     assert record["best_pass"] > 0 and len(record["curve"]) == 31
     assert after["n"] == pytest.approx(record["select_n_after"], rel=1e-4) and after["n"] < 0.9 * before["n"]
@@ -355,7 +358,7 @@ def test_rssnet_learns_from_zarr_and_resumes(tmp_path):
     data = make_rss_data(p=400, as_zarr=True)
     cfg = tiny_cfg(**{"train.epochs": "3"})
     ref = T.train_rssnet(cfg, data, tmp_path / "a", progress=False)
-    base = T.rssnet_baseline(data.rss, data.train_idx, data.val_idx, cfg.radar.rss_min, cfg.radar.rss_max)
+    base = B.rssnet_baseline(data.rss, data.train_idx, data.val_idx, cfg.radar.rss_min, cfg.radar.rss_max)
     assert min(c["val_a"] for c in ref.curves) < 0.5 * base["a"]
     # the stage passes ranges (nothing per row): the same run, and the same run resumed
     ranges = dataclasses.replace(data, train_idx=range(300), val_idx=range(300, 400))
@@ -365,8 +368,8 @@ def test_rssnet_learns_from_zarr_and_resumes(tmp_path):
     a, b = _all_tensors(ref.last_path), _all_tensors(res.last_path)
     assert all(torch.equal(a[k], b[k]) for k in a if k.startswith(("model.", "optim.")))
     assert ckpt.read_meta(ref.last_path)["numpy_rng"] == ckpt.read_meta(res.last_path)["numpy_rng"]
-    model = T.load_rssnet(cfg, res.best_path)
-    pred = T.rssnet_predict(model, data.patches, data.range_images, data.point_vectors, batch=100)
+    model = Inf.load_rssnet(cfg, res.best_path)
+    pred = Inf.rssnet_predict(model, data.patches, data.range_images, data.point_vectors, batch=100)
     assert pred.shape == (400,) and pred.dtype == np.float32
     assert T.rssnet_metrics(model, data, data.val_idx)["a"] == pytest.approx(
         np.mean(((pred[data.val_idx] - data.rss[:][data.val_idx]) / 70.0) ** 2), rel=1e-3)
@@ -385,7 +388,7 @@ def test_rssnet_ablation_reads_only_its_inputs(tmp_path):
     cfg = tiny_cfg(**{"train.epochs": "1", "rssnet.use_camera": "false", "rssnet.use_lidar": "false"})
     only_point = T.RssNetData(None, None, data.point_vectors, data.rss, data.train_idx, data.val_idx)
     res = T.train_rssnet(cfg, only_point, tmp_path, progress=False)
-    model = T.load_rssnet(cfg, res.last_path)
+    model = Inf.load_rssnet(cfg, res.last_path)
     assert model.patch_branch is None and model.range_branch is None
     # unused inputs have no range (never outside); the point's have
     assert np.isinf(model.input_low.numpy()[[0, 3]]).all() and np.isfinite(model.input_low.numpy()[[1, 2]]).all()
@@ -396,11 +399,11 @@ def test_rssnet_ablation_reads_only_its_inputs(tmp_path):
     tensors, meta = ckpt.load_checkpoint(res.best_path)
     old = tmp_path / "old.safetensors"
     ckpt.save_checkpoint(old, {k: v for k, v in tensors.items() if "input_" not in k}, meta)
-    unbounded = T.load_rssnet(cfg, old)
+    unbounded = Inf.load_rssnet(cfg, old)
     assert model.has_input_range() and not unbounded.has_input_range() and not unbounded.outside_range(far).any()
-    assert T.rssnet_predict(model, None, None, data.point_vectors).shape == (100,)
+    assert Inf.rssnet_predict(model, None, None, data.point_vectors).shape == (100,)
     with pytest.raises(ConfigError, match="architecture"):
-        T.load_rssnet(tiny_cfg(), res.last_path)
+        Inf.load_rssnet(tiny_cfg(), res.last_path)
     with pytest.raises(ValueError, match="range_images"):
         T.train_rssnet(tiny_cfg(**{"rssnet.use_camera": "false"}), only_point, tmp_path / "x", progress=False)
 
@@ -442,8 +445,8 @@ def reference_epoch_order(idx, rows_per_chunk: int, window: int, rng: np.random.
 @pytest.mark.parametrize("rows_per_chunk", [1, 10])
 def test_epoch_windows_are_a_seeded_permutation(rows_per_chunk):
     idx = np.arange(3, 97)
-    o1 = np.concatenate(list(T.epoch_windows(idx, rows_per_chunk, 16, np.random.default_rng(1))))
-    o2 = np.concatenate(list(T.epoch_windows(idx, rows_per_chunk, 16, np.random.default_rng(1))))
+    o1 = np.concatenate(list(R.epoch_windows(idx, rows_per_chunk, 16, np.random.default_rng(1))))
+    o2 = np.concatenate(list(R.epoch_windows(idx, rows_per_chunk, 16, np.random.default_rng(1))))
     assert np.array_equal(np.sort(o1), idx) and np.array_equal(o1, o2)
     assert not np.array_equal(o1, idx)
 
@@ -461,26 +464,26 @@ def test_epoch_windows_are_the_order_training_always_had(start, stop, rows_per_c
     after = ref_rng.integers(1 << 30)
     for rows in (range(start, stop), np.arange(start, stop)):
         rng = np.random.default_rng(4)
-        windows = list(T.epoch_windows(rows, rows_per_chunk, window, rng))
+        windows = list(R.epoch_windows(rows, rows_per_chunk, window, rng))
         assert all(len(w) == window for w in windows[:-1]) and len(windows[-1]) <= window
         assert np.array_equal(np.concatenate(windows), reference) and rng.integers(1 << 30) == after
     scattered = np.random.default_rng(9).permutation(np.arange(start, stop))[: (stop - start) // 2]
     rng, ref_rng = np.random.default_rng(5), np.random.default_rng(5)
-    got = np.concatenate(list(T.epoch_windows(scattered, rows_per_chunk, window, rng)))
+    got = np.concatenate(list(R.epoch_windows(scattered, rows_per_chunk, window, rng)))
     assert np.array_equal(got, reference_epoch_order(scattered, rows_per_chunk, window, ref_rng))
     assert rng.integers(1 << 30) == ref_rng.integers(1 << 30)
-    assert list(T.epoch_windows(range(start, start), rows_per_chunk, window, rng)) == []
+    assert list(R.epoch_windows(range(start, start), rows_per_chunk, window, rng)) == []
 
 
 def test_iter_batches_takes_windows_or_indices():
     a = np.arange(200, dtype=np.float32).reshape(100, 2)
     order = np.random.default_rng(0).permutation(100)
     windows = iter([order[:32], order[32:64], order[64:]])
-    by_windows = list(T.iter_batches({"a": a}, windows, 2))
-    by_index = list(T.iter_batches({"a": a}, order, 2))
+    by_windows = list(R.iter_batches({"a": a}, windows, 2))
+    by_index = list(R.iter_batches({"a": a}, order, 2))
     assert len(by_windows) == len(by_index) == 50
     assert all(np.array_equal(x["a"], y["a"]) for x, y in zip(by_windows, by_index))
-    assert np.array_equal(np.concatenate([b["a"] for b in T.iter_batches({"a": a}, range(10, 90), 8)]), a[10:90])
+    assert np.array_equal(np.concatenate([b["a"] for b in R.iter_batches({"a": a}, range(10, 90), 8)]), a[10:90])
 
 
 def test_placenet_baseline_streams_the_same_rates():
@@ -488,12 +491,12 @@ def test_placenet_baseline_streams_the_same_rates():
     the definition's numbers: rate = training mean, nll = mean of rate - c log rate."""
     rng = np.random.default_rng(2)
     train, test = rng.poisson(0.3, 5000).astype(np.float32), rng.poisson(0.4, 700).astype(np.float32)
-    got = T.placenet_baseline(train, range(5000), range(700), test, batch=333)
+    got = B.placenet_baseline(train, range(5000), range(700), test, batch=333)
     rate = train.astype(np.float64).mean()
     assert got["rate"] == pytest.approx(rate, rel=1e-12)
     assert got["nll"] == pytest.approx(np.mean(rate - test * np.log(rate)), rel=1e-12)
     one = np.concatenate([train, test])
-    again = T.placenet_baseline(one, np.arange(5000), np.arange(5000, 5700))
+    again = B.placenet_baseline(one, np.arange(5000), np.arange(5000, 5700))
     assert again["nll"] == pytest.approx(got["nll"], rel=1e-12)
 
 
@@ -504,14 +507,14 @@ def test_checked_idx_keeps_ranges_and_checks_them():
         T._checked_idx(range(2, 11), "train_idx", arrays, False)
     with pytest.raises(ValueError, match="empty"):
         T._checked_idx(range(0), "train_idx", arrays, False)
-    assert np.array_equal(T.evenly_spaced(range(100, 200), 5), T.evenly_spaced(np.arange(100, 200), 5))
+    assert np.array_equal(R.evenly_spaced(range(100, 200), 5), R.evenly_spaced(np.arange(100, 200), 5))
 
 
 def test_take_rows_zarr_matches_numpy():
     a = np.arange(60, dtype=np.float32).reshape(20, 3)
     z = _to_zarr(a, chunk=4)
     sel = np.array([7, 2, 2, 19, 0])
-    assert np.array_equal(T.take_rows(z, sel), a[sel]) and T.chunk_len(z) == 4
+    assert np.array_equal(R.take_rows(z, sel), a[sel]) and R.chunk_len(z) == 4
 
 
 def test_speed_count_prior_knots():
@@ -521,21 +524,21 @@ def test_speed_count_prior_knots():
     rng = np.random.default_rng(0)
     speed = np.r_[np.zeros(40), rng.uniform(1, 15, 300)]
     count = np.r_[np.full(40, 50.0), 100 + 5 * speed[40:]]
-    knots, means = T.speed_count_prior(speed, count, n_knots=4, min_frames=30)
+    knots, means = B.speed_count_prior(speed, count, n_knots=4, min_frames=30)
     assert knots.shape == means.shape == (4,) and np.all(np.diff(knots) > 0)
     assert knots[0] == 0 and means[0] == 50
     moving = np.sort(speed[40:])
     for k, part in enumerate(np.array_split(moving, 3)):  # three equal quantile bins of the moving
         assert knots[k + 1] == pytest.approx(part.mean()) and means[k + 1] == pytest.approx(100 + 5 * part.mean())
     # 20 stopped frames (< min_frames) join the slowest quantile; 100 frames allow 3 bins of 30
-    few = T.speed_count_prior(np.r_[np.zeros(20), np.linspace(1, 9, 80)], np.arange(100.0), n_knots=8, min_frames=30)
+    few = B.speed_count_prior(np.r_[np.zeros(20), np.linspace(1, 9, 80)], np.arange(100.0), n_knots=8, min_frames=30)
     assert few[0].shape == (3,) and few[0][0] == pytest.approx(np.r_[np.zeros(20), np.linspace(1, 9, 80)][:34].mean())
     for v in (np.full(200, 7.0), np.linspace(0, 9, 50)):  # a constant speed; too few for two bins
-        knots, means = T.speed_count_prior(v, np.arange(v.size, dtype=float), min_frames=30)
+        knots, means = B.speed_count_prior(v, np.arange(v.size, dtype=float), min_frames=30)
         assert knots.tolist() == [pytest.approx(v.mean())] and means.tolist() == [pytest.approx((v.size - 1) / 2)]
     for bad in ((np.zeros(3), np.zeros(4)), (np.array([np.nan, 1.0]), np.ones(2)), (np.zeros(0), np.zeros(0))):
         with pytest.raises(ValueError, match="speed_count_prior"):
-            T.speed_count_prior(*bad)
+            B.speed_count_prior(*bad)
 
 
 def test_disnet_starts_at_the_speed_count_prior(tmp_path, monkeypatch):
@@ -547,7 +550,7 @@ def test_disnet_starts_at_the_speed_count_prior(tmp_path, monkeypatch):
     data = T.DisNetData(**{**data.__dict__, "speeds": speeds.astype(np.float32), "train_idx": list(range(72)),
                            "val_idx": list(range(72, 80))})
     counts = np.asarray(data.counts, np.float64)
-    cases = (({"disnet.speed_count_prior": "true"}, T.speed_count_prior(speeds[:72], counts[:72])),
+    cases = (({"disnet.speed_count_prior": "true"}, B.speed_count_prior(speeds[:72], counts[:72])),
              ({}, (None, counts[:72].mean())),  # off by default
              ({"disnet.speed_count_prior": "true", "disnet.use_speed": "false"}, (None, counts[:72].mean())))
     for case, (overrides, expect) in enumerate(cases):
@@ -564,26 +567,26 @@ def test_disnet_starts_at_the_speed_count_prior(tmp_path, monkeypatch):
 
 def test_baselines_against_brute_force():
     data = make_disnet_data(n=12)
-    mean = T.mean_map_baseline(data.heatmaps, data.train_idx)
+    mean = B.mean_map_baseline(data.heatmaps, data.train_idx)
     brute = data.heatmaps[data.train_idx].astype(np.float64).mean(axis=0)
-    eps = T.BASELINE_UNIFORM_MIX                      # documented uniform share keeping the KL finite
+    eps = B.BASELINE_UNIFORM_MIX                      # documented uniform share keeping the KL finite
     np.testing.assert_allclose(mean, (1 - eps) * brute / brute.sum() + eps / brute.size, rtol=1e-5)
     assert mean.sum() == pytest.approx(1.0)
-    got = T.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
+    got = B.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
     kl = [rel_entr(data.heatmaps[i].astype(np.float64), mean).sum() for i in data.val_idx]
     n_bar = data.counts[data.train_idx].mean()
     ln = [((n_bar - data.counts[i]) / data.counts[i]) ** 2 for i in data.val_idx]
     assert got["kl"] == pytest.approx(np.mean(kl)) and got["n"] == pytest.approx(np.mean(ln))
     rss = np.array([1.0, 5.0, 3.0, 10.0, -2.0])
-    out = T.rssnet_baseline(rss, [0, 1, 2], [3, 4], rss_min=-10, rss_max=10)
+    out = B.rssnet_baseline(rss, [0, 1, 2], [3, 4], rss_min=-10, rss_max=10)
     assert out["a"] == pytest.approx(np.mean(((np.array([10.0, -2.0]) - 3.0) / 20) ** 2))
 
 
 def test_select_device():
-    assert T.select_device("cpu").type == "cpu"
-    assert T.select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    assert Inf.select_device("cpu").type == "cpu"
+    assert Inf.select_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
     with pytest.raises(ConfigError):
-        T.select_device("tpu")
+        Inf.select_device("tpu")
 
 
 def test_training_fingerprint_follows_which_frames_are_done(tmp_path):
@@ -775,12 +778,12 @@ def test_network_inputs_are_rgb_in_the_unit_interval_channels_first():
 
     img = np.zeros((2, 4, 5, 3), np.uint8)
     img[0, 1, 2] = [255, 0, 51]
-    x, speed = T._disnet_inputs({"images": img, "speeds": np.array([1.0, 2.0])}, torch.device("cpu"))
+    x, speed = Inf.disnet_inputs({"images": img, "speeds": np.array([1.0, 2.0])}, torch.device("cpu"))
     assert x.shape == (2, 3, 4, 5) and x.dtype == torch.float32 and speed.tolist() == [1.0, 2.0]
     torch.testing.assert_close(x[0, :, 1, 2], torch.tensor([1.0, 0.0, 0.2]))
     assert float(x.sum()) == pytest.approx(1.2)
     rss = RSSNet(True, False, True, patch_size=4, rss_min=0.0, rss_max=1.0)
-    patch, range_image, point = T._rssnet_inputs(rss, {"patches": img[:, :4, :4], "point_vectors": np.ones((2, 4))},
+    patch, range_image, point = Inf.rssnet_inputs(rss, {"patches": img[:, :4, :4], "point_vectors": np.ones((2, 4))},
                                                  torch.device("cpu"))
     assert patch.shape == (2, 3, 4, 4) and range_image is None and point.shape == (2, 4)
     torch.testing.assert_close(patch[0, :, 1, 2], torch.tensor([1.0, 0.0, 0.2]))
@@ -794,13 +797,13 @@ def test_disnet_prior_map_is_the_mean_of_the_training_heatmaps_only(tmp_path, mo
     monkeypatch.setattr(T.DisNet, "set_prior", lambda self, p, floor=1e-6: seen.update(p=np.asarray(p)))
     T.train_disnet(tiny_cfg(**{"train.epochs": "0"}), data, tmp_path, progress=False)
     brute = data.heatmaps[data.train_idx].astype(np.float64).mean(axis=0)
-    eps = T.BASELINE_UNIFORM_MIX
+    eps = B.BASELINE_UNIFORM_MIX
     np.testing.assert_allclose(seen["p"], (1 - eps) * brute / brute.sum() + eps / brute.size, rtol=1e-5)
 
 
 def test_rssnet_baseline_predicts_the_training_median():
     rss = np.array([0.0, 1.0, 11.0, 4.0])
-    out = T.rssnet_baseline(rss, [0, 1, 2], [3], rss_min=-10, rss_max=10)
+    out = B.rssnet_baseline(rss, [0, 1, 2], [3], rss_min=-10, rss_max=10)
     assert out["median"] == 1.0 and out["a"] == pytest.approx(((4.0 - 1.0) / 20) ** 2)
 
 
@@ -825,9 +828,9 @@ def test_speed_count_prior_never_exceeds_n_knots():
     rng = np.random.default_rng(0)
     speed = np.r_[np.zeros(40), rng.uniform(1, 15, 300)]
     for n_knots in (1, 2, 3):
-        knots, means = T.speed_count_prior(speed, 100 + 5 * speed, n_knots=n_knots, min_frames=30)
+        knots, means = B.speed_count_prior(speed, 100 + 5 * speed, n_knots=n_knots, min_frames=30)
         assert knots.size == means.size == n_knots
-    assert T.speed_count_prior(speed, 100 + 5 * speed, n_knots=1)[1][0] == pytest.approx(np.mean(100 + 5 * speed))
+    assert B.speed_count_prior(speed, 100 + 5 * speed, n_knots=1)[1][0] == pytest.approx(np.mean(100 + 5 * speed))
 
 
 def test_a_checkpoint_with_a_non_finite_weight_is_refused_when_loaded(tmp_path):
@@ -839,7 +842,7 @@ def test_a_checkpoint_with_a_non_finite_weight_is_refused_when_loaded(tmp_path):
     cfg = tiny_cfg(**{"train.epochs": "1"})
     res = T.train_rssnet(cfg, make_rss_data(p=120), tmp_path, progress=False)
     tensors, meta = ckpt.load_checkpoint(res.best_path)
-    T.load_rssnet(cfg, res.best_path)
+    Inf.load_rssnet(cfg, res.best_path)
     for bad, key in ((float("nan"), "weight"), (float("inf"), "running_var"), (float("nan"), "bias"),
                      (float("-inf"), "running_mean")):
         name = next(k for k in tensors if k.startswith("model.") and k.endswith(key) and tensors[k].is_floating_point())
@@ -849,7 +852,7 @@ def test_a_checkpoint_with_a_non_finite_weight_is_refused_when_loaded(tmp_path):
         ckpt.save_checkpoint(path, damaged, {k: v for k, v in meta.items() if k != "format"})
         with pytest.raises(CacheError, match=rf"damaged-{key}.safetensors: 1 of \d+ values of "
                                              rf"{re.escape(name[len('model.'):])} are not finite"):
-            T.load_rssnet(cfg, path)
+            Inf.load_rssnet(cfg, path)
     placenet = T.build_placenet(cfg)
     assert not torch.isfinite(placenet.feature_low).all()  # not known before training
     ckpt.check_finite_weights("placenet.safetensors", {f"model.{k}": v for k, v in placenet.state_dict().items()})
@@ -883,13 +886,13 @@ def test_placenet_count_scale_and_its_place_in_the_checkpoint(tmp_path, monkeypa
     data = T.PlaceNetData(features=x, counts=y, train_idx=range(n), val_idx=range(0), train_frame_rows=frame_rows,
                           train_frame_candidates=lambda: np.full(6, 400), train_frame_counts=np.full(6, 50.0))
     res = T.train_placenet(cfg, data, tmp_path / "placenet", progress=False)
-    model = T.load_placenet(cfg, res.best_path, device="cpu")
-    summed = T.placenet_predict(model, x).reshape(6, 100).sum(1) * 4
+    model = Inf.load_placenet(cfg, res.best_path, device="cpu")
+    summed = Inf.placenet_predict(model, x).reshape(6, 100).sum(1) * 4
     assert model.count_scale == pytest.approx(300 / summed.sum())
     assert ckpt.read_meta(res.best_path)["count_scale"] == model.count_scale
     without = T.train_placenet(cfg, dataclasses.replace(data, train_frame_candidates=None), tmp_path / "bare",
                                progress=False)
-    assert T.load_placenet(cfg, without.best_path, device="cpu").count_scale is None
+    assert Inf.load_placenet(cfg, without.best_path, device="cpu").count_scale is None
 
 
 def test_placenet_count_scale_sums_each_frames_own_rows(monkeypatch):
@@ -934,8 +937,8 @@ def test_placenet_count_scale_is_the_best_checkpoints_and_computed_once(tmp_path
     res = T.train_placenet(cfg, data, tmp_path, progress=False)
     tensors, meta = ckpt.load_checkpoint(res.best_path)
     assert best and all(torch.equal(tensors[k], v) for k, v in best.items() if k.startswith("model."))
-    model = T.load_placenet(cfg, res.best_path, device="cpu")
-    assert meta["count_scale"] == pytest.approx(300 / (T.placenet_predict(model, x).sum() * 4))
+    model = Inf.load_placenet(cfg, res.best_path, device="cpu")
+    assert meta["count_scale"] == pytest.approx(300 / (Inf.placenet_predict(model, x).sum() * 4))
     assert calls == [1]
     again = T.train_placenet(cfg, data, tmp_path, progress=False)
     assert calls == [1] and ckpt.read_meta(again.best_path)["count_scale"] == meta["count_scale"]
@@ -949,31 +952,31 @@ def test_rssnets_checkpoint_keeps_the_quantiles_of_its_validation_residuals(tmp_
 
     data = make_rss_data(p=120)
     res = T.train_rssnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "a", progress=False)
-    model = T.load_rssnet(tiny_cfg(), res.best_path, device="cpu")
+    model = Inf.load_rssnet(tiny_cfg(), res.best_path, device="cpu")
     val = np.asarray(data.val_idx)
-    pred = T.rssnet_predict(model, data.patches[val], data.range_images[val], data.point_vectors[val])
-    expected = np.quantile(data.rss[val].astype(np.float64) - pred, T.RESIDUAL_LEVELS)
-    np.testing.assert_allclose(read_meta(res.best_path)[T.RESIDUAL_KEY], expected, rtol=1e-5, atol=1e-4)
+    pred = Inf.rssnet_predict(model, data.patches[val], data.range_images[val], data.point_vectors[val])
+    expected = np.quantile(data.rss[val].astype(np.float64) - pred, Inf.RESIDUAL_LEVELS)
+    np.testing.assert_allclose(read_meta(res.best_path)[Inf.RESIDUAL_KEY], expected, rtol=1e-5, atol=1e-4)
     np.testing.assert_allclose(model.residual_quantiles, expected, rtol=1e-5, atol=1e-4)
     no_val = T.RssNetData(data.patches, data.range_images, data.point_vectors, data.rss, data.train_idx, [])
     res = T.train_rssnet(tiny_cfg(**{"train.epochs": "1"}), no_val, tmp_path / "b", progress=False)
-    assert T.RESIDUAL_KEY not in read_meta(res.best_path)
-    assert T.load_rssnet(tiny_cfg(), res.best_path, device="cpu").residual_quantiles is None
+    assert Inf.RESIDUAL_KEY not in read_meta(res.best_path)
+    assert Inf.load_rssnet(tiny_cfg(), res.best_path, device="cpu").residual_quantiles is None
 
 
 def test_residuals_are_drawn_from_their_quantiles_and_bad_ones_refused():
     """draw_residuals inverts the quantile function: from the quantiles of a uniform 0..10 it draws
     values spread over 0..10 with mean 5, the same ones from the same generator; quantiles of the
     wrong length, decreasing or not finite are taken as none."""
-    q = np.linspace(0.0, 10.0, len(T.RESIDUAL_LEVELS))
-    draws = T.draw_residuals(q, 20_000, np.random.default_rng(1))
+    q = np.linspace(0.0, 10.0, len(Inf.RESIDUAL_LEVELS))
+    draws = Inf.draw_residuals(q, 20_000, np.random.default_rng(1))
     assert draws.min() >= 0.0 and draws.max() <= 10.0
     assert draws.mean() == pytest.approx(5.0, abs=0.1) and np.mean(draws < 2.5) == pytest.approx(0.25, abs=0.02)
-    np.testing.assert_array_equal(draws[:50], T.draw_residuals(q, 50, np.random.default_rng(1)))
+    np.testing.assert_array_equal(draws[:50], Inf.draw_residuals(q, 50, np.random.default_rng(1)))
     steep = np.r_[np.zeros(50), np.full(51, 8.0)]  # half the mass at 0, half at 8, 1% between
-    two = T.draw_residuals(steep, 10_000, np.random.default_rng(2))
+    two = Inf.draw_residuals(steep, 10_000, np.random.default_rng(2))
     assert np.mean(two == 0.0) == pytest.approx(0.49, abs=0.02) and np.mean(two == 8.0) == pytest.approx(0.5, abs=0.02)
-    np.testing.assert_array_equal(T.saved_residual_quantiles({T.RESIDUAL_KEY: q.tolist()}), q)
+    np.testing.assert_array_equal(Inf.saved_residual_quantiles({Inf.RESIDUAL_KEY: q.tolist()}), q)
     for bad in (q[:-1].tolist(), q[::-1].tolist(), [*q[:-1], float("nan")], "x", None):
-        assert T.saved_residual_quantiles({T.RESIDUAL_KEY: bad}) is None
-    assert T.saved_residual_quantiles({}) is None
+        assert Inf.saved_residual_quantiles({Inf.RESIDUAL_KEY: bad}) is None
+    assert Inf.saved_residual_quantiles({}) is None

@@ -221,7 +221,7 @@ def _check_prior_moved(pipe: Pipeline, cache: Path, train_summary: dict) -> None
     """The train stage records the world's camera; synthesize's map is Dis-Net's with its prior
     moved from that camera to KITTI's (not merely resized)."""
     from pipeline.heatmap import resize_distribution
-    from pipeline.training import disnet_predict, load_disnet
+    from pipeline.inference import disnet_predict, load_disnet
     from pipeline.transfer import camera_from_record, prior_in_target, rebase_prior, source_camera
 
     camera = camera_from_record(train_summary["source_camera"])
@@ -244,7 +244,7 @@ def _check_inputs_outside_training(pipe: Pipeline, cache: Path, notes: list[str]
     recomputed here for frame 0) and names those above OUTSIDE_NOTE_SHARE after the run."""
     from pipeline.executor import FrameInputs
     from pipeline.placement import FEATURES
-    from pipeline.training import load_placenet
+    from pipeline.inference import load_placenet
     from stages.patches import candidates, features
     from stages.synthesize import OUTSIDE_NOTE_SHARE
 

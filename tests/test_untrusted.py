@@ -200,10 +200,13 @@ def test_pickle_disguised_as_checkpoint_is_refused_without_running(tmp_path, as_
 
 
 def test_train_stage_outputs_are_safetensors_only():
-    """The train stage writes checkpoints through pipeline.checkpoint (safetensors) only."""
-    text = (ROOT / "pipeline" / "training.py").read_text()
-    assert "save_checkpoint" in text and "torch.save" not in text
-    assert scan_source(text) == []
+    """The train stage writes checkpoints, and inference reads them, through pipeline.checkpoint
+    (safetensors) only."""
+    training, inference = ((ROOT / "pipeline" / name).read_text() for name in ("training.py", "inference.py"))
+    assert "save_checkpoint" in training and "load_checkpoint" in inference
+    for text in (training, inference):
+        assert "torch.save" not in text and "torch.load" not in text
+        assert scan_source(text) == []
 
 
 # ---------------------------------------------------------------------- configuration, paths

@@ -174,7 +174,7 @@ class DisNet(nn.Module):
         ``counts``: one count (e.g. the training mean), the prior at every speed: zero head
         weights, head bias logit(count / max_points). Or counts (K,) at strictly increasing
         ``speeds_mps`` (K,), 2 <= K <= COUNT_PRIOR_KNOTS (see
-        ``pipeline.training.speed_count_prior``): zero head weights and bias, the prior's logits in
+        ``pipeline.net_baselines.speed_count_prior``): zero head weights and bias, the prior's logits in
         the buffers, linear in the logit between the knots. A network built without ``use_speed``
         takes one count only.
         """

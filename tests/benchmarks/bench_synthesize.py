@@ -29,8 +29,8 @@ from pipeline.models.disnet import build_disnet  # noqa: E402
 from pipeline.models.placenet import build_placenet  # noqa: E402
 from pipeline.models.rssnet import build_rssnet  # noqa: E402
 from pipeline.runner import Pipeline  # noqa: E402
-from pipeline.training import (disnet_predict, load_disnet, load_placenet, load_rssnet,  # noqa: E402
-                               rssnet_predict, select_device)
+from pipeline.inference import (disnet_predict, load_disnet, load_placenet, load_rssnet,  # noqa: E402
+                                rssnet_predict, select_device)
 from pipeline.world import generate as generate_world  # noqa: E402
 from stages import all_stages  # noqa: E402
 from stages.patches import point_inputs  # noqa: E402

@@ -54,7 +54,8 @@ def child(path: str, how: str) -> None:
     """One way of holding the rows: prints its peak memory above the start, the order's digest and
     the baseline."""
     from pipeline.cache import FrameStore, RaggedRows
-    from pipeline.training import epoch_windows, placenet_baseline
+    from pipeline.net_baselines import placenet_baseline
+    from pipeline.rows import epoch_windows
     from tests.test_training import reference_epoch_order  # the order of every row at once, as before
 
     store = FrameStore(path)
