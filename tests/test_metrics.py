@@ -199,15 +199,32 @@ def test_f1_wrapped_doppler():
     assert M.matched_f1(syn, real, doppler_span_mps=10.39)["matches"] == 1
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(small_points(5, 0.7, 5), small_points(5, 0.7, 5))
 def test_f1_matches_brute_force_maximum(syn, real):
     gates = (1.0, 1.0, 1.0)  # comparable to the spread: typically 1-4 admissible matches, many borderline pairs
     expected = brute_max_matches(syn, real, gates) if len(syn) and len(real) else 0
-    for density in (0.0, 2.0):  # dense Hungarian, then the sparse formulation
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(M, "DENSE_MATCHING_MIN_DENSITY", density)
-            assert M.matched_f1(syn, real, *gates)["matches"] == expected
+    assert M.matched_f1(syn, real, *gates)["matches"] == expected
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_f1_matches_a_dense_assignment_on_frame_sized_sets(seed):
+    """Sets of a real frame's size with many competing admissible pairs (a wrapped Doppler gate
+    too): the match count is the dense Hungarian assignment's (admissible pairs cost 0, the others
+    1), too large for enumeration."""
+    rng = np.random.default_rng(seed)
+    n, m = rng.integers(150, 400, size=2)
+    syn, real = (np.column_stack([rng.uniform(0, 12, (k, 3)), rng.uniform(-5.2, 5.2, k), rng.uniform(0, 30, k)])
+                 for k in (n, m))
+    span = 10.39 if seed % 2 else 0.0
+    ok = ((cdist(syn[:, :3], real[:, :3]) <= 1.0) & (np.abs(syn[:, None, 4] - real[None, :, 4]) <= 8.0)
+          & (np.abs(M.doppler_difference(syn[:, None, 3], real[None, :, 3], span)) <= 2.5))
+    r, c = linear_sum_assignment(np.where(ok, 0.0, 1.0))
+    expected = int(ok[r, c].sum())
+    assert 20 < expected < min(n, m)  # a real contest for the pairs, not all or nothing
+    got = M.matched_f1(syn, real, doppler_span_mps=span)
+    assert got["matches"] == expected
+    assert got["precision"] == pytest.approx(expected / n) and got["recall"] == pytest.approx(expected / m)
 
 
 # ---------------------------------------------------------------- distributions, region, physics
