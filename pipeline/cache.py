@@ -30,10 +30,12 @@ import json
 import os
 import re
 import shlex
+import shutil
 import time
 import uuid
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import fsspec
@@ -734,6 +736,85 @@ class DirStore:
         if meta is not None:
             self.write_text("_stage.json", json.dumps({**meta, "fingerprint": fingerprint}, indent=2, default=str))
 
+    @property
+    def is_local(self) -> bool:
+        """Whether the folder is on the local file system (else an fsspec URL: s3://, gcs://, memory://)."""
+        return is_local(self.fs)
+
+    def staging(self, staging_dir: str) -> DirStore:
+        """The local folder a stage writing with local file APIs writes into when this folder is
+        remote (:meth:`upload` then copies it here): under ``staging_dir`` (run.staging_dir), one per
+        remote folder, kept between runs so that a killed run resumes from it on this machine."""
+        return DirStore(str(_mirror_root(self.url, staging_dir) / "staging"))
+
+    def run_token(self) -> str | None:
+        """The token of the last run begun in this folder (:data:`RUN_TOKEN`; a staged stage writes
+        one into its staging folder and the remote one when it begins), None if none was."""
+        try:
+            with self.fs.open(self.file(RUN_TOKEN), "r") as fh:
+                return fh.read().strip() or None
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise cache_error(exc, f"reading {self.file(RUN_TOKEN)}") from None
+
+    def upload(self, staged: DirStore) -> None:
+        """Copy every file of the local folder ``staged`` but ``_stage.json`` into this one (which
+        :meth:`finish` then marks complete)."""
+        root = Path(staged.path)
+        try:
+            for path in sorted(p for p in root.rglob("*") if p.is_file() and p.name != "_stage.json"):
+                target = self.file(path.relative_to(root).as_posix())
+                self.fs.makedirs(self.fs._parent(target), exist_ok=True)
+                self.fs.put_file(str(path), target)
+        except OSError as exc:
+            raise cache_error(exc, f"uploading {root} to {self.url}") from None
+
+    def download(self, staged: DirStore) -> int:
+        """Copy every file of this (remote) folder but ``_stage.json`` into the local folder
+        ``staged``; returns how many (a resumable stage's checkpoints, when it resumes on another
+        machine than the one that began it)."""
+        try:
+            files = [f for f in self.fs.find(self.path) if not f.endswith("/_stage.json")] \
+                if self.fs.exists(self.path) else []
+            for name in files:
+                target = Path(staged.path) / os.path.relpath(name, self.path)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                self.fs.get_file(name, str(target))
+        except OSError as exc:
+            raise cache_error(exc, f"downloading {self.url} to {staged.path}") from None
+        return len(files)
+
+    def local_copy(self, staging_dir: str) -> Path:
+        """A local folder holding this finished output's files, for readers that need local files
+        (checkpoints, the mean map): the folder itself on a local cache; on a remote one a copy under
+        ``staging_dir`` (run.staging_dir), downloaded once per finished run of the stage (its
+        ``_stage.json``): a process, or another on this machine, that finds it reuses it."""
+        if self.is_local:
+            return Path(self.path)
+        try:
+            with self.fs.open(self.file("_stage.json"), "rb") as fh:
+                stamp = fh.read()
+        except FileNotFoundError:
+            raise CacheError(f"{self.url}: the stage has not finished (no _stage.json)") from None
+        except OSError as exc:
+            raise cache_error(exc, f"reading {self.file('_stage.json')}") from None
+        copy = _mirror_root(self.url, staging_dir) / "copies" / hashlib.sha256(stamp).hexdigest()[:16]
+        if not copy.is_dir():
+            tmp = copy.parent / f".{copy.name}-{uuid.uuid4().hex[:8]}"
+            self.download(DirStore(str(tmp)))
+            (tmp / "_stage.json").write_bytes(stamp)
+            try:
+                tmp.rename(copy)  # atomic: a reader sees the whole copy or none
+            except OSError:  # another process renamed its copy of the same run first
+                if not copy.is_dir():
+                    raise
+                shutil.rmtree(tmp, ignore_errors=True)
+            for old in copy.parent.iterdir():  # copies of earlier runs (readers load a run's files once)
+                if old != copy and not old.name.startswith("."):
+                    shutil.rmtree(old, ignore_errors=True)
+        return copy
+
     def invalidate(self) -> None:
         """Forget completion (the files stay; the stage decides what to reuse)."""
         try:
@@ -980,6 +1061,19 @@ def _open_group(url: str, mode: str) -> zarr.Group:
 def frame_store(root: str, dataset: str, stage: str) -> FrameStore:
     """The FrameStore of ``stage`` of ``dataset`` under cache ``root``."""
     return FrameStore(join(root, dataset, f"{stage}.zarr"))
+
+
+RUN_TOKEN = "_run.token"
+"""File of a staged stage's output folder (remote and staging alike) naming the run that began
+last: a staging folder whose token differs from the remote's is another run's (an older one, or
+this machine's while another ran the stage since) and is replaced by the remote's files."""
+
+
+def _mirror_root(url: str, staging_dir: str) -> Path:
+    """Where the local staging folder and copies of the remote folder ``url`` live: under
+    ``staging_dir`` (``~`` expanded), named by the URL's last part and a digest of the whole URL."""
+    name = url.rstrip("/").rsplit("/", 1)[-1] or "folder"
+    return Path(os.path.expanduser(staging_dir)) / f"{name}-{hashlib.sha256(url.encode()).hexdigest()[:16]}"
 
 
 def dir_store(root: str, dataset: str, stage: str) -> DirStore:

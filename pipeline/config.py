@@ -391,6 +391,10 @@ class RunSection:
 
     workers: int = 2
     """dask worker processes of the local cluster (1 = in-process serial loop)."""
+    staging_dir: str = "~/.cache/radarsim-pipeline"
+    """Local folder for the stages that write with local file APIs (train, export, evaluate) on a
+    remote (fsspec) cache: each writes into a local staging folder here and uploads it when it
+    finishes; readers of their output keep a local copy here (pipeline.cache.DirStore.local_copy)."""
 
 
 SECTIONS: dict[str, type] = {

@@ -18,6 +18,7 @@ import json
 import os
 import sys
 import time
+import uuid
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -25,7 +26,8 @@ from typing import Any, Callable
 import fsspec
 import numpy as np
 
-from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, cache_error, done_digest, is_local, join
+from pipeline.cache import (DONE, EXCLUDED, FAILED, PENDING, RUN_TOKEN, STATUS_NAMES, cache_error, done_digest, is_local,
+                            join)
 from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
                              MetadataError, PipelineError, StageInterrupted, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv
@@ -378,29 +380,22 @@ class Pipeline:
 
     def check_config(self, target: str) -> None:
         """ConfigError for settings a stage of ``target``'s run cannot work with, before any output
-        is touched (each stage's ``check``; a stage writing local files with a remote cache)."""
+        is touched (each stage's ``check``)."""
         closure = self.upstream_closure(target)
-        self.require_local_cache([n for n in closure if n in self._local_file_stages()])
         for name in closure:
             check = self.stages[name].check
             if check is not None:
                 check(self.env.cfg)
 
     def require_local_cache(self, names: list[str]) -> None:
-        """ConfigError when the cache is not a local folder although ``names`` (stages, commands)
-        write theirs with local file APIs: they would write to a local path named like the remote one."""
+        """ConfigError when the cache is not a local folder although ``names`` (commands: ablate)
+        write theirs with local file APIs: they would write to a local path named like the remote
+        one. (The stages that do, train, export and evaluate, stage their output locally and upload
+        it: :meth:`_run_dataset`.)"""
         if names and not is_local(fsspec.core.url_to_fs(self.env.cache_root)[0]):
-            local = self._local_file_stages()
-            frame_stages = [n for n in self.order if isinstance(self.stages[n], FrameStage)
-                            and not set(self.upstream_closure(n)) & local]
             raise ConfigError(f"--cache {self.env.cache_root} is not a local folder, and {', '.join(names)} "
-                              f"write{'s' if len(names) == 1 else ''} checkpoints and reports with local file "
-                              f"APIs: use a local (or mounted) cache folder for them; on this cache run the "
-                              f"per-frame stages {', '.join(frame_stages)}")
-
-    def _local_file_stages(self) -> set[str]:
-        """The stages that write their output with local file APIs (DatasetStage.local_files)."""
-        return {n for n in self.order if getattr(self.stages[n], "local_files", False)}
+                              f"write{'s' if len(names) == 1 else ''} with local file APIs: use a local (or "
+                              f"mounted) cache folder for {'it' if len(names) == 1 else 'them'}")
 
     def downstream(self, name: str) -> list[str]:
         """Stages that depend on ``name``, directly or not, in execution order."""
@@ -631,26 +626,56 @@ class Pipeline:
         frames = self.frames_read(stage.name)
         if not force and out.fingerprint() == fp:
             self.log(f"{stage.name:<{NAME_WIDTH}} recomputing: its per-frame inputs finished other frames since it ran")
+        # a stage writing with local file APIs on a remote cache writes into a local staging folder,
+        # uploaded when it finishes (its checkpoints resume from there on this machine)
+        staged = stage.local_files and not out.is_local
+        work = out.staging(self.env.cfg.run.staging_dir) if staged else out
+        self._prepare_output(stage, out, work, force)
+        try:
+            summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, work,
+                                fingerprint=fp)
+        except OSError as exc:
+            if not _writing_into(exc, work.path):
+                raise  # a read error, or one naming other files only (e.g. a dataset file it read)
+            raise cache_error(exc, f"{stage.name}: writing into {work.path}") from None
+        if staged:
+            out.upload(work)
+            summary = _moved_paths(summary, work.path, out.url)
+            if not stage.resumes:  # nothing to resume from: the local copy of an export is not kept
+                work.clear()
+        out.finish(fp, summary, frames)
+        report.summary = summary
+        return report
+
+    def _prepare_output(self, stage: DatasetStage, out, work, force: bool) -> None:
+        """Make the folder ``work`` the stage writes into ready: ``out`` itself, or its local staging
+        folder on a remote cache. From scratch (forced, or a stage that does not resume) both are
+        emptied; else a killed run's temporary files go, and a staging folder that is not the last
+        run's (its RUN_TOKEN differs from ``out``'s) is replaced by what that run uploaded. Then
+        ``out`` loses its completion mark and a staged run writes its token into both."""
+        staged = work is not out
         if force or not stage.resumes:
             out.clear()  # from scratch: nothing of an earlier run is reused or left (forced: train's checkpoints too)
+            if staged:
+                work.clear()
+        elif staged and work.run_token() != out.run_token():  # begun elsewhere, or run elsewhere since
+            work.clear()
+            taken = out.download(work)
+            if taken:
+                self.log(f"{stage.name:<{NAME_WIDTH}} resuming from {taken} file(s) of {out.url}")
         else:  # a killed run's half-written files
-            left = [os.path.relpath(name, out.path) for name in out.remove_temporaries()]
+            left = [os.path.relpath(name, work.path) for name in work.remove_temporaries()]
             if left:
                 files = f"file{'s' * (len(left) > 1)}"
                 self.log(f"{stage.name:<{NAME_WIDTH}} removed {len(left)} temporary {files} a killed run left: "
                          f"{', '.join(left[:3])}{' ...' * (len(left) > 3)}")
         out.ensure()
         out.invalidate()
-        try:
-            summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, out,
-                                fingerprint=fp)
-        except OSError as exc:
-            if not _writing_into(exc, out.path):
-                raise  # a read error, or one naming other files only (e.g. a dataset file it read)
-            raise cache_error(exc, f"{stage.name}: writing into {out.path}") from None
-        out.finish(fp, summary, frames)
-        report.summary = summary
-        return report
+        if staged:
+            work.ensure()
+            token = uuid.uuid4().hex
+            for folder in (out, work):
+                folder.write_text(RUN_TOKEN, token)
 
     # ---- verify ---------------------------------------------------------------------------
 
@@ -733,6 +758,13 @@ class Pipeline:
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
 """Errors only a write raises: one without a file name, from a dataset stage, is its output's
 (a write(2) that fails names no file)."""
+
+
+def _moved_paths(summary: dict[str, Any], old: str, new: str) -> dict[str, Any]:
+    """``summary`` with the folder ``old`` (a staging folder) written as ``new`` (the remote folder
+    it was uploaded to) in its string values."""
+    old = old.rstrip("/")
+    return {k: v.replace(old, new.rstrip("/")) if isinstance(v, str) else v for k, v in summary.items()}
 
 
 def _writing_into(exc: OSError, folder: str) -> bool:

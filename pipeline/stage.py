@@ -98,7 +98,8 @@ class DatasetStage:
     extra_fingerprint: Callable[["Config", Any], str] | None = field(default=None)
     check: Callable[["Config"], None] | None = None
     local_files: bool = False
-    """Writes its output folder with local file APIs (checkpoints, reports): needs a local cache."""
+    """Writes its output folder with local file APIs (checkpoints, reports): on a remote (fsspec)
+    cache it writes into a local staging folder (run.staging_dir) that is uploaded when it finishes."""
     resumes: bool = False
     """Goes on from what an interrupted run of it saved in its folder (train's per-epoch
     checkpoints). Otherwise the folder is emptied before the stage runs, so that its files all come

@@ -109,7 +109,7 @@ def _train_stats(inputs, cfg: Config) -> dict:
     """Training-split statistics the baselines use: mean count, mean map, RSS values."""
     patches = inputs.store("patches")
     train, counts = _train_counts(inputs)
-    mean_map = np.load(Path(inputs.dir("train").path) / "mean_heatmap.npy", allow_pickle=False)
+    mean_map = np.load(inputs.dir("train").local_copy(cfg.run.staging_dir) / "mean_heatmap.npy", allow_pickle=False)
     pc = np.asarray(patches.array("rss_count")[:])
     rss = np.asarray(patches.array("rss").oindex[train])
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)

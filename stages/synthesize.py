@@ -32,6 +32,7 @@ fingerprint.
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -156,7 +157,8 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
     in 15-16 ms; once per run, before the output is recreated: the nets' loaders check them again
     when they load)."""
     nets = needed_nets(cfg)
-    missing = [n for n in nets if not train_dir.fs.exists(train_dir.file(f"{n}/best.safetensors"))]
+    folder = checkpoint_folder(train_dir, cfg)
+    missing = [n for n in nets if folder is None or not (folder / n / "best.safetensors").is_file()]
     if missing:
         hint = RAY_HINT if missing == ["placenet"] else ""
         raise PipelineError(f"{train_dir.url}: no {', '.join(missing)} checkpoint; synthesis needs it: run the "
@@ -166,7 +168,7 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
 
     read = load_checkpoint if weights else read_meta
     for net in nets:  # a truncated, overwritten or otherwise damaged file fails here, not in every frame
-        path = train_dir.file(f"{net}/best.safetensors")
+        path = str(folder / net / "best.safetensors")
         try:
             meta = read(path)
         except PipelineError as exc:
@@ -183,6 +185,15 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
                                 f"or without validation points), which synth.rss_sampling = residual needs: retrain "
                                 f"it, `pipeline run train --force` (with the same --dataset and --cache), or set "
                                 f"synth.rss_sampling=mean")
+
+
+def checkpoint_folder(train_dir, cfg: Config) -> Path | None:
+    """A local folder holding the train stage's output ``train_dir`` (a DirStore): the folder itself
+    on a local cache; on a remote one, a local copy of its finished run (run.staging_dir), or None
+    while it has not finished."""
+    if train_dir.is_local:
+        return Path(train_dir.path)
+    return train_dir.local_copy(cfg.run.staging_dir) if train_dir.meta() is not None else None
 
 
 def uses_placenet_count(cfg: Config) -> bool:
@@ -243,13 +254,14 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
     def build():
         torch.set_num_threads(max(1, cfg.train.threads // max(1, cfg.run.workers)))
         check_checkpoints(out, cfg)
+        folder = checkpoint_folder(out, cfg)
         device = str(select_device(cfg.synth.device, "synth.device"))
         saved = bool(cfg.train.nets_from)  # another dataset's nets: built as trained (pipeline.transfer)
-        placenet = (load_placenet(cfg, out.file("placenet/best.safetensors"), device=device, saved_arch=saved)
+        placenet = (load_placenet(cfg, folder / "placenet" / "best.safetensors", device=device, saved_arch=saved)
                     if cfg.synth.placement == "lidar" else None)
         camera = meta.get("summary", {}).get("source_camera") if saved else None
-        return Nets(load_disnet(cfg, out.file("disnet/best.safetensors"), device=device, saved_arch=saved),
-                    load_rssnet(cfg, out.file("rssnet/best.safetensors"), device=device, saved_arch=saved), placenet,
+        return Nets(load_disnet(cfg, folder / "disnet" / "best.safetensors", device=device, saved_arch=saved),
+                    load_rssnet(cfg, folder / "rssnet" / "best.safetensors", device=device, saved_arch=saved), placenet,
                     transfer.camera_from_record(camera) if camera else None)
 
     return process_memo(key, build)

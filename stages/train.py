@@ -117,8 +117,9 @@ def candidate_counts(inputs, cfg: Config, frames: np.ndarray) -> np.ndarray:
                                    disable=not inputs.progress)], np.int64)
 
 
-def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
-    """Held-out test losses of the trivial predictors the networks must beat."""
+def _baselines(inputs, table, idx, cfg: Config, root: Path) -> dict[str, float]:
+    """Held-out test losses of the trivial predictors the networks must beat; the mean training
+    map saved under ``root`` (the stage's output folder) for evaluate's baselines."""
     from pipeline.net_baselines import disnet_baseline, mean_map_baseline, rssnet_baseline
 
     heat = inputs.store("heatmaps").array("heatmap")
@@ -135,7 +136,7 @@ def _baselines(inputs, table, idx, cfg: Config) -> dict[str, float]:
         r = rssnet_baseline(rss, np.arange(len(train_rss)), np.arange(len(train_rss), len(rss)),
                             cfg.radar.rss_min, cfg.radar.rss_max)
         out.update(median_rss_L_a=r["a"], train_rss_median=r["median"])
-    np.save(Path(inputs.dir("train").path) / "mean_heatmap.npy", mean_map.astype(np.float32), allow_pickle=False)
+    np.save(root / "mean_heatmap.npy", mean_map.astype(np.float32), allow_pickle=False)
     return out
 
 
@@ -172,7 +173,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     summary: dict = {"frames": {k: int(len(v)) for k, v in idx.items()},
                      "frames_without_radar_points": int((table["ok"] & (table["count"] == 0)).sum()),
                      "checkpoints": str(root), "settings": transfer.settings(cfg)}
-    summary["baselines_test"] = _baselines(inputs, table, idx, cfg)
+    summary["baselines_test"] = _baselines(inputs, table, idx, cfg, root)
     if "disnet" in nets:
         res = train_disnet(cfg, d_data, root / "disnet", progress=inputs.progress,
                            fingerprint=training_fingerprint(inputs, cfg, "disnet"))
@@ -216,11 +217,11 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
         raise ConfigError(f"train.nets_from = '{source}': this configuration lacks settings the nets were trained "
                           f"with: {'; '.join(wrong)} (the CLI sets them itself; set them with --set)")
     src = transfer.source_train(inputs.env.cache_root, source)
-    root = Path(out.path)
-    taken = [name for name in COPIED if (Path(src.path) / name).is_file()]
+    root, src_files = Path(out.path), src.local_copy(cfg.run.staging_dir)
+    taken = [name for name in COPIED if (src_files / name).is_file()]
     for name in taken:
         (root / name).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(Path(src.path) / name, root / name)
+        shutil.copyfile(src_files / name, root / name)
     _save_mean_map(inputs, root)
     meta = src.meta() or {}
     try:  # where the source radar's returns lay in its camera: Dis-Net's prior is moved from there

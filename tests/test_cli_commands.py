@@ -151,20 +151,19 @@ def test_estimate_sigma_skips_and_names_unreadable_frames(world, tmp_path):
     assert f"; {len(ids)} unreadable frame(s) skipped: " in out.stderr and "and 1 more" in out.stderr
 
 
-@pytest.mark.parametrize("command", [["run", "synthesize"], ["run", "export"], ["ablate"]])
-def test_stages_writing_local_files_refuse_a_remote_cache_before_any_work(world, command):
-    """train, evaluate and export write checkpoints and reports with local file APIs: on an fsspec
-    cache they wrote to a local path named like the remote one (or failed on a missing file)."""
+def test_ablate_refuses_a_remote_cache_before_any_work(world):
+    """ablate writes its tables with local file APIs: on an fsspec cache it would write to a local
+    path named like the remote one. (The stages that write local files stage them and upload them:
+    tests/test_remote_cache.py.)"""
     import fsspec
 
-    url = f"memory://refuse-{command[-1]}"
-    out = CliRunner().invoke(main, [*command, "--dataset", "synthetic", "--data-root", str(world), "--cache", url,
+    url = "memory://refuse-ablate"
+    out = CliRunner().invoke(main, ["ablate", "--dataset", "synthetic", "--data-root", str(world), "--cache", url,
                                     "--workers", "1"])
     assert out.exit_code == 2, out.output
-    assert f"--cache {url} is not a local folder" in out.output
-    assert "run the per-frame stages calibrate, heatmaps, patches" in out.output
-    assert not fsspec.filesystem("memory").exists(f"/refuse-{command[-1]}/synthetic/calibrate.zarr")
-    assert not Path(f"/refuse-{command[-1]}").exists()
+    assert f"--cache {url} is not a local folder, and ablate writes with local file APIs" in out.output
+    assert not fsspec.filesystem("memory").exists("/refuse-ablate/synthetic/calibrate.zarr")
+    assert not Path("/refuse-ablate").exists()
 
 
 def test_a_number_that_is_no_id_is_refused_where_ids_are_numbers():

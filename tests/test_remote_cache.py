@@ -4,6 +4,7 @@ the same way, and name a damaged chunk. Small pipelines of tests/fake_stages.py.
 
 from __future__ import annotations
 
+import json
 import uuid
 from pathlib import Path
 
@@ -96,3 +97,122 @@ def test_a_failed_array_write_on_a_remote_cache_leaves_the_frame_pending(tmp_pat
     assert pipe.env.store("calibrate").status()[3] == PENDING
     pipe.run("calibrate")
     assert (pipe.env.store("calibrate").status() == DONE).all()
+
+
+def _real_pipe(cache: str, world: Path, staging: Path, logs: list[str], **overrides: str) -> Pipeline:
+    from stages import all_stages
+    from tests.test_pipeline_e2e import TINY
+
+    cfg = load_config("synthetic", {**TINY, "run.staging_dir": str(staging), **overrides}, environ={})
+    return Pipeline(all_stages(), RunEnv(cfg, cache, "synthetic", str(world)), Executor(1), progress=False,
+                    log=logs.append)
+
+
+def _tensors(data: bytes) -> dict[str, np.ndarray]:
+    from safetensors.numpy import load
+
+    return load(data)
+
+
+def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_path, remote):
+    """train, evaluate and export write with local file APIs: on a remote cache they write into a
+    local staging folder (run.staging_dir) that is uploaded when they finish, and synthesize and
+    evaluate read the checkpoints through a local copy. Everything equals a local cache's run; a
+    second machine (another staging folder) resumes train from what the first uploaded."""
+    from pipeline.world import generate
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    logs: list[str] = []
+    local = _real_pipe(str(tmp_path / "cache"), world, tmp_path / "unused", logs)
+    far = _real_pipe(remote, world, tmp_path / "machine-a", logs)
+    for pipe in (local, far):
+        pipe.run("evaluate")
+        pipe.run("export")
+    fs = fsspec.filesystem("memory")
+    here, there = tmp_path / "cache" / "synthetic", remote.removeprefix("memory://") + "/synthetic"
+    for net in ("disnet", "rssnet", "placenet"):  # the same training, the same weights
+        a = _tensors((here / "train" / net / "best.safetensors").read_bytes())
+        b = _tensors(fs.cat_file(f"{there}/train/{net}/best.safetensors"))
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a), net
+    for i in range(10):
+        np.testing.assert_array_equal(local.env.store("synthesize").read("points", i),
+                                      far.env.store("synthesize").read("points", i))
+    exported = sorted(p.relative_to(here / "export").as_posix() for p in (here / "export").rglob("*")
+                      if p.is_file() and p.name != "_stage.json")
+    assert len(exported) > 30
+    assert sorted(f.removeprefix(f"/{there}/export/") for f in fs.find(f"{there}/export")
+                  if not f.endswith(("_stage.json", "_run.token"))) == exported
+    for name in exported:
+        assert fs.cat_file(f"{there}/export/{name}") == (here / "export" / name).read_bytes(), name
+    ours, theirs = (json.loads(p) for p in ((here / "evaluate" / "report.json").read_text(),
+                                           fs.cat_file(f"{there}/evaluate/report.json")))
+    assert len(ours["metrics"]) > 5
+    for key in ("metrics", "distribution_distances", "physics_checks", "by_ego_speed", "meta"):
+        assert json.dumps(ours[key], sort_keys=True) == json.dumps(theirs[key], sort_keys=True), key
+    figures = sorted(p.name for p in (here / "evaluate" / "figures").iterdir())
+    assert len(figures) >= 3 and sorted(f.rsplit("/", 1)[-1] for f in fs.find(f"{there}/evaluate/figures")) == figures
+    kept = {p.name.split("-")[0]: sorted(q.name for q in p.iterdir()) for p in (tmp_path / "machine-a").iterdir()}
+    # train's staging folder (it resumes from it) and the copy synthesize and evaluate read; the
+    # uploaded staging folders of export and evaluate are not kept
+    assert kept == {"train": ["copies", "staging"], "export": [], "evaluate": []}, kept
+    summary = far.env.dir("train").summary()  # the remote folder, not the staging one, is named
+    assert summary["checkpoints"] == f"{remote}/synthetic/train"
+    assert str(tmp_path / "machine-a") not in json.dumps(far.env.dir("export").summary())
+
+    # another machine: more epochs resume from the uploaded checkpoints, and the others read them anew
+    logs.clear()
+    other = _real_pipe(remote, world, tmp_path / "machine-b", logs, **{"train.epochs": "2"})
+    other.run("evaluate")
+    assert any("resuming from" in line and remote in line for line in logs), logs
+    assert other.env.dir("train").summary()["disnet"]["resumed_from"] == 1
+    b = _tensors(fs.cat_file(f"{there}/train/disnet/best.safetensors"))
+    copies = list((tmp_path / "machine-b").glob("train-*/copies/*/disnet/best.safetensors"))
+    assert len(copies) == 1 and all(np.array_equal(v, _tensors(copies[0].read_bytes())[k]) for k, v in b.items())
+    # the first machine's staging folder is now an older run's: it takes the remote's files
+    logs.clear()
+    again = _real_pipe(remote, world, tmp_path / "machine-a", logs, **{"train.epochs": "3"})
+    again.run("train")
+    assert any("resuming from" in line for line in logs), logs
+    assert again.env.dir("train").summary()["disnet"]["resumed_from"] == 2
+    again.run("synthesize")  # reads the new run's checkpoints: a new copy replaces the first run's
+    copies = list((tmp_path / "machine-a").glob("train-*/copies/*"))
+    assert len(copies) == 1 and (copies[0] / "_stage.json").read_bytes() == fs.cat_file(f"{there}/train/_stage.json")
+
+
+def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tmp_path, remote, monkeypatch):
+    """A train killed after its first epoch on a remote cache has uploaded nothing (the output is
+    not done); run again on the same machine it goes on from that epoch in its staging folder,
+    without downloading, and uploads the finished nets."""
+    import pipeline.training
+    from pipeline.errors import StageInterrupted
+    from pipeline.world import generate
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    original, calls = pipeline.training.train_one_epoch, []
+
+    def killed_in_the_second_epoch(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt("simulated kill")
+        return original(*args, **kwargs)
+
+    logs: list[str] = []
+    pipe = _real_pipe(remote, world, tmp_path / "machine", logs, **{"train.epochs": "2", "train.nets": "disnet"})
+    with monkeypatch.context() as patch:
+        patch.setattr(pipeline.training, "train_one_epoch", killed_in_the_second_epoch)
+        with pytest.raises(StageInterrupted):
+            pipe.run("train")
+    fs = fsspec.filesystem("memory")
+    there = remote.removeprefix("memory://") + "/synthetic/train"
+    assert pipe.env.dir("train").meta() is None and not fs.exists(f"{there}/disnet/last.safetensors")
+    staged = list((tmp_path / "machine").glob("train-*/staging/disnet/last.safetensors"))
+    assert len(staged) == 1
+    logs.clear()
+    pipe.run("train")
+    assert not any("resuming from" in line for line in logs), logs
+    summary = pipe.env.dir("train").summary()
+    assert summary["disnet"]["resumed_from"] == 1 and summary["checkpoints"] == f"{remote}/synthetic/train"
+    assert fs.cat_file(f"{there}/disnet/best.safetensors") == \
+        (staged[0].parent / "best.safetensors").read_bytes()
