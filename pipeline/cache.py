@@ -762,11 +762,13 @@ class DirStore:
         """Copy every file of the local folder ``staged`` but ``_stage.json`` into this one (which
         :meth:`finish` then marks complete)."""
         root = Path(staged.path)
+        local = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "_stage.json")
+        targets = [self.file(path.relative_to(root).as_posix()) for path in local]
         try:
-            for path in sorted(p for p in root.rglob("*") if p.is_file() and p.name != "_stage.json"):
-                target = self.file(path.relative_to(root).as_posix())
-                self.fs.makedirs(self.fs._parent(target), exist_ok=True)
-                self.fs.put_file(str(path), target)
+            for parent in sorted({self.fs._parent(t) for t in targets}):
+                self.fs.makedirs(parent, exist_ok=True)
+            if local:  # one call: an object store's filesystem (s3fs, gcsfs) sends the files concurrently
+                self.fs.put([str(path) for path in local], targets)
         except OSError as exc:
             raise cache_error(exc, f"uploading {root} to {self.url}") from None
 
@@ -777,10 +779,11 @@ class DirStore:
         try:
             files = [f for f in self.fs.find(self.path) if not f.endswith("/_stage.json")] \
                 if self.fs.exists(self.path) else []
-            for name in files:
-                target = Path(staged.path) / os.path.relpath(name, self.path)
-                target.parent.mkdir(parents=True, exist_ok=True)
-                self.fs.get_file(name, str(target))
+            targets = [Path(staged.path) / os.path.relpath(name, self.path) for name in files]
+            for parent in {t.parent for t in targets}:
+                parent.mkdir(parents=True, exist_ok=True)
+            if files:  # one call, as in upload
+                self.fs.get(files, [str(t) for t in targets])
         except OSError as exc:
             raise cache_error(exc, f"downloading {self.url} to {staged.path}") from None
         return len(files)
