@@ -41,7 +41,7 @@ from pipeline.errors import ConfigError
 from pipeline.net_baselines import mean_map_baseline, speed_count_prior
 from pipeline.inference import (RESIDUAL_KEY, RESIDUAL_LEVELS, device_of, disnet_inputs, jsonable_arch,
                                 model_state, placenet_predict, rss_arrays, rssnet_inputs, select_device)
-from pipeline.models.disnet import DisNet, build_disnet, disnet_kwargs
+from pipeline.models.disnet import DisNet, build_disnet, disnet_kwargs, mix_with_prior
 from pipeline.models.losses import count_loss, kl_loss, poisson_loss, rss_loss
 from pipeline.models.placenet import PlaceNet, build_placenet, placenet_kwargs
 from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
@@ -287,6 +287,8 @@ def check_training(cfg) -> None:
     before any output is touched; the same checks also guard the training functions)."""
     # epochs, intervals (cutmix, jitter, ema_decay, ...) are held to pipeline.config.LIMITS where set
     selection_key(cfg.train.select_on, {})
+    if cfg.disnet.prior_mix not in PRIOR_MIX_CHOICES:
+        raise ConfigError(f"disnet.prior_mix must be one of {', '.join(PRIOR_MIX_CHOICES)}; got '{cfg.disnet.prior_mix}'")
     if cfg.train.lr_schedule not in LR_SCHEDULES:
         raise ConfigError(f"train.lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got '{cfg.train.lr_schedule}'")
     select_device(cfg.train.device)
@@ -492,7 +494,56 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
     res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
     if refit_epochs > 0:
         _refit_best_count(cfg, spec, res.best_path, refit_epochs, progress)
+    # every run: the setting may have changed since the checkpoint was written (it is no training key)
+    _add_to_best_meta(res, model, PRIOR_MIX_KEY, lambda m: choose_prior_mix(m, data, spec.val_idx,
+                                                                            cfg.disnet.prior_mix), again=True)
     return res
+
+
+PRIOR_MIX_KEY = "prior_mix"
+"""Dis-Net checkpoint metadata: how its prior share was chosen (:func:`choose_prior_mix`)."""
+PRIOR_MIX_CHOICES = ("val", "off")
+"""Values of disnet.prior_mix."""
+PRIOR_MIX_GRID = np.round(np.linspace(0.0, 1.0, 21), 2)
+"""The prior shares w disnet.prior_mix = 'val' tries."""
+
+
+def choose_prior_mix(model: DisNet, data: DisNetData, idx: Sequence[int], setting: str) -> dict[str, Any]:
+    """Set Dis-Net's prior share (DisNet.set_prior_mix): with ``setting`` 'val', the w of
+    PRIOR_MIX_GRID with the lowest mean L_KL of its mixed map over frames ``idx`` (the val split);
+    else, without a prior or without frames, 0. Returns the record the checkpoint keeps: w, the
+    setting and (with 'val') the val L_KL with and without the mixture."""
+    model.set_prior_mix(0.0)
+    if setting not in PRIOR_MIX_CHOICES:
+        raise ConfigError(f"disnet.prior_mix must be one of {', '.join(PRIOR_MIX_CHOICES)}, got '{setting}'")
+    if setting == "off" or not model.use_prior or len(idx) == 0:
+        return {"w": 0.0, "setting": setting}
+    kl = prior_mix_kl(model, data, idx)
+    best = int(np.argmin(kl))
+    model.set_prior_mix(float(PRIOR_MIX_GRID[best]))
+    return {"w": float(PRIOR_MIX_GRID[best]), "setting": setting, "val_kl": float(kl[best]),
+            "val_kl_unmixed": float(kl[0]), "val_frames": int(len(idx))}
+
+
+@torch.no_grad()
+def prior_mix_kl(model: DisNet, data: DisNetData, idx: Sequence[int], grid: np.ndarray = PRIOR_MIX_GRID,
+                 batch: int = 8) -> np.ndarray:
+    """Mean L_KL (len(grid),) over frames ``idx`` of Dis-Net's map mixed with its prior,
+    (1 - w) map + w prior for each w of ``grid`` (the model's own share set to 0 meanwhile)."""
+    model.eval()
+    device, kept = device_of(model), float(model.prior_mix)
+    model.set_prior_mix(0.0)
+    sums, n = np.zeros(len(grid)), 0
+    arrays = {"images": data.images, "heatmaps": data.heatmaps, "speeds": data.speeds}
+    for b in iter_batches(arrays, np.asarray(idx, np.int64), batch):
+        log_map, _ = model(*disnet_inputs(b, device))
+        target = torch.from_numpy(np.asarray(b["heatmaps"], np.float32)).to(device)
+        for k, w in enumerate(grid):
+            mixed = log_map if w == 0 else mix_with_prior(log_map, model.prior_logits, float(w))
+            sums[k] += float(kl_loss(mixed, target).double().sum())
+        n += len(log_map)
+    model.set_prior_mix(kept)
+    return sums / max(n, 1)
 
 
 def _refit_best_count(cfg, spec: _NetSpec, best: Path, epochs: int, progress: bool) -> None:
@@ -616,16 +667,20 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
     return res
 
 
-def _add_to_best_meta(res: TrainResult, model: nn.Module, key: str, compute: Callable[[nn.Module], Any]) -> None:
+def _add_to_best_meta(res: TrainResult, model: nn.Module, key: str, compute: Callable[[nn.Module], Any],
+                      again: bool = False) -> None:
     """Give the best checkpoint's metadata ``key`` = ``compute(model)``, the best weights loaded into
     ``model`` on the CPU, where it lacks the key (a new best is written without it; a resumed,
-    finished run's best keeps it)."""
-    if key in ckpt.read_meta(res.best_path):
-        return
+    finished run's best keeps it) or, with ``again``, holds another value; the weights and buffers
+    are saved as ``compute`` leaves them."""
+    if not Path(res.best_path).is_file() or (key in ckpt.read_meta(res.best_path) and not again):
+        return  # no epoch trained (train.epochs = 0), or done
     tensors, meta = ckpt.load_checkpoint(res.best_path)
     model.load_state_dict(model_state(model, tensors), strict=True)
     model = model.to("cpu")
-    ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, key: compute(model)})
+    value = compute(model)
+    if meta.get(key) != value:  # computed again to the same value: the file stays as it is
+        ckpt.save_checkpoint(res.best_path, ckpt.model_tensors(model), {**meta, key: value})
 
 
 @torch.no_grad()

@@ -41,7 +41,7 @@ scale retrains PlaceNet alone)."""
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
 CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING_KEYS["common"])
-                                  + ("train.nets", *EPOCHS_KEYS.values())))
+                                  + ("train.nets", "disnet.prior_mix", *EPOCHS_KEYS.values())))
 COPIED = tuple(f"{net}/best.safetensors" for net in NETS)
 """What train.nets_from takes from the other dataset's train output (those of them it has)."""
 
@@ -181,9 +181,11 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         summary["disnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from,
                              "val": res.best_metric,
                              "test": disnet_metrics(model, d_data, idx["test"], cfg.train.alpha) if len(idx["test"]) else {}}
-        refit = read_meta(res.best_path).get("count_refit")
+        best_meta = read_meta(res.best_path)
+        refit = best_meta.get("count_refit")
         if refit:
             summary["disnet"]["count_refit"] = {k: v for k, v in refit.items() if k != "curve"}
+        summary["disnet"]["prior_mix"] = best_meta.get("prior_mix")
     if "rssnet" in nets:
         r_data = rssnet_data(inputs, table, 0, 1)
         res = train_rssnet(cfg, r_data, root / "rssnet", progress=inputs.progress,
@@ -298,7 +300,9 @@ def _headline(s: dict) -> str:
     parts = []
     if "disnet" in s and s["disnet"]["test"]:
         t = s["disnet"]["test"]
-        parts.append(f"Dis-Net test L_KL {t['kl']:.4f} (mean map {b.get('mean_map_kl', nan):.4f}), "
+        w = (s["disnet"].get("prior_mix") or {}).get("w", 0.0)
+        mixed = f", the mean map's share {w:g} chosen on val" if w else ""
+        parts.append(f"Dis-Net test L_KL {t['kl']:.4f} (mean map {b.get('mean_map_kl', nan):.4f}{mixed}), "
                      f"L_n {t['n']:.4f} (mean count {b.get('mean_count_L_n', nan):.4f})")
     if "rssnet" in s and s["rssnet"]["test"]:
         parts.append(f"RSS-Net test L_a {s['rssnet']['test']['a']:.2e} (median {b.get('median_rss_L_a', float('nan')):.2e})")

@@ -76,7 +76,7 @@ def _to_zarr(a: np.ndarray, chunk: int):
 
 def test_disnet_learns_and_beats_mean_map(tmp_path):
     data = make_disnet_data()
-    cfg = tiny_cfg(**{"train.epochs": "8"})
+    cfg = tiny_cfg(**{"train.epochs": "8", "disnet.prior_mix": "val"})
     res = T.train_disnet(cfg, data, tmp_path, progress=False)
     base = B.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
     best = res.curves[res.best_epoch - 1]
@@ -85,11 +85,18 @@ def test_disnet_learns_and_beats_mean_map(tmp_path):
     for name in ("last.safetensors", "best.safetensors", "last.json", "best.json",
                  "curves.csv", "curves.json", "curves.png"):
         assert (tmp_path / name).is_file(), name
-    # the best checkpoint reproduces the validation metrics recorded for its epoch
+    # the best checkpoint reproduces the validation metrics recorded for its epoch, without the
+    # prior share chosen afterwards on the same frames, and that share's val L_KL with it
     model = Inf.load_disnet(cfg, res.best_path)
+    mix = ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY]
+    assert mix["setting"] == "val" and 0 < mix["w"] < 1 and float(model.prior_mix) == pytest.approx(mix["w"])
     m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
-    assert m["kl"] == pytest.approx(best["val_kl"], rel=1e-4)
+    assert m["kl"] == pytest.approx(mix["val_kl"], rel=1e-5) and mix["val_kl"] < mix["val_kl_unmixed"]
+    model.set_prior_mix(0.0)
+    m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
+    assert m["kl"] == pytest.approx(best["val_kl"], rel=1e-4) == pytest.approx(mix["val_kl_unmixed"], rel=1e-4)
     assert m["n"] == pytest.approx(best["val_n"], rel=1e-4)
+    model.set_prior_mix(mix["w"])
     maps, n_hat = Inf.disnet_predict(model, data.images[:5], data.speeds[:5], batch=2)
     assert maps.shape == (5, 32, 64) and maps.dtype == np.float32 and n_hat.shape == (5,)
     np.testing.assert_allclose(maps.sum(axis=(1, 2)), 1.0, atol=1e-4)
@@ -980,3 +987,45 @@ def test_residuals_are_drawn_from_their_quantiles_and_bad_ones_refused():
     for bad in (q[:-1].tolist(), q[::-1].tolist(), [*q[:-1], float("nan")], "x", None):
         assert Inf.saved_residual_quantiles({Inf.RESIDUAL_KEY: bad}) is None
     assert Inf.saved_residual_quantiles({}) is None
+
+
+def test_prior_mix_is_the_val_minimum_of_a_numpy_mixture(tmp_path):
+    """disnet.prior_mix = 'val': the share is the grid value with the lowest mean val L_KL of
+    (1 - w) map + w prior, computed here in numpy from the unmixed maps; 'off' (the default)
+    leaves the map alone; a checkpoint without the buffer (before 2026-12-06) loads unmixed."""
+    from pipeline.models.disnet import mix_with_prior
+
+    data = make_disnet_data()
+    cfg = tiny_cfg(**{"train.epochs": "8", "disnet.prior_mix": "val"})  # learnt enough that some prior helps
+    res = T.train_disnet(cfg, data, tmp_path / "val", progress=False)
+    model = Inf.load_disnet(cfg, res.best_path)
+    w = float(model.prior_mix)
+    model.set_prior_mix(0.0)
+    maps, _ = Inf.disnet_predict(model, data.images[data.val_idx], data.speeds[data.val_idx])
+    prior = torch.softmax(model.prior_logits.reshape(-1).double(), 0).reshape(model.out_hw).numpy()
+    target = np.asarray(data.heatmaps[data.val_idx], np.float64)
+    kl = [np.mean([rel_entr(t, (1 - g) * m + g * prior).sum() for t, m in zip(target, maps.astype(np.float64))])
+          for g in T.PRIOR_MIX_GRID]
+    np.testing.assert_allclose(T.prior_mix_kl(model, data, data.val_idx), kl, rtol=2e-4)
+    assert w == pytest.approx(T.PRIOR_MIX_GRID[int(np.argmin(kl))]) and min(kl) < kl[0]
+    model.set_prior_mix(w)
+    mixed, _ = Inf.disnet_predict(model, data.images[data.val_idx], data.speeds[data.val_idx])
+    np.testing.assert_allclose(mixed, (1 - w) * maps + w * prior, atol=1e-6)
+    edge = torch.log(torch.from_numpy(maps[:2]))
+    assert torch.allclose(mix_with_prior(edge, model.prior_logits, 1.0).exp().double(), torch.from_numpy(prior)[None]
+                          .expand(2, -1, -1), atol=1e-6)
+    with pytest.raises(ValueError, match="prior mix"):
+        model.set_prior_mix(1.5)
+
+    off = T.train_disnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "off", progress=False)
+    assert ckpt.read_meta(off.best_path)[T.PRIOR_MIX_KEY] == {"w": 0.0, "setting": "off"}
+    assert float(Inf.load_disnet(cfg, off.best_path).prior_mix) == 0.0
+    tensors, meta = ckpt.load_checkpoint(res.best_path)
+    del tensors["model.prior_mix"]
+    ckpt.save_checkpoint(tmp_path / "old.safetensors", tensors, meta)
+    old = Inf.load_disnet(cfg, tmp_path / "old.safetensors")
+    assert float(old.prior_mix) == 0.0
+    np.testing.assert_array_equal(Inf.disnet_predict(old, data.images[data.val_idx], data.speeds[data.val_idx])[0],
+                                  maps)
+    with pytest.raises(ConfigError, match="disnet.prior_mix"):
+        T.check_training(tiny_cfg(**{"disnet.prior_mix": "auto"}))

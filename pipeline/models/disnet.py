@@ -54,6 +54,9 @@ class DisNet(nn.Module):
     ``n_hat`` lies in (0, max_points).
     """
 
+    OPTIONAL_BUFFERS = ("prior_mix",)
+    """Buffers absent from checkpoints written before 2026-12-06 (those load with no mixture)."""
+
     def __init__(self, width: int = 64, use_speed: bool = True, max_points: int = 1000,
                  out_hw: tuple[int, int] = (160, 320), backbone: ResNet18Backbone | None = None,
                  use_prior: bool = False, speed_map: bool = False, skips: bool = False) -> None:
@@ -79,6 +82,9 @@ class DisNet(nn.Module):
         self.use_prior = use_prior
         # log of the mean training map, added to the decoder's logits (set_prior); saved in checkpoints
         self.register_buffer("prior_logits", torch.zeros(self.out_hw))
+        # the share w of the prior mixed into the output map, (1 - w) map + w prior (set after
+        # training on the val split: disnet.prior_mix); 0 while training
+        self.register_buffer("prior_mix", torch.zeros(()))
         if use_prior:  # start exactly at the prior: the decoder learns the per-frame residual
             nn.init.zeros_(self.decoder[-1].weight)
             nn.init.zeros_(self.decoder[-1].bias)
@@ -111,6 +117,8 @@ class DisNet(nn.Module):
         logits = F.interpolate(logits, size=self.out_hw, mode="bilinear", align_corners=False)
         logits = logits + self.prior_logits                             # (B, 1, H, W)
         log_map = F.log_softmax(logits.reshape(b, -1), dim=1).reshape(b, *self.out_hw)
+        if self.use_prior and bool(self.prior_mix > 0):
+            log_map = mix_with_prior(log_map, self.prior_logits, self.prior_mix)
         count_feat = _scale_grad(feat, self.count_grad_scale)           # same values, scaled gradient
         return log_map, self.count_from_grid(F.adaptive_avg_pool2d(count_feat, COUNT_GRID), speed_mps)
 
@@ -200,6 +208,14 @@ class DisNet(nn.Module):
         nn.init.zeros_(self.count_head.bias)
 
     @torch.no_grad()
+    def set_prior_mix(self, w: float) -> None:
+        """Mix the share ``w`` in [0, 1] of the prior into the output map (no effect without
+        use_prior)."""
+        if not 0.0 <= float(w) <= 1.0:
+            raise ValueError(f"prior mix: w must lie in [0, 1], got {w}")
+        self.prior_mix.fill_(float(w))
+
+    @torch.no_grad()
     def set_prior(self, prob_map: np.ndarray, floor: float = 1e-6) -> None:
         """Use log(prob_map) (H, W), e.g. the mean training heatmap, as the map's prior logits."""
         p = np.asarray(prob_map, dtype=np.float64)
@@ -207,6 +223,14 @@ class DisNet(nn.Module):
             raise ValueError(f"prior map: expected shape {self.out_hw}, got {p.shape}")
         p = p / p.sum()
         self.prior_logits.copy_(torch.from_numpy(np.log((1 - floor) * p + floor / p.size)).float())
+
+
+def mix_with_prior(log_map: Tensor, prior_logits: Tensor, w: Tensor | float) -> Tensor:
+    """log((1 - w) exp(log_map) + w prior) (B, H, W): the maps (log-probabilities) mixed with the
+    prior (H, W) logits' distribution, share w in [0, 1]."""
+    w = torch.as_tensor(w, dtype=log_map.dtype, device=log_map.device)
+    log_prior = F.log_softmax(prior_logits.reshape(-1).to(log_map.dtype), dim=0).reshape(prior_logits.shape)
+    return torch.logaddexp(log_map + torch.log1p(-w), log_prior + torch.log(w))
 
 
 def _speed_input(speed_mps: Tensor | None, b: int, dtype: torch.dtype, switch: str) -> Tensor:
