@@ -3,11 +3,14 @@ one-line message and exit code 2."""
 
 from __future__ import annotations
 
+import difflib
 import functools
 import json
 import os
+import re
 import shlex
 import sys
+import textwrap
 from collections import Counter
 from pathlib import Path
 
@@ -368,6 +371,71 @@ def datasets():
         cfg = load_config(name, environ={})
         click.echo(f"{name:<10} {cfg.radar.name:<24} working {cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}  "
                    f"{cfg.dataset.description}")
+
+
+@main.command("config")
+@dataset_options
+@click.argument("keys", nargs=-1, metavar="[KEY]...")
+@click.option("--full", is_flag=True, help="Each key's whole description, not its first sentence.")
+@_handle_errors
+def config(dataset, data_root, cache_root, sets, keys, full):
+    """Print the configuration a run with these options would use: each KEY (a section such as
+    `disnet`, or a key such as `placement.map_weight`; all without KEY), its value in --set's
+    syntax, where the value comes from, and what it does."""
+    from pipeline.config import all_keys, key_docs, profile_values
+
+    env = _context(dataset, data_root, cache_root, sets, need_root=False)
+    chosen = _chosen_keys(keys, all_keys())
+    overrides = {k.lower() for k in parse_set_options(sets)}
+    from_env = {k.lower() for k in env_overrides(dict(os.environ))}
+    profile, base = profile_values(dataset), load_config(dataset, parse_set_options(sets))
+    docs = key_docs()
+    for key in chosen:
+        value = env.cfg.get(key)
+        if value != base.get(key):  # train.nets_from: the radar settings of the dataset that trained the nets
+            origin = f"the nets of {env.cfg.train.nets_from}"
+        elif key.lower() in overrides:
+            origin = "--set"
+        elif key.lower() in from_env:
+            origin = "environment"
+        else:
+            origin = f"profile {dataset}" if key in profile else "default"
+        click.echo(f"{key} = {_as_set_value(value)}  ({origin})")
+        doc = docs.get(key, "")
+        text = " ".join(doc.split()) if full else _first_sentence(doc)
+        if text:
+            click.echo(textwrap.fill(text, width=100, initial_indent="    ", subsequent_indent="    "))
+
+
+def _chosen_keys(queries: tuple[str, ...], keys: list[str]) -> list[str]:
+    """The keys each query names (a key, or every key of a section); ConfigError with the nearest
+    key for a query that names none."""
+    chosen = []
+    for query in queries or ("",):
+        q = query.strip().rstrip(".")
+        found = [k for k in keys if not q or k == q or k.startswith(q + ".")]
+        if not found:
+            near = difflib.get_close_matches(q, keys + sorted({k.split(".")[0] for k in keys}), n=1, cutoff=0.5)
+            raise ConfigError(f"no configuration key or section '{query}'" + (f"; did you mean '{near[0]}'?" if near else ""))
+        chosen += [k for k in found if k not in chosen]
+    return chosen
+
+
+def _as_set_value(value) -> str:
+    """A value as --set takes it: tuples comma-separated, booleans true/false, '' for an empty string."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, tuple):
+        return ",".join(_as_set_value(v) for v in value)
+    return str(value) if value != "" else "''"  # a float's str is the shortest text that reads back the same
+
+
+def _first_sentence(doc: str) -> str:
+    """The first sentence of a key's description (up to a full stop before a capital letter, or
+    the end), on one line."""
+    text = " ".join(doc.split())
+    end = re.search(r"\.\s(?=[A-Z])", text)
+    return text if end is None else text[:end.start() + 1]
 
 
 @main.command("generate-world")

@@ -9,13 +9,16 @@ Every key is addressed as ``section.key``; ``Config.get("heatmap.sigma_px")`` re
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import difflib
 import functools
 import hashlib
+import inspect
 import json
 import math
 import os
+import textwrap
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from importlib import resources
@@ -660,22 +663,42 @@ def check_profile(name: str, setting: str = "") -> None:
         raise ConfigError(f"{what} (known: {', '.join(names)}){hint}")
 
 
-def load_config(profile: str, overrides: dict[str, str] | None = None,
-                environ: dict[str, str] | None = None) -> Config:
-    """Build the configuration of ``profile`` with environment and explicit overrides applied."""
+def profile_values(profile: str) -> dict[str, Any]:
+    """The values the profile ``profile``'s TOML sets, by dotted key (the others keep the sections'
+    defaults)."""
     check_profile(profile)
     text = resources.files("pipeline.profiles").joinpath(f"{profile}.toml").read_text()
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"profile {profile}.toml: {exc}") from None
-    cfg = Config(profile=profile)
     flat: dict[str, Any] = {}
     for section, values in data.items():
         if not isinstance(values, dict):
             raise ConfigError(f"profile {profile}.toml: top-level key '{section}' is not a [section]")
         for name, value in values.items():
             flat[f"{section}.{name}"] = value
+    return flat
+
+
+@functools.cache
+def key_docs() -> dict[str, str]:
+    """Each dotted key's docstring (the string under its field in the section's class)."""
+    docs = {}
+    for section, cls in SECTIONS.items():
+        body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+        for field_node, doc in zip(body, body[1:]):
+            if (isinstance(field_node, ast.AnnAssign) and isinstance(doc, ast.Expr)
+                    and isinstance(doc.value, ast.Constant) and isinstance(doc.value.value, str)):
+                docs[f"{section}.{field_node.target.id}"] = inspect.cleandoc(doc.value.value)
+    return docs
+
+
+def load_config(profile: str, overrides: dict[str, str] | None = None,
+                environ: dict[str, str] | None = None) -> Config:
+    """Build the configuration of ``profile`` with environment and explicit overrides applied."""
+    flat = profile_values(profile)
+    cfg = Config(profile=profile)
     overrides = overrides or {}
     cfg = cfg.with_overrides(flat)
     given = {k.lower() for k in overrides}  # keys are matched ignoring case

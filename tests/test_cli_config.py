@@ -1,0 +1,57 @@
+"""`pipeline config`: every key with the value a run would use, where it comes from and what it does."""
+
+from __future__ import annotations
+
+import re
+
+from click.testing import CliRunner
+
+from pipeline.cli import main
+from pipeline.config import all_keys, key_docs, load_config
+
+LINE = re.compile(r"^(\w+\.\w+) = (.*)  \((.+)\)$")
+
+
+def _lines(output: str) -> dict[str, tuple[str, str]]:
+    return {m[1]: (m[2], m[3]) for m in map(LINE.match, output.splitlines()) if m}
+
+
+def test_every_key_is_listed_with_a_value_that_set_reads_back(tmp_path):
+    """Without KEY every key is listed once, with a description, and its printed value is --set's
+    syntax for the same value (floats and tuples included)."""
+    out = CliRunner().invoke(main, ["config", "--dataset", "astyx", "--cache", str(tmp_path / "cache")])
+    assert out.exit_code == 0, out.output
+    listed = _lines(out.output)
+    assert list(listed) == all_keys()
+    assert set(key_docs()) == set(all_keys()) and all(key_docs().values())
+    cfg = load_config("astyx", environ={})
+    for key, (text, _) in listed.items():
+        again = load_config("astyx", {key: "" if text == "''" else text}, environ={})
+        assert again.get(key) == cfg.get(key), (key, text)
+
+
+def test_origins_and_sections(tmp_path):
+    """A key is said to come from --set, the environment, the profile or the default, in that order
+    of precedence; a section name lists its keys; the first sentence of each description follows."""
+    args = ["config", "--dataset", "astyx", "--cache", str(tmp_path / "cache"), "--set", "disnet.prior_mix=val",
+            "disnet", "train.epochs", "train.seed", "radar.doppler_span_mps"]
+    out = CliRunner().invoke(main, args, env={"PIPELINE__TRAIN__SEED": "7", "PIPELINE__DISNET__PRIOR_MIX": "off"})
+    assert out.exit_code == 0, out.output
+    listed = _lines(out.output)
+    assert [k for k in listed if k.startswith("disnet.")] == [k for k in all_keys() if k.startswith("disnet.")]
+    assert listed["disnet.prior_mix"] == ("val", "--set")      # --set wins over the environment
+    assert listed["train.seed"] == ("7", "environment")
+    assert listed["train.epochs"] == ("12", "profile astyx")
+    assert listed["radar.doppler_span_mps"] == ("10.3936", "profile astyx")
+    assert listed["disnet.use_speed"] == ("true", "default")
+    assert "    Epochs per net." in out.output.splitlines()
+    short = [line for line in out.output.splitlines() if line.startswith("    With ``prior``: 'val' mixes")]
+    assert short and "convex" not in out.output  # the first sentence only, without --full
+    full = CliRunner().invoke(main, [*args[:5], "--full", "disnet.prior_mix"])
+    assert full.exit_code == 0 and "L_KL is convex" in full.output
+
+
+def test_an_unknown_key_names_the_nearest(tmp_path):
+    out = CliRunner().invoke(main, ["config", "--cache", str(tmp_path / "cache"), "placement.map_wieght"])
+    assert out.exit_code == 2
+    assert "no configuration key or section 'placement.map_wieght'; did you mean 'placement.map_weight'?" in out.output
