@@ -55,3 +55,22 @@ def test_an_unknown_key_names_the_nearest(tmp_path):
     out = CliRunner().invoke(main, ["config", "--cache", str(tmp_path / "cache"), "placement.map_wieght"])
     assert out.exit_code == 2
     assert "no configuration key or section 'placement.map_wieght'; did you mean 'placement.map_weight'?" in out.output
+
+
+def test_a_value_the_nets_of_another_dataset_bring_is_named_so(tmp_path, monkeypatch):
+    """With train.nets_from the nets' radar settings replace the profile's (pipeline.transfer):
+    those keys are said to come from that dataset's nets."""
+    from dataclasses import replace
+
+    import pipeline.transfer
+
+    def with_nets_from(cfg, *args, **kwargs):
+        return replace(cfg, radar=replace(cfg.radar, name="Their radar"), train=replace(cfg.train, nets_from="vod"))
+
+    monkeypatch.setattr(pipeline.transfer, "with_nets_from", with_nets_from)
+    out = CliRunner().invoke(main, ["config", "--dataset", "kitti", "--cache", str(tmp_path / "cache"), "radar.name",
+                                    "radar.fov_az_deg"])
+    assert out.exit_code == 0, out.output
+    listed = _lines(out.output)
+    assert listed["radar.name"] == ("Their radar", "the nets of vod")
+    assert listed["radar.fov_az_deg"][1] in ("profile kitti", "default")
