@@ -302,6 +302,22 @@ def _grid_from_pixels(grid_wh: tuple[int, int], working_wh: tuple[int, int]) -> 
     return np.array([[w / W, 0.0, 0.5 * w / W - 0.5], [0.0, h / H, 0.5 * h / H - 0.5], [0.0, 0.0, 1.0]])
 
 
+def rebase_mixed_prior(prob_map_hw: np.ndarray, prior_source_hw: np.ndarray, prior_target_hw: np.ndarray,
+                       w: float) -> np.ndarray:
+    """:func:`rebase_prior` of a map that mixes a share ``w`` of its source prior into the network's
+    own, (1 - w) map + w source (disnet.prior_mix): the network's part rebased, mixed with the
+    target prior at the same share, so that the share chosen on val is kept; float32 summing to 1."""
+    if w <= 0:
+        return rebase_prior(prob_map_hw, prior_source_hw, prior_target_hw)
+    source = np.asarray(prior_source_hw, np.float64) / np.sum(prior_source_hw)
+    target = np.asarray(prior_target_hw, np.float64) / np.sum(prior_target_hw)
+    own = np.clip(np.asarray(prob_map_hw, np.float64) - w * source, 0.0, None)  # (1 - w) times the network's map
+    if w >= 1 or not own.sum() > 0:
+        return target.astype(np.float32)
+    out = (1 - w) * rebase_prior(own, source, target).astype(np.float64) + w * target
+    return (out / out.sum()).astype(np.float32)
+
+
 def rebase_prior(prob_map_hw: np.ndarray, prior_source_hw: np.ndarray, prior_target_hw: np.ndarray) -> np.ndarray:
     """Dis-Net's map (h, w) made with its source prior (its log added to the logits), as it would
     be with ``prior_target_hw`` instead: proportional to map * target / source; float32 summing to 1."""

@@ -375,7 +375,7 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
 def _with_own_camera(inputs: FrameInputs, cfg: Config, nets: Nets, prob_map: np.ndarray) -> np.ndarray:
     """Dis-Net's map (h, w) of this frame; with another dataset's nets (train.nets_from), a prior
     and that dataset's camera (recorded by the train stage), the prior moved from that camera to
-    this frame's (pipeline.transfer.prior_in_target)."""
+    this frame's (pipeline.transfer.prior_in_target; a mixed-in share of it, disnet.prior_mix, too)."""
     if not (cfg.train.nets_from and nets.disnet.use_prior and nets.source_camera is not None):
         return prob_map
     camera = nets.source_camera
@@ -388,7 +388,7 @@ def _with_own_camera(inputs: FrameInputs, cfg: Config, nets: Nets, prob_map: np.
         while len(_MOVED_PRIORS) >= MOVED_PRIORS_KEPT:
             _MOVED_PRIORS.pop(next(iter(_MOVED_PRIORS)))
         _MOVED_PRIORS[key] = transfer.prior_in_target(prior, camera, K, T, size)
-    return transfer.rebase_prior(prob_map, prior, _MOVED_PRIORS[key])
+    return transfer.rebase_mixed_prior(prob_map, prior, _MOVED_PRIORS[key], float(nets.disnet.prior_mix))
 
 
 MOVED_PRIORS_KEPT = 8

@@ -507,3 +507,23 @@ def test_doppler_is_compared_modulo_the_synthesized_radars_span_when_both_wrap()
     assert any("modulo the synthesized radar's span 20 m/s" in n for n in got.notes)
     train = comparison(load_config("vod", {"train.nets_from": "astyx", "eval.split": "train"}, environ={}))
     assert "(with eval.split = train, the evaluated frames among them)" in train.notes[-1]
+
+
+def test_a_mixed_map_keeps_its_prior_share_when_the_prior_is_moved():
+    """With disnet.prior_mix the network's map already holds a share w of the source prior: moved
+    to another camera, the network's part is rebased and the target prior mixed in at the same w
+    (rebasing the mixed map as a whole would change the share frame by frame)."""
+    from pipeline.transfer import rebase_mixed_prior, rebase_prior
+
+    rng = np.random.default_rng(4)
+    net, source, target = (rng.gamma(0.5, size=(12, 20)) + 1e-3 for _ in range(3))
+    net, source, target = net / net.sum(), source / source.sum(), target / target.sum()
+    for w in (0.0, 0.3, 0.8):
+        mixed = (1 - w) * rebase_prior(net, np.ones_like(net), np.ones_like(net)) + w * source
+        got = rebase_mixed_prior(mixed, source, target, w)
+        want = (1 - w) * rebase_prior(net, source, target) + w * target
+        assert got.dtype == np.float32 and abs(float(got.sum()) - 1) < 1e-5
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-9)
+    np.testing.assert_allclose(rebase_mixed_prior(source, source, target, 1.0), target, rtol=1e-6)
+    whole = rebase_prior((1 - 0.5) * net + 0.5 * source, source, target)  # what rebasing the mix would give
+    assert not np.allclose(whole, rebase_mixed_prior((1 - 0.5) * net + 0.5 * source, source, target, 0.5), rtol=1e-3)
