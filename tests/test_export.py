@@ -392,3 +392,194 @@ def test_a_generated_calib_holds_the_full_resolution_camera():
     P2 = calib_P2(generated_calib(K_w, T_cam_radar, c.crop_rows, c.full_size, c.working_size))
     np.testing.assert_allclose(P2[:, :3], K, atol=1e-9)
     np.testing.assert_allclose(P2[:, 3], 0.0)
+
+
+# ---------------------------------------------------------------- the export stage on fixture datasets
+
+def _calibrated(tmp_path: Path, profile: str, overrides: dict[str, str]):
+    """The calibrate stage run on a fixture dataset under tmp_path / 'data' (64 x 48 images); its RunEnv."""
+    from pipeline.config import load_config
+    from pipeline.executor import Executor, RunEnv
+    from pipeline.runner import Pipeline
+    from stages import calibrate
+
+    cfg = load_config(profile, environ={}).with_overrides({"camera.full_size": "64,48", "camera.crop_rows": "0,48",
+                                                           **overrides})
+    env = RunEnv(cfg=cfg, cache_root=str(tmp_path / "cache"), dataset=profile, data_root=str(tmp_path / "data"))
+    report, = Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lambda m: None).run("calibrate")
+    assert report.failed == 0
+    return env
+
+
+def _export(env, points: list[np.ndarray], out: Path) -> dict:
+    """The export stage's run over frames whose synthesized points (n, 9, synthesize's columns) are
+    ``points``, written into synthesize's store as that stage writes them; its summary."""
+    from types import SimpleNamespace
+
+    from pipeline.runner import DatasetInputs
+    from stages import export
+    from stages.synthesize import outputs
+
+    ids = env.store("calibrate").frame_ids()
+    spec = next(s for s in outputs(env.cfg) if s.name == "points")
+    syn = env.store("synthesize")
+    syn.create("fixture", ids, (spec,), {"points": spec.shape}, {})
+    for i, pts in enumerate(points):
+        syn.write_frame(i, {"points": np.asarray(pts, np.float32)}, (spec,))
+    return export.run(DatasetInputs(env, ids), env.cfg, SimpleNamespace(path=str(out)), "fixture")
+
+
+def _synthesized(xyz: np.ndarray, rng: np.random.Generator, cfg) -> np.ndarray:
+    """Synthesize's point rows (n, 9) at ``xyz`` (n, 3) {D}: range, azimuth, elevation, a Doppler,
+    an RSS in the radar's range and a range rate."""
+    rae = cartesian_to_spherical(xyz)
+    n = len(xyz)
+    return np.column_stack([xyz, rae, rng.uniform(-2, 2, n), rng.uniform(cfg.radar.rss_min, cfg.radar.rss_max, n),
+                            rng.uniform(-2, 2, n)]).astype(np.float32)
+
+
+def test_the_export_stage_writes_noise_pcd_previews_and_counts_what_it_wrote(tmp_path: Path):
+    """The export stage on a View-of-Delft fixture (its calib and labels carried over) with
+    export.noise_fraction, PCD and previews: each .bin holds the frame's VoD rows, then
+    round(fraction * n) noise rows drawn per frame within the radar's Doppler span; the summary
+    counts the synthesized points and the noise apart; the PCD holds the synthesized points with
+    their RSS and Doppler, the preview colours them by range. Points on a box of unknown velocity
+    (a pedestrian seen once) are counted in their frame alone; an empty frame is named; with no
+    frame in the train split the message says how to get one; no image unless export.images; the
+    reader's image where the dataset's file is not in export.image_format."""
+    from dataclasses import replace
+
+    from pipeline.export import radar_rows
+    from pipeline.readers import get_reader
+    from pipeline.readers.testing import T_CAM_RADAR, kitti_label_line, make_vod_dataset
+    from stages.export import UNKNOWN_OBJECT_MOTION_LIST
+
+    truth = make_vod_dataset(tmp_path / "data", n_frames=3, speed_mps=5.0)
+    ids = truth.frame_ids
+    walker = np.array([12.0, 3.0, 0.0])  # a pedestrian (track 9) in the second frame alone: velocity unknown
+    second = tmp_path / "data/lidar/training/label_2" / f"{ids[1]}.txt"
+    second.write_text(second.read_text() + kitti_label_line("Pedestrian", 9, walker, np.array([0.6, 0.6, 1.7]),
+                                                            0.0, T_CAM_RADAR) + "\n")
+    env = _calibrated(tmp_path, "vod", {"camera.working_size": "64,48", "radar.doppler_span_mps": "6",
+                                        "export.noise_fraction": "0.2", "export.images": "false",
+                                        "split.rule": "random", "split.fractions": "0,1,0", "synth.split": "all"})
+    cfg, calib = env.cfg, env.store("calibrate")
+    rng = np.random.default_rng(3)
+    points = []
+    for i in range(2):  # frames of 30 points each, away from the pedestrian; the last frame empty
+        lidar = calib.read("lidar", i).astype(np.float64)
+        lidar = lidar[np.linalg.norm(lidar - walker, axis=1) > 3.0]
+        points.append(_synthesized(lidar[rng.choice(len(lidar), 30, replace=False)], rng, cfg))
+    on_walker = 4
+    points[1][:on_walker] = _synthesized(walker + rng.uniform(-0.2, 0.2, (on_walker, 3)), rng, cfg)
+    points.append(np.zeros((0, 9), np.float32))
+    summary = _export(env, points, tmp_path / "out")
+    radar = tmp_path / "out" / "radar" / "training"
+
+    n = [len(p) for p in points]
+    n_noise = [int(round(cfg.export.noise_fraction * k)) for k in n]
+    assert summary["points"] == sum(n) and summary["noise_points"] == sum(n_noise) > 0
+    assert f"{sum(n)} points (+{sum(n_noise)} noise)" in summary["message"]
+    noise = []
+    for i, fid in enumerate(ids):
+        rows = read_vod_bin(radar / "velodyne" / f"{fid}.bin")
+        assert len(rows) == n[i] + n_noise[i]
+        np.testing.assert_array_equal(rows[:n[i]], radar_rows(points[i], calib.read("ego_velocity", i),
+                                                              cfg.radar.doppler_span_mps))
+        noise.append(rows[n[i]:])
+        assert np.all(np.abs(noise[i][:, 4]) <= cfg.radar.doppler_span_mps / 2)  # v_r within the span
+        pcd = read_pcd(tmp_path / "out" / "pcd" / f"{fid}.pcd")
+        np.testing.assert_array_equal(pcd, points[i][:, [0, 1, 2, 7, 6]])
+        image, T_cam_radar = calib.read("image", i), invert_transform(calib.read("T_radar_cam", i))
+        uv, _, valid = project_to_image(points[i][:, :3], calib.read("K", i), T_cam_radar, image.shape[1::-1])
+        preview_png(tmp_path / "expected.png", image, uv[valid], points[i][valid, 3], cfg.radar.max_range_m)
+        np.testing.assert_array_equal(cv2.imread(str(tmp_path / "out" / "preview" / f"{fid}.png")),
+                                      cv2.imread(str(tmp_path / "expected.png")))
+    assert not np.isin(noise[0][:, :3], noise[1][:, :3]).any()  # drawn per frame, not the same points twice
+    assert not (radar / "image_2").exists() and (radar / "calib" / f"{ids[0]}.txt").is_file()
+    # the pedestrian's points in their frame; the ego motion is known everywhere
+    assert summary["object_motion_unknown"] == {"frames": 1, "points": on_walker}
+    assert (tmp_path / "out" / UNKNOWN_OBJECT_MOTION_LIST).read_text().split() == [ids[1]]
+    share = f"{on_walker / sum(n):.0%}"
+    assert f"; {on_walker} of the points ({share}), in 1 frame(s), lie on labelled objects" in summary["message"]
+    assert summary["no_ego_motion"] == 0 and "without a recorded ego motion" not in summary["message"]
+    assert summary["empty_frames"] == [ids[2]] and f"1 of them without a point (an empty .bin, on which a detector's " \
+        f"voxelisation may fail): {ids[2]}" in summary["message"]
+    # every frame in val: OpenPCDet trains on none, and the message says how to change that
+    sets = {name: (radar.parent / "ImageSets" / f"{name}.txt").read_text().split() for name in ("train", "val", "test")}
+    assert sets == {"train": [], "val": ids, "test": []}
+    assert "no frame is in the train split" in summary["message"]
+
+    # export.images with a format the dataset's .jpg is not: the reader's image, as PNG; no noise
+    png = replace(env, cfg=cfg.with_overrides({"export.images": "true", "export.image_format": "png",
+                                               "export.noise_fraction": "0", "export.pcd": "false",
+                                               "export.previews": "false"}))
+    summary = _export(png, points, tmp_path / "png")
+    radar = tmp_path / "png" / "radar" / "training"
+    assert summary["noise_points"] == 0 and not (tmp_path / "png" / "pcd").exists()
+    reader = get_reader(png.cfg, tmp_path / "data")
+    for i, fid in enumerate(ids):
+        assert len(read_vod_bin(radar / "velodyne" / f"{fid}.bin")) == n[i]
+        written = cv2.imread(str(radar / "image_2" / f"{fid}.png"))[:, :, ::-1]
+        np.testing.assert_array_equal(written, reader.read(fid).image)
+
+
+def test_the_export_stage_generates_calib_labels_and_images_for_a_dataset_without_kitti_files(tmp_path: Path):
+    """Astyx has no KITTI files: the export writes a calib generated for the full-resolution
+    camera, the reader's objects as KITTI labels for that camera (each box's 2D rectangle holds its
+    centre projected with the written P2, at a working size other than the full one) and the
+    reader's image as PNG; a frame without a ground-truth file gets no label file (its objects are
+    unknown, not absent). With every frame in the test split the message counts the boxes under
+    testing/ and says that no frame is in the train split. No point on the (velocity-less) box: no
+    list of frames with such points."""
+    from pipeline.export import calib_P2
+    from pipeline.readers import get_reader
+    from pipeline.readers.testing import make_astyx_dataset
+    from stages.export import UNKNOWN_OBJECT_MOTION_LIST
+
+    make_astyx_dataset(tmp_path / "data", n_frames=2)
+    (tmp_path / "data" / "groundtruth_obj3d" / "000001.json").unlink()
+    env = _calibrated(tmp_path, "astyx", {"camera.working_size": "32,24", "split.rule": "random",
+                                          "split.fractions": "0,0,1", "synth.split": "all"})
+    calib, rng = env.store("calibrate"), np.random.default_rng(0)
+    points = []
+    for i in range(2):  # lidar points away from the fixture's car at (15, 2, -0.5)
+        lidar = calib.read("lidar", i).astype(np.float64)
+        points.append(_synthesized(lidar[np.linalg.norm(lidar - [15.0, 2.0, -0.5], axis=1) > 4.0][:20], rng, env.cfg))
+    summary = _export(env, points, tmp_path / "out")
+    testing = tmp_path / "out" / "radar" / "testing"
+    reader = get_reader(env.cfg, tmp_path / "data")
+    record = reader.read("000000")
+    P2 = calib_P2((testing / "calib" / "000000.txt").read_text())
+    np.testing.assert_allclose(P2[:, :3], record.K, atol=1e-6)
+    (line,) = (testing / "label_2" / "000000.txt").read_text().splitlines()
+    fields = line.split()
+    assert fields[0] == "Car"
+    left, top, right, bottom = (float(v) for v in fields[4:8])
+    h, location = float(fields[8]), np.array([float(v) for v in fields[11:14]])
+    u, v, w = P2 @ np.append(location - [0.0, h / 2, 0.0], 1.0)   # the box centre (camera y points down)
+    assert left <= u / w <= right and top <= v / w <= bottom and right - left > 2
+    assert not (testing / "label_2" / "000001.txt").exists()
+    for fid in ("000000", "000001"):
+        written = cv2.imread(str(testing / "image_2" / f"{fid}.png"))[:, :, ::-1]
+        np.testing.assert_array_equal(written, reader.read(fid).image)
+    assert summary["classes"] == {"training": {}, "testing": {"Car": 1}}
+    assert "labelled boxes under testing/ by class: Car 1" in summary["message"]
+    assert "no frame is in the train split" in summary["message"]
+    assert summary["object_motion_unknown"] == {"frames": 0, "points": 0}
+    assert not (tmp_path / "out" / UNKNOWN_OBJECT_MOTION_LIST).exists() and "lie on labelled" not in summary["message"]
+
+
+def test_the_export_message_names_five_empty_frames_and_marks_more():
+    """The message names the first five frames without a point, with ' ...' only when there are
+    more than five."""
+    from pipeline.config import load_config
+    from stages.export import _message, _Tally
+
+    cfg = load_config("vod", environ={})
+    for k in (5, 6):
+        tally = _Tally(empty=[f"{i:05d}" for i in range(k)], points=10)
+        tally.lists["train"] = ["00000"]
+        message = _message(tally, k, Path("out"), cfg)
+        listed = message.split("voxelisation may fail): ")[1]
+        assert listed == ", ".join(tally.empty[:5]) + (" ..." if k > 5 else "")

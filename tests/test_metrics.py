@@ -395,3 +395,15 @@ def test_region_mask_half_fields_of_view_and_range_limit():
 def test_rss_loss_normalises_by_the_span_not_the_maximum():
     # Astyx Mag spans 45..102: a 5-unit error is 5 / 57 of the span
     assert M.rss_loss([45.0, 102.0], [50.0, 102.0], 45.0, 102.0) == pytest.approx(0.5 * (5.0 / 57.0) ** 2)
+
+
+@pytest.mark.parametrize("gates", [(2.0, 3.0, 0.5), (0.5, 20.0, 6.0)])
+def test_f1_gates_other_than_the_defaults(gates):
+    """The gates are the caller's (eval.gate_m, gate_rss, gate_doppler), not only the defaults: the
+    count is the enumerated maximum under them on sets whose spread is comparable to each gate.
+    A distance gate of 1 m is its own square, so only another value tells a metre from a squared metre."""
+    rng = np.random.default_rng(7)
+    for _ in range(30):
+        syn, real = (np.column_stack([rng.uniform(0, 1.5 * gates[0], (k, 3)), rng.uniform(0, 2 * gates[2], k),
+                                      rng.uniform(0, 2 * gates[1], k)]) for k in rng.integers(1, 6, size=2))
+        assert M.matched_f1(syn, real, *gates)["matches"] == brute_max_matches(syn, real, gates)

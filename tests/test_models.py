@@ -528,3 +528,33 @@ def test_count_prior_follows_np_interp_of_the_logit_also_outside_the_knots():
     q = counts / 500
     want = 500 / (1 + np.exp(-np.interp(speeds, knots, np.log(q / (1 - q)))))
     np.testing.assert_allclose(got, want, rtol=1e-4)
+
+
+def test_disnet_prior_mix_mixes_the_map_with_its_prior_only():
+    """set_prior_mix(w): the map becomes (1 - w) map + w prior for w in [0, 1], both ends
+    included (w = 1: the prior alone), the count untouched; a network without use_prior ignores
+    the share (its prior logits are no prior); shares outside [0, 1] are refused."""
+    torch.manual_seed(0)
+    img, speed = torch.rand(2, 3, 32, 64), torch.tensor([0.0, 9.0])
+    model = DisNet(width=8, use_speed=True, max_points=500, out_hw=(32, 64), use_prior=True).eval()
+    prior = np.random.default_rng(0).random((32, 64)) + 0.01
+    model.set_prior(prior / prior.sum())
+    torch.nn.init.normal_(model.decoder[-1].weight, std=10.0)  # a map other than the prior
+    with torch.no_grad():
+        plain, n_plain = model(img, speed)
+    p = torch.softmax(model.prior_logits.reshape(-1).double(), 0).reshape(32, 64)
+    assert (plain.exp().double() - p).abs().sum() > 0.1
+    for w in (0.0, 0.3, 1.0):
+        model.set_prior_mix(w)
+        with torch.no_grad():
+            log_map, n_hat = model(img, speed)
+        assert torch.allclose(log_map.exp().double(), (1 - w) * plain.exp().double() + w * p, atol=1e-7)
+        assert torch.equal(n_hat, n_plain)
+    for bad in (-0.1, 1.01):
+        with pytest.raises(ValueError, match="prior mix"):
+            model.set_prior_mix(bad)
+    blind = DisNet(width=8, use_speed=True, out_hw=(32, 64)).eval()
+    with torch.no_grad():
+        before = blind(img, speed)[0]
+        blind.set_prior_mix(0.5)
+        assert torch.equal(blind(img, speed)[0], before)

@@ -269,3 +269,40 @@ def test_lidar_placement_without_placenet_is_a_clear_error_and_ray_placement_wor
     assert len(points) > 0 and np.all(np.isfinite(points))
     with pytest.raises(PipelineError, match="no placenet checkpoint.*synth.placement=ray"):
         check_checkpoints(pipe.env.dir("train"), load_config("synthetic", TINY, environ={}))
+
+
+def test_train_stage_records_the_prior_mix_and_takes_a_changed_setting(world, tmp_path):
+    """disnet.prior_mix: the train stage's metrics.json holds the best checkpoint's record of the
+    share. The setting is one of the stage's keys: switched to 'off' it reruns the stage, whose
+    resumed, finished training sets the share to 0 and records so."""
+    from pipeline.checkpoint import read_meta
+    from pipeline.training import PRIOR_MIX_KEY
+
+    best = tmp_path / "cache" / "synthetic" / "train" / "disnet" / "best.safetensors"
+
+    def train(setting: str) -> dict:
+        cfg = load_config("synthetic", {**TINY, "train.nets": "disnet", "disnet.prior_mix": setting}, environ={})
+        with Executor(1, progress=False) as ex:
+            Pipeline(all_stages(), RunEnv(cfg, str(tmp_path / "cache"), "synthetic", str(world)), ex, progress=False,
+                     log=lambda m: None).run("train")
+        record = json.loads((tmp_path / "cache" / "synthetic" / "train" / "metrics.json").read_text())["disnet"]
+        return record["prior_mix"]
+
+    mix = train("val")
+    assert mix == read_meta(best)[PRIOR_MIX_KEY] and mix["setting"] == "val" and mix["val_frames"] > 0
+    assert train("off") == {"w": 0.0, "setting": "off"} == read_meta(best)[PRIOR_MIX_KEY]
+
+
+def test_train_headline_names_a_chosen_prior_share():
+    """The train stage's message names the prior's share when one was chosen on val, and says
+    nothing of it for a share of 0 or a summary without the record (written before 2026-12-06)."""
+    from stages.train import _headline
+
+    base = {"baselines_test": {"mean_map_kl": 0.31, "mean_count_L_n": 0.2}}
+    test = {"kl": 0.29, "n": 0.1}
+    for mix, said in (({"w": 0.35, "setting": "val"}, True), ({"w": 0.0, "setting": "val"}, False),
+                      ({"w": 0.0, "setting": "off"}, False), (None, False)):
+        message = _headline({**base, "disnet": {"test": test, "prior_mix": mix}})
+        assert ("the mean map's share 0.35 chosen on val" in message) == said, message
+        assert message.startswith("Dis-Net test L_KL 0.2900 (mean map 0.3100")
+    assert "share" not in _headline({**base, "disnet": {"test": test}})

@@ -1029,3 +1029,77 @@ def test_prior_mix_is_the_val_minimum_of_a_numpy_mixture(tmp_path):
                                   maps)
     with pytest.raises(ConfigError, match="disnet.prior_mix"):
         T.check_training(tiny_cfg(**{"disnet.prior_mix": "auto"}))
+
+
+def _mixable_disnet(cfg, data: T.DisNetData):
+    """An untrained Dis-Net with the mean training map as its prior and a random last decoder layer,
+    so that its map differs from the prior."""
+    torch.manual_seed(0)
+    model = T.build_disnet(cfg, load_backbone=False)
+    model.set_prior(B.mean_map_baseline(data.heatmaps, data.train_idx))
+    torch.nn.init.normal_(model.decoder[-1].weight, std=10.0)
+    return model.eval()
+
+
+def test_prior_mix_reaches_both_ends_of_its_grid_and_leaves_the_model_as_it_was():
+    """choose_prior_mix on val targets that are the prior itself picks w = 1 (the mean map alone),
+    on targets that are the network's own maps w = 0: the grid runs from 0 to 1 (in the 0.05 steps
+    the config documents) and the lowest L_KL is taken. prior_mix_kl measures the unmixed map
+    whatever share the model holds and in whatever mode, and gives the share back afterwards. No
+    prior, no val frames: w = 0 without a val L_KL; an unknown setting is refused here too (a
+    caller that skips check_training)."""
+    cfg = tiny_cfg()
+    data = make_disnet_data(n=16)
+    model = _mixable_disnet(cfg, data)
+    idx = list(range(len(data.images)))
+    np.testing.assert_allclose(np.diff(T.PRIOR_MIX_GRID), 0.05)
+    assert T.PRIOR_MIX_GRID[0] == 0.0 and T.PRIOR_MIX_GRID[-1] == 1.0
+    prior = torch.softmax(model.prior_logits.reshape(-1).double(), 0).reshape(model.out_hw).numpy()
+    maps, _ = Inf.disnet_predict(model, data.images, data.speeds)
+    assert np.abs(maps - prior).sum(axis=(1, 2)).min() > 0.1  # the net's own map, not the prior
+    at_prior = dataclasses.replace(data, heatmaps=np.broadcast_to(prior, maps.shape).astype(np.float32))
+    record = T.choose_prior_mix(model, at_prior, idx, "val")
+    assert record["w"] == 1.0 == float(model.prior_mix) and record["val_frames"] == len(idx)
+    assert record["val_kl"] < 1e-3 < record["val_kl_unmixed"]
+    own = dataclasses.replace(data, heatmaps=maps)
+    record = T.choose_prior_mix(model, own, idx, "val")
+    assert record["w"] == 0.0 == float(model.prior_mix) and record["val_kl"] == record["val_kl_unmixed"]
+    # the model's own share and its training mode do not enter the measurement; the share is kept
+    unmixed = T.prior_mix_kl(model, data, idx)
+    model.set_prior_mix(0.4)
+    model.train()
+    np.testing.assert_allclose(T.prior_mix_kl(model, data, idx), unmixed, rtol=1e-6)
+    assert float(model.prior_mix) == pytest.approx(0.4)
+    # no val frames, no prior: nothing to choose on
+    assert T.choose_prior_mix(model, data, [], "val") == {"w": 0.0, "setting": "val"}
+    assert float(model.prior_mix) == 0.0
+    blind = T.build_disnet(tiny_cfg(**{"disnet.prior": "false"}), load_backbone=False)
+    blind.set_prior_mix(0.5)
+    assert T.choose_prior_mix(blind, at_prior, idx, "val") == {"w": 0.0, "setting": "val"}
+    assert float(blind.prior_mix) == 0.0
+    with pytest.raises(ConfigError, match="disnet.prior_mix"):
+        T.choose_prior_mix(model, data, idx, "auto")
+
+
+def test_a_finished_train_takes_a_changed_prior_mix_setting(tmp_path):
+    """disnet.prior_mix is no training key: a finished run resumed with another setting keeps its
+    trained weights and rechooses only the share ('val', then 'off', then 'val' again). The share
+    saved in the best checkpoint follows the record each time (0 after 'off', not the share the
+    weights were loaded with), and a rerun with an unchanged setting leaves the file untouched."""
+    data = make_disnet_data()
+    val, off = (tiny_cfg(**{"train.epochs": "8", "disnet.prior_mix": s}) for s in ("val", "off"))
+    res = T.train_disnet(val, data, tmp_path, progress=False)
+    chosen = ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY]
+    assert chosen["w"] > 0 and chosen["val_frames"] == len(data.val_idx)
+    trained = _all_tensors(res.best_path)
+    assert T.train_disnet(off, data, tmp_path, progress=False).best_path == res.best_path
+    assert ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY] == {"w": 0.0, "setting": "off"}
+    now = _all_tensors(res.best_path)
+    assert float(now["model.prior_mix"]) == 0.0 and float(Inf.load_disnet(off, res.best_path).prior_mix) == 0.0
+    assert set(now) == set(trained) and all(torch.equal(now[k], trained[k]) for k in now if k != "model.prior_mix")
+    T.train_disnet(val, data, tmp_path, progress=False)
+    assert ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY] == chosen
+    assert float(Inf.load_disnet(val, res.best_path).prior_mix) == pytest.approx(chosen["w"])
+    mtime = res.best_path.stat().st_mtime_ns
+    T.train_disnet(val, data, tmp_path, progress=False)
+    assert res.best_path.stat().st_mtime_ns == mtime
