@@ -805,6 +805,7 @@ class DirStore:
         copy = _mirror_root(self.url, staging_dir) / "copies" / hashlib.sha256(stamp).hexdigest()[:16]
         if not copy.is_dir():
             tmp = copy.parent / f".{copy.name}-{uuid.uuid4().hex[:8]}"
+            tmp.mkdir(parents=True)  # also for an output of no file but its _stage.json
             self.download(DirStore(str(tmp)))
             (tmp / "_stage.json").write_bytes(stamp)
             try:

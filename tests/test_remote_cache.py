@@ -12,7 +12,7 @@ import fsspec
 import numpy as np
 import pytest
 
-from pipeline.cache import DONE, PENDING
+from pipeline.cache import DONE, PENDING, DirStore
 from pipeline.config import load_config
 from pipeline.errors import ChunkError
 from pipeline.executor import Executor, RunEnv
@@ -216,3 +216,234 @@ def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tmp_path,
     assert summary["disnet"]["resumed_from"] == 1 and summary["checkpoints"] == f"{remote}/synthetic/train"
     assert fs.cat_file(f"{there}/disnet/best.safetensors") == \
         (staged[0].parent / "best.safetensors").read_bytes()
+
+
+def _folder_stage():
+    """A dataset stage 'train' writing with local file APIs, like train, export and evaluate: it
+    reports the files it found in its folder when it began (what it resumes from) and adds one,
+    ``runs/<n>.txt`` (n: its runs so far in that folder), holding the folder it wrote into."""
+    from pipeline.stage import DatasetStage
+
+    def run(inputs, cfg, out, fingerprint):
+        root = Path(out.path)
+        found = sorted(p.relative_to(root).as_posix() for p in root.rglob("*")
+                       if p.is_file() and not p.name.startswith("_"))
+        (root / "runs").mkdir(parents=True, exist_ok=True)
+        (root / "runs" / f"{len(list((root / 'runs').glob('*.txt'))) + 1}.txt").write_text(str(root))
+        return {"found": found, "output": str(root), "message": f"wrote into {root}"}
+
+    return DatasetStage("train", ("heatmaps",), ("train.epochs",), run, local_files=True, resumes=True)
+
+
+def _staged_pipe(cache_root: str, data_root: Path, staging: Path, stage=None, epochs: int = 1) -> Pipeline:
+    """:func:`_pipe` with ``stage`` for its train stage and the staging folder ``staging``."""
+    cfg = load_config("synthetic", {"run.staging_dir": str(staging), "train.epochs": str(epochs)}, environ={})
+    env = RunEnv(cfg=cfg, cache_root=cache_root, dataset="fake", data_root=str(data_root))
+    stages = [*fake_stages.STAGES[:2], stage or fake_stages.STAGES[2]]
+    return Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+
+
+def _remote_files(url: str) -> list[str]:
+    """The files under the remote folder ``url``, relative to it."""
+    fs, path = fsspec.core.url_to_fs(url)
+    return sorted(f.removeprefix(path.rstrip("/") + "/") for f in fs.find(path))
+
+
+def test_only_stages_writing_local_files_on_a_remote_cache_are_staged(tmp_path, remote):
+    """A stage writing through its DirStore (fsspec) writes straight into a remote cache, and a stage
+    writing local files on a local cache into its folder there: neither makes a staging folder (nor
+    a run token), and a local output is read where it is, not copied."""
+    staging = tmp_path / "staging"
+    far = _staged_pipe(remote, tmp_path, staging)  # fake_stages' train writes with out.write_text
+    far.run("train")
+    assert float(far.env.dir("train").fs.cat_file(far.env.dir("train").file("total.txt"))) > 0
+    assert _remote_files(far.env.dir("train").url) == ["_stage.json", "total.txt"]
+    local = _staged_pipe(str(tmp_path / "cache"), tmp_path, staging, _folder_stage())
+    summary = local.run("train")[-1].summary
+    folder = tmp_path / "cache" / "fake" / "train"
+    assert summary["output"] == str(folder) and (folder / "runs" / "1.txt").read_text() == str(folder)
+    assert local.env.dir("train").local_copy(str(staging)) == folder
+    assert not staging.exists()
+
+
+def test_a_staging_folder_holds_only_what_the_run_resumes_from(tmp_path, remote):
+    """A staged stage that resumes goes on from its staging folder, but a forced run starts from an
+    empty one, a killed run's temporary files are neither read nor uploaded, and a staging folder
+    that another machine's run has replaced on the remote is emptied before the remote's files are
+    taken: files of this machine's older runs would otherwise be read, and uploaded again."""
+    a, b = tmp_path / "machine-a", tmp_path / "machine-b"
+    out = _staged_pipe(remote, tmp_path, a).env.dir("train")
+
+    def run(staging: Path, epochs: int, force: bool = False) -> list[str]:
+        pipe = _staged_pipe(remote, tmp_path, staging, _folder_stage(), epochs)
+        return pipe.run("train", force=force)[-1].summary["found"]
+
+    assert run(a, 1) == []
+    assert run(a, 2) == ["runs/1.txt"]  # resumed in its staging folder
+    assert _remote_files(out.url) == ["_run.token", "_stage.json", "runs/1.txt", "runs/2.txt"]
+    assert run(a, 2, force=True) == []  # forced: from scratch, here and on the remote
+    assert _remote_files(out.url) == ["_run.token", "_stage.json", "runs/1.txt"]
+    assert run(a, 3) == ["runs/1.txt"]
+    staged = next(a.glob("train-*/staging"))
+    (staged / "runs" / "9.txt.tmp").write_text("half-written")  # a killed run's
+    assert run(a, 4) == ["runs/1.txt", "runs/2.txt"]
+    assert not (staged / "runs" / "9.txt.tmp").exists() and "runs/9.txt.tmp" not in _remote_files(out.url)
+    # another machine runs it from scratch since: this one's three files are an older run's
+    assert run(b, 5, force=True) == []
+    assert run(a, 6) == ["runs/1.txt"]
+    assert out.fs.cat_file(out.file("runs/1.txt")).decode() == str(next(b.glob("train-*/staging")))
+    assert sorted(p.name for p in (staged / "runs").iterdir()) == ["1.txt", "2.txt"]
+    assert _remote_files(out.url) == ["_run.token", "_stage.json", "runs/1.txt", "runs/2.txt"]
+
+
+def test_a_failed_upload_leaves_the_stage_unfinished(tmp_path, remote, monkeypatch):
+    """The remote folder loses its completion mark when a staged run begins and gets it back only
+    after the staging folder is uploaded: an upload that fails (or a run killed while uploading)
+    leaves the stage to be run again, not the last run's mark over partly replaced files."""
+    from pipeline.errors import CacheError
+
+    def pipe(epochs: int) -> Pipeline:
+        return _staged_pipe(remote, tmp_path, tmp_path / "staging", _folder_stage(), epochs)
+
+    pipe(1).run("train")
+
+    def fails(self, staged):
+        raise CacheError(f"uploading to {self.url}: Input/output error")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(DirStore, "upload", fails)
+        with pytest.raises(CacheError, match="uploading"):
+            pipe(2).run("train")
+    assert pipe(2).env.dir("train").meta() is None and not pipe(2).is_current("train")
+    assert pipe(2).run("train")[-1].summary["found"] == ["runs/1.txt", "runs/2.txt"]  # resumed here
+    assert pipe(2).is_current("train")
+    assert _remote_files(pipe(2).env.dir("train").url) == ["_run.token", "_stage.json", "runs/1.txt", "runs/2.txt",
+                                                           "runs/3.txt"]
+
+
+def test_a_write_error_in_the_staging_folder_is_a_cache_error(tmp_path, remote):
+    """An OSError naming a file of the staging folder is the stage's output failing to be written
+    (a CacheError naming the folder), not a stage's bug or a read error, as on a local cache."""
+    import errno
+
+    from pipeline.errors import CacheError
+    from pipeline.stage import DatasetStage
+
+    def run(inputs, cfg, out, fingerprint):
+        raise OSError(errno.EIO, "Input/output error", str(Path(out.path) / "disnet" / "last.safetensors"))
+
+    stage = DatasetStage("train", ("heatmaps",), ("train.epochs",), run, local_files=True, resumes=True)
+    pipe = _staged_pipe(remote, tmp_path, tmp_path / "staging", stage)
+    with pytest.raises(CacheError, match=r"train: writing into .*staging.*Input/output error"):
+        pipe.run("train")
+
+
+def _finished(url: str, files: dict[str, str]) -> DirStore:
+    """A finished dataset stage output at ``url`` holding ``files`` (name -> text)."""
+    out = DirStore(url)
+    for name, text in files.items():
+        out.write_text(name, text)
+    out.finish("fp", {})
+    return out
+
+
+def test_a_local_copy_is_downloaded_once_per_run_and_each_remote_folder_has_its_own(tmp_path, remote, monkeypatch):
+    """local_copy downloads a finished output once per run (its _stage.json), also when the staging
+    folder is given with '~'; the same stage of two datasets (same last part of the URL) has two
+    copies, neither removing the other's; a copy another process is still downloading (a dot
+    folder) is left to it; an output that has not finished has no copy, and one finished without a
+    file (until 2026-12-06 a FileNotFoundError) a copy of its _stage.json alone."""
+    from pipeline.errors import CacheError
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    first = _finished(f"{remote}/one/train", {"disnet/best.safetensors": "one"})
+    second = _finished(f"{remote}/two/train", {"disnet/best.safetensors": "two"})
+    downloads = []
+    original = DirStore.download
+
+    def counted(self, staged):
+        downloads.append(self.url)
+        return original(self, staged)
+
+    monkeypatch.setattr(DirStore, "download", counted)
+    copy = first.local_copy("~/staging")
+    assert copy.is_relative_to(tmp_path / "home" / "staging")
+    assert (copy / "disnet" / "best.safetensors").read_text() == "one"
+    assert (copy / "_stage.json").read_bytes() == first.fs.cat_file(first.file("_stage.json"))
+    other = second.local_copy("~/staging")
+    assert (other / "disnet" / "best.safetensors").read_text() == "two" and other.parent != copy.parent
+    partial = copy.parent / ".0123456789abcdef-0badc0de"
+    partial.mkdir()
+    assert first.local_copy("~/staging") == copy and second.local_copy("~/staging") == other
+    assert downloads == [first.url, second.url]  # reused
+    first.write_text("disnet/best.safetensors", "one, retrained")
+    first.finish("fp", {})  # another run: a new copy replaces the old one
+    again = first.local_copy("~/staging")
+    assert again != copy and (again / "disnet" / "best.safetensors").read_text() == "one, retrained"
+    assert sorted(p.name for p in again.parent.iterdir()) == sorted([again.name, partial.name])
+    assert other.is_dir()
+    with pytest.raises(CacheError, match="the stage has not finished"):
+        DirStore(f"{remote}/three/train").local_copy("~/staging")
+    empty = _finished(f"{remote}/four/train", {})
+    assert [p.name for p in empty.local_copy("~/staging").iterdir()] == ["_stage.json"]
+
+
+def test_two_processes_making_the_same_local_copy_both_get_it(tmp_path, remote, monkeypatch):
+    """Two processes on one machine that find no copy both download one; the second to finish
+    finds the first's in place (its rename fails), takes it and removes its own download."""
+    out = _finished(f"{remote}/race/train", {"disnet/best.safetensors": "weights"})
+    original = DirStore.download
+
+    def beaten(self, staged):  # the other process finishes its copy while this one downloads
+        taken = original(self, staged)
+        monkeypatch.setattr(DirStore, "download", original)
+        out.local_copy(str(tmp_path))
+        return taken
+
+    monkeypatch.setattr(DirStore, "download", beaten)
+    copy = out.local_copy(str(tmp_path))
+    assert (copy / "disnet" / "best.safetensors").read_text() == "weights"
+    assert [p.name for p in copy.parent.iterdir()] == [copy.name]  # no download left behind
+
+
+def test_synthesis_on_a_remote_cache_names_the_missing_checkpoints_before_train_finished(tmp_path, remote):
+    """The train stage's remote folder without its _stage.json (never finished, or running) holds
+    no checkpoint synthesis may read: the error names the nets to train, as on a local cache."""
+    from pipeline.errors import PipelineError
+    from stages.synthesize import check_checkpoints
+
+    cfg = load_config("synthetic", {"run.staging_dir": str(tmp_path / "staging")}, environ={})
+    train = _finished(f"{remote}/synthetic/train", {"disnet/best.safetensors": "weights"})
+    train.invalidate()
+    with pytest.raises(PipelineError, match="no disnet, rssnet, placenet checkpoint; synthesis needs it"):
+        check_checkpoints(train, cfg)
+    assert not (tmp_path / "staging").exists()
+
+
+def test_upload_and_download_make_the_folders_of_a_filesystem_that_has_them(tmp_path):
+    """Object stores (s3://, gcs://, memory://) need no folders, but a remote filesystem with real
+    ones (sftp://, smb://, hdfs://; here the local one under another protocol) writes no file into
+    a folder that is not there: upload creates the staging folder's subfolders on the remote, and
+    download those of the remote folder here."""
+    from fsspec.implementations.local import LocalFileSystem
+
+    class Folders(LocalFileSystem):
+        protocol = ("folders",)
+
+        @classmethod
+        def _strip_protocol(cls, path):
+            return super()._strip_protocol(str(path).removeprefix("folders://"))
+
+    fsspec.register_implementation("folders", Folders, clobber=True)
+    staged = tmp_path / "staging"
+    for name in ("metrics.json", "disnet/best.safetensors", "evaluate/figures/bev/000001.png"):
+        (staged / name).parent.mkdir(parents=True, exist_ok=True)
+        (staged / name).write_text(name)
+    out = DirStore(f"folders://{tmp_path / 'remote' / 'train'}")
+    assert not out.is_local
+    out.upload(DirStore(str(staged)))
+    uploaded = sorted(p.relative_to(tmp_path / "remote" / "train").as_posix()
+                      for p in (tmp_path / "remote" / "train").rglob("*") if p.is_file())
+    assert uploaded == ["disnet/best.safetensors", "evaluate/figures/bev/000001.png", "metrics.json"]
+    assert out.download(DirStore(str(tmp_path / "back"))) == 3
+    assert all((tmp_path / "back" / name).read_text() == name for name in uploaded)

@@ -527,3 +527,28 @@ def test_a_mixed_map_keeps_its_prior_share_when_the_prior_is_moved():
     np.testing.assert_allclose(rebase_mixed_prior(source, source, target, 1.0), target, rtol=1e-6)
     whole = rebase_prior((1 - 0.5) * net + 0.5 * source, source, target)  # what rebasing the mix would give
     assert not np.allclose(whole, rebase_mixed_prior((1 - 0.5) * net + 0.5 * source, source, target, 0.5), rtol=1e-3)
+
+
+def test_the_nets_of_a_dataset_on_a_remote_cache_are_taken_through_a_local_copy(trained, tmp_path):
+    """train.nets_from on a remote (fsspec) cache: the other dataset's checkpoints are read from a
+    local copy of its finished train output (its remote path is no local folder) and uploaded with
+    this dataset's train output, the same bytes as on a local cache."""
+    import uuid
+
+    import fsspec
+
+    name = f"remote-{uuid.uuid4().hex[:8]}"
+    fs = fsspec.filesystem("memory")
+    fs.put(str(trained / "synthetic"), f"/{name}/synthetic", recursive=True)
+    try:
+        cache = f"memory://{name}"
+        cfg = with_nets_from(load_config("kitti", {"train.nets_from": "synthetic",
+                                                   "run.staging_dir": str(tmp_path / "staging")}, environ={}), cache)
+        report = _pipeline(cfg, cache, "kitti", _kitti(tmp_path / "kitti")).run("train")[-1]
+        assert report.summary["message"].startswith("the nets of dataset synthetic (disnet, rssnet, placenet;")
+        for net in ("disnet", "rssnet", "placenet"):
+            assert fs.cat_file(f"/{name}/kitti/train/{net}/best.safetensors") == \
+                (trained / "synthetic" / "train" / net / "best.safetensors").read_bytes(), net
+        assert len(list((tmp_path / "staging").glob("train-*/copies/*/disnet/best.safetensors"))) == 1
+    finally:
+        fs.rm(f"/{name}", recursive=True)
