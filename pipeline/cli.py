@@ -255,7 +255,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
 
 def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None) -> None:
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
-    --frames would do; exit 3 (as status) when an output it would read is damaged."""
+    --frames would do; exit 2 when an output it would read is damaged (as the run would stop)."""
     rows = {r["stage"]: r for r in pipe.status(reasons=0)}
     for name in closure:
         _print_status_row(rows[name])

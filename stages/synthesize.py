@@ -150,12 +150,12 @@ def needed_nets(cfg: Config) -> tuple[str, ...]:
     return ("disnet", "rssnet") + (("placenet",) if cfg.synth.placement == "lidar" else ())
 
 
-def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
+def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> Path:
     """PipelineError naming what is missing or damaged unless the train stage's output
     ``train_dir`` holds every checkpoint generation needs (:func:`needed_nets`), readable; with
     ``weights`` their weights are read and must be finite too (the demo's 14 MB Dis-Net checkpoint
     in 15-16 ms; once per run, before the output is recreated: the nets' loaders check them again
-    when they load)."""
+    when they load). Returns the local folder it checked (:func:`checkpoint_folder`)."""
     nets = needed_nets(cfg)
     folder = checkpoint_folder(train_dir, cfg)
     missing = [n for n in nets if folder is None or not (folder / n / "best.safetensors").is_file()]
@@ -185,6 +185,7 @@ def check_checkpoints(train_dir, cfg: Config, weights: bool = False) -> None:
                                 f"or without validation points), which synth.rss_sampling = residual needs: retrain "
                                 f"it, `pipeline run train --force` (with the same --dataset and --cache), or set "
                                 f"synth.rss_sampling=mean")
+    return folder
 
 
 def checkpoint_folder(train_dir, cfg: Config) -> Path | None:
@@ -253,8 +254,7 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
 
     def build():
         torch.set_num_threads(max(1, cfg.train.threads // max(1, cfg.run.workers)))
-        check_checkpoints(out, cfg)
-        folder = checkpoint_folder(out, cfg)
+        folder = check_checkpoints(out, cfg)  # the local folder: one copy of a remote train's output
         device = str(select_device(cfg.synth.device, "synth.device"))
         saved = bool(cfg.train.nets_from)  # another dataset's nets: built as trained (pipeline.transfer)
         placenet = (load_placenet(cfg, folder / "placenet" / "best.safetensors", device=device, saved_arch=saved)
