@@ -690,7 +690,11 @@ class DirStore:
     def finish(self, fingerprint: str, summary: dict[str, Any], frames: dict[str, str] | None = None) -> None:
         """Mark the stage complete (written last). The folder's path is kept so that
         :meth:`summary` can move the summary's paths along with a moved or copied cache; ``frames``
-        (per-frame upstream stage -> :meth:`FrameStore.done_digest`) says which frames it read."""
+        (per-frame upstream stage -> :meth:`FrameStore.done_digest`) says which frames it read. On a
+        local file system every file written reaches the disk first (os.sync), so that after a power
+        loss too a folder marked complete holds whole files."""
+        if self.is_local:
+            os.sync()
         self.write_text("_stage.json", json.dumps({"fingerprint": fingerprint, "finished": time.time(),
                                                    "path": self.path, "frames": frames or {}, "summary": summary},
                                                   indent=2, default=str))
@@ -758,11 +762,14 @@ class DirStore:
         except OSError as exc:
             raise cache_error(exc, f"reading {self.file(RUN_TOKEN)}") from None
 
-    def upload(self, staged: DirStore) -> None:
+    def upload(self, staged: DirStore, files: Sequence[str | os.PathLike] | None = None) -> None:
         """Copy every file of the local folder ``staged`` but ``_stage.json`` into this one (which
-        :meth:`finish` then marks complete)."""
+        :meth:`finish` then marks complete), or only ``files`` (paths inside ``staged``), in one call."""
         root = Path(staged.path)
-        local = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "_stage.json")
+        if files is None:
+            local = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "_stage.json")
+        else:
+            local = [Path(p) if Path(p).is_absolute() else root / p for p in files]
         targets = [self.file(path.relative_to(root).as_posix()) for path in local]
         try:
             for parent in sorted({self.fs._parent(t) for t in targets}):

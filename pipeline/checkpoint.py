@@ -5,7 +5,7 @@ tensors (``optim.<param id>.<key>``) and RNG states (``rng.torch``, ``rng.cuda.<
 the non-tensor state (epoch, fingerprint, curves, optimizer param groups, numpy bit-generator state)
 as JSON in the file's metadata under ``"meta"``. The file is written to a temporary name and
 renamed into place, so a kill at any instant leaves either the old or the new checkpoint, never a
-mix. A JSON sidecar (same stem, ``.json``) repeats the metadata for people and tools; loading
+mix; its data are flushed to the disk before the rename, so a power loss does too. A JSON sidecar (same stem, ``.json``) repeats the metadata for people and tools; loading
 reads only the safetensors file.
 """
 
@@ -36,7 +36,7 @@ def save_checkpoint(path: str | Path, tensors: dict[str, Tensor], meta: dict[str
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": FORMAT, **meta}
     flat = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
-    with atomic_path(path) as tmp:
+    with atomic_path(path, durable=True) as tmp:  # the resume point of hours of training: survives a power loss
         try:
             save_file(flat, str(tmp), metadata={"meta": json.dumps(meta)})
         except SafetensorError as exc:  # its I/O errors are not OSErrors: the errno is in the message

@@ -406,6 +406,11 @@ class RunSection:
     """Local folder for the stages that write with local file APIs (train, export, evaluate) on a
     remote (fsspec) cache: each writes into a local staging folder here and uploads it when it
     finishes; readers of their output keep a local copy here (pipeline.cache.DirStore.local_copy)."""
+    checkpoint_upload_s: float = 60.0
+    """On a remote (fsspec) cache, seconds between train's uploads of its checkpoints while it
+    trains: at the end of an epoch at least this long after the last upload, the net's best and last
+    checkpoints are uploaded, so that a train killed on one machine resumes from that epoch on any
+    other (0: after every epoch). Outputs do not depend on it."""
 
 
 SECTIONS: dict[str, type] = {
@@ -505,6 +510,7 @@ LIMITS: dict[str, str] = {
     "eval.figure_frames": ">=0", "eval.pooled_rows_max": ">0", "eval.gate_m": ">0 or inf", "eval.gate_rss": ">0 or inf",
     "eval.gate_doppler_mps": ">0 or inf",
     "run.workers": ">0",
+    "run.checkpoint_upload_s": ">=0",
     "dataset.world_seed": ">=0", "split.seed": ">=0", "patches.seed": ">=0", "train.seed": ">=0", "synth.seed": ">=0",
     "dataset.radar_mount_T_radar_lidar": "finite", "radar.rss_min": "finite", "radar.rss_max": "finite",
 }

@@ -17,10 +17,13 @@ users, e.g. a training container, cannot read)."""
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, durable: bool = False) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; when the body succeeds it is renamed onto
     ``path`` (os.replace), otherwise removed. The folder is created if needed; the file gets the
-    mode a plain open() would give (FILE_MODE)."""
+    mode a plain open() would give (FILE_MODE). With ``durable`` the file's data reach the disk
+    before the rename and the rename before the return (:func:`fsync`), so that a power loss too
+    leaves the old file or the new one, not an empty one (a rename alone may reach the disk before
+    the data on ext4 and XFS)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -28,9 +31,22 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.close(fd)
     try:
         yield Path(tmp)
+        if durable:
+            fsync(tmp)
         os.replace(tmp, path)
+        if durable:
+            fsync(path.parent)
     finally:
         Path(tmp).unlink(missing_ok=True)
+
+
+def fsync(path: str | os.PathLike) -> None:
+    """Flush the file or folder ``path`` to the disk (a folder: the names in it, e.g. a rename)."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) * os.path.isdir(path))
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def write_atomic(path: str | os.PathLike, data: bytes | str) -> Path:

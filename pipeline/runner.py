@@ -13,10 +13,12 @@ from __future__ import annotations
 import contextlib
 import difflib
 import errno
+import functools
 import hashlib
 import json
 import os
 import sys
+import tempfile
 import time
 import uuid
 from dataclasses import dataclass, field, replace
@@ -49,6 +51,10 @@ class DatasetInputs:
     env: RunEnv
     frame_ids: list[str]
     progress: bool = False
+    publish: Callable[[list[Path]], None] | None = None
+    """Where a stage's output is staged locally for a remote cache: uploads the given files of the
+    staging folder now, in one call (train's checkpoints of a finished epoch, so that a killed run
+    resumes from them on any machine; a failed upload is logged, not raised). None elsewhere."""
 
     @property
     def cfg(self):
@@ -631,8 +637,9 @@ class Pipeline:
         staged = stage.local_files and not out.is_local
         work = out.staging(self.env.cfg.run.staging_dir) if staged else out
         self._prepare_output(stage, out, work, force)
+        publish = functools.partial(self._publish, stage.name, out, work) if staged else None
         try:
-            summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress), self.env.cfg, work,
+            summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress, publish), self.env.cfg, work,
                                 fingerprint=fp)
         except OSError as exc:
             if not _writing_into(exc, work.path):
@@ -646,6 +653,16 @@ class Pipeline:
         out.finish(fp, summary, frames)
         report.summary = summary
         return report
+
+    def _publish(self, name: str, out, work, paths: list[Path]) -> None:
+        """Upload ``paths`` of the staging folder ``work`` into the remote output ``out`` while the
+        stage runs (DatasetInputs.publish). A failure is logged: the run goes on, and its upload at
+        the end uploads everything (or fails the stage)."""
+        try:
+            out.upload(work, paths)
+        except CacheError as exc:
+            self.log(f"{name:<{NAME_WIDTH}} {exc}; going on (a kill now resumes from the last upload, or from "
+                     f"{work.path} on this machine)")
 
     def _prepare_output(self, stage: DatasetStage, out, work, force: bool) -> None:
         """Make the folder ``work`` the stage writes into ready: ``out`` itself, or its local staging
@@ -785,17 +802,37 @@ def _interrupted_kind(stage: Stage) -> InterruptedKind:
 
 
 def _checkpoints_read(folder) -> tuple[int, list[str]]:
-    """(checkpoints read, the problem of each that cannot be) under a dataset stage's folder."""
+    """(checkpoints read, the problem of each that cannot be) under a dataset stage's folder; on a
+    remote cache each is downloaded (one at a time, into a temporary folder) and read, and its
+    problem names its remote URL."""
     from pipeline.checkpoint import load_checkpoint
 
-    paths = sorted(Path(folder.path).rglob("*.safetensors")) if "://" not in folder.url else []
-    problems = []
-    for path in paths:
+    def problem(path: Path, shown: str) -> str | None:
         try:
             load_checkpoint(path)
         except CacheError as exc:
-            problems.append(str(exc))
-    return len(paths), problems
+            return str(exc).replace(str(path), shown)
+        return None
+
+    if folder.is_local:
+        paths = sorted(Path(folder.path).rglob("*.safetensors"))
+        return len(paths), [p for p in (problem(path, str(path)) for path in paths) if p]
+    try:
+        names = sorted(f for f in folder.fs.find(folder.path) if f.endswith(".safetensors"))
+    except OSError as exc:
+        return 0, [str(cache_error(exc, f"listing {folder.url}"))]
+    problems = []
+    with tempfile.TemporaryDirectory(prefix="verify-") as tmp:
+        local = Path(tmp) / "checkpoint.safetensors"
+        for name in names:
+            shown = join(folder.url, os.path.relpath(name, folder.path))
+            try:
+                folder.fs.get(name, str(local))
+            except OSError as exc:
+                problems.append(str(cache_error(exc, f"downloading {shown}")))
+                continue
+            problems.append(problem(local, shown))
+    return len(names), [p for p in problems if p]
 
 
 def _all_of(values: list[bool | None]) -> bool | None:

@@ -209,9 +209,16 @@ class _NetSpec:
     """Base learning rate (None: cfg.train.lr)."""
 
 
-def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True) -> TrainResult:
+Publish = Callable[[list[Path]], None]
+"""Uploads the given files of a staged output now (pipeline.runner.DatasetInputs.publish)."""
+
+
+def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True,
+        publish: Publish | None = None) -> TrainResult:
     """Train ``spec.model`` for the epochs its config key says (EPOCHS_KEYS), resuming from ``out_dir``
-    when possible."""
+    when possible. With ``publish`` (an output staged for a remote cache), an epoch ending at least
+    cfg.run.checkpoint_upload_s after the last upload hands its checkpoints to it
+    (:func:`publish_checkpoints`)."""
     epochs_key = EPOCHS_KEYS[spec.name]
     n_epochs = int(cfg.get(epochs_key))
     if n_epochs < 0:
@@ -237,6 +244,7 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     rows_per_chunk = chunk_len(next(iter(spec.arrays.values())))
     n_train_batches = math.ceil(len(spec.train_idx) / spec.batch_size)
     n_val_batches = math.ceil(len(spec.val_idx) / spec.batch_size)
+    uploaded_at, uploaded_best = time.monotonic(), None
     for epoch in range(start + 1, n_epochs + 1):
         t0 = time.perf_counter()
         for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
@@ -257,9 +265,22 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
             ckpt.save_checkpoint(best, ckpt.model_tensors(scored), _meta(spec, fingerprint, state))
         _save_last(last, spec, optimizer, rng, fingerprint, state, ema)  # the commit point of the epoch
         write_curves(out_dir, spec.name, state["curves"], plot=False)
+        if publish is not None and time.monotonic() - uploaded_at >= cfg.run.checkpoint_upload_s:
+            publish_checkpoints(publish, best, last, with_best=state["best_epoch"] != uploaded_best)
+            uploaded_at, uploaded_best = time.monotonic(), state["best_epoch"]
     write_curves(out_dir, spec.name, state["curves"], plot=True)
     return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
                        state["best_metric"], state["curves"])
+
+
+def publish_checkpoints(publish: Publish, best: Path, last: Path, with_best: bool = True) -> None:
+    """Hand a finished epoch's checkpoints (each with its JSON sidecar) to ``publish``: ``best``
+    (when ``with_best`` and it exists), then ``last``, in two calls, in the order the epoch wrote
+    them; so an upload cut off between the two leaves what a run killed between the writes leaves,
+    from which training resumes exactly."""
+    if with_best and best.exists():
+        publish([best, best.with_suffix(".json")])
+    publish([last, last.with_suffix(".json")])
 
 
 SELECT_ON = ("loss", "kl")
@@ -461,7 +482,7 @@ def _check_disnet_data(cfg, data: DisNetData, idx: np.ndarray) -> None:
 
 
 def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = True,
-                 fingerprint: str | None = None) -> TrainResult:
+                 fingerprint: str | None = None, publish: Publish | None = None) -> TrainResult:
     """Train Dis-Net with L = L_KL + alpha L_n (Adam, cfg.train.*); resumes from ``out_dir``."""
     _setup(cfg)
     model = build_disnet(cfg)
@@ -491,7 +512,7 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
             log.info("disnet: count prior %s at %s m/s", np.round(means, 1).tolist(), np.round(knots, 2).tolist())
         else:
             model.set_count_prior(float(counts.mean()))
-    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress)
+    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "disnet"), progress, publish)
     if refit_epochs > 0:
         _refit_best_count(cfg, spec, res.best_path, refit_epochs, progress)
     # every run: the setting may have changed since the checkpoint was written (it is no training key)
@@ -642,7 +663,7 @@ INPUT_RANGE_ROWS = 20_000
 
 
 def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = True,
-                 fingerprint: str | None = None) -> TrainResult:
+                 fingerprint: str | None = None, publish: Publish | None = None) -> TrainResult:
     """Train RSS-Net with L_a (Adam, cfg.train.*, batch cfg.train.rss_batch_size); resumes. The best
     checkpoint keeps the quantiles of its residuals on the validation points
     (:func:`rssnet_residual_quantiles`; none without validation points)."""
@@ -661,7 +682,7 @@ def train_rssnet(cfg, data: RssNetData, out_dir: str | Path, progress: bool = Tr
         train_idx=train_idx,
         val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.train.rss_batch_size, terms_fn=rssnet_terms, weights={"a": 1.0})
-    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress)
+    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "rssnet"), progress, publish)
     if len(data.val_idx):
         _add_to_best_meta(res, model, RESIDUAL_KEY, lambda best: rssnet_residual_quantiles(best, data, data.val_idx))
     return res
@@ -711,7 +732,7 @@ STANDARDISATION_ROWS = 200_000
 
 
 def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool = True,
-                   fingerprint: str | None = None) -> TrainResult:
+                   fingerprint: str | None = None, publish: Publish | None = None) -> TrainResult:
     """Train PlaceNet with the Poisson NLL (Adam at placement.lr, batch placement.batch_size,
     placement.epochs); the features are standardised with the training rows' statistics; resumes."""
     _setup(cfg)
@@ -723,7 +744,7 @@ def train_placenet(cfg, data: PlaceNetData, out_dir: str | Path, progress: bool 
         name="placenet", model=model, arch=jsonable_arch(placenet_kwargs(cfg)), arrays=arrays,
         train_idx=train_idx, val_idx=_checked_idx(data.val_idx, "val_idx", arrays, True),
         batch_size=cfg.placement.batch_size, terms_fn=placenet_terms, weights={"nll": 1.0}, lr=cfg.placement.lr)
-    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress)
+    res = run(spec, cfg, out_dir, fingerprint or default_fingerprint(cfg, "placenet"), progress, publish)
     if data.train_frame_candidates is not None:
         _add_to_best_meta(res, model, "count_scale", lambda best: placenet_count_scale(
             best, data.features, data.train_frame_rows, data.train_frame_candidates(), data.train_frame_counts))

@@ -176,7 +176,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     summary["baselines_test"] = _baselines(inputs, table, idx, cfg, root)
     if "disnet" in nets:
         res = train_disnet(cfg, d_data, root / "disnet", progress=inputs.progress,
-                           fingerprint=training_fingerprint(inputs, cfg, "disnet"))
+                           fingerprint=training_fingerprint(inputs, cfg, "disnet"), publish=inputs.publish)
         model = load_disnet(cfg, res.best_path, device="cpu")
         summary["disnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from,
                              "val": res.best_metric,
@@ -189,7 +189,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     if "rssnet" in nets:
         r_data = rssnet_data(inputs, table, 0, 1)
         res = train_rssnet(cfg, r_data, root / "rssnet", progress=inputs.progress,
-                           fingerprint=training_fingerprint(inputs, cfg, "rssnet"))
+                           fingerprint=training_fingerprint(inputs, cfg, "rssnet"), publish=inputs.publish)
         model = load_rssnet(cfg, res.best_path, device="cpu")
         test = rssnet_data(inputs, table, 2, 2)
         summary["rssnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
@@ -280,7 +280,7 @@ def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
         raise PipelineError("train: PlaceNet has no training row (no lidar point in the radar's field of view "
                             "of any usable training frame)")
     res = train_placenet(cfg, data, root / "placenet", progress=inputs.progress,
-                         fingerprint=training_fingerprint(inputs, cfg, "placenet"))
+                         fingerprint=training_fingerprint(inputs, cfg, "placenet"), publish=inputs.publish)
     model = load_placenet(cfg, res.best_path, device="cpu")
     test = placenet_data(inputs, table, 2, 2)
     out = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,

@@ -99,6 +99,21 @@ def test_a_moved_cache_reports_its_files_where_they_are_now(tmp_path):
     assert DirStore(str(tmp_path / "never")).summary() == {}
 
 
+def test_a_local_dataset_stage_output_reaches_the_disk_before_it_is_marked_complete(tmp_path, monkeypatch):
+    """After a power loss a folder marked complete must hold whole files: everything written is
+    flushed (os.sync) before ``_stage.json`` is written; a remote folder has no local disk to flush."""
+    out = DirStore(str(tmp_path / "train"))
+    out.write_text("metrics.json", "{}")
+    synced: list[bool] = []
+    monkeypatch.setattr(os, "sync", lambda: synced.append(os.path.exists(out.file("_stage.json"))))
+    out.finish("fp", {})
+    assert synced == [False] and out.fingerprint() == "fp"
+    remote = DirStore(f"memory://sync-{os.getpid()}/train")
+    remote.finish("fp", {})
+    remote.clear()
+    assert synced == [False]
+
+
 def test_frame_memo_builds_once_per_frame_and_key():
     """FrameInputs.memo: one build per (frame, key); another key or another frame builds again;
     the memo does not collide with the frame's array reads."""

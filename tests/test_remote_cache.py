@@ -180,28 +180,37 @@ def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_p
     assert len(copies) == 1 and (copies[0] / "_stage.json").read_bytes() == fs.cat_file(f"{there}/train/_stage.json")
 
 
+def _killed_in_the_second_epoch(patch) -> None:
+    """Make pipeline.training's second call of train_one_epoch raise KeyboardInterrupt (a kill)."""
+    import pipeline.training
+
+    original, calls = pipeline.training.train_one_epoch, []
+
+    def killed(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt("simulated kill")
+        return original(*args, **kwargs)
+
+    patch.setattr(pipeline.training, "train_one_epoch", killed)
+
+
 def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tmp_path, remote, monkeypatch):
-    """A train killed after its first epoch on a remote cache has uploaded nothing (the output is
-    not done); run again on the same machine it goes on from that epoch in its staging folder,
-    without downloading, and uploads the finished nets."""
+    """A train killed after its first epoch on a remote cache, before its first upload of
+    checkpoints was due (run.checkpoint_upload_s), has uploaded none (the output is not done); run
+    again on the same machine it goes on from that epoch in its staging folder, without
+    downloading, and uploads the finished nets."""
     import pipeline.training
     from pipeline.errors import StageInterrupted
     from pipeline.world import generate
 
     world = tmp_path / "world"
     generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
-    original, calls = pipeline.training.train_one_epoch, []
-
-    def killed_in_the_second_epoch(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt("simulated kill")
-        return original(*args, **kwargs)
-
     logs: list[str] = []
-    pipe = _real_pipe(remote, world, tmp_path / "machine", logs, **{"train.epochs": "2", "train.nets": "disnet"})
+    pipe = _real_pipe(remote, world, tmp_path / "machine", logs, **{"train.epochs": "2", "train.nets": "disnet",
+                                                                    "run.checkpoint_upload_s": "3600"})
     with monkeypatch.context() as patch:
-        patch.setattr(pipeline.training, "train_one_epoch", killed_in_the_second_epoch)
+        _killed_in_the_second_epoch(patch)
         with pytest.raises(StageInterrupted):
             pipe.run("train")
     fs = fsspec.filesystem("memory")
@@ -216,6 +225,89 @@ def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tmp_path,
     assert summary["disnet"]["resumed_from"] == 1 and summary["checkpoints"] == f"{remote}/synthetic/train"
     assert fs.cat_file(f"{there}/disnet/best.safetensors") == \
         (staged[0].parent / "best.safetensors").read_bytes()
+
+
+def test_a_staged_train_killed_mid_run_resumes_on_another_machine_from_its_last_upload(tmp_path, remote, monkeypatch):
+    """While training, a staged train uploads each finished epoch's checkpoints (here after every
+    epoch: run.checkpoint_upload_s 0), best before last, so that a train killed in its second
+    epoch on one machine resumes on another from the first epoch, not from scratch, and ends with
+    the weights of an uninterrupted run."""
+    from pipeline.errors import StageInterrupted
+    from pipeline.world import generate
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    settings = {"train.epochs": "3", "train.nets": "disnet", "run.checkpoint_upload_s": "0"}
+    logs: list[str] = []
+    uploads: list[list[str]] = []
+    upload = DirStore.upload
+
+    def recorded(self, staged, files=None):
+        if files is not None:
+            uploads.append([Path(f).relative_to(staged.path).as_posix() for f in files])
+        return upload(self, staged, files)
+
+    first = _real_pipe(remote, world, tmp_path / "machine-a", logs, **settings)
+    with monkeypatch.context() as patch:
+        _killed_in_the_second_epoch(patch)
+        patch.setattr(DirStore, "upload", recorded)
+        with pytest.raises(StageInterrupted):
+            first.run("train")
+    # epoch 1 wrote best then last (its val loss is the best so far): uploaded in that order
+    assert uploads == [["disnet/best.safetensors", "disnet/best.json"], ["disnet/last.safetensors", "disnet/last.json"]]
+    fs = fsspec.filesystem("memory")
+    there = remote.removeprefix("memory://") + "/synthetic/train"
+    staged = next((tmp_path / "machine-a").glob("train-*/staging"))
+    for name in ("best.safetensors", "last.safetensors"):
+        assert fs.cat_file(f"{there}/disnet/{name}") == (staged / "disnet" / name).read_bytes(), name
+    assert first.env.dir("train").meta() is None
+    logs.clear()
+    second = _real_pipe(remote, world, tmp_path / "machine-b", logs, **settings)
+    second.run("train")
+    assert any("resuming from" in line and remote in line for line in logs), logs
+    assert second.env.dir("train").summary()["disnet"]["resumed_from"] == 1
+    whole = _real_pipe(str(tmp_path / "cache"), world, tmp_path / "unused", [], **settings)
+    whole.run("train")
+    a = _tensors((tmp_path / "cache" / "synthetic" / "train" / "disnet" / "best.safetensors").read_bytes())
+    b = _tensors(fs.cat_file(f"{there}/disnet/best.safetensors"))
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def test_a_failed_upload_while_a_stage_runs_is_logged_and_the_run_goes_on(tmp_path, remote, monkeypatch):
+    """DatasetInputs.publish uploads files of the staging folder while the stage runs; a failure
+    there is one log line naming the staging folder, and the stage's final upload still takes
+    everything. Without a staging folder (a local cache) there is nothing to publish."""
+    from pipeline.errors import CacheError
+    from pipeline.stage import DatasetStage
+
+    published: list[bool] = []
+
+    def run(inputs, cfg, out, fingerprint):
+        (Path(out.path) / "part.txt").write_text("one epoch")
+        published.append(inputs.publish is not None)
+        if inputs.publish is not None:
+            inputs.publish([Path(out.path) / "part.txt"])
+        return {"message": "done"}
+
+    stage = DatasetStage("train", ("heatmaps",), ("train.epochs",), run, local_files=True, resumes=True)
+    logs: list[str] = []
+    pipe = _staged_pipe(remote, tmp_path, tmp_path / "staging", stage)
+    pipe.log = logs.append
+    upload = DirStore.upload
+
+    def fails_while_running(self, staged, files=None):
+        if files is not None:
+            raise CacheError(f"uploading to {self.url}: Connection reset by peer")
+        return upload(self, staged, files)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(DirStore, "upload", fails_while_running)
+        pipe.run("train")
+    staging = str(next((tmp_path / "staging").glob("train-*/staging")))
+    assert [line for line in logs if "Connection reset" in line and "going on" in line and staging in line], logs
+    assert pipe.is_current("train") and "part.txt" in _remote_files(pipe.env.dir("train").url)
+    _staged_pipe(str(tmp_path / "cache"), tmp_path, tmp_path / "staging", stage).run("train")
+    assert published == [True, False]
 
 
 def _folder_stage():
@@ -447,3 +539,25 @@ def test_upload_and_download_make_the_folders_of_a_filesystem_that_has_them(tmp_
     assert uploaded == ["disnet/best.safetensors", "evaluate/figures/bev/000001.png", "metrics.json"]
     assert out.download(DirStore(str(tmp_path / "back"))) == 3
     assert all((tmp_path / "back" / name).read_text() == name for name in uploaded)
+
+
+def test_verify_reads_the_checkpoints_of_a_remote_cache(tmp_path, remote):
+    """`pipeline verify` downloads each checkpoint of a remote dataset stage output and reads it: a
+    damaged one is named by its remote URL (until 2026-12-06 a remote cache's were not read)."""
+    import torch
+
+    from pipeline.checkpoint import save_checkpoint
+
+    pipe = _staged_pipe(remote, tmp_path, tmp_path / "staging")
+    pipe.run("train")
+    out = pipe.env.dir("train")
+    save_checkpoint(tmp_path / "good.safetensors", {"model.fc.weight": torch.zeros(64)}, {"epoch": 1})
+    good = (tmp_path / "good.safetensors").read_bytes()
+    out.write_bytes("net/best.safetensors", good)
+    out.write_bytes("net/last.safetensors", good[: len(good) // 2])
+    row = {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+    assert row["checkpoints"] == 2
+    assert row["problem"].startswith(f"{remote}/fake/train/net/last.safetensors: unreadable checkpoint"), row
+    out.write_bytes("net/last.safetensors", good)
+    row = {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+    assert row["checkpoints"] == 2 and "problem" not in row
