@@ -826,6 +826,68 @@ class DirStore:
                     shutil.rmtree(old, ignore_errors=True)
         return copy
 
+    def write_manifest(self) -> int:
+        """Record every file of the folder (but the bookkeeping files, :data:`UNRECORDED`) with its
+        size and SHA-256 in :data:`FILES_MANIFEST`, for :meth:`check_files`; the runner calls it
+        when the stage has written everything, before the upload and :meth:`finish`. Returns how
+        many files. Kept out of ``_stage.json``, which every run reads (an export of 24,000 frames
+        has about 150,000 files)."""
+        try:
+            files = {name: [size, self._digest(name)] for name, size in self.sizes().items()}
+        except OSError as exc:
+            raise cache_error(exc, f"reading the files of {self.url}") from None
+        self.write_text(FILES_MANIFEST, json.dumps(files, separators=(",", ":"), sort_keys=True))
+        return len(files)
+
+    def check_files(self, progress: Callable[[int, int], None] | None = None) -> tuple[int | None, list[str]]:
+        """(files checked, one problem per file that is missing or whose size or SHA-256 differs
+        from :data:`FILES_MANIFEST`'s record); (None, []) for an output finished without one (before
+        2026-12-06). Files added since are not problems. ``progress(n, total)`` per file."""
+        try:
+            with self.fs.open(self.file(FILES_MANIFEST), "r") as fh:
+                recorded = json.load(fh)
+        except FileNotFoundError:
+            return None, []
+        except (OSError, ValueError) as exc:
+            return 0, [f"{self.file(FILES_MANIFEST)}: unreadable ({_one_line(exc)})"]
+        problems = []
+        try:
+            sizes = self.sizes()
+        except OSError as exc:
+            return 0, [str(cache_error(exc, f"listing {self.url}"))]
+        for name, (size, digest) in recorded.items():
+            shown = join(self.url, name)
+            if name not in sizes:
+                problems.append(f"{shown}: missing")
+            elif sizes[name] != size:
+                problems.append(f"{shown}: {sizes[name]} bytes, {size} when the stage finished")
+            else:
+                try:
+                    if self._digest(name) != digest:
+                        problems.append(f"{shown}: its content changed since the stage finished (SHA-256)")
+                except OSError as exc:
+                    problems.append(f"{shown}: unreadable ({_one_line(exc)})")
+            if progress:
+                progress(1, len(recorded))
+        return len(recorded), problems
+
+    def sizes(self) -> dict[str, int]:
+        """{path relative to the folder: size in bytes} of its files but :data:`UNRECORDED`."""
+        if not self.fs.exists(self.path):
+            return {}
+        found = self.fs.find(self.path, detail=True)
+        root = self.path.rstrip("/") + "/"
+        return {name.removeprefix(root): int(info["size"]) for name, info in found.items()
+                if info.get("type", "file") == "file" and name.rsplit("/", 1)[-1] not in UNRECORDED}
+
+    def _digest(self, name: str) -> str:
+        """SHA-256 (hex) of the folder's file ``name``."""
+        digest = hashlib.sha256()
+        with self.fs.open(self.file(name), "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(block)
+        return digest.hexdigest()
+
     def invalidate(self) -> None:
         """Forget completion (the files stay; the stage decides what to reuse)."""
         try:
@@ -1078,6 +1140,13 @@ RUN_TOKEN = "_run.token"
 """File of a staged stage's output folder (remote and staging alike) naming the run that began
 last: a staging folder whose token differs from the remote's is another run's (an older one, or
 this machine's while another ran the stage since) and is replaced by the remote's files."""
+
+FILES_MANIFEST = "_files.json"
+"""File of a finished dataset stage's output folder recording each of its files' size and SHA-256
+({path: [bytes, hex digest]}; DirStore.write_manifest), which `pipeline verify` checks."""
+
+UNRECORDED = frozenset({"_stage.json", RUN_TOKEN, FILES_MANIFEST})
+"""Bookkeeping files of a dataset stage's folder, left out of its manifest."""
 
 
 def _mirror_root(url: str, staging_dir: str) -> Path:

@@ -599,9 +599,10 @@ def relocate(dataset, data_root, cache_root, sets, check_frames):
               help="Seconds to wait for a run rewriting an output.")
 @_handle_errors
 def verify(dataset, data_root, cache_root, sets, stages, wait_s):
-    """Read every chunk of the finished frames of each stage output, and every checkpoint: the
-    damaged frames, by stage, with the command that recomputes them (e.g. after copying a cache).
-    Exit code 2 when anything is damaged."""
+    """Read every chunk of the finished frames of each stage output, every checkpoint, and every
+    file a dataset stage recorded when it finished (size and SHA-256): the damaged frames and
+    files, by stage, with the command that recomputes them (e.g. after copying a cache). Exit code
+    2 when anything is damaged."""
     from tqdm import tqdm
 
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
@@ -630,9 +631,14 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
         if "problem" in row:
             bad += 1
             click.echo(f"{name:<{NAME_WIDTH}} cannot be read: {row['problem']}")
+            if "checkpoints" in row:  # a dataset stage: its output is made again as a whole
+                click.echo(f"{'':<{NAME_WIDTH}} make it again: pipeline run {name} --dataset {shlex.quote(dataset)} "
+                           f"--cache {shlex.quote(env.cache_root)} --force")
         elif "checkpoints" in row:
-            click.echo(f"{name:<{NAME_WIDTH}} " + (f"{row['checkpoints']} checkpoint(s) read" if row["checkpoints"]
-                                                    else "finished (its files are not checked)"))
+            read = [f"{row['files']} file(s) intact"] * (row["files"] is not None) + \
+                [f"{row['checkpoints']} checkpoint(s) read"] * bool(row["checkpoints"])
+            click.echo(f"{name:<{NAME_WIDTH}} " + ("; ".join(read) or "finished (its files are not checked: it "
+                                                                     "finished before files were recorded)"))
         elif row["damaged"]:
             bad += 1
             ids = row["frame_ids_damaged"]

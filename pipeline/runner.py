@@ -645,7 +645,11 @@ class Pipeline:
             if not _writing_into(exc, work.path):
                 raise  # a read error, or one naming other files only (e.g. a dataset file it read)
             raise cache_error(exc, f"{stage.name}: writing into {work.path}") from None
+        work.write_manifest()  # uploaded with the files it records
         if staged:
+            sizes = work.sizes()
+            self.log(f"{stage.name:<{NAME_WIDTH}} uploading {len(sizes)} file(s), {sum(sizes.values()) / 1e6:.1f} MB, "
+                     f"to {out.url}")
             out.upload(work)
             summary = _moved_paths(summary, work.path, out.url)
             if not stage.resumes:  # nothing to resume from: the local copy of an export is not kept
@@ -698,11 +702,13 @@ class Pipeline:
 
     def verify(self, names: list[str] | None = None, progress: Callable[[str, int, int], None] | None = None,
                wait_s: float = 0.0) -> list[dict[str, Any]]:
-        """Read every chunk of the frame stage outputs (and every checkpoint under the dataset
-        stage folders) of ``names`` (default: every stage with an output), holding them against
-        rewriting meanwhile. Per stage: ``frames`` (frame ids by index), ``checked`` (done frames
-        read), ``damaged`` ({frame index: message}), ``frame_ids_damaged``, ``problem`` (the
-        output cannot be read at all), ``checkpoints`` (read). ``progress(stage, n, total)``."""
+        """Read every chunk of the frame stage outputs (and every checkpoint and recorded file of
+        the dataset stage folders: DirStore.check_files) of ``names`` (default: every stage with an
+        output), holding them against rewriting meanwhile. Per stage: ``frames`` (frame ids by
+        index), ``checked`` (done frames read), ``damaged`` ({frame index: message}),
+        ``frame_ids_damaged``, ``problem`` (the output cannot be read at all, or a dataset stage's
+        file is damaged), ``checkpoints`` (read), ``files`` (checked; None: none recorded).
+        ``progress(stage, n, total)``."""
         rows = []
         for name in names or self.order:
             stage, row = self.stages[name], {"stage": name}
@@ -724,6 +730,8 @@ class Pipeline:
                     if folder.meta() is None:
                         continue
                     row["checkpoints"], problems = _checkpoints_read(folder)
+                    row["files"], damaged = folder.check_files(progress and (lambda n, total, _name=name: progress(_name, n, total)))
+                    problems += damaged[:5] + [f"... and {len(damaged) - 5} more file(s)"] * (len(damaged) > 5)
                     if problems:
                         row["problem"] = "; ".join(problems)
             rows.append(row)

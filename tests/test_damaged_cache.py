@@ -6,6 +6,7 @@ paths (`pipeline status`), give one line naming the file. Small pipelines of tes
 
 from __future__ import annotations
 
+import json
 import pickle
 import re
 import struct
@@ -605,6 +606,40 @@ def test_cli_verify_prints_the_repair_command_and_exits_2(tmp_path, fake_cli):
     assert fake_cli(tmp_path, "verify").exit_code == 0
     bad = fake_cli(tmp_path, "verify", "--stage", "heatmap")
     assert bad.exit_code == 2 and "--stage heatmap: no such stage" in bad.stderr
+
+
+def test_verify_checks_the_files_a_dataset_stage_recorded_when_it_finished(tmp_path, fake_cli):
+    """A dataset stage's folder records its files' sizes and SHA-256 (_files.json) when it
+    finishes: `pipeline verify` names a file deleted, truncated or changed in place by hand and how
+    to make the output again; files added since are not damage. An output finished before files
+    were recorded says so."""
+    assert fake_cli(tmp_path, "run", "train", "--workers", "1").exit_code == 0
+    folder = tmp_path / "cache" / "synthetic" / "train"
+    recorded = json.loads((folder / "_files.json").read_text())
+    assert list(recorded) == ["total.txt"] and recorded["total.txt"][0] == (folder / "total.txt").stat().st_size
+    clean = fake_cli(tmp_path, "verify", "--stage", "train")
+    assert clean.exit_code == 0 and "train           1 file(s) intact" in clean.stdout, clean.output
+    (folder / "notes.txt").write_text("mine")
+    assert fake_cli(tmp_path, "verify", "--stage", "train").exit_code == 0
+    text = (folder / "total.txt").read_text()
+    changed = {"changed": text[:-1] + ("1" if text[-1] != "1" else "2"), "truncated": text[:-1]}
+    for how, damaged in (*changed.items(), ("deleted", None)):
+        if damaged is None:
+            (folder / "total.txt").unlink()
+        else:
+            (folder / "total.txt").write_text(damaged)
+        out = fake_cli(tmp_path, "verify", "--stage", "train")
+        assert out.exit_code == 2, (how, out.output)
+        expected = {"changed": "its content changed since the stage finished (SHA-256)",
+                    "truncated": f"{len(text) - 1} bytes, {len(text)} when the stage finished", "deleted": "missing"}
+        assert f"train           cannot be read: {folder / 'total.txt'}: {expected[how]}" in out.stdout, out.stdout
+        command = re.search(r"make it again: pipeline (run train .*)$", out.stdout, re.M).group(1)
+        assert command == f"run train --dataset synthetic --cache {tmp_path / 'cache'} --force"
+    assert fake_cli(tmp_path, *command.split()[:2], *command.split()[6:], "--workers", "1").exit_code == 0
+    assert fake_cli(tmp_path, "verify", "--stage", "train").exit_code == 0
+    (folder / "_files.json").unlink()  # as an output finished before 2026-12-06
+    old = fake_cli(tmp_path, "verify", "--stage", "train")
+    assert old.exit_code == 0 and "train           finished (its files are not checked" in old.stdout
 
 
 def test_chunk_error_survives_pickling():

@@ -5,6 +5,7 @@ the same way, and name a damaged chunk. Small pipelines of tests/fake_stages.py.
 from __future__ import annotations
 
 import json
+import re
 import uuid
 from pathlib import Path
 
@@ -139,10 +140,10 @@ def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_p
         np.testing.assert_array_equal(local.env.store("synthesize").read("points", i),
                                       far.env.store("synthesize").read("points", i))
     exported = sorted(p.relative_to(here / "export").as_posix() for p in (here / "export").rglob("*")
-                      if p.is_file() and p.name != "_stage.json")
+                      if p.is_file() and p.name not in ("_stage.json", "_files.json"))
     assert len(exported) > 30
     assert sorted(f.removeprefix(f"/{there}/export/") for f in fs.find(f"{there}/export")
-                  if not f.endswith(("_stage.json", "_run.token"))) == exported
+                  if not f.endswith(("_stage.json", "_run.token", "_files.json"))) == exported
     for name in exported:
         assert fs.cat_file(f"{there}/export/{name}") == (here / "export" / name).read_bytes(), name
     ours, theirs = (json.loads(p) for p in ((here / "evaluate" / "report.json").read_text(),
@@ -152,6 +153,15 @@ def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_p
         assert json.dumps(ours[key], sort_keys=True) == json.dumps(theirs[key], sort_keys=True), key
     figures = sorted(p.name for p in (here / "evaluate" / "figures").iterdir())
     assert len(figures) >= 3 and sorted(f.rsplit("/", 1)[-1] for f in fs.find(f"{there}/evaluate/figures")) == figures
+    uploading = [line for line in logs if "uploading" in line]  # the remote pipe's three staged stages say so
+    assert [line.split()[0] for line in uploading] == ["train", "evaluate", "export"], logs
+    assert re.search(rf"^export +uploading {len(exported)} file\(s\), [0-9.]+ MB, to {remote}/synthetic/export$",
+                     uploading[-1]), uploading
+    # every file the dataset stages wrote is recorded, the same on both, and reads back intact
+    checked = [{r["stage"]: (r.get("files"), r.get("checkpoints"), r.get("problem")) for r in pipe.verify()
+                if "checkpoints" in r} for pipe in (local, far)]
+    assert checked[0] == checked[1] and checked[0]["export"][0] == len(exported), checked
+    assert checked[0]["train"][1] >= 6 and not any(problem for *_, problem in checked[0].values())
     kept = {p.name.split("-")[0]: sorted(q.name for q in p.iterdir()) for p in (tmp_path / "machine-a").iterdir()}
     # train's staging folder (it resumes from it) and the copy synthesize and evaluate read; the
     # uploaded staging folders of export and evaluate are not kept
@@ -349,7 +359,7 @@ def test_only_stages_writing_local_files_on_a_remote_cache_are_staged(tmp_path, 
     far = _staged_pipe(remote, tmp_path, staging)  # fake_stages' train writes with out.write_text
     far.run("train")
     assert float(far.env.dir("train").fs.cat_file(far.env.dir("train").file("total.txt"))) > 0
-    assert _remote_files(far.env.dir("train").url) == ["_stage.json", "total.txt"]
+    assert _remote_files(far.env.dir("train").url) == ["_files.json", "_stage.json", "total.txt"]
     local = _staged_pipe(str(tmp_path / "cache"), tmp_path, staging, _folder_stage())
     summary = local.run("train")[-1].summary
     folder = tmp_path / "cache" / "fake" / "train"
@@ -372,9 +382,9 @@ def test_a_staging_folder_holds_only_what_the_run_resumes_from(tmp_path, remote)
 
     assert run(a, 1) == []
     assert run(a, 2) == ["runs/1.txt"]  # resumed in its staging folder
-    assert _remote_files(out.url) == ["_run.token", "_stage.json", "runs/1.txt", "runs/2.txt"]
+    assert _remote_files(out.url) == ["_files.json", "_run.token", "_stage.json", "runs/1.txt", "runs/2.txt"]
     assert run(a, 2, force=True) == []  # forced: from scratch, here and on the remote
-    assert _remote_files(out.url) == ["_run.token", "_stage.json", "runs/1.txt"]
+    assert _remote_files(out.url) == ["_files.json", "_run.token", "_stage.json", "runs/1.txt"]
     assert run(a, 3) == ["runs/1.txt"]
     staged = next(a.glob("train-*/staging"))
     (staged / "runs" / "9.txt.tmp").write_text("half-written")  # a killed run's
@@ -385,7 +395,7 @@ def test_a_staging_folder_holds_only_what_the_run_resumes_from(tmp_path, remote)
     assert run(a, 6) == ["runs/1.txt"]
     assert out.fs.cat_file(out.file("runs/1.txt")).decode() == str(next(b.glob("train-*/staging")))
     assert sorted(p.name for p in (staged / "runs").iterdir()) == ["1.txt", "2.txt"]
-    assert _remote_files(out.url) == ["_run.token", "_stage.json", "runs/1.txt", "runs/2.txt"]
+    assert _remote_files(out.url) == ["_files.json", "_run.token", "_stage.json", "runs/1.txt", "runs/2.txt"]
 
 
 def test_a_failed_upload_leaves_the_stage_unfinished(tmp_path, remote, monkeypatch):
@@ -409,8 +419,8 @@ def test_a_failed_upload_leaves_the_stage_unfinished(tmp_path, remote, monkeypat
     assert pipe(2).env.dir("train").meta() is None and not pipe(2).is_current("train")
     assert pipe(2).run("train")[-1].summary["found"] == ["runs/1.txt", "runs/2.txt"]  # resumed here
     assert pipe(2).is_current("train")
-    assert _remote_files(pipe(2).env.dir("train").url) == ["_run.token", "_stage.json", "runs/1.txt", "runs/2.txt",
-                                                           "runs/3.txt"]
+    assert _remote_files(pipe(2).env.dir("train").url) == ["_files.json", "_run.token", "_stage.json", "runs/1.txt",
+                                                           "runs/2.txt", "runs/3.txt"]
 
 
 def test_a_write_error_in_the_staging_folder_is_a_cache_error(tmp_path, remote):
