@@ -312,7 +312,8 @@ def _print_status_row(row: dict, notes: dict[str, int] | None = None) -> None:
     elif row.get("damaged"):
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} damaged: {row['damaged']}")
     else:
-        state = "finished" if row.get("exists") else "not run"
+        state = "finished" if row.get("exists") else \
+            f"not finished; resumes from {row['resumes_from']}" if row.get("resumes_from") else "not run"
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} {state}")
     note = row.get("note")
     if note and (notes is None or notes.get(note)):

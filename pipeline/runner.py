@@ -658,6 +658,20 @@ class Pipeline:
         report.summary = summary
         return report
 
+    def _resume_point(self, stage: DatasetStage, out) -> str | None:
+        """What a run of the unfinished dataset stage ``stage`` would go on from (stage.resume_point),
+        in the folder it would resume: ``out``, or on a remote cache this machine's staging folder
+        when it holds the last run's files (the same run token); None when nothing or unknown."""
+        folder = out
+        if stage.local_files and not out.is_local:
+            staged = out.staging(self.env.cfg.run.staging_dir)
+            if staged.run_token() is not None and staged.run_token() == out.run_token():
+                folder = staged
+        try:
+            return stage.resume_point(DatasetInputs(self.env, self.frame_ids()), self.env.cfg, folder)
+        except (PipelineError, ChunkError):  # an unreadable upstream output: status says so on its own row
+            return None
+
     def _publish(self, name: str, out, work, paths: list[Path]) -> None:
         """Upload ``paths`` of the staging folder ``work`` into the remote output ``out`` while the
         stage runs (DatasetInputs.publish). A failure is logged: the run goes on, and its upload at
@@ -772,6 +786,8 @@ class Pipeline:
                 folder = self.env.dir(name)
                 row["exists"] = folder.meta() is not None
                 row["summary"] = folder.summary()
+                if not row["exists"] and stage.resume_point is not None:
+                    row["resumes_from"] = self._resume_point(stage, folder)
             if name == FIRST_STAGE and row.get("exists") and (old := self.made_from()):
                 row["note"] = self._other_root_message(old)
             row["current"] = _all_of([current, *(current_of.get(u) for u in stage.upstream)]) if row["exists"] else False

@@ -104,6 +104,9 @@ class DatasetStage:
     """Goes on from what an interrupted run of it saved in its folder (train's per-epoch
     checkpoints). Otherwise the folder is emptied before the stage runs, so that its files all come
     from one run, whatever an earlier run left when it failed or was killed."""
+    resume_point: Callable[[Any, "Config", Any], str | None] | None = None
+    """For a stage that ``resumes``: ``(inputs, cfg, folder) -> words`` saying what an unfinished
+    run left in ``folder`` that the next run goes on from (None: nothing), for `pipeline status`."""
 
 
 Stage = FrameStage | DatasetStage

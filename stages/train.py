@@ -327,6 +327,29 @@ def check(cfg: Config) -> None:
     check_training(cfg)
 
 
+def resume_point(inputs, cfg: Config, out) -> str | None:
+    """What an unfinished train left in ``out`` (a DirStore) for `pipeline status`: each net's last
+    finished epoch (its last checkpoint's sidecar), or that it was saved for other settings or
+    data, from which a run starts that net over; None when no net has a checkpoint."""
+    from pipeline.config import EPOCHS_KEYS
+
+    said = []
+    for net in (n for n in NETS if n in named_nets(cfg)):
+        try:
+            with out.fs.open(out.file(f"{net}/last.json"), "r") as fh:
+                meta = json.load(fh)
+        except FileNotFoundError:
+            continue
+        except (OSError, ValueError):
+            said.append(f"{net}: an unreadable checkpoint")
+            continue
+        if meta.get("fingerprint") == training_fingerprint(inputs, cfg, net):
+            said.append(f"{net} epoch {meta.get('epoch')} of {cfg.get(EPOCHS_KEYS[net])}")
+        else:
+            said.append(f"{net} epoch {meta.get('epoch')} for other settings or data (trains again)")
+    return ", ".join(said) or None
+
+
 STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=VERSION,
                      run=run, doc=__doc__, check=check, extra_fingerprint=nets_from_fingerprint, local_files=True,
-                     resumes=True)
+                     resumes=True, resume_point=resume_point)

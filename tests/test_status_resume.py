@@ -1,0 +1,72 @@
+"""`pipeline status` of a train stage killed mid-run: what the next run goes on from."""
+
+from __future__ import annotations
+
+import pytest
+
+from pipeline.config import load_config
+from pipeline.errors import StageInterrupted
+from pipeline.executor import Executor, RunEnv
+from pipeline.runner import Pipeline
+from stages import all_stages
+from tests.test_pipeline_e2e import TINY
+from tests.test_remote_cache import _killed_in_the_second_epoch
+
+
+def _pipe(cache: str, world, staging, **overrides: str) -> Pipeline:
+    cfg = load_config("synthetic", {**TINY, "train.nets": "disnet,placenet", "run.staging_dir": str(staging),
+                                    **overrides}, environ={})
+    return Pipeline(all_stages(), RunEnv(cfg, cache, "synthetic", str(world)), Executor(1), progress=False,
+                    log=lambda m: None)
+
+
+def _train_row(pipe: Pipeline) -> dict:
+    return next(r for r in pipe.status() if r["stage"] == "train")
+
+
+@pytest.mark.parametrize("where", ["local", "remote"])
+def test_status_says_which_epochs_an_unfinished_train_resumes_from(tmp_path, monkeypatch, where):
+    """A train killed in Dis-Net's second epoch was shown as 'not run', as if hours of training were
+    lost. Its status row names each net's last finished epoch, of the epochs now set (raising
+    them resumes too), or that the checkpoint is for other settings, from which the net trains
+    again; on a remote cache it reads the staging folder of this machine when that holds the last
+    run's files."""
+    import uuid
+
+    import fsspec
+
+    from pipeline.world import generate
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    cache = str(tmp_path / "cache") if where == "local" else f"memory://status-{uuid.uuid4().hex[:8]}"
+    settings = {"train.epochs": "3", "run.checkpoint_upload_s": "3600"}  # remote: no upload before the kill
+    pipe = _pipe(cache, world, tmp_path / "staging", **settings)
+    pipe.run("patches")
+    assert _train_row(pipe).get("resumes_from") is None
+    with monkeypatch.context() as patch:
+        _killed_in_the_second_epoch(patch)
+        with pytest.raises(StageInterrupted):
+            pipe.run("train")
+    row = _train_row(pipe)
+    assert not row["exists"] and row["resumes_from"] == "disnet epoch 1 of 3", row
+    assert _train_row(_pipe(cache, world, tmp_path / "staging", **{**settings, "train.epochs": "5"}))[
+        "resumes_from"] == "disnet epoch 1 of 5"
+    assert _train_row(_pipe(cache, world, tmp_path / "staging", **{**settings, "train.lr": "0.01"}))[
+        "resumes_from"] == "disnet epoch 1 for other settings or data (trains again)"
+    if where == "remote":  # another machine's staging folder holds nothing: the remote has no checkpoint yet
+        assert _train_row(_pipe(cache, world, tmp_path / "elsewhere", **settings)).get("resumes_from") is None
+    pipe.run("train")
+    assert _train_row(pipe)["exists"] and "resumes_from" not in _train_row(pipe)
+    if where == "remote":
+        fsspec.filesystem("memory").rm(cache.removeprefix("memory://"), recursive=True)
+
+
+def test_status_line_of_an_unfinished_train(capsys):
+    from pipeline.cli import _print_status_row
+
+    _print_status_row({"stage": "train", "current": False, "exists": False, "resumes_from": "disnet epoch 1 of 3"})
+    _print_status_row({"stage": "export", "current": False, "exists": False})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == ["train           stale or missing    not finished; resumes from disnet epoch 1 of 3",
+                     "export          stale or missing    not run"]
