@@ -780,11 +780,12 @@ class DirStore:
             raise cache_error(exc, f"uploading {root} to {self.url}") from None
 
     def download(self, staged: DirStore) -> int:
-        """Copy every file of this (remote) folder but ``_stage.json`` into the local folder
-        ``staged``; returns how many (a resumable stage's checkpoints, when it resumes on another
-        machine than the one that began it)."""
+        """Copy every file of this (remote) folder but ``_stage.json`` and :data:`RUN_TOKEN` into
+        the local folder ``staged``; returns how many (a resumable stage's checkpoints, when it
+        resumes on another machine than the one that began it). The token stays behind: a download
+        cut off midway must not leave a staging folder that claims to hold the remote's run."""
         try:
-            files = [f for f in self.fs.find(self.path) if not f.endswith("/_stage.json")] \
+            files = [f for f in self.fs.find(self.path) if f.rsplit("/", 1)[-1] not in ("_stage.json", RUN_TOKEN)] \
                 if self.fs.exists(self.path) else []
             targets = [Path(staged.path) / os.path.relpath(name, self.path) for name in files]
             for parent in {t.parent for t in targets}:

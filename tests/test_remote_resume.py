@@ -1,0 +1,56 @@
+"""A train on a remote cache killed while its staging folder is being filled from the remote."""
+
+from __future__ import annotations
+
+import uuid
+
+import fsspec
+import pytest
+
+from pipeline.cache import DirStore
+from tests.test_remote_cache import _killed_in_the_second_epoch, _real_pipe
+
+
+def test_a_download_cut_off_midway_is_done_again(tmp_path, monkeypatch):
+    """A machine taking over a remote train downloads the last run's files into its staging
+    folder. Killed midway (here after the first file), the folder holds part of them; it must not
+    then pass for the remote run's staging folder (the download used to copy the run token too,
+    first), or the next run resumes from half-written checkpoints. It downloads again and ends with
+    the weights of an uninterrupted run."""
+    from pipeline.errors import StageInterrupted
+    from pipeline.world import generate
+    from tests.test_remote_cache import _tensors
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    remote = f"memory://resume-{uuid.uuid4().hex[:8]}"
+    settings = {"train.epochs": "3", "train.nets": "disnet", "run.checkpoint_upload_s": "0"}
+    first = _real_pipe(remote, world, tmp_path / "machine-a", [], **settings)
+    with monkeypatch.context() as patch:
+        _killed_in_the_second_epoch(patch)
+        with pytest.raises(StageInterrupted):
+            first.run("train")
+    fs = fsspec.filesystem("memory")
+    get = type(fs).get
+
+    def cut_off(self, rpath, lpath, *args, **kwargs):
+        get(self, rpath[:1], lpath[:1], *args, **kwargs)
+        raise KeyboardInterrupt("simulated kill while downloading")
+
+    logs: list[str] = []
+    second = _real_pipe(remote, world, tmp_path / "machine-b", logs, **settings)
+    with monkeypatch.context() as patch:
+        patch.setattr(type(fs), "get", cut_off)
+        with pytest.raises(StageInterrupted):
+            second.run("train")
+    staging = DirStore(str(next((tmp_path / "machine-b").glob("train-*/staging"))))
+    assert staging.run_token() is None
+    second.run("train")
+    assert sum("resuming from" in line for line in logs) == 1, logs  # the cut-off one never got to say it
+    assert second.env.dir("train").summary()["disnet"]["resumed_from"] == 1
+    whole = _real_pipe(str(tmp_path / "cache"), world, tmp_path / "unused", [], **settings)
+    whole.run("train")
+    a = _tensors((tmp_path / "cache" / "synthetic" / "train" / "disnet" / "best.safetensors").read_bytes())
+    b = _tensors(fs.cat_file(f"{remote.removeprefix('memory://')}/synthetic/train/disnet/best.safetensors"))
+    assert a.keys() == b.keys() and all((a[k] == b[k]).all() for k in a)
+    fs.rm(remote.removeprefix("memory://"), recursive=True)
