@@ -686,14 +686,19 @@ class Pipeline:
         """Make the folder ``work`` the stage writes into ready: ``out`` itself, or its local staging
         folder on a remote cache. From scratch (forced, or a stage that does not resume) both are
         emptied; else a killed run's temporary files go, and a staging folder that is not the last
-        run's (its RUN_TOKEN differs from ``out``'s) is replaced by what that run uploaded. Then
-        ``out`` loses its completion mark and a staged run writes its token into both."""
+        run's (no RUN_TOKEN, or one other than ``out``'s) is replaced by what that run uploaded.
+        Then ``out`` loses its completion mark and a staged run that does not go on in the last
+        run's staging folder writes a new token into both (one that does keeps theirs: a kill
+        between the two writes would otherwise leave them different and the next run downloading
+        the last upload instead of going on from the newer staging folder)."""
         staged = work is not out
+        same_run = staged and work.run_token() is not None and work.run_token() == out.run_token()
         if force or not stage.resumes:
             out.clear()  # from scratch: nothing of an earlier run is reused or left (forced: train's checkpoints too)
             if staged:
                 work.clear()
-        elif staged and work.run_token() != out.run_token():  # begun elsewhere, or run elsewhere since
+                same_run = False
+        elif staged and not same_run:  # begun elsewhere, run elsewhere since, or cut off while downloading
             work.clear()
             taken = out.download(work)
             if taken:
@@ -706,7 +711,7 @@ class Pipeline:
                          f"{', '.join(left[:3])}{' ...' * (len(left) > 3)}")
         out.ensure()
         out.invalidate()
-        if staged:
+        if staged and not same_run:
             work.ensure()
             token = uuid.uuid4().hex
             for folder in (out, work):

@@ -54,3 +54,43 @@ def test_a_download_cut_off_midway_is_done_again(tmp_path, monkeypatch):
     b = _tensors(fs.cat_file(f"{remote.removeprefix('memory://')}/synthetic/train/disnet/best.safetensors"))
     assert a.keys() == b.keys() and all((a[k] == b[k]).all() for k in a)
     fs.rm(remote.removeprefix("memory://"), recursive=True)
+
+
+def test_a_run_going_on_in_its_own_staging_folder_keeps_the_run_token(tmp_path, monkeypatch):
+    """A run that goes on in this machine's staging folder of the last run keeps that run's token:
+    it used to write a new one into the remote folder and then the staging folder, and a kill
+    between the two writes left them different, so the next run threw away the staging folder's
+    newer epochs for the remote's last upload (here none: training from scratch)."""
+    from pipeline.cache import RUN_TOKEN
+    from pipeline.errors import StageInterrupted
+    from pipeline.world import generate
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    remote = f"memory://token-{uuid.uuid4().hex[:8]}"
+    settings = {"train.epochs": "2", "train.nets": "disnet", "run.checkpoint_upload_s": "3600"}
+    logs: list[str] = []
+    pipe = _real_pipe(remote, world, tmp_path / "machine", logs, **settings)
+    with monkeypatch.context() as patch:
+        _killed_in_the_second_epoch(patch)
+        with pytest.raises(StageInterrupted):
+            pipe.run("train")
+    token = pipe.env.dir("train").run_token()
+    write_text = DirStore.write_text
+
+    def killed_writing_the_staging_token(self, name, text):
+        if name == RUN_TOKEN and "://" not in self.url:
+            raise KeyboardInterrupt("simulated kill between the two token writes")
+        return write_text(self, name, text)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(DirStore, "write_text", killed_writing_the_staging_token)
+        try:
+            pipe.run("train")
+        except StageInterrupted:  # as before: killed between the remote's token and the staging folder's
+            pass
+    pipe.run("train")
+    assert pipe.env.dir("train").run_token() == token
+    assert not any("resuming from" in line for line in logs), logs
+    assert pipe.env.dir("train").summary()["disnet"]["resumed_from"] == 1
+    fsspec.filesystem("memory").rm(remote.removeprefix("memory://"), recursive=True)
