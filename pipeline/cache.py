@@ -823,7 +823,7 @@ class DirStore:
                     raise
                 shutil.rmtree(tmp, ignore_errors=True)
             for old in copy.parent.iterdir():  # copies of earlier runs (readers load a run's files once)
-                if old != copy and not old.name.startswith("."):
+                if old != copy and (not old.name.startswith(".") or _stale(old)):
                     shutil.rmtree(old, ignore_errors=True)
         return copy
 
@@ -921,6 +921,19 @@ def _frame_row(value: Any, dtype: Any, shape: tuple[int, ...], ragged: bool, fil
     padded = np.full(shape, fill, dtype=dtype)
     padded[: value.shape[0]] = value
     return padded
+
+
+STALE_COPY_S = 86400.0
+"""Age (s, by mtime) after which a partial local copy (a ``.``-folder of DirStore.local_copy) is
+taken for one a killed process left, and removed with the copies of earlier runs."""
+
+
+def _stale(path: Path) -> bool:
+    """Whether ``path`` was last modified more than STALE_COPY_S ago (False if it is gone)."""
+    try:
+        return time.time() - path.stat().st_mtime > STALE_COPY_S
+    except OSError:
+        return False
 
 
 def _chunk_path(arr: zarr.Array, index: int) -> str:

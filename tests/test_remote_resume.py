@@ -94,3 +94,32 @@ def test_a_run_going_on_in_its_own_staging_folder_keeps_the_run_token(tmp_path, 
     assert not any("resuming from" in line for line in logs), logs
     assert pipe.env.dir("train").summary()["disnet"]["resumed_from"] == 1
     fsspec.filesystem("memory").rm(remote.removeprefix("memory://"), recursive=True)
+
+
+def test_a_partial_local_copy_a_killed_process_left_is_removed_after_a_day(tmp_path, monkeypatch):
+    """A process killed while downloading a local copy of a finished remote output leaves its dot
+    folder; another process may be downloading into its own right now, so a fresh one is left to
+    it, but one untouched for STALE_COPY_S goes with the copies of earlier runs (they piled up:
+    checkpoints of 56 MB per killed synthesize on the demo)."""
+    import os
+    import time
+
+    from pipeline.cache import STALE_COPY_S
+
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    remote = f"memory://copies-{uuid.uuid4().hex[:8]}"
+    out = DirStore(f"{remote}/train")
+    out.write_text("disnet/best.safetensors", "one")
+    out.finish("fp", {})
+    copy = out.local_copy("~/staging")
+    fresh, old = copy.parent / ".aaaa-fresh", copy.parent / ".bbbb-old"
+    for partial in (fresh, old):
+        (partial / "disnet").mkdir(parents=True)
+        (partial / "disnet" / "best.safetensors").write_text("half")
+    then = time.time() - STALE_COPY_S - 60
+    os.utime(old, (then, then))
+    out.write_text("disnet/best.safetensors", "two")
+    out.finish("fp", {})  # a new run: its copy replaces the first, and the stale partial one goes
+    again = out.local_copy("~/staging")
+    assert sorted(p.name for p in again.parent.iterdir()) == sorted([again.name, fresh.name])
+    fsspec.filesystem("memory").rm(remote.removeprefix("memory://"), recursive=True)
