@@ -1,7 +1,7 @@
 """Crash-resume soak: SIGKILL pipeline runs at random (seeded) moments, re-run them until they
 finish, and check the result equals an uninterrupted run.
 
-    python -m tests.soak --kills 24 [--seed 0] [--work DIR] [--keep]      (what `make soak` runs)
+    python -m tests.soak --kills 27 [--seed 0] [--work DIR] [--keep]      (what `make soak` runs)
 
 Targets (each compared with a clean run of its own):
 - ``fake-serial`` / ``fake-dask``: the `pipeline` CLI with the stages of tests/fake_stages.py
@@ -11,6 +11,11 @@ Targets (each compared with a clean run of its own):
 - ``train-direct``: pipeline.training (Dis-Net + RSS-Net) on a tiny random problem; weights,
   optimizer and RNG state compared exactly on CPU.
 - ``real:<stage>``: the real stages on the built-in synthetic world, when it can be generated.
+- ``real:train-remote``: the real train stage on a remote cache (a local folder behind an fsspec
+  filesystem that is not the local one, each file written whole as an object store writes it),
+  uploading its checkpoints after every epoch; each attempt runs as another machine would (the
+  staging folder alternates between two), so kills land in downloads, training, the per-epoch
+  uploads and the final one. Its checkpoints must equal the clean local run's.
 
 What "no frame lost or duplicated" means here (checked from the per-frame call log written by the
 fake stages and from the frame status read between attempts):
@@ -308,9 +313,10 @@ def _wait_group_gone(pgid: int, timeout_s: float = 10.0) -> None:
         time.sleep(0.05)
 
 
-def run_with_kills(cmd: list[str], env: dict[str, str], kills: int, startup_s: float, work_s: float,
-                   rng: random.Random, snapshot: Callable[[], Any] = lambda: None) -> list[Attempt]:
-    """Run ``cmd``; up to ``kills`` times SIGKILL it at a random moment, re-run until it exits 0.
+def run_with_kills(cmd: list[str] | Callable[[int], list[str]], env: dict[str, str], kills: int, startup_s: float,
+                   work_s: float, rng: random.Random, snapshot: Callable[[], Any] = lambda: None) -> list[Attempt]:
+    """Run ``cmd`` (or ``cmd(attempt number)``); up to ``kills`` times SIGKILL it at a random moment,
+    re-run until it exits 0.
 
     A kill lands ``startup_s + u * work_s / kills`` seconds after the start, u ~ U(-0.2, 1): mostly
     mid-work, sometimes during start-up. ``snapshot()`` is recorded after every attempt.
@@ -321,7 +327,7 @@ def run_with_kills(cmd: list[str], env: dict[str, str], kills: int, startup_s: f
         delay = None
         if landed < kills:
             delay = max(0.05, startup_s + rng.uniform(-0.2, 1.0) * work_s / kills)
-        att = run_once(cmd, {**env, ATTEMPT_ENV: str(len(attempts))}, delay)
+        att = run_once(cmd(len(attempts)) if callable(cmd) else cmd, {**env, ATTEMPT_ENV: str(len(attempts))}, delay)
         att.snapshot = snapshot()
         attempts.append(att)
         if att.killed:
@@ -597,6 +603,111 @@ def soak_real(work: Path, kills: dict[str, int], rng: random.Random, workers: in
     return results
 
 
+# ------------------------------------------------------------------------- a remote cache
+
+REMOTE_PROTOCOL, REMOTE_TMP_ENV = "soakremote", "SOAK_REMOTE_TMP"
+
+
+def remote_filesystem() -> type:
+    """``soakremote://PATH``: the local PATH as a remote cache. pipeline.cache.is_local does not take
+    it for the local file system (so stages stage their output and upload it, and frames go through
+    zarr's fsspec store), and every file written to it appears whole, as an object of S3 or GCS
+    does: written under ``SOAK_REMOTE_TMP`` (on the same disk) and renamed into place."""
+    import uuid
+
+    from fsspec.implementations.local import LocalFileSystem
+
+    def temporary() -> str:
+        folder = os.environ[REMOTE_TMP_ENV]
+        os.makedirs(folder, exist_ok=True)
+        return os.path.join(folder, uuid.uuid4().hex)
+
+    class Whole:
+        """A file opened for writing that appears at its path only when closed without an error."""
+
+        def __init__(self, path: str, mode: str) -> None:
+            self.path, self.tmp = path, temporary()
+            self.fh = open(self.tmp, mode)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, kind, *_):
+            if kind is None:
+                self.close()
+            else:
+                self.fh.close()
+                os.unlink(self.tmp)
+
+        def close(self) -> None:
+            if not self.fh.closed:
+                self.fh.close()
+                os.makedirs(os.path.dirname(self.path), exist_ok=True)  # an object store has no folders to make
+                os.replace(self.tmp, self.path)
+
+        def __getattr__(self, name: str):
+            return getattr(self.fh, name)
+
+    class SoakRemoteFileSystem(LocalFileSystem):
+        protocol = (REMOTE_PROTOCOL,)
+
+        def unstrip_protocol(self, name: str) -> str:
+            return f"{REMOTE_PROTOCOL}://{self._strip_protocol(name)}"
+
+        def _open(self, path, mode="rb", block_size=None, **kwargs):
+            if "w" not in mode:
+                return super()._open(path, mode, block_size, **kwargs)
+            return Whole(self._strip_protocol(path), mode)
+
+        def put_file(self, path1, path2, callback=None, **kwargs):
+            path2 = self._strip_protocol(path2)
+            self.makedirs(self._parent(path2), exist_ok=True)
+            tmp = temporary()
+            shutil.copyfile(path1, tmp)
+            os.replace(tmp, path2)
+
+    return SoakRemoteFileSystem
+
+
+def remote_cli(argv: list[str]) -> None:
+    """The real `pipeline` CLI with ``soakremote://`` registered (see :func:`remote_filesystem`)."""
+    import fsspec
+
+    import pipeline.cli as cli
+
+    fsspec.register_implementation(REMOTE_PROTOCOL, remote_filesystem(), clobber=True)
+    cli.main(argv, prog_name="pipeline")
+
+
+def soak_remote_train(work: Path, clean: Path, kills: int, rng: random.Random) -> TargetResult:
+    """The real train stage on a ``soakremote://`` cache of the world of :func:`soak_real`,
+    uploading after every epoch, each attempt on the other of two staging folders ('machines'),
+    under ``kills`` SIGKILLs; its checkpoints are compared with ``clean``'s train folder."""
+    remote, world = work / "remote", work.parent / "real" / "world"
+    env = subprocess_env(**{REMOTE_TMP_ENV: str(work / "remote-tmp")})
+
+    def cmd(stage: str, machine: int) -> list[str]:
+        run = real_stage_cmd(stage, remote, world, 1)
+        run[run.index("--cache") + 1] = f"{REMOTE_PROTOCOL}://{remote}"
+        return [*python_cmd("remote-cli"), *run[3:], "--set", f"run.staging_dir={work / f'machine-{machine}'}",
+                "--set", "run.checkpoint_upload_s=0"]
+
+    upstream = run_once(cmd("patches", 0), env, None)
+    if upstream.rc != 0:
+        return TargetResult("real:train-remote", 0, 0, "-", 0, 0, [f"upstream run failed: {upstream.stderr[-1500:]}"])
+    noop = run_once(cmd("patches", 0), env, None)
+    t0 = time.monotonic()
+    try:
+        attempts = run_with_kills(lambda attempt: cmd("train", attempt % 2), env, kills, noop.seconds, 12.0, rng)
+    except RuntimeError as exc:
+        return TargetResult("real:train-remote", 0, 0, "-", 0, 0, [str(exc)])
+    problems, compared = compare_trees(clean, remote / "synthetic" / "train")
+    if compared == 0:
+        problems.append(f"nothing compared under {clean}")
+    return TargetResult("real:train-remote", sum(a.killed for a in attempts), len(attempts), "-",
+                        time.monotonic() - t0, compared, problems)
+
+
 # ------------------------------------------------------------------------------- main
 
 
@@ -629,7 +740,8 @@ def soak(kills: int, seed: int, work: Path, real: bool = True) -> list[TargetRes
     budget = kills - len(mid_write)
     if ok:
         plan = split_kills(budget, {"fake-serial": 2, "fake-dask": 2, "train-direct": 2, "calibrate": 2,
-                                    "heatmaps": 2, "patches": 2, "train": 3, "synthesize": 2, "export": 1})
+                                    "heatmaps": 2, "patches": 2, "train": 3, "synthesize": 2, "export": 1,
+                                    "train-remote": 3})
     else:
         print(f"real stages skipped: {why}", flush=True)
         plan = split_kills(budget, {"fake-serial": 4, "fake-dask": 3, "train-direct": 3})
@@ -642,6 +754,9 @@ def soak(kills: int, seed: int, work: Path, real: bool = True) -> list[TargetRes
     if ok:
         print("... real stages", flush=True)
         rows += soak_real(work / "real", plan, rng)
+        print("... real train on a remote cache", flush=True)
+        rows.append(soak_remote_train(work / "remote", work / "real" / "clean" / "synthetic" / "train",
+                                      plan["train-remote"], rng))
     return rows
 
 
@@ -650,6 +765,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == "fake-cli":
         fake_cli(argv[1:])
         return 0
+    if argv and argv[0] == "remote-cli":
+        remote_cli(argv[1:])
+        return 0
     if argv and argv[0] == "train-direct":
         train_direct(argv[1])
         return 0
@@ -657,7 +775,7 @@ def main(argv: list[str] | None = None) -> int:
         lock_holder(*argv[1:5])
         return 0
     parser = argparse.ArgumentParser(prog="python -m tests.soak", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kills", type=int, default=24, help="SIGKILLs to aim for across all targets")
+    parser.add_argument("--kills", type=int, default=27, help="SIGKILLs to aim for across all targets")
     parser.add_argument("--seed", type=int, default=0, help="seed of the kill moments")
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the work folder")
