@@ -530,17 +530,19 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
         raise click.BadParameter(f"'{tables}': give 2 (Dis-Net), 3 (RSS-Net) or 2,3", param_hint="--tables")
     env = _context(dataset, data_root, cache_root, sets)
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
-    pipe.require_local_cache(["ablate"])
     _ensure_world(env, pipe.progress)
     try:
         pipe.run("heatmaps")
         pipe.run("patches")
     finally:
         pipe.executor.close()
-    out = Path(env.dir("ablations").path)
-    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, out, chosen)
-    click.echo((out / "ablations.md").read_text())
-    click.echo(f"ablations: {out / 'ablations.md'}")
+    folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, then uploaded
+    work = folder if folder.is_local else folder.staging(env.cfg.run.staging_dir)
+    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen)
+    if work is not folder:
+        folder.upload(work)
+    click.echo((Path(work.path) / "ablations.md").read_text())
+    click.echo(f"ablations: {folder.file('ablations.md') if work is folder else join(folder.url, 'ablations.md')}")
 
 
 @main.command("check-physics")

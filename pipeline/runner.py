@@ -393,16 +393,6 @@ class Pipeline:
             if check is not None:
                 check(self.env.cfg)
 
-    def require_local_cache(self, names: list[str]) -> None:
-        """ConfigError when the cache is not a local folder although ``names`` (commands: ablate)
-        write theirs with local file APIs: they would write to a local path named like the remote
-        one. (The stages that do, train, export and evaluate, stage their output locally and upload
-        it: :meth:`_run_dataset`.)"""
-        if names and not is_local(fsspec.core.url_to_fs(self.env.cache_root)[0]):
-            raise ConfigError(f"--cache {self.env.cache_root} is not a local folder, and {', '.join(names)} "
-                              f"write{'s' if len(names) == 1 else ''} with local file APIs: use a local (or "
-                              f"mounted) cache folder for {'it' if len(names) == 1 else 'them'}")
-
     def downstream(self, name: str) -> list[str]:
         """Stages that depend on ``name``, directly or not, in execution order."""
         out: set[str] = set()

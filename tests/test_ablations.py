@@ -66,3 +66,30 @@ def test_ablate_refuses_unknown_tables_before_any_work(world, tmp_path, tables):
     out = _ablate(world, tmp_path / "cache", "--tables", tables)
     assert out.exit_code == 2 and "--tables" in out.output and "2 (Dis-Net), 3 (RSS-Net)" in out.output, out.output
     assert not (tmp_path / "cache").exists()
+
+
+def test_ablate_on_a_remote_cache_trains_in_a_staging_folder_and_uploads(world, tmp_path):
+    """On a remote (fsspec) cache ablate trains its variants in a local staging folder under
+    run.staging_dir, uploads it and names the remote report (until 2026-12-06 it refused such a
+    cache); run again on the same machine it resumes there instead of training again."""
+    import uuid
+
+    import fsspec
+
+    url = f"memory://ablate-{uuid.uuid4().hex[:8]}"
+    staging = tmp_path / "staging"
+    first = _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={staging}")
+    assert first.exit_code == 0, first.output
+    assert f"ablations: {url}/synthetic/ablations/ablations.md" in first.output
+    fs, root = fsspec.filesystem("memory"), url.removeprefix("memory://") + "/synthetic/ablations"
+    results = json.loads(fs.cat_file(f"{root}/ablations.json"))
+    assert [r["variant"] for r in results["table2"]] == [name for name, _ in TABLE2] and results["table3"] == []
+    staged = next(staging.glob("ablations-*/staging"))
+    for name, _ in TABLE2:
+        assert fs.cat_file(f"{root}/{_slug(name)}/best.safetensors") == \
+            (staged / _slug(name) / "best.safetensors").read_bytes()
+    stamps = {p: p.stat().st_mtime_ns for p in staged.rglob("*.safetensors")}
+    again = _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={staging}")
+    assert again.exit_code == 0, again.output
+    assert {p: p.stat().st_mtime_ns for p in staged.rglob("*.safetensors")} == stamps  # resumed: nothing retrained
+    fs.rm(url.removeprefix("memory://"), recursive=True)

@@ -147,23 +147,8 @@ def test_estimate_sigma_skips_and_names_unreadable_frames(world, tmp_path):
         image.write_bytes(b"")
     out = CliRunner().invoke(main, args)
     assert out.exit_code == 2 and "Traceback" not in out.output
-    assert out.stderr.startswith(f"error: dataset synthetic: cannot estimate Sigma from the 0 readable frame(s) (")
+    assert out.stderr.startswith("error: dataset synthetic: cannot estimate Sigma from the 0 readable frame(s) (")
     assert f"; {len(ids)} unreadable frame(s) skipped: " in out.stderr and "and 1 more" in out.stderr
-
-
-def test_ablate_refuses_a_remote_cache_before_any_work(world):
-    """ablate writes its tables with local file APIs: on an fsspec cache it would write to a local
-    path named like the remote one. (The stages that write local files stage them and upload them:
-    tests/test_remote_cache.py.)"""
-    import fsspec
-
-    url = "memory://refuse-ablate"
-    out = CliRunner().invoke(main, ["ablate", "--dataset", "synthetic", "--data-root", str(world), "--cache", url,
-                                    "--workers", "1"])
-    assert out.exit_code == 2, out.output
-    assert f"--cache {url} is not a local folder, and ablate writes with local file APIs" in out.output
-    assert not fsspec.filesystem("memory").exists("/refuse-ablate/synthetic/calibrate.zarr")
-    assert not Path("/refuse-ablate").exists()
 
 
 def test_a_number_that_is_no_id_is_refused_where_ids_are_numbers():
