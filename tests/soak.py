@@ -11,11 +11,12 @@ Targets (each compared with a clean run of its own):
 - ``train-direct``: pipeline.training (Dis-Net + RSS-Net) on a tiny random problem; weights,
   optimizer and RNG state compared exactly on CPU.
 - ``real:<stage>``: the real stages on the built-in synthetic world, when it can be generated.
-- ``real:train-remote``: the real train stage on a remote cache (a local folder behind an fsspec
-  filesystem that is not the local one, each file written whole as an object store writes it),
-  uploading its checkpoints after every epoch; each attempt runs as another machine would (the
-  staging folder alternates between two), so kills land in downloads, training, the per-epoch
-  uploads and the final one. Its checkpoints must equal the clean local run's.
+- ``real:train-remote``: the real train, synthesize and export stages on a remote cache (a local
+  folder behind an fsspec filesystem that is not the local one, each file written whole as an
+  object store writes it), train uploading its checkpoints after every epoch; each attempt runs
+  as another machine would (the staging folder alternates between two), so kills land in
+  downloads, training, the per-epoch uploads and the final ones. The outputs must equal the clean
+  local run's.
 
 What "no frame lost or duplicated" means here (checked from the per-frame call log written by the
 fake stages and from the frame status read between attempts):
@@ -680,9 +681,10 @@ def remote_cli(argv: list[str]) -> None:
 
 
 def soak_remote_train(work: Path, clean: Path, kills: int, rng: random.Random) -> TargetResult:
-    """The real train stage on a ``soakremote://`` cache of the world of :func:`soak_real`,
-    uploading after every epoch, each attempt on the other of two staging folders ('machines'),
-    under ``kills`` SIGKILLs; its checkpoints are compared with ``clean``'s train folder."""
+    """The real train, synthesize and export stages on a ``soakremote://`` cache of the world of
+    :func:`soak_real`, train uploading after every epoch, each attempt on the other of two staging
+    folders ('machines'), under ``kills`` SIGKILLs in all; the outputs are compared with those of
+    ``clean`` (the dataset folder of soak_real's clean cache)."""
     remote, world = work / "remote", work.parent / "real" / "world"
     env = subprocess_env(**{REMOTE_TMP_ENV: str(work / "remote-tmp")})
 
@@ -697,13 +699,21 @@ def soak_remote_train(work: Path, clean: Path, kills: int, rng: random.Random) -
         return TargetResult("real:train-remote", 0, 0, "-", 0, 0, [f"upstream run failed: {upstream.stderr[-1500:]}"])
     noop = run_once(cmd("patches", 0), env, None)
     t0 = time.monotonic()
-    try:
-        attempts = run_with_kills(lambda attempt: cmd("train", attempt % 2), env, kills, noop.seconds, 12.0, rng)
+    attempts: list[Attempt] = []
+    try:  # then synthesize (frames through zarr's fsspec store) and export (staged, starting over when killed)
+        for stage, n_kills, work_s in (("train", max(1, kills - 2), 12.0), ("synthesize", 1, 6.0), ("export", 1, 4.0)):
+            attempts += run_with_kills(lambda attempt, _s=stage: cmd(_s, attempt % 2), env, n_kills, noop.seconds,
+                                       work_s, rng)
     except RuntimeError as exc:
         return TargetResult("real:train-remote", 0, 0, "-", 0, 0, [str(exc)])
-    problems, compared = compare_trees(clean, remote / "synthetic" / "train")
-    if compared == 0:
-        problems.append(f"nothing compared under {clean}")
+    problems, compared = [], 0
+    for name in ("train", "synthesize.zarr", "export"):
+        if name.endswith(".zarr"):
+            found, n = compare_zarr_groups(str(clean / name), str(remote / "synthetic" / name)), 1
+        else:
+            found, n = compare_trees(clean / name, remote / "synthetic" / name)
+        problems += [f"{name}/{p}" for p in found] + [f"nothing compared under {clean / name}"] * (n == 0)
+        compared += n
     return TargetResult("real:train-remote", sum(a.killed for a in attempts), len(attempts), "-",
                         time.monotonic() - t0, compared, problems)
 
@@ -755,8 +765,7 @@ def soak(kills: int, seed: int, work: Path, real: bool = True) -> list[TargetRes
         print("... real stages", flush=True)
         rows += soak_real(work / "real", plan, rng)
         print("... real train on a remote cache", flush=True)
-        rows.append(soak_remote_train(work / "remote", work / "real" / "clean" / "synthetic" / "train",
-                                      plan["train-remote"], rng))
+        rows.append(soak_remote_train(work / "remote", work / "real" / "clean" / "synthetic", plan["train-remote"], rng))
     return rows
 
 
