@@ -49,7 +49,7 @@ bench: setup  ## speed benchmarks: one line per benchmark ending in the measured
 	@for f in tests/benchmarks/bench_*.py; do OMP_NUM_THREADS=1 $(BIN)/python $$f || exit 1; done
 
 soak: setup  ## long crash-resume soak: SIGKILL stages at random moments, compare with a clean run
-	$(BIN)/python -m tests.soak --kills 27
+	$(BIN)/python -m tests.soak --kills 30
 
 status: setup
 	$(PIPELINE) status --dataset $(DATASET) --cache $(CACHE) $(if $(DATA_ROOT),--data-root $(DATA_ROOT))

@@ -1,7 +1,7 @@
 """Crash-resume soak: SIGKILL pipeline runs at random (seeded) moments, re-run them until they
 finish, and check the result equals an uninterrupted run.
 
-    python -m tests.soak --kills 27 [--seed 0] [--work DIR] [--keep]      (what `make soak` runs)
+    python -m tests.soak --kills 30 [--seed 0] [--work DIR] [--keep]      (what `make soak` runs)
 
 Targets (each compared with a clean run of its own):
 - ``fake-serial`` / ``fake-dask``: the `pipeline` CLI with the stages of tests/fake_stages.py
@@ -751,7 +751,7 @@ def soak(kills: int, seed: int, work: Path, real: bool = True) -> list[TargetRes
     if ok:
         plan = split_kills(budget, {"fake-serial": 2, "fake-dask": 2, "train-direct": 2, "calibrate": 2,
                                     "heatmaps": 2, "patches": 2, "train": 3, "synthesize": 2, "export": 1,
-                                    "train-remote": 3})
+                                    "train-remote": 5})
     else:
         print(f"real stages skipped: {why}", flush=True)
         plan = split_kills(budget, {"fake-serial": 4, "fake-dask": 3, "train-direct": 3})
@@ -784,7 +784,7 @@ def main(argv: list[str] | None = None) -> int:
         lock_holder(*argv[1:5])
         return 0
     parser = argparse.ArgumentParser(prog="python -m tests.soak", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kills", type=int, default=27, help="SIGKILLs to aim for across all targets")
+    parser.add_argument("--kills", type=int, default=30, help="SIGKILLs to aim for across all targets")
     parser.add_argument("--seed", type=int, default=0, help="seed of the kill moments")
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the work folder")
