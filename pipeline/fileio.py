@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from contextlib import contextmanager
@@ -40,11 +41,27 @@ def atomic_path(path: str | os.PathLike, durable: bool = False) -> Iterator[Path
         Path(tmp).unlink(missing_ok=True)
 
 
+UNSUPPORTED_FSYNC = frozenset({errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOSYS, errno.EBADF})
+"""fsync errors that mean the file system cannot flush that file or folder (some FUSE mounts of
+object stores, network file systems), not that its data are lost: ignored."""
+
+
 def fsync(path: str | os.PathLike) -> None:
-    """Flush the file or folder ``path`` to the disk (a folder: the names in it, e.g. a rename)."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) * os.path.isdir(path))
+    """Flush the file or folder ``path`` to the disk (a folder: the names in it, e.g. a rename).
+    Where the file system does not support it (:data:`UNSUPPORTED_FSYNC`), or a folder cannot be
+    opened for reading, nothing is flushed; any other error is an OSError naming ``path``."""
+    folder = os.path.isdir(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) * folder)
+    except PermissionError:
+        if folder:  # a folder we may write in but not list
+            return
+        raise
     try:
         os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in UNSUPPORTED_FSYNC:
+            raise OSError(exc.errno, exc.strerror, str(path)) from None
     finally:
         os.close(fd)
 

@@ -1,0 +1,57 @@
+"""Atomic, durable writes (pipeline.fileio) on file systems that cannot flush or fail to."""
+
+from __future__ import annotations
+
+import errno
+import os
+
+import pytest
+import torch
+
+from pipeline import checkpoint as ckpt
+from pipeline.fileio import UNSUPPORTED_FSYNC, atomic_path
+
+
+def _fsync_failing(monkeypatch, code: int) -> list[str]:
+    """Make os.fsync fail with ``code``; returns the list of paths it was asked to flush."""
+    asked: list[str] = []
+
+    def failing(fd):
+        asked.append(os.readlink(f"/proc/self/fd/{fd}"))
+        raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(os, "fsync", failing)
+    return asked
+
+
+@pytest.mark.parametrize("code", sorted(UNSUPPORTED_FSYNC))
+def test_a_file_system_that_cannot_flush_still_gets_its_checkpoint(tmp_path, monkeypatch, code):
+    """Some FUSE mounts of object stores and network file systems answer fsync with EINVAL,
+    ENOTSUP or ENOSYS (a folder's with EBADF): nothing to flush there, so the checkpoint is
+    renamed into place as before instead of training stopping at its first save."""
+    path = tmp_path / "net" / "last.safetensors"
+    asked = _fsync_failing(monkeypatch, code)
+    ckpt.save_checkpoint(path, {"model.w": torch.ones(3)}, {"epoch": 1})
+    assert ckpt.read_meta(path)["epoch"] == 1
+    assert len(asked) == 2 and asked[1] == str(path.parent)  # the file, then its folder
+
+
+def test_a_failed_flush_is_an_error_naming_the_file_and_the_old_checkpoint_stays(tmp_path, monkeypatch):
+    """EIO from fsync means the new data may not be on the disk: the write fails, naming the file,
+    and the last good checkpoint stays in place, with no temporary file left beside it."""
+    path = tmp_path / "net" / "last.safetensors"
+    ckpt.save_checkpoint(path, {"model.w": torch.ones(3)}, {"epoch": 1})
+    _fsync_failing(monkeypatch, errno.EIO)
+    with pytest.raises(OSError) as info:
+        ckpt.save_checkpoint(path, {"model.w": torch.zeros(3)}, {"epoch": 2})
+    assert info.value.errno == errno.EIO and info.value.filename.startswith(str(path.parent / ".last.safetensors."))
+    monkeypatch.undo()
+    assert ckpt.read_meta(path)["epoch"] == 1
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.json", "last.safetensors"]
+
+
+def test_an_atomic_write_without_durable_does_not_flush(tmp_path, monkeypatch):
+    asked = _fsync_failing(monkeypatch, errno.EIO)
+    with atomic_path(tmp_path / "a.txt") as tmp:
+        tmp.write_text("x")
+    assert (tmp_path / "a.txt").read_text() == "x" and asked == []
