@@ -49,6 +49,7 @@ from zarr.core.sync import sync
 from zarr.storage import LocalStore
 
 from pipeline.errors import CacheError, ChunkError, MetadataError
+from pipeline.fileio import sync_filesystem
 from pipeline.stage import ArraySpec
 
 PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
@@ -691,10 +692,14 @@ class DirStore:
         """Mark the stage complete (written last). The folder's path is kept so that
         :meth:`summary` can move the summary's paths along with a moved or copied cache; ``frames``
         (per-frame upstream stage -> :meth:`FrameStore.done_digest`) says which frames it read. On a
-        local file system every file written reaches the disk first (os.sync), so that after a power
-        loss too a folder marked complete holds whole files."""
+        local file system every file written reaches the disk first (fileio.sync_filesystem), so
+        that after a power loss too a folder marked complete holds whole files."""
         if self.is_local:
-            os.sync()
+            self.ensure()
+            try:
+                sync_filesystem(self.path)
+            except OSError as exc:
+                raise cache_error(exc, f"flushing {self.url} to the disk") from None
         self.write_text("_stage.json", json.dumps({"fingerprint": fingerprint, "finished": time.time(),
                                                    "path": self.path, "frames": frames or {}, "summary": summary},
                                                   indent=2, default=str))

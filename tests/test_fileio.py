@@ -55,3 +55,23 @@ def test_an_atomic_write_without_durable_does_not_flush(tmp_path, monkeypatch):
     with atomic_path(tmp_path / "a.txt") as tmp:
         tmp.write_text("x")
     assert (tmp_path / "a.txt").read_text() == "x" and asked == []
+
+
+def test_flushing_a_file_system_waits_for_that_one_only(tmp_path, monkeypatch):
+    """A dataset stage's folder is flushed with syncfs on its own file system: os.sync would wait
+    for every mount, a hung network mount too. Where syncfs does not exist, os.sync serves."""
+    import ctypes
+
+    from pipeline.fileio import sync_filesystem
+
+    def everything():
+        raise AssertionError("os.sync called")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(os, "sync", everything)
+        sync_filesystem(tmp_path)  # Linux: syncfs
+    synced = []
+    monkeypatch.setattr(os, "sync", lambda: synced.append(True))
+    monkeypatch.setattr(ctypes, "CDLL", lambda *a, **k: type("NoSyncfs", (), {})())
+    sync_filesystem(tmp_path)
+    assert synced == [True]

@@ -100,12 +100,16 @@ def test_a_moved_cache_reports_its_files_where_they_are_now(tmp_path):
 
 
 def test_a_local_dataset_stage_output_reaches_the_disk_before_it_is_marked_complete(tmp_path, monkeypatch):
-    """After a power loss a folder marked complete must hold whole files: everything written is
-    flushed (os.sync) before ``_stage.json`` is written; a remote folder has no local disk to flush."""
+    """After a power loss a folder marked complete must hold whole files: its file system is
+    flushed (fileio.sync_filesystem) before ``_stage.json`` is written; a remote folder has no
+    local disk to flush."""
     out = DirStore(str(tmp_path / "train"))
     out.write_text("metrics.json", "{}")
+    import pipeline.cache
+
     synced: list[bool] = []
-    monkeypatch.setattr(os, "sync", lambda: synced.append(os.path.exists(out.file("_stage.json"))))
+    monkeypatch.setattr(pipeline.cache, "sync_filesystem",
+                        lambda path: synced.append(path == out.path and os.path.exists(out.file("_stage.json"))))
     out.finish("fp", {})
     assert synced == [False] and out.fingerprint() == "fp"
     remote = DirStore(f"memory://sync-{os.getpid()}/train")
