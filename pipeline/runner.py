@@ -562,6 +562,8 @@ class Pipeline:
         if len(report.failures) > FAILURES_LOGGED:
             self.log(f"  ... and {len(report.failures) - FAILURES_LOGGED} more failed frame(s) of {stage.name} in this "
                      f"run: `pipeline status --reasons N` lists their reasons")
+        if report.processed:  # the run's frames reach the disk before it reports them done
+            store.flush()
         final = store.status()
         self._done[stage.name] = done_digest(final)  # what frames_read would read again
         report.set_counts(final)

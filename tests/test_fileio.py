@@ -75,3 +75,19 @@ def test_flushing_a_file_system_waits_for_that_one_only(tmp_path, monkeypatch):
     monkeypatch.setattr(ctypes, "CDLL", lambda *a, **k: type("NoSyncfs", (), {})())
     sync_filesystem(tmp_path)
     assert synced == [True]
+
+
+def test_a_frame_stage_run_flushes_its_output_when_it_ends(tmp_path, monkeypatch):
+    """Frames are not flushed one by one (0.6 ms an fsync per chunk): a run that computed frames
+    flushes its output's file system once before it reports them, so that a power loss after a
+    finished run loses none; a run with nothing to do flushes nothing."""
+    import pipeline.cache
+    from tests.test_damaged_cache import _pipe
+
+    flushed: list[str] = []
+    monkeypatch.setattr(pipeline.cache, "sync_filesystem", lambda path: flushed.append(str(path)))
+    pipe = _pipe(tmp_path)
+    pipe.run("calibrate")
+    assert flushed == [str(tmp_path / "cache" / "fake" / "calibrate.zarr")]
+    pipe.run("calibrate")
+    assert len(flushed) == 1
