@@ -11,7 +11,7 @@ Targets (each compared with a clean run of its own):
 - ``train-direct``: pipeline.training (Dis-Net + RSS-Net) on a tiny random problem; weights,
   optimizer and RNG state compared exactly on CPU.
 - ``real:<stage>``: the real stages on the built-in synthetic world, when it can be generated.
-- ``real:train-remote``: the real train, synthesize and export stages on a remote cache (a local
+- ``real:train-remote``: the real stages from heatmaps to export on a remote cache (a local
   folder behind an fsspec filesystem that is not the local one, each file written whole as an
   object store writes it), train uploading its checkpoints after every epoch; each attempt runs
   as another machine would (the staging folder alternates between two), so kills land in
@@ -681,7 +681,7 @@ def remote_cli(argv: list[str]) -> None:
 
 
 def soak_remote_train(work: Path, clean: Path, kills: int, rng: random.Random) -> TargetResult:
-    """The real train, synthesize and export stages on a ``soakremote://`` cache of the world of
+    """The real stages from heatmaps to export on a ``soakremote://`` cache of the world of
     :func:`soak_real`, train uploading after every epoch, each attempt on the other of two staging
     folders ('machines'), under ``kills`` SIGKILLs in all; the outputs are compared with those of
     ``clean`` (the dataset folder of soak_real's clean cache)."""
@@ -694,20 +694,21 @@ def soak_remote_train(work: Path, clean: Path, kills: int, rng: random.Random) -
         return [*python_cmd("remote-cli"), *run[3:], "--set", f"run.staging_dir={work / f'machine-{machine}'}",
                 "--set", "run.checkpoint_upload_s=0"]
 
-    upstream = run_once(cmd("patches", 0), env, None)
+    upstream = run_once(cmd("calibrate", 0), env, None)
     if upstream.rc != 0:
         return TargetResult("real:train-remote", 0, 0, "-", 0, 0, [f"upstream run failed: {upstream.stderr[-1500:]}"])
-    noop = run_once(cmd("patches", 0), env, None)
+    noop = run_once(cmd("calibrate", 0), env, None)
     t0 = time.monotonic()
     attempts: list[Attempt] = []
-    try:  # then synthesize (frames through zarr's fsspec store) and export (staged, starting over when killed)
-        for stage, n_kills, work_s in (("train", max(1, kills - 2), 12.0), ("synthesize", 1, 6.0), ("export", 1, 4.0)):
+    try:  # frames through zarr's fsspec store; train resuming across 'machines'; export staged, starting over
+        for stage, n_kills, work_s in (("heatmaps", 1, 3.0), ("patches", 1, 3.0), ("train", max(1, kills - 3), 12.0),
+                                       ("synthesize", 1, 6.0), ("export", 1, 4.0)):
             attempts += run_with_kills(lambda attempt, _s=stage: cmd(_s, attempt % 2), env, n_kills, noop.seconds,
                                        work_s, rng)
     except RuntimeError as exc:
         return TargetResult("real:train-remote", 0, 0, "-", 0, 0, [str(exc)])
     problems, compared = [], 0
-    for name in ("train", "synthesize.zarr", "export"):
+    for name in ("calibrate.zarr", "heatmaps.zarr", "patches.zarr", "train", "synthesize.zarr", "export"):
         if name.endswith(".zarr"):
             found, n = compare_zarr_groups(str(clean / name), str(remote / "synthetic" / name)), 1
         else:
@@ -751,7 +752,7 @@ def soak(kills: int, seed: int, work: Path, real: bool = True) -> list[TargetRes
     if ok:
         plan = split_kills(budget, {"fake-serial": 2, "fake-dask": 2, "train-direct": 2, "calibrate": 2,
                                     "heatmaps": 2, "patches": 2, "train": 3, "synthesize": 2, "export": 1,
-                                    "train-remote": 5})
+                                    "train-remote": 7})
     else:
         print(f"real stages skipped: {why}", flush=True)
         plan = split_kills(budget, {"fake-serial": 4, "fake-dask": 3, "train-direct": 3})
