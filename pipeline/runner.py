@@ -51,10 +51,11 @@ class DatasetInputs:
     env: RunEnv
     frame_ids: list[str]
     progress: bool = False
-    publish: Callable[[list[Path]], None] | None = None
+    publish: Callable[[list[Path]], bool] | None = None
     """Where a stage's output is staged locally for a remote cache: uploads the given files of the
     staging folder now, in one call (train's checkpoints of a finished epoch, so that a killed run
-    resumes from them on any machine; a failed upload is logged, not raised). None elsewhere."""
+    resumes from them on any machine; a failed upload is logged, not raised, and returns False).
+    None elsewhere."""
 
     @property
     def cfg(self):
@@ -664,15 +665,17 @@ class Pipeline:
         except (PipelineError, ChunkError):  # an unreadable upstream output: status says so on its own row
             return None
 
-    def _publish(self, name: str, out, work, paths: list[Path]) -> None:
+    def _publish(self, name: str, out, work, paths: list[Path]) -> bool:
         """Upload ``paths`` of the staging folder ``work`` into the remote output ``out`` while the
-        stage runs (DatasetInputs.publish). A failure is logged: the run goes on, and its upload at
-        the end uploads everything (or fails the stage)."""
+        stage runs (DatasetInputs.publish); whether it did. A failure is logged: the run goes on,
+        and its upload at the end uploads everything (or fails the stage)."""
         try:
             out.upload(work, paths)
         except CacheError as exc:
             self.log(f"{name:<{NAME_WIDTH}} {exc}; going on (a kill now resumes from the last upload, or from "
                      f"{work.path} on this machine)")
+            return False
+        return True
 
     def _prepare_output(self, stage: DatasetStage, out, work, force: bool) -> None:
         """Make the folder ``work`` the stage writes into ready: ``out`` itself, or its local staging

@@ -209,8 +209,9 @@ class _NetSpec:
     """Base learning rate (None: cfg.train.lr)."""
 
 
-Publish = Callable[[list[Path]], None]
-"""Uploads the given files of a staged output now (pipeline.runner.DatasetInputs.publish)."""
+Publish = Callable[[list[Path]], bool]
+"""Uploads the given files of a staged output now; False: the upload failed (logged; the run goes
+on) (pipeline.runner.DatasetInputs.publish)."""
 
 
 def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True,
@@ -266,21 +267,23 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         _save_last(last, spec, optimizer, rng, fingerprint, state, ema)  # the commit point of the epoch
         write_curves(out_dir, spec.name, state["curves"], plot=False)
         if publish is not None and time.monotonic() - uploaded_at >= cfg.run.checkpoint_upload_s:
-            publish_checkpoints(publish, best, last, with_best=state["best_epoch"] != uploaded_best)
-            uploaded_at, uploaded_best = time.monotonic(), state["best_epoch"]
+            if publish_checkpoints(publish, best, last, with_best=state["best_epoch"] != uploaded_best):
+                uploaded_best = state["best_epoch"]  # else a best that failed is sent again next time
+            uploaded_at = time.monotonic()
     write_curves(out_dir, spec.name, state["curves"], plot=True)
     return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
                        state["best_metric"], state["curves"])
 
 
-def publish_checkpoints(publish: Publish, best: Path, last: Path, with_best: bool = True) -> None:
+def publish_checkpoints(publish: Publish, best: Path, last: Path, with_best: bool = True) -> bool:
     """Hand a finished epoch's checkpoints (each with its JSON sidecar) to ``publish``: ``best``
     (when ``with_best`` and it exists), then ``last``, in two calls, in the order the epoch wrote
     them; so an upload cut off between the two leaves what a run killed between the writes leaves,
-    from which training resumes exactly."""
-    if with_best and best.exists():
-        publish([best, best.with_suffix(".json")])
-    publish([last, last.with_suffix(".json")])
+    from which training resumes exactly. When the upload of ``best`` fails, ``last`` (which names
+    that best epoch) is not sent without it. Whether both were uploaded."""
+    if with_best and best.exists() and not publish([best, best.with_suffix(".json")]):
+        return False
+    return bool(publish([last, last.with_suffix(".json")]))
 
 
 SELECT_ON = ("loss", "kl")

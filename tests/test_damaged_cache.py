@@ -637,9 +637,39 @@ def test_verify_checks_the_files_a_dataset_stage_recorded_when_it_finished(tmp_p
         assert command == f"run train --dataset synthetic --cache {tmp_path / 'cache'} --force"
     assert fake_cli(tmp_path, *command.split()[:2], *command.split()[6:], "--workers", "1").exit_code == 0
     assert fake_cli(tmp_path, "verify", "--stage", "train").exit_code == 0
+    (folder / "_files.json").write_text("{}")  # a stage that wrote no file: none to check, but recorded
+    assert "train           0 file(s) intact" in fake_cli(tmp_path, "verify", "--stage", "train").stdout
     (folder / "_files.json").unlink()  # as an output finished before 2026-12-06
     old = fake_cli(tmp_path, "verify", "--stage", "train")
     assert old.exit_code == 0 and "train           finished (its files are not checked" in old.stdout
+
+
+def test_verify_names_the_first_five_damaged_files_of_a_stage_and_counts_the_rest(tmp_path):
+    """A dataset stage output that lost many files (an export of thousands of frames, half deleted)
+    is one problem naming the first five and how many more, not thousands of lines; verify's
+    progress counts each file of it that it checks."""
+    from pipeline.stage import DatasetStage
+
+    def many(inputs, cfg, out, fingerprint):
+        for i in range(7):
+            out.write_text(f"frames/{i}.txt", str(i))
+        return {"message": "7 files"}
+
+    env = RunEnv(cfg=load_config("synthetic", {}, environ={}), cache_root=str(tmp_path / "cache"), dataset="fake",
+                 data_root=str(tmp_path))
+    stages = [*fake_stages.STAGES[:2], DatasetStage("train", ("heatmaps",), ("train.epochs",), many)]
+    pipe = Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
+    pipe.run("train")
+    counted: list[tuple[str, int, int]] = []
+    row = pipe.verify(["train"], lambda stage, n, total: counted.append((stage, n, total)))[0]
+    assert row["files"] == 7 and "problem" not in row, row
+    assert sum(n for _, n, _ in counted) == 7 and {(stage, total) for stage, _, total in counted} == {("train", 7)}
+    folder = Path(pipe.env.dir("train").path)
+    for path in (folder / "frames").iterdir():
+        path.unlink()
+    row = pipe.verify(["train"])[0]
+    assert row["problem"] == "; ".join([f"{folder / 'frames'}/{i}.txt: missing" for i in range(5)]
+                                       + ["... and 2 more file(s)"]), row
 
 
 def test_chunk_error_survives_pickling():
@@ -713,6 +743,7 @@ def test_cli_damaged_array_metadata_names_the_file_in_status_verify_and_runs(tmp
         out = fake_cli(tmp_path, *args)
         assert out.exit_code == 2 and "Traceback" not in out.output, (args, out.output)
         assert expected in out.output, (args, out.output)
+        assert "make it again" not in out.output  # a dataset stage's repair line, not a frame stage's
     assert fake_cli(tmp_path, "run", "heatmaps", "--force", "--workers", "1").exit_code == 0  # the way out
     assert fake_cli(tmp_path, "verify").exit_code == 0
 

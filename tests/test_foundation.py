@@ -118,6 +118,33 @@ def test_a_local_dataset_stage_output_reaches_the_disk_before_it_is_marked_compl
     assert synced == [False]
 
 
+def test_a_dataset_stage_folder_records_its_files_and_each_changed_one_is_named(tmp_path):
+    """DirStore.write_manifest records each file of the folder (in subfolders too, by its path in
+    the folder) with its size and SHA-256, but the bookkeeping files, and says how many;
+    check_files counts the files it checked (those recorded: a file added since is neither checked
+    nor a problem), hashes each whole file (a change past the first MiB read is found), and calls an
+    unreadable record a problem, not an output finished before files were recorded."""
+    import json
+
+    from pipeline.cache import FILES_MANIFEST, RUN_TOKEN
+
+    out = DirStore(str(tmp_path / "train"))
+    out.write_text("metrics.json", "{}")
+    big = np.random.default_rng(0).bytes(3 << 19)  # 1.5 MiB: more than one block read
+    out.write_bytes("disnet/best.safetensors", big)
+    out.write_text(RUN_TOKEN, "token")
+    assert out.write_manifest() == 2
+    assert sorted(json.loads(Path(out.file(FILES_MANIFEST)).read_text())) == ["disnet/best.safetensors", "metrics.json"]
+    out.write_text("notes.txt", "mine")
+    assert out.check_files() == (2, [])
+    out.write_bytes("disnet/best.safetensors", big[:-1] + bytes([big[-1] ^ 1]))  # the same size, its last byte
+    assert out.check_files() == (2, [f"{out.file('disnet/best.safetensors')}: its content changed since the "
+                                     f"stage finished (SHA-256)"])
+    Path(out.file(FILES_MANIFEST)).write_text('{"metrics.json": [2,')  # cut off
+    checked, problems = out.check_files()
+    assert checked == 0 and len(problems) == 1 and problems[0].startswith(f"{out.file(FILES_MANIFEST)}: unreadable")
+
+
 def test_frame_memo_builds_once_per_frame_and_key():
     """FrameInputs.memo: one build per (frame, key); another key or another frame builds again;
     the memo does not collide with the frame's array reads."""
@@ -663,6 +690,7 @@ def test_invalid_settings_are_refused_before_any_output_is_touched(tmp_path):
     ("camera.working_size", "0,0"), ("radar.max_range_m", "-1"), ("heatmap.sigma_px", "-5,-5"),
     ("heatmap.sigma_px", "nan,nan"), ("patches.r_c_px", "-1"), ("patches.points_per_frame", "-1"),
     ("placement.gate_m", "inf"), ("radar.doppler_sign", "2"), ("train.ema_decay", "1"), ("run.workers", "0"),
+    ("run.checkpoint_upload_s", "-1"),
     ("split.fractions", "0.5,0.5,0.5"), ("split.seed", "-1"), ("camera.crop_rows", "300,100"),
     ("camera.crop_rows", "0,5000"), ("radar.rss_max", "nan"), ("radar.rss_min", "100"),
     ("dataset.radar_mount_T_radar_lidar", "1,0,0"),                 # the mount: refused since the 27th session

@@ -115,21 +115,34 @@ def _tensors(data: bytes) -> dict[str, np.ndarray]:
     return load(data)
 
 
-def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_path, remote):
+def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_path, remote, monkeypatch):
     """train, evaluate and export write with local file APIs: on a remote cache they write into a
     local staging folder (run.staging_dir) that is uploaded when they finish, and synthesize and
     evaluate read the checkpoints through a local copy. Everything equals a local cache's run; a
-    second machine (another staging folder) resumes train from what the first uploaded."""
+    second machine (another staging folder) resumes train from what the first uploaded. While
+    training, every net's checkpoints are uploaded (here after every epoch), not only Dis-Net's."""
     from pipeline.world import generate
 
     world = tmp_path / "world"
     generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
     logs: list[str] = []
     local = _real_pipe(str(tmp_path / "cache"), world, tmp_path / "unused", logs)
-    far = _real_pipe(remote, world, tmp_path / "machine-a", logs)
-    for pipe in (local, far):
-        pipe.run("evaluate")
-        pipe.run("export")
+    far = _real_pipe(remote, world, tmp_path / "machine-a", logs, **{"run.checkpoint_upload_s": "0"})
+    published: set[str] = set()
+    upload = DirStore.upload
+
+    def recorded(self, staged, files=None):
+        if files is not None:
+            published.update(Path(f).relative_to(staged.path).as_posix() for f in files)
+        return upload(self, staged, files)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(DirStore, "upload", recorded)
+        for pipe in (local, far):
+            pipe.run("evaluate")
+            pipe.run("export")
+    assert published == {f"{net}/{name}" for net in ("disnet", "rssnet", "placenet")
+                         for name in ("best.safetensors", "best.json", "last.safetensors", "last.json")}, published
     fs = fsspec.filesystem("memory")
     here, there = tmp_path / "cache" / "synthetic", remote.removeprefix("memory://") + "/synthetic"
     for net in ("disnet", "rssnet", "placenet"):  # the same training, the same weights
@@ -210,7 +223,6 @@ def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tmp_path,
     checkpoints was due (run.checkpoint_upload_s), has uploaded none (the output is not done); run
     again on the same machine it goes on from that epoch in its staging folder, without
     downloading, and uploads the finished nets."""
-    import pipeline.training
     from pipeline.errors import StageInterrupted
     from pipeline.world import generate
 
@@ -285,18 +297,20 @@ def test_a_staged_train_killed_mid_run_resumes_on_another_machine_from_its_last_
 
 def test_a_failed_upload_while_a_stage_runs_is_logged_and_the_run_goes_on(tmp_path, remote, monkeypatch):
     """DatasetInputs.publish uploads files of the staging folder while the stage runs; a failure
-    there is one log line naming the staging folder, and the stage's final upload still takes
-    everything. Without a staging folder (a local cache) there is nothing to publish."""
+    there is one log line naming the staging folder, and publish says it failed (train then sends
+    a best checkpoint that failed again), and the stage's final upload still takes everything.
+    Without a staging folder (a local cache) there is nothing to publish."""
     from pipeline.errors import CacheError
     from pipeline.stage import DatasetStage
 
     published: list[bool] = []
+    uploaded: list[bool] = []
 
     def run(inputs, cfg, out, fingerprint):
-        (Path(out.path) / "part.txt").write_text("one epoch")
+        (Path(out.path) / "part.txt").write_bytes(bytes(1_500_000))
         published.append(inputs.publish is not None)
         if inputs.publish is not None:
-            inputs.publish([Path(out.path) / "part.txt"])
+            uploaded.append(inputs.publish([Path(out.path) / "part.txt"]))
         return {"message": "done"}
 
     stage = DatasetStage("train", ("heatmaps",), ("train.epochs",), run, local_files=True, resumes=True)
@@ -308,6 +322,7 @@ def test_a_failed_upload_while_a_stage_runs_is_logged_and_the_run_goes_on(tmp_pa
     def fails_while_running(self, staged, files=None):
         if files is not None:
             raise CacheError(f"uploading to {self.url}: Connection reset by peer")
+        logs.append("(the final upload)")
         return upload(self, staged, files)
 
     with monkeypatch.context() as patch:
@@ -316,8 +331,13 @@ def test_a_failed_upload_while_a_stage_runs_is_logged_and_the_run_goes_on(tmp_pa
     staging = str(next((tmp_path / "staging").glob("train-*/staging")))
     assert [line for line in logs if "Connection reset" in line and "going on" in line and staging in line], logs
     assert pipe.is_current("train") and "part.txt" in _remote_files(pipe.env.dir("train").url)
+    # the final upload is announced before it begins, with what it sends (the bookkeeping files aside)
+    at = logs.index("(the final upload)")
+    assert logs[at - 1] == f"train           uploading 1 file(s), 1.5 MB, to {pipe.env.dir('train').url}", logs
     _staged_pipe(str(tmp_path / "cache"), tmp_path, tmp_path / "staging", stage).run("train")
-    assert published == [True, False]
+    assert published == [True, False] and uploaded == [False]
+    _staged_pipe(remote, tmp_path, tmp_path / "staging", stage).run("train", force=True)  # nothing fails now
+    assert uploaded == [False, True]
 
 
 def _folder_stage():
@@ -551,9 +571,12 @@ def test_upload_and_download_make_the_folders_of_a_filesystem_that_has_them(tmp_
     assert all((tmp_path / "back" / name).read_text() == name for name in uploaded)
 
 
-def test_verify_reads_the_checkpoints_of_a_remote_cache(tmp_path, remote):
+def test_verify_reads_the_checkpoints_of_a_remote_cache(tmp_path, remote, monkeypatch):
     """`pipeline verify` downloads each checkpoint of a remote dataset stage output and reads it: a
-    damaged one is named by its remote URL (until 2026-12-06 a remote cache's were not read)."""
+    damaged one is named by its remote URL (until 2026-12-06 a remote cache's were not read), and
+    so is one that cannot be downloaded (not counted as read, nor read from the one before)."""
+    import errno
+
     import torch
 
     from pipeline.checkpoint import save_checkpoint
@@ -571,3 +594,30 @@ def test_verify_reads_the_checkpoints_of_a_remote_cache(tmp_path, remote):
     out.write_bytes("net/last.safetensors", good)
     row = {r["stage"]: r for r in pipe.verify(["train"])}["train"]
     assert row["checkpoints"] == 2 and "problem" not in row
+    get = type(out.fs).get
+
+    def fails_for_last(self, rpath, lpath, *args, **kwargs):
+        if str(rpath).endswith("last.safetensors"):
+            raise OSError(errno.EIO, "Input/output error")
+        return get(self, rpath, lpath, *args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(type(out.fs), "get", fails_for_last)
+        row = {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+    assert row["problem"].startswith(f"downloading {remote}/fake/train/net/last.safetensors: "), row
+    assert "Input/output error" in row["problem"] and ";" not in row["problem"], row
+
+
+def test_an_upload_of_given_files_takes_those_only(tmp_path, remote):
+    """DirStore.upload(staged, files), which DatasetInputs.publish calls while a stage runs, uploads
+    only the given files of the staging folder, named by their path there or inside it, each to
+    its path in the remote folder; an empty list uploads nothing, not the whole folder."""
+    staged = DirStore(str(tmp_path / "staging"))
+    for name in ("disnet/best.safetensors", "disnet/last.safetensors", "metrics.json"):
+        staged.write_text(name, name)
+    out = DirStore(f"{remote}/train")
+    out.upload(staged, [])
+    assert _remote_files(out.url) == []
+    out.upload(staged, ["disnet/last.safetensors", Path(staged.path) / "metrics.json"])
+    assert _remote_files(out.url) == ["disnet/last.safetensors", "metrics.json"]
+    assert out.fs.cat_file(out.file("disnet/last.safetensors")) == b"disnet/last.safetensors"

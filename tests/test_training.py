@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import time
+import types
 
 import numpy as np
 import pytest
@@ -387,6 +389,84 @@ def test_a_checkpoint_reaches_the_disk_before_it_is_renamed_into_place(tmp_path,
     tmp = events[at][1].split(" -> ")[0]
     assert events[at - 1] == ("fsync", tmp) and events[at + 1] == ("fsync", str(path.parent)), events
     assert ckpt.read_meta(path)["epoch"] == 2
+
+
+def test_checkpoints_are_handed_to_publish_at_the_upload_interval_and_best_only_when_a_better_epoch_came(tmp_path,
+                                                                                                        monkeypatch):
+    """With ``publish`` (a staged output on a remote cache), an epoch ending at least
+    run.checkpoint_upload_s after the last upload (the interval counts from that upload, not from
+    the start) hands its checkpoints, each with its sidecar, to publish: best (only when a better
+    epoch was saved since the last upload: an unchanged best is not sent again) before last. A best
+    checkpoint not written yet is not handed over."""
+    clock, epoch, metrics = [1000.0], [0], [5.0, 4.0, 4.0, 4.0, 4.0, 4.0, 3.0, 4.0, 4.0]
+    train_one_epoch, evaluate = T.train_one_epoch, T.evaluate
+
+    def four_seconds_an_epoch(*args, **kwargs):
+        clock[0] += 4.0
+        epoch[0] += 1
+        return train_one_epoch(*args, **kwargs)
+
+    def scripted(*args, **kwargs):  # the validation loss of each epoch: a better one at epochs 1, 2 and 7
+        return {key: metrics[epoch[0] - 1] for key in evaluate(*args, **kwargs)}
+
+    monkeypatch.setattr(T, "time", types.SimpleNamespace(monotonic=lambda: clock[0], perf_counter=time.perf_counter))
+    monkeypatch.setattr(T, "train_one_epoch", four_seconds_an_epoch)
+    monkeypatch.setattr(T, "evaluate", scripted)
+    published: list[tuple[int, list[str], int]] = []
+
+    def publish(paths):  # (epoch written, files, the best epoch the first file holds)
+        assert all(p.exists() for p in paths), paths
+        meta = ckpt.read_meta(paths[0])
+        published.append((ckpt.read_meta(paths[0].with_name("last.safetensors"))["epoch"], [p.name for p in paths],
+                          meta["best_epoch"]))
+        return True
+
+    cfg = tiny_cfg(**{"train.epochs": "9", "run.checkpoint_upload_s": "10"})
+    res = T.train_rssnet(cfg, make_rss_data(p=120), tmp_path / "rssnet", progress=False, publish=publish)
+    assert res.best_epoch == 7
+    best, last = ["best.safetensors", "best.json"], ["last.safetensors", "last.json"]
+    # epochs end at +4, +8, +12 s ...: uploads at epochs 3, 6 and 9 (12 s after the one before);
+    # the best epoch is 2 at the first two and 7 at the third
+    assert published == [(3, best, 2), (3, last, 2), (6, last, 2), (9, best, 7), (9, last, 7)], published
+    calls: list[list] = []
+    assert T.publish_checkpoints(lambda paths: calls.append(paths) or True, tmp_path / "none" / "best.safetensors",
+                                 res.last_path)
+    assert calls == [[res.last_path, res.last_path.with_suffix(".json")]]
+
+
+def test_a_best_checkpoint_whose_upload_failed_is_sent_again_before_any_later_last(tmp_path, monkeypatch):
+    """A train killed mid-run resumes on another machine from the last uploaded checkpoint, which
+    names its best epoch: the uploaded best must hold that epoch. When the upload of a best
+    checkpoint fails (publish says so; the run goes on), its last is not sent without it, and the
+    next upload sends that best again even when no better epoch came since (until 2026-12-06 it
+    counted as sent: the remote's last then named a best it never got)."""
+    epoch, metrics = [0], [5.0, 6.0, 6.0, 6.0]  # the best is epoch 1's, throughout
+    train_one_epoch, evaluate = T.train_one_epoch, T.evaluate
+
+    def counted(*args, **kwargs):
+        epoch[0] += 1
+        return train_one_epoch(*args, **kwargs)
+
+    def scripted(*args, **kwargs):
+        return {key: metrics[epoch[0] - 1] for key in evaluate(*args, **kwargs)}
+
+    monkeypatch.setattr(T, "train_one_epoch", counted)
+    monkeypatch.setattr(T, "evaluate", scripted)
+    remote: dict[str, dict] = {}  # file name -> the meta of the checkpoint uploaded last
+    failures = [1]  # the first upload fails
+
+    def publish(paths):
+        if failures:
+            failures.pop()
+            return False
+        remote[paths[0].name] = ckpt.read_meta(paths[0])
+        if paths[0].name == "last.safetensors":  # what a run killed now resumes from on another machine
+            assert remote.get("best.safetensors", {}).get("epoch") == remote[paths[0].name]["best_epoch"], remote
+        return True
+
+    cfg = tiny_cfg(**{"train.epochs": "4", "run.checkpoint_upload_s": "0"})
+    res = T.train_rssnet(cfg, make_rss_data(p=120), tmp_path / "rssnet", progress=False, publish=publish)
+    assert res.best_epoch == 1 and remote["last.safetensors"]["epoch"] == 4 and remote["best.safetensors"]["epoch"] == 1
 
 
 def test_rssnet_learns_from_zarr_and_resumes(tmp_path):
