@@ -768,6 +768,17 @@ class DirStore:
         remote folder, kept between runs so that a killed run resumes from it on this machine."""
         return DirStore(str(_mirror_root(self.url, staging_dir) / "staging"))
 
+    def work_folder(self, staging_dir: str) -> DirStore:
+        """Where a writer with local file APIs writes this folder's files: the folder itself on the
+        local file system, else its :meth:`staging` folder (then uploaded)."""
+        return self if self.is_local else self.staging(staging_dir)
+
+    def holds_run_of(self, other: DirStore) -> bool:
+        """Whether this (staging) folder holds the files of the last run begun in ``other``: both
+        carry the same :data:`RUN_TOKEN` (a folder without one holds no run's)."""
+        token = self.run_token()
+        return token is not None and token == other.run_token()
+
     def run_token(self) -> str | None:
         """The token of the last run begun in this folder (:data:`RUN_TOKEN`; a staged stage writes
         one into its staging folder and the remote one when it begins), None if none was."""
@@ -844,14 +855,14 @@ class DirStore:
                     shutil.rmtree(old, ignore_errors=True)
         return copy
 
-    def write_manifest(self) -> int:
+    def write_manifest(self, sizes: dict[str, int] | None = None) -> int:
         """Record every file of the folder (but the bookkeeping files, :data:`UNRECORDED`) with its
         size and SHA-256 in :data:`FILES_MANIFEST`, for :meth:`check_files`; the runner calls it
-        when the stage has written everything, before the upload and :meth:`finish`. Returns how
-        many files. Kept out of ``_stage.json``, which every run reads (an export of 24,000 frames
-        has about 150,000 files)."""
+        when the stage has written everything, before the upload and :meth:`finish`. ``sizes``: the
+        folder's :meth:`sizes` when the caller has them. Returns how many files. Kept out of
+        ``_stage.json``, which every run reads (an export of 24,000 frames has about 150,000 files)."""
         try:
-            files = {name: [size, self._digest(name)] for name, size in self.sizes().items()}
+            files = {name: [size, self._digest(name)] for name, size in (self.sizes() if sizes is None else sizes).items()}
         except OSError as exc:
             raise cache_error(exc, f"reading the files of {self.url}") from None
         self.write_text(FILES_MANIFEST, json.dumps(files, separators=(",", ":"), sort_keys=True))

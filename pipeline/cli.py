@@ -537,7 +537,7 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     finally:
         pipe.executor.close()
     folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, then uploaded
-    work = folder if folder.is_local else folder.staging(env.cfg.run.staging_dir)
+    work = folder.work_folder(env.cfg.run.staging_dir)
     run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen)
     if work is not folder:
         folder.upload(work)

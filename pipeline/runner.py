@@ -627,8 +627,8 @@ class Pipeline:
             self.log(f"{stage.name:<{NAME_WIDTH}} recomputing: its per-frame inputs finished other frames since it ran")
         # a stage writing with local file APIs on a remote cache writes into a local staging folder,
         # uploaded when it finishes (its checkpoints resume from there on this machine)
-        staged = stage.local_files and not out.is_local
-        work = out.staging(self.env.cfg.run.staging_dir) if staged else out
+        work = out.work_folder(self.env.cfg.run.staging_dir) if stage.local_files else out
+        staged = work is not out
         self._prepare_output(stage, out, work, force)
         publish = functools.partial(self._publish, stage.name, out, work) if staged else None
         try:
@@ -638,9 +638,9 @@ class Pipeline:
             if not _writing_into(exc, work.path):
                 raise  # a read error, or one naming other files only (e.g. a dataset file it read)
             raise cache_error(exc, f"{stage.name}: writing into {work.path}") from None
-        work.write_manifest()  # uploaded with the files it records
+        sizes = work.sizes()
+        work.write_manifest(sizes)  # uploaded with the files it records
         if staged:
-            sizes = work.sizes()
             self.log(f"{stage.name:<{NAME_WIDTH}} uploading {len(sizes)} file(s), {sum(sizes.values()) / 1e6:.1f} MB, "
                      f"to {out.url}")
             out.upload(work)
@@ -655,11 +655,9 @@ class Pipeline:
         """What a run of the unfinished dataset stage ``stage`` would go on from (stage.resume_point),
         in the folder it would resume: ``out``, or on a remote cache this machine's staging folder
         when it holds the last run's files (the same run token); None when nothing or unknown."""
-        folder = out
-        if stage.local_files and not out.is_local:
-            staged = out.staging(self.env.cfg.run.staging_dir)
-            if staged.run_token() is not None and staged.run_token() == out.run_token():
-                folder = staged
+        folder = out.work_folder(self.env.cfg.run.staging_dir) if stage.local_files else out
+        if folder is not out and not folder.holds_run_of(out):
+            folder = out
         try:
             return stage.resume_point(DatasetInputs(self.env, self.frame_ids()), self.env.cfg, folder)
         except (PipelineError, ChunkError):  # an unreadable upstream output: status says so on its own row
@@ -687,7 +685,7 @@ class Pipeline:
         between the two writes would otherwise leave them different and the next run downloading
         the last upload instead of going on from the newer staging folder)."""
         staged = work is not out
-        same_run = staged and work.run_token() is not None and work.run_token() == out.run_token()
+        same_run = staged and work.holds_run_of(out)
         if force or not stage.resumes:
             out.clear()  # from scratch: nothing of an earlier run is reused or left (forced: train's checkpoints too)
             if staged:
