@@ -58,3 +58,30 @@ def match_boxes(centres_a: np.ndarray, classes_a: Sequence[str], centres_b: np.n
           & (second_in_b >= margin) & (second_in_a[j] >= margin))
     out[ok] = j[ok]
     return out
+
+
+def differenced_velocities(centres: np.ndarray, t_s: float,
+                           neighbours: Sequence[tuple[np.ndarray, np.ndarray, float]]) -> np.ndarray:
+    """(N, 3) m/s: each box's velocity from its positions in neighbouring frames, NaN where no
+    neighbour holds it.
+
+    ``centres`` (N, 3) m: the boxes at time ``t_s``; ``neighbours``: (same (N,) int64, centres
+    (M, 3) m, time s) per neighbouring frame, ``same[i]`` the index of box i's object among that
+    frame's centres or -1, all centres in one frame (a world frame, or the ego's at ``t_s`` with
+    its motion removed). The velocity is the difference between the box's earliest and latest
+    known positions over their time apart: a central difference where frames before and after hold
+    it, one-sided where one does.
+    """
+    c = check_shape("centres", np.asarray(centres, np.float64), (None, 3))
+    first, t_first = c.copy(), np.full(len(c), float(t_s))
+    last, t_last = c.copy(), np.full(len(c), float(t_s))
+    for same, other, t_other in neighbours:
+        held = np.asarray(same) >= 0
+        for ends, times, later in ((first, t_first, False), (last, t_last, True)):
+            take = held & ((t_other > times) if later else (t_other < times))
+            ends[take] = np.asarray(other, np.float64)[np.asarray(same)[take]]
+            times[take] = t_other
+    out = np.full((len(c), 3), np.nan)
+    known = t_first != t_last
+    out[known] = (last - first)[known] / (t_last - t_first)[known, None]
+    return out

@@ -155,3 +155,59 @@ def _refine(u: np.ndarray, d: np.ndarray, v: np.ndarray, span_mps: float, tol_mp
     r = _wrapped_residual(u, d, v, span_mps)[inl]
     rms = float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
     return EgoFit(np.asarray(v, np.float64), rms, int(inl.sum()), n_points, cond)
+
+
+YAW_RATE_MAX_RPS = 0.5
+"""Turn rates searched by :func:`estimate_yaw_rate` (rad/s either way; about 29 deg/s, a tight
+urban turn)."""
+YAW_MATCH_CAP_M = 1.0
+"""Nearest-neighbour distances above this count as this much in the overlay cost (moving objects,
+what one scan sees and the other does not)."""
+YAW_SAMPLE_POINTS = 4000
+"""Points of the other scan the overlay cost uses (evenly through the scan)."""
+YAW_GRID_STEPS = 10
+"""Steps of the coarse search on each side of no turn (0.05 rad/s each). On 33 pairs of Astyx
+frames up to 0.5 s apart (2026-12-06) 20 steps gave the same rates within 0.0003 rad/s at 1.6 times
+the time (146 against 93 ms a pair); 2,000 points instead of 4,000 moved them by up to 0.0027."""
+
+
+def estimate_yaw_rate(lidar_now_D: np.ndarray, lidar_other_D: np.ndarray, ego_velocity_D: np.ndarray,
+                      dt_s: float, max_range_m: float = 60.0) -> float:
+    """Yaw rate (rad/s, positive turning left) of the radar between two lidar scans, the other
+    scan ``dt_s`` seconds after this one (negative: before), both (N, 3) m in their own {D}.
+
+    The radar's straight motion over ``dt_s`` is ``ego_velocity_D`` (3,) m/s (its Doppler gives it
+    to about a centimetre over 0.2 s); its turn is the one rotation that Doppler does not give.
+    The turn chosen is the one whose motion
+    (:func:`pipeline.baselines.ego_motion_transform`) best overlays the other scan's points
+    (within ``max_range_m``) on this scan: the smallest mean distance to the nearest point of this
+    scan, each capped at YAW_MATCH_CAP_M, searched over +/- YAW_RATE_MAX_RPS in YAW_GRID_STEPS steps
+    each way, then refined between the neighbours of the best step (scipy's bounded Brent search).
+    """
+    from scipy.optimize import minimize_scalar
+    from scipy.spatial import cKDTree
+
+    from pipeline.baselines import ego_motion_transform
+
+    def near(points: np.ndarray, name: str) -> np.ndarray:
+        p = check_shape(name, np.asarray(points, np.float64), (None, 3))
+        r = np.linalg.norm(p, axis=1)
+        return p[np.isfinite(r) & (r > 1.0) & (r <= max_range_m)]
+
+    now, other = near(lidar_now_D, "lidar_now_D"), near(lidar_other_D, "lidar_other_D")
+    if len(now) < 10 or len(other) < 10 or dt_s == 0:
+        return 0.0
+    other = other[:: max(1, len(other) // YAW_SAMPLE_POINTS)]
+    tree = cKDTree(now, balanced_tree=False, compact_nodes=False)
+    ego = check_shape("ego_velocity_D", np.asarray(ego_velocity_D, np.float64), (3,))
+
+    def cost(rate: float) -> float:
+        T = ego_motion_transform(ego, -dt_s, rate)  # the other scan's frame -> this one's
+        dist, _ = tree.query(other @ T[:3, :3].T + T[:3, 3], distance_upper_bound=YAW_MATCH_CAP_M)
+        return float(np.mean(np.minimum(dist, YAW_MATCH_CAP_M)))
+
+    step = YAW_RATE_MAX_RPS / YAW_GRID_STEPS
+    grid = np.linspace(-YAW_RATE_MAX_RPS, YAW_RATE_MAX_RPS, 2 * YAW_GRID_STEPS + 1)
+    best = float(grid[int(np.argmin([cost(w) for w in grid]))])
+    return float(minimize_scalar(cost, bounds=(best - step, best + step), method="bounded",
+                                 options={"xatol": 1e-4}).x)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.boxmatch import match_boxes
+from pipeline.boxmatch import differenced_velocities, match_boxes
 
 
 def test_recovers_a_shuffled_frame_of_moving_boxes():
@@ -78,3 +78,18 @@ def test_each_box_of_b_goes_to_one_box_of_a_even_without_a_margin():
     a = np.array([[0.0, 0, 0], [0.3, 0, 0]])
     b = np.array([[0.25, 0, 0]])
     assert match_boxes(a, ["Car", "Car"], b, ["Car"], 2.0, ambiguity_ratio=1.0).tolist() == [-1, 0]
+
+
+def test_differenced_velocities_central_one_sided_and_unknown():
+    """Box 0 is held before and after (central difference over 0.3 s), box 1 only after
+    (one-sided), box 2 by no neighbour (NaN); the neighbours' order does not matter."""
+    now = np.array([[0.0, 0, 0], [10.0, 0, 0], [20.0, 0, 0]])
+    before = (np.array([0, -1, -1]), np.array([[-1.0, 0.5, 0]]), 0.9)           # t = 0.9 s
+    after = (np.array([1, 0, -1]), np.array([[11.0, 0, 0], [2.0, 0.0, 0.2]]), 1.2)  # t = 1.2 s
+    for neighbours in ([before, after], [after, before]):
+        v = differenced_velocities(now, 1.0, neighbours)
+        np.testing.assert_allclose(v[0], [(2.0 + 1.0) / 0.3, -0.5 / 0.3, 0.2 / 0.3])
+        np.testing.assert_allclose(v[1], [(11.0 - 10.0) / 0.2, 0, 0])
+        assert np.isnan(v[2]).all()
+    assert np.isnan(differenced_velocities(now, 1.0, [])).all()
+    assert differenced_velocities(np.zeros((0, 3)), 1.0, [(np.zeros(0, np.int64), np.zeros((0, 3)), 2.0)]).shape == (0, 3)

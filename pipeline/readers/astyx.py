@@ -21,6 +21,15 @@ HiRes2019 layout under the data root (``dataset_astyx_hires2019/``):
 Ego velocity is not recorded: it is estimated from the scan's own (aliased) Doppler by
 :func:`pipeline.egomotion.estimate_ego_velocity`.
 
+Nor are object velocities or track ids (``object_id`` is -1), nor the ego's pose. A box gets a
+velocity over ground from the same object's boxes in the frames one id before and after, where
+those are at most MAX_NEIGHBOUR_GAP_S away (the frames are a selection: ids one apart may be
+minutes apart): the neighbour's boxes are moved into this frame by the ego's motion in between
+(straight at the mean of the two Doppler ego velocities, turning at the yaw rate that overlays the
+two lidar scans, :func:`pipeline.egomotion.estimate_yaw_rate`), paired by
+:func:`pipeline.boxmatch.match_boxes`, and differenced at the centre of the face each box shows
+the radar (:func:`box_reference_points`). Other boxes keep an unknown (NaN) velocity.
+
 The demo set (``dataset_astyx_demo/``: ``dataset_info.json``, ``radar_hires1``, ``canbus`` with
 ``vehicle_speed`` km/h and bare NaN values, calibration uids radar_hires1 / lidar_os1 /
 camera_bfly) has no camera or lidar files: :class:`AstyxDemoReader` exposes the radar and the CAN
@@ -32,12 +41,17 @@ from __future__ import annotations
 import json
 import warnings
 from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.egomotion import EgoFit, estimate_ego_velocity
+from pipeline.baselines import ego_motion_transform
+from pipeline.boxmatch import MAX_OBJECT_SPEED_MPS, differenced_velocities, match_boxes
+from pipeline.config import Config
+from pipeline.egomotion import EgoFit, estimate_ego_velocity, estimate_yaw_rate
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord, Object3D
 from pipeline.geometry import invert_transform
@@ -47,6 +61,12 @@ from pipeline.readers.base import (DetectorFiles, Reader, check_finite, check_in
 KMH_TO_MPS = 1.0 / 3.6
 RADAR_COLUMNS = ("X", "Y", "Z", "V_r", "Mag")
 """Header of an Astyx radar_6455 file, in this order."""
+MAX_NEIGHBOUR_GAP_S = 0.5
+"""A neighbouring frame further apart in time gives its boxes no velocity. HiRes2019's frames are a
+selection: ids one apart are 0.1 s to minutes apart. Over the 141 frames in ../shared/data
+(2026-12-06), 498 of 888 boxes get a velocity with 0.5 s (186 with 0.12 s, 520 with 1 s)."""
+MOTIONS_KEPT = 4
+"""Frames whose time, ego velocity and boxes a reader keeps for its next frames' neighbours."""
 
 
 def load_json(path: Path, frame: str | None, what: str, pairs_hook=None) -> object:
@@ -236,10 +256,49 @@ def _matrix(values: object, shape: tuple[int, int], path: Path, frame: str, uid:
     return out
 
 
+@dataclass
+class FrameMotion:
+    """What a box's velocity needs of a frame: its time (s), the ego velocity (3,) m/s in {D}, its
+    labelled boxes and its lidar points (N, 3) m in {D}."""
+
+    time_s: float
+    ego_velocity_D: np.ndarray
+    labels: list[Object3D]
+    lidar_D: np.ndarray
+
+
+def box_reference_points(labels: Sequence[Object3D]) -> np.ndarray:
+    """(N, 3) m in {D}: the point of each box followed from frame to frame, the centre of its
+    vertical face nearest the radar (the face the sensors see).
+
+    Astyx's boxes are drawn anew in each frame; their extent away from the sensors, which no
+    sensor sees, varies from frame to frame, and so does the centre. Over the 141 frames in
+    ../shared/data (2026-12-06), the real radar points on boxes with a differenced velocity are
+    within 2.5 m/s of the Doppler it gives for 95.6% of the points, against 92.1% with the centres
+    (73.4% with static boxes)."""
+    if not labels:
+        return np.zeros((0, 3))
+    centre = np.array([o.center_D for o in labels], np.float64)
+    half = np.array([o.size_lwh_m for o in labels], np.float64)[:, :2] / 2
+    yaw = np.array([o.yaw_rad for o in labels], np.float64)
+    axes = np.stack([np.cos(yaw), np.sin(yaw), -np.sin(yaw), np.cos(yaw)], axis=1).reshape(-1, 2, 2)  # rows: length, width
+    offsets = np.concatenate([axes[:, :1] * half[:, :1, None], axes[:, 1:] * half[:, 1:, None]], axis=1)   # (N, 2, 2)
+    faces = centre[:, None, :2] + np.concatenate([offsets, -offsets], axis=1)                              # (N, 4, 2)
+    nearest = np.argmin(np.einsum("nfk,nfk->nf", faces, faces), axis=1)
+    return np.column_stack([faces[np.arange(len(labels)), nearest], centre[:, 2]])
+
+
 class AstyxReader(_AstyxIndex):
     """Astyx HiRes2019: radar 6455, VLP-16 lidar, front camera; see the module docstring."""
 
     name = "astyx"
+    version = 2
+    """2: labelled boxes get a velocity from the neighbouring frames' boxes (before: none)."""
+
+    def __init__(self, cfg: Config, data_root: str | Path) -> None:
+        super().__init__(cfg, data_root)
+        self._motions: dict[str, FrameMotion] = {}
+        self._yaw_rates: dict[tuple[str, str], float] = {}
     required_uids = ("radar_6455", "lidar_vlp16", "camera_front", "calibration")
     calib_uids = ("radar_6455", "lidar_vlp16", "camera_front")
 
@@ -260,13 +319,96 @@ class AstyxReader(_AstyxIndex):
             raise ReaderError(paths[self.radar_uid], "cannot estimate ego velocity: fewer than 3 static "
                                                      "points agree", frame=frame_id)
         lidar_D = lidar[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
+        motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit.velocity_D, self._labels(frame_id), lidar_D)
+        self._remember(frame_id, motion)
+        self._object_velocities(frame_id, motion)
         record = FrameRecord(
             frame_id=frame_id, sequence_id=self.sequence_of(frame_id),
-            timestamp_s=float(np.median(lidar[:, 5])) * 1e-6, image=image, K=K,
+            timestamp_s=motion.time_s, image=image, K=K,
             lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar[:, 3].astype(np.float32),
             radar_D=radar, T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam,
-            ego_velocity_D=fit.velocity_D, has_radar=True, labels=self._labels(frame_id))
+            ego_velocity_D=fit.velocity_D, has_radar=True, labels=motion.labels)
         return self.finish(record, paths[self.radar_uid])
+
+    # -- object velocities ---------------------------------------------------------------------
+
+    def _remember(self, frame_id: str, motion: FrameMotion) -> None:
+        """Keep the motion of the last few frames read: a frame's neighbours are read next."""
+        self._motions[frame_id] = motion
+        while len(self._motions) > MOTIONS_KEPT:
+            del self._motions[next(iter(self._motions))]
+
+    def _motion(self, frame_id: str) -> FrameMotion | None:
+        """Time, ego velocity and boxes of a neighbouring frame; None where it has no boxes or its
+        files do not give them (its own read names what is wrong)."""
+        if frame_id in self._motions:
+            return self._motions[frame_id]
+        try:
+            labels = self._labels(frame_id)
+            if not labels:
+                return None
+            lidar = read_text_table(self._paths(frame_id)["lidar_vlp16"], 6, frame_id, "lidar", "X")
+            T_radar_lidar = self._calibration(frame_id, self.calib_uids)[0]
+            fit = self.estimate_ego(frame_id)
+        except (ReaderError, KeyError, OSError):
+            return None
+        if fit.n_used < 3 or len(lidar) == 0:
+            return None
+        motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit.velocity_D, labels,
+                             lidar[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3])
+        self._remember(frame_id, motion)
+        return motion
+
+    def _object_velocities(self, frame_id: str, motion: FrameMotion) -> None:
+        """Set each box's velocity over ground (in {D}) from the same object's boxes in the
+        neighbouring frames (ids one apart in the sequence, at most MAX_NEIGHBOUR_GAP_S away),
+        associated by :func:`pipeline.boxmatch.match_boxes` once the ego's motion between the two
+        scans is removed: straight at the mean of their Doppler ego velocities, turning at the
+        yaw rate that overlays their lidar scans (:func:`pipeline.egomotion.estimate_yaw_rate`).
+        Boxes held by no neighbour keep a NaN velocity.
+
+        The turn moves a box across the line of sight only, so it leaves the box's Doppler as it
+        is, but not its speed: on the 141 frames in ../shared/data (2026-12-06), boxes the radar
+        sees standing still (90% of their points within 0.5 m/s of a static Doppler, the ego
+        moving) get a median speed of 0.87 m/s (90th percentile 4.0) with it and 1.52 m/s (5.5)
+        without; beyond 25 m 1.47 against 3.3 m/s. What is left is the boxes' own jitter."""
+        if not motion.labels:
+            return
+        centres = box_reference_points(motion.labels)
+        classes = [o.class_name for o in motion.labels]
+        neighbours = []
+        for step in (-1, 1):
+            other_id = self._neighbour(frame_id, step)
+            other = self._motion(other_id) if other_id is not None else None
+            if other is None or not 0 < abs(other.time_s - motion.time_s) <= MAX_NEIGHBOUR_GAP_S:
+                continue
+            dt = other.time_s - motion.time_s
+            ego = (motion.ego_velocity_D + other.ego_velocity_D) / 2
+            pair = (min(frame_id, other_id), max(frame_id, other_id))
+            if pair not in self._yaw_rates:
+                self._yaw_rates[pair] = estimate_yaw_rate(motion.lidar_D, other.lidar_D, ego, dt)
+                while len(self._yaw_rates) > MOTIONS_KEPT:
+                    del self._yaw_rates[next(iter(self._yaw_rates))]
+            T_now_other = ego_motion_transform(ego, -dt, self._yaw_rates[pair])
+            other_centres = (box_reference_points(other.labels) @ T_now_other[:3, :3].T
+                             + T_now_other[:3, 3])
+            same = match_boxes(centres, classes, other_centres, [o.class_name for o in other.labels],
+                               MAX_OBJECT_SPEED_MPS * abs(dt))
+            neighbours.append((same, other_centres, other.time_s))
+        velocity = differenced_velocities(centres, motion.time_s, neighbours)
+        known = ~np.isnan(velocity[:, 0])
+        for obj, v, k in zip(motion.labels, velocity, known):
+            if k:
+                obj.velocity_D = v.astype(np.float32)
+        self._counts["objects_velocity_by_box_matching"] += int(known.sum())
+        self._counts["objects_velocity_unknown"] += int((~known).sum())
+
+    def _neighbour(self, frame_id: str, step: int) -> str | None:
+        """Id of frame number + step in the same sequence, or None."""
+        if not frame_id.isdigit():
+            return None
+        other = f"{int(frame_id) + step:0{len(frame_id)}d}"
+        return other if self._sequences.get(other) == self._sequences.get(frame_id) else None
 
     def _labels(self, frame_id: str) -> list[Object3D]:
         path = self._paths(frame_id).get("groundtruth_obj3d")

@@ -8,6 +8,7 @@ Nothing here runs at import time; the functions write only under the folder they
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -139,14 +140,20 @@ ASTYX_SPAN_MPS = 10.3936
 
 
 def make_astyx_dataset(root: Path, n_frames: int = 2, speed_mps: float = 8.0, n_radar: int = 400,
-                       seed: int = 0) -> np.ndarray:
+                       seed: int = 0, car_velocity_D: tuple[float, float, float] = (8.0, 0.0, 0.0),
+                       times_s: Sequence[float] | None = None) -> np.ndarray:
     """Write an Astyx HiRes2019-layout dataset (frames 000000.. with ``dataset.json``) under ``root``.
 
     The radar moves at (speed, 0, 0) in {D}; V_r = wrap(-(range rate)) (positive approaching,
-    aliased with span 10.3936 m/s). Returns the ego velocity (3,).
+    aliased with span 10.3936 m/s) of static points; its lidar sees one static cloud of 300 points
+    (in {D} at time 0: x 2-40 m, y +/-10 m, z +/-2 m). Each frame labels one car, at (15, 2, -0.5) m
+    at time 0 and moving at ``car_velocity_D`` m/s over ground (by default as the ego: it stays
+    where it is in {D}); frame i is at ``times_s[i]`` (default 0.1 s apart), the median of its
+    lidar Timestamps. Returns the ego velocity (3,).
     """
     rng = np.random.default_rng(seed)
     ego = np.array([speed_mps, 0.0, 0.0])
+    times = [0.1 * i for i in range(n_frames)] if times_s is None else list(times_s)
     T_radar_cam = np.linalg.inv(T_CAM_RADAR)
     calib = {"sensors": [
         {"sensor_uid": "radar_6455", "calib_data": {"T_to_ref_COS": np.eye(4).tolist()}},
@@ -154,6 +161,7 @@ def make_astyx_dataset(root: Path, n_frames: int = 2, speed_mps: float = 8.0, n_
         {"sensor_uid": "camera_front", "calib_data": {"T_to_ref_COS": T_radar_cam.tolist(),
                                                       "K": K_FIXTURE.tolist()}}]}
     index = {}
+    world = rng.uniform([2, -10, -2], [40, 10, 2], (300, 3))   # a static lidar world, seen from the radar at time 0
     for i in range(n_frames):
         fid = f"{i:06d}"
         az = rng.uniform(-0.9, 0.9, n_radar)
@@ -165,12 +173,14 @@ def make_astyx_dataset(root: Path, n_frames: int = 2, speed_mps: float = 8.0, n_
         rows = "\n".join(f"{a:.6f} {b:.6f} {c:.6f} {d:.4f} {m:.1f}" for (a, b, c), d, m
                          in zip(xyz, v_r, rng.uniform(45, 90, n_radar)))
         _mk(root / "radar_6455" / f"{fid}.txt").write_text("\nX Y Z V_r Mag\n" + rows + "\n")
-        lid = rng.uniform([2, -10, -2], [40, 10, 2], (300, 3))
-        lrows = "\n".join(f"{a:.3f} {b:.3f} {c:.3f} 5 0 {1000 + i * 100000 + k}" for k, (a, b, c) in enumerate(lid))
+        lid = world - ego * times[i]
+        stamps = round(times[i] * 1e6) + 2 * np.arange(len(lid)) - (len(lid) - 1)   # median: the frame time
+        lrows = "\n".join(f"{a:.3f} {b:.3f} {c:.3f} 5 0 {t}" for (a, b, c), t in zip(lid, stamps))
         _mk(root / "lidar_vlp16" / f"{fid}.txt").write_text("X Y Z Reflectivity LaserID Timestamp \n" + lrows + "\n")
         write_image(root / "camera_front" / f"{fid}.jpg", IMAGE_WH, seed=i)
         _mk(root / "calibration" / f"{fid}.json").write_text(json.dumps(calib, indent=1))
-        gt = {"objects": [{"center3d": [15.0, 2.0, -0.5], "dimension3d": [4.0, 1.8, 1.5], "classname": "Car",
+        centre = np.array([15.0, 2.0, -0.5]) + (np.asarray(car_velocity_D) - ego) * times[i]
+        gt = {"objects": [{"center3d": centre.tolist(), "dimension3d": [4.0, 1.8, 1.5], "classname": "Car",
                            "orientation_quat": [np.cos(0.25), 0.0, 0.0, np.sin(0.25)], "object_id": -1}]}
         _mk(root / "groundtruth_obj3d" / f"{fid}.json").write_text(json.dumps(gt))
         index[str(i)] = {"calibration": f"calibration/{fid}.json", "camera_front": f"camera_front/{fid}.jpg",

@@ -43,7 +43,7 @@ from typing import Callable, TypeVar
 
 import numpy as np
 
-from pipeline.boxmatch import MAX_OBJECT_SPEED_MPS, match_boxes
+from pipeline.boxmatch import MAX_OBJECT_SPEED_MPS, differenced_velocities, match_boxes
 from pipeline.config import Config
 from pipeline.egomotion import fit_compensation_pair
 from pipeline.errors import ReaderError
@@ -443,19 +443,18 @@ class VodReader(Reader):
                 self._counts["objects_velocity_unknown"] += len(labels)
             return
         centres, t = self._centres_world(labels, T_now), self._timestamp(fid)
-        first, last = (centres.copy(), np.full(len(labels), t)), (centres.copy(), np.full(len(labels), t))
+        neighbours = []
         by_position = np.zeros(len(labels), bool)
-        for step, (ends, times) in ((-1, first), (1, last)):
+        for step in (-1, 1):
             other = self._neighbour_boxes(self._neighbour(fid, step))
             if other is None:
                 continue
             same, positional = self._same_objects(labels, centres, t, other)
-            ends[same >= 0] = other[1][same[same >= 0]]
-            times[same >= 0] = other[2]
+            neighbours.append((same, other[1], other[2]))
             by_position |= positional & (same >= 0)
-        known = first[1] != last[1]
-        v_world = (last[0] - first[0])[known] / (last[1] - first[1])[known, None]
-        v_D = v_world @ (T_now @ T_cam_radar)[:3, :3]  # R_radar_world @ v for each row
+        v_world = differenced_velocities(centres, t, neighbours)
+        known = ~np.isnan(v_world[:, 0])
+        v_D = v_world[known] @ (T_now @ T_cam_radar)[:3, :3]  # R_radar_world @ v for each row
         for obj, v in zip((o for o, k in zip(objects, known) if k), v_D):
             obj.velocity_D = v.astype(np.float32)
         for key, count in (("by_track_id", known & ~by_position), ("by_box_matching", known & by_position),
