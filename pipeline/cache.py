@@ -792,18 +792,27 @@ class DirStore:
 
     def upload(self, staged: DirStore, files: Sequence[str | os.PathLike] | None = None) -> None:
         """Copy every file of the local folder ``staged`` but ``_stage.json`` into this one (which
-        :meth:`finish` then marks complete), or only ``files`` (paths inside ``staged``), in one call."""
+        :meth:`finish` then marks complete), or only ``files`` (paths inside ``staged``), in one call.
+        On a filesystem that writes files in place (:func:`writes_whole_objects` False: sftp, smb)
+        each file goes to a temporary ``*.tmp`` name first and is renamed once whole, so that an
+        upload cut off midway leaves the file before it, or none, never a part of it (a killed
+        run's ``*.tmp`` files are removed by :meth:`remove_temporaries`)."""
         root = Path(staged.path)
         if files is None:
             local = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "_stage.json")
         else:
             local = [Path(p) if Path(p).is_absolute() else root / p for p in files]
         targets = [self.file(path.relative_to(root).as_posix()) for path in local]
+        fs = self.fs
+        whole = writes_whole_objects(fs)
         try:
-            for parent in sorted({self.fs._parent(t) for t in targets}):
-                self.fs.makedirs(parent, exist_ok=True)
+            for parent in sorted({fs._parent(t) for t in targets}):
+                fs.makedirs(parent, exist_ok=True)
             if local:  # one call: an object store's filesystem (s3fs, gcsfs) sends the files concurrently
-                self.fs.put([str(path) for path in local], targets)
+                fs.put([str(path) for path in local], targets if whole else [t + ".tmp" for t in targets])
+            if not whole:
+                for target in targets:
+                    fs.mv(target + ".tmp", target)
         except OSError as exc:
             raise cache_error(exc, f"uploading {root} to {self.url}") from None
 
@@ -1026,6 +1035,19 @@ def is_local(fs: fsspec.AbstractFileSystem) -> bool:
     """Whether ``fs`` is the local file system."""
     protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
     return "file" in protocol or "local" in protocol
+
+
+WHOLE_OBJECT_PROTOCOLS = frozenset({"s3", "s3a", "gs", "gcs", "abfs", "abfss", "az", "adl", "memory"})
+"""Filesystems on which a file appears whole or not at all (object stores: an object is written by
+one request, or a multipart upload completed at its end)."""
+
+
+def writes_whole_objects(fs: fsspec.AbstractFileSystem) -> bool:
+    """Whether a file ``put`` on ``fs`` appears whole or not at all (:data:`WHOLE_OBJECT_PROTOCOLS`).
+    Other filesystems (sftp, smb, ftp, hdfs, webdav) write a file as its bytes arrive, so an upload
+    cut off midway leaves a damaged file under its name."""
+    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
+    return any(p in WHOLE_OBJECT_PROTOCOLS for p in protocol)
 
 
 @dataclass(frozen=True)

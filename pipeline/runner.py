@@ -692,12 +692,15 @@ class Pipeline:
                 work.clear()
                 same_run = False
         elif staged and not same_run:  # begun elsewhere, run elsewhere since, or cut off while downloading
+            out.remove_temporaries()  # a killed upload's (DirStore.upload on a filesystem that writes in place)
             work.clear()
             taken = out.download(work)
             if taken:
                 self.log(f"{stage.name:<{NAME_WIDTH}} resuming from {taken} file(s) of {out.url}")
-        else:  # a killed run's half-written files
+        else:  # a killed run's half-written files (and a killed upload's, on a remote folder)
             left = [os.path.relpath(name, work.path) for name in work.remove_temporaries()]
+            if staged:
+                left += [os.path.relpath(name, out.path) for name in out.remove_temporaries()]
             if left:
                 files = f"file{'s' * (len(left) > 1)}"
                 self.log(f"{stage.name:<{NAME_WIDTH}} removed {len(left)} temporary {files} a killed run left: "

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import uuid
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import pytest
 
 from pipeline.cache import DONE, PENDING, DirStore
 from pipeline.config import load_config
-from pipeline.errors import ChunkError
+from pipeline.errors import CacheError, ChunkError
 from pipeline.executor import Executor, RunEnv
 from pipeline.runner import Pipeline
 from tests import fake_stages
@@ -410,6 +411,13 @@ def test_a_staging_folder_holds_only_what_the_run_resumes_from(tmp_path, remote)
     (staged / "runs" / "9.txt.tmp").write_text("half-written")  # a killed run's
     assert run(a, 4) == ["runs/1.txt", "runs/2.txt"]
     assert not (staged / "runs" / "9.txt.tmp").exists() and "runs/9.txt.tmp" not in _remote_files(out.url)
+    out.write_text("runs/3.txt.tmp", "half-uploaded")  # a killed upload's, on a filesystem that writes in place
+    assert run(a, 41) == ["runs/1.txt", "runs/2.txt", "runs/3.txt"]
+    assert "runs/3.txt.tmp" not in _remote_files(out.url)
+    out.write_text("runs/4.txt.tmp", "half-uploaded")
+    shutil.rmtree(staged)                                   # resumed on a machine without the staging folder
+    assert run(a, 42) == ["runs/1.txt", "runs/2.txt", "runs/3.txt", "runs/4.txt"]
+    assert "runs/4.txt.tmp" not in _remote_files(out.url) and not (staged / "runs" / "4.txt.tmp").exists()
     # another machine runs it from scratch since: this one's three files are an older run's
     assert run(b, 5, force=True) == []
     assert run(a, 6) == ["runs/1.txt"]
@@ -621,3 +629,60 @@ def test_an_upload_of_given_files_takes_those_only(tmp_path, remote):
     out.upload(staged, ["disnet/last.safetensors", Path(staged.path) / "metrics.json"])
     assert _remote_files(out.url) == ["disnet/last.safetensors", "metrics.json"]
     assert out.fs.cat_file(out.file("disnet/last.safetensors")) == b"disnet/last.safetensors"
+
+
+def test_an_upload_cut_off_midway_leaves_no_part_of_a_file_on_a_filesystem_that_writes_in_place(tmp_path, remote):
+    """sftp or smb write a file as its bytes arrive: an upload cut off in the middle of the last
+    checkpoint left half of it under its name, and the next run stopped on it. Each file now goes
+    to a ``.tmp`` name and is renamed when whole: the remote keeps the checkpoint before (or none),
+    and the killed run's ``.tmp`` is what remove_temporaries clears. An object store (memory://)
+    is written in place, without renames."""
+    from fsspec.implementations.local import LocalFileSystem
+
+    from pipeline.cache import writes_whole_objects
+
+    class InPlace(LocalFileSystem):
+        protocol = ("inplace",)
+        cut = ""
+
+        @classmethod
+        def _strip_protocol(cls, path):
+            return super()._strip_protocol(str(path).removeprefix("inplace://"))
+
+        def put_file(self, lpath, rpath, callback=None, **kwargs):
+            data = Path(lpath).read_bytes()
+            rpath = self._strip_protocol(rpath)
+            if InPlace.cut and rpath.startswith(self._strip_protocol(InPlace.cut)):
+                Path(rpath).write_bytes(data[: len(data) // 2])
+                raise OSError(104, "Connection reset by peer")
+            Path(rpath).write_bytes(data)
+
+    fsspec.register_implementation("inplace", InPlace, clobber=True)
+    staged = DirStore(str(tmp_path / "staging"))
+    out = DirStore(f"inplace://{tmp_path / 'remote' / 'train'}")
+    assert not writes_whole_objects(out.fs) and writes_whole_objects(fsspec.filesystem("memory"))
+    last = tmp_path / "remote" / "train" / "disnet" / "last.safetensors"
+    staged.write_bytes("disnet/last.safetensors", b"epoch 1" * 1000)
+    out.upload(staged, ["disnet/last.safetensors"])
+    assert last.read_bytes() == b"epoch 1" * 1000
+    staged.write_bytes("disnet/last.safetensors", b"epoch 2" * 1000)
+    InPlace.cut = str(last)
+    with pytest.raises(CacheError, match="Connection reset by peer"):
+        out.upload(staged, ["disnet/last.safetensors"])
+    assert last.read_bytes() == b"epoch 1" * 1000               # the checkpoint before, whole
+    assert Path(str(last) + ".tmp").stat().st_size == 3500      # the half that arrived
+    assert out.remove_temporaries() == [str(last) + ".tmp"]
+    InPlace.cut = ""
+    out.upload(staged, ["disnet/last.safetensors"])
+    assert last.read_bytes() == b"epoch 2" * 1000
+    assert sorted(p.name for p in last.parent.iterdir()) == ["last.safetensors"]
+
+    memory = DirStore(f"{remote}/train")
+    moved = []
+    mv = type(memory.fs).mv
+    try:
+        type(memory.fs).mv = lambda self, *a, **k: moved.append(a)
+        memory.upload(staged)
+    finally:
+        type(memory.fs).mv = mv
+    assert moved == [] and _remote_files(memory.url) == ["disnet/last.safetensors"]
