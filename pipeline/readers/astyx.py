@@ -258,13 +258,24 @@ def _matrix(values: object, shape: tuple[int, int], path: Path, frame: str, uid:
 
 @dataclass
 class FrameMotion:
-    """What a box's velocity needs of a frame: its time (s), the ego velocity (3,) m/s in {D}, its
-    labelled boxes and its lidar points (N, 3) m in {D}."""
+    """What a box's velocity needs of a frame: its time (s), its Doppler ego-velocity fit, its
+    labelled boxes and its lidar file's rows (N, 6) with the lidar's pose T_radar_lidar (4, 4)."""
 
     time_s: float
-    ego_velocity_D: np.ndarray
+    fit: EgoFit
     labels: list[Object3D]
-    lidar_D: np.ndarray
+    lidar: np.ndarray
+    T_radar_lidar: np.ndarray
+
+    @property
+    def ego_velocity_D(self) -> np.ndarray:
+        """(3,) m/s in {D}."""
+        return self.fit.velocity_D
+
+    @cached_property
+    def lidar_D(self) -> np.ndarray:
+        """(N, 3) m in {D}, float64."""
+        return self.lidar[:, :3] @ self.T_radar_lidar[:3, :3].T + self.T_radar_lidar[:3, 3]
 
 
 def box_reference_points(labels: Sequence[Object3D]) -> np.ndarray:
@@ -311,21 +322,24 @@ class AstyxReader(_AstyxIndex):
         paths = self._paths(frame_id)
         T_radar_lidar, T_radar_cam, K = self._calibration(frame_id, self.calib_uids)
         radar = self.read_radar(frame_id)
-        lidar = read_text_table(paths["lidar_vlp16"], 6, frame_id, "lidar", "X")
-        check_not_empty(lidar, paths["lidar_vlp16"], frame_id, "lidar")
+        seen = self._motions.get(frame_id)  # read already as the neighbour of the frame before
+        if seen is not None:
+            lidar, fit = seen.lidar, seen.fit
+        else:
+            lidar = read_text_table(paths["lidar_vlp16"], 6, frame_id, "lidar", "X")
+            check_not_empty(lidar, paths["lidar_vlp16"], frame_id, "lidar")
+            fit = estimate_ego_velocity(radar[:, :3], radar[:, 3], self.radar.doppler_span_mps)
         image = read_image_rgb(paths["camera_front"], frame_id, self.cfg.camera.full_size)
-        fit = estimate_ego_velocity(radar[:, :3], radar[:, 3], self.radar.doppler_span_mps)
         if fit.n_used < 3:
             raise ReaderError(paths[self.radar_uid], "cannot estimate ego velocity: fewer than 3 static "
                                                      "points agree", frame=frame_id)
-        lidar_D = lidar[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
-        motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit.velocity_D, self._labels(frame_id), lidar_D)
+        motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit, self._labels(frame_id), lidar, T_radar_lidar)
         self._remember(frame_id, motion)
         self._object_velocities(frame_id, motion)
         record = FrameRecord(
             frame_id=frame_id, sequence_id=self.sequence_of(frame_id),
             timestamp_s=motion.time_s, image=image, K=K,
-            lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar[:, 3].astype(np.float32),
+            lidar_D=motion.lidar_D.astype(np.float32), lidar_intensity=lidar[:, 3].astype(np.float32),
             radar_D=radar, T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam,
             ego_velocity_D=fit.velocity_D, has_radar=True, labels=motion.labels)
         return self.finish(record, paths[self.radar_uid])
@@ -354,8 +368,7 @@ class AstyxReader(_AstyxIndex):
             return None
         if fit.n_used < 3 or len(lidar) == 0:
             return None
-        motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit.velocity_D, labels,
-                             lidar[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3])
+        motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit, labels, lidar, T_radar_lidar)
         self._remember(frame_id, motion)
         return motion
 
