@@ -64,9 +64,11 @@ RADAR_COLUMNS = ("X", "Y", "Z", "V_r", "Mag")
 MAX_NEIGHBOUR_GAP_S = 0.5
 """A neighbouring frame further apart in time gives its boxes no velocity. HiRes2019's frames are a
 selection: ids one apart are 0.1 s to minutes apart. Over the 141 frames in ../shared/data
-(2026-12-06), 498 of 888 boxes get a velocity with 0.5 s (186 with 0.12 s, 520 with 1 s)."""
+(2026-12-06), 499 of 888 boxes get a velocity (matching centres without the turn: 186 / 290 / 498 /
+520 within 0.12 / 0.25 / 0.5 / 1 s)."""
 MOTIONS_KEPT = 4
-"""Frames whose time, ego velocity and boxes a reader keeps for its next frames' neighbours."""
+"""Frames (time, ego velocity, boxes, lidar) and frame pairs (yaw rate) a reader keeps for the
+frames it reads next: a frame's neighbours are read next, as the neighbour or the frame itself."""
 
 
 def load_json(path: Path, frame: str | None, what: str, pairs_hook=None) -> object:
@@ -305,13 +307,13 @@ class AstyxReader(_AstyxIndex):
     name = "astyx"
     version = 2
     """2: labelled boxes get a velocity from the neighbouring frames' boxes (before: none)."""
+    required_uids = ("radar_6455", "lidar_vlp16", "camera_front", "calibration")
+    calib_uids = ("radar_6455", "lidar_vlp16", "camera_front")
 
     def __init__(self, cfg: Config, data_root: str | Path) -> None:
         super().__init__(cfg, data_root)
         self._motions: dict[str, FrameMotion] = {}
         self._yaw_rates: dict[tuple[str, str], float] = {}
-    required_uids = ("radar_6455", "lidar_vlp16", "camera_front", "calibration")
-    calib_uids = ("radar_6455", "lidar_vlp16", "camera_front")
 
     def detector_files(self, frame_id: str) -> DetectorFiles:
         """No KITTI files; the frame's objects are its annotation where its ground-truth file exists."""
@@ -398,8 +400,10 @@ class AstyxReader(_AstyxIndex):
             dt = other.time_s - motion.time_s
             ego = (motion.ego_velocity_D + other.ego_velocity_D) / 2
             pair = (min(frame_id, other_id), max(frame_id, other_id))
-            if pair not in self._yaw_rates:
-                self._yaw_rates[pair] = estimate_yaw_rate(motion.lidar_D, other.lidar_D, ego, dt)
+            if pair not in self._yaw_rates:  # from the first frame of the pair to the second, whichever is read
+                first, second = (motion, other) if pair[0] == frame_id else (other, motion)
+                self._yaw_rates[pair] = estimate_yaw_rate(first.lidar_D, second.lidar_D, ego,
+                                                          second.time_s - first.time_s)
                 while len(self._yaw_rates) > MOTIONS_KEPT:
                     del self._yaw_rates[next(iter(self._yaw_rates))]
             T_now_other = ego_motion_transform(ego, -dt, self._yaw_rates[pair])
