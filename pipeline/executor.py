@@ -484,8 +484,15 @@ def one_blas_thread() -> threadpool_limits:
     return threadpool_limits(limits=1, user_api="blas")
 
 
+MAX_BATCH = 24
+"""Frames of one dask task at most. A reader that follows objects across frames (Astyx, VoD) reads
+the neighbours of a batch's first and last frame again on the worker that did not read them: on the
+141 Astyx frames in ../shared/data (2026-12-06) calibrate + heatmaps + patches on 2 workers ran at
+17.9-18.2 frames/s with batches of up to 8, 20.3-20.8 with 24 (the serial run 12.1-13.2)."""
+
+
 def _batches(todo: list[tuple[int, str]], slots: int, per_slot: int = 2,
-             max_batch: int = 8) -> list[list[tuple[int, str]]]:
+             max_batch: int = MAX_BATCH) -> list[list[tuple[int, str]]]:
     """Consecutive batches of frames that shrink towards the end of the run (guided scheduling):
     each holds the frames left divided by ``slots * per_slot`` (rounded up), at most
     ``max_batch``.

@@ -945,13 +945,13 @@ def test_force_recomputes_the_target_only_not_its_current_upstream_stages(tmp_pa
 @pytest.mark.parametrize("slots", [1, 2, 3])
 def test_dask_batches_hold_every_frame_once_in_order(n, slots):
     """A frame left out of every batch would stay pending after a run that reports no error."""
-    from pipeline.executor import _batches
+    from pipeline.executor import MAX_BATCH, _batches
 
     todo = [(i, f"f{i:03d}") for i in range(n)]
     batches = _batches(todo, slots)
     assert [item for batch in batches for item in batch] == todo
     sizes = [len(b) for b in batches]
-    assert all(sizes) and max(sizes) <= 8
+    assert all(sizes) and max(sizes) <= MAX_BATCH
     # they shrink (large ones are handed out first) down to one frame per worker at the end, so
     # that no worker idles while another finishes a large batch
     assert sizes == sorted(sizes, reverse=True)
@@ -961,10 +961,10 @@ def test_dask_batches_hold_every_frame_once_in_order(n, slots):
 
 
 def test_dask_batches_of_a_long_run_are_large_until_its_end():
-    from pipeline.executor import _batches
+    from pipeline.executor import MAX_BATCH, _batches
 
     sizes = [len(b) for b in _batches([(i, str(i)) for i in range(20_000)], 2)]
-    assert sizes.count(8) > 2480 and len(sizes) < 20_000 / 7.9
+    assert sizes.count(MAX_BATCH) > 20_000 // MAX_BATCH - 20 and len(sizes) < 20_000 / MAX_BATCH + 20
 
 
 def test_frame_random_streams_depend_on_seed_salt_and_frame_only():
