@@ -25,7 +25,6 @@ import numpy as np
 
 from pipeline import transfer
 from pipeline.cache import DONE, RaggedRows
-from pipeline.checkpoint import read_meta
 from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config, check_profile, named_nets
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
@@ -157,6 +156,7 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     """Train the configured nets; returns the summary (test metrics next to baselines)."""
+    from pipeline.checkpoint import read_meta
     from pipeline.inference import load_disnet, load_rssnet
     from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
 
@@ -327,17 +327,26 @@ def check(cfg: Config) -> None:
     check_training(cfg)
 
 
+HEADER_READ_BYTES = 1 << 16
+"""Bytes a read of a checkpoint's header fetches at a time (s3fs would fetch 5 MB)."""
+
+
 def resume_point(inputs, cfg: Config, out) -> str | None:
     """What an unfinished train left in ``out`` (a DirStore) for `pipeline status`: each net's last
-    finished epoch (its last checkpoint's sidecar), or that it was saved for other settings or
-    data, from which a run starts that net over; None when no net has a checkpoint."""
+    finished epoch, or that it was saved for other settings or data, from which a run starts that
+    net over; None when no net has a checkpoint. The epoch is the last checkpoint's own (its
+    header, without torch), the one a run resumes from: on a remote cache the JSON sidecar beside
+    it may arrive before it, and named one epoch more."""
     from pipeline.config import EPOCHS_KEYS
+    from pipeline.safetensors_meta import read_metadata
 
     said = []
     for net in (n for n in NETS if n in named_nets(cfg)):
         try:
-            with out.fs.open(out.file(f"{net}/last.json"), "r") as fh:
-                meta = json.load(fh)
+            with out.fs.open(out.file(f"{net}/last.safetensors"), "rb", block_size=HEADER_READ_BYTES) as fh:
+                meta = json.loads(read_metadata(fh).get("meta", "{}"))
+            if not isinstance(meta, dict):
+                raise ValueError("its metadata is not a JSON object")
         except FileNotFoundError:
             continue
         except (OSError, ValueError):

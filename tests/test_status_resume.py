@@ -50,6 +50,12 @@ def test_status_says_which_epochs_an_unfinished_train_resumes_from(tmp_path, mon
             pipe.run("train")
     row = _train_row(pipe)
     assert not row["exists"] and row["resumes_from"] == "disnet epoch 1 of 3", row
+    # the JSON sidecar of the next epoch's checkpoint, arrived before the checkpoint (one upload
+    # sends both, an object store in any order): the run resumes from the checkpoint, epoch 1
+    sidecar, = tmp_path.glob("**/disnet/last.json")
+    sidecar.write_text(sidecar.read_text().replace('"epoch": 1,', '"epoch": 2,'))
+    assert '"epoch": 2,' in sidecar.read_text()
+    assert _train_row(pipe)["resumes_from"] == "disnet epoch 1 of 3"
     assert _train_row(_pipe(cache, world, tmp_path / "staging", **{**settings, "train.epochs": "5"}))[
         "resumes_from"] == "disnet epoch 1 of 5"
     assert _train_row(_pipe(cache, world, tmp_path / "staging", **{**settings, "train.lr": "0.01"}))[
