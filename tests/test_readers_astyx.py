@@ -349,6 +349,40 @@ def test_fixture_car_velocity_from_neighbouring_boxes(tmp_path):
     assert reader.report()["objects_velocity_by_box_matching"] == 1
 
 
+def test_fixture_reader_reads_a_neighbour_again_once_its_files_change(tmp_path):
+    """A reader outlives a run on a cluster's workers: a neighbour's box moved in its file since
+    the reader last read it gives the velocity a new reader gives (the kept copy gave the old one)."""
+    import json
+
+    make_astyx_dataset(tmp_path, n_frames=2, speed_mps=8.0, car_velocity_D=(8.0, 0.0, 0.0))
+    (v0, _), reader = _car_velocities(tmp_path, ["000000", "000001"])
+    np.testing.assert_allclose(v0, [8.0, 0.0, 0.0], atol=0.1)
+    path = tmp_path / "groundtruth_obj3d" / "000001.json"
+    gt = json.loads(path.read_text())
+    gt["objects"][0]["center3d"][0] += 0.5   # 5 m/s faster over the 0.1 s
+    path.write_text(json.dumps(gt))
+    again = reader.read("000000").labels[0].velocity_D
+    (fresh,), _ = _car_velocities(tmp_path, ["000000"])
+    np.testing.assert_allclose(fresh, [13.0, 0.0, 0.0], atol=0.1)
+    np.testing.assert_array_equal(again, fresh)
+
+
+def test_fixture_reader_shared_by_threads_reads_what_it_reads_alone(tmp_path):
+    """A dask worker's threads share one reader: reads of the same frames from 4 threads at once,
+    in any order, give each frame the velocities a reader of its own gives, and none fails."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    make_astyx_dataset(tmp_path, n_frames=6, speed_mps=8.0, car_velocity_D=(12.0, 1.0, 0.0))
+    ids = [f"{i:06d}" for i in range(6)]
+    alone = {f: _car_velocities(tmp_path, [f])[0][0] for f in ids}
+    reader = get_reader(load_config("astyx").with_overrides({"camera.full_size": "64,48"}), tmp_path)
+    order = [ids[i] for i in np.random.default_rng(0).integers(0, 6, 60)]
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda f: reader.read(f).labels[0].velocity_D, order))
+    for f, v in zip(order, got):
+        np.testing.assert_array_equal(v, alone[f])
+
+
 def test_fixture_car_velocity_unknown_beyond_the_time_gap(tmp_path):
     """Frames 0.8 s apart (Astyx's ids one apart may be minutes apart): the boxes are not
     differenced; frame 2, 0.1 s after frame 1, is."""

@@ -39,8 +39,9 @@ speed for checking the ego-speed estimator, and its ``read`` raises ReaderError.
 from __future__ import annotations
 
 import json
+import threading
 import warnings
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
@@ -68,7 +69,11 @@ selection: ids one apart are 0.1 s to minutes apart. Over the 141 frames in ../s
 520 within 0.12 / 0.25 / 0.5 / 1 s)."""
 MOTIONS_KEPT = 4
 """Frames (time, ego velocity, boxes, lidar) and frame pairs (yaw rate) a reader keeps for the
-frames it reads next: a frame's neighbours are read next, as the neighbour or the frame itself."""
+frames it reads next: a frame's neighbours are read next, as the neighbour or the frame itself.
+Each is kept with the modification time and size of the files it was read from, and read again
+once one of them changes (a reader outlives a run on a cluster's workers)."""
+MOTION_FILES = ("radar_6455", "lidar_vlp16", "groundtruth_obj3d", "calibration")
+"""The files of a frame its FrameMotion is read from."""
 
 
 def load_json(path: Path, frame: str | None, what: str, pairs_hook=None) -> object:
@@ -312,8 +317,9 @@ class AstyxReader(_AstyxIndex):
 
     def __init__(self, cfg: Config, data_root: str | Path) -> None:
         super().__init__(cfg, data_root)
-        self._motions: dict[str, FrameMotion] = {}
-        self._yaw_rates: dict[tuple[str, str], float] = {}
+        self._motions: OrderedDict[tuple, FrameMotion] = OrderedDict()
+        self._yaw_rates: OrderedDict[tuple, float] = OrderedDict()
+        self._kept_lock = threading.Lock()  # a dask worker's threads share one reader
 
     def detector_files(self, frame_id: str) -> DetectorFiles:
         """No KITTI files; the frame's objects are its annotation where its ground-truth file exists."""
@@ -323,8 +329,9 @@ class AstyxReader(_AstyxIndex):
     def read(self, frame_id: str) -> FrameRecord:
         paths = self._paths(frame_id)
         T_radar_lidar, T_radar_cam, K = self._calibration(frame_id, self.calib_uids)
+        key = self._files_key(frame_id)
         radar = self.read_radar(frame_id)
-        seen = self._motions.get(frame_id)  # read already as the neighbour of the frame before
+        seen = self._recall(self._motions, key)  # read already as the neighbour of the frame before
         if seen is not None:
             lidar, fit = seen.lidar, seen.fit
         else:
@@ -336,8 +343,8 @@ class AstyxReader(_AstyxIndex):
             raise ReaderError(paths[self.radar_uid], "cannot estimate ego velocity: fewer than 3 static "
                                                      "points agree", frame=frame_id)
         motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit, self._labels(frame_id), lidar, T_radar_lidar)
-        self._remember(frame_id, motion)
-        self._object_velocities(frame_id, motion)
+        self._keep(self._motions, key, motion)
+        self._object_velocities(key, motion)
         record = FrameRecord(
             frame_id=frame_id, sequence_id=self.sequence_of(frame_id),
             timestamp_s=motion.time_s, image=image, K=K,
@@ -348,17 +355,36 @@ class AstyxReader(_AstyxIndex):
 
     # -- object velocities ---------------------------------------------------------------------
 
-    def _remember(self, frame_id: str, motion: FrameMotion) -> None:
-        """Keep the motion of the last few frames read: a frame's neighbours are read next."""
-        self._motions[frame_id] = motion
-        while len(self._motions) > MOTIONS_KEPT:
-            del self._motions[next(iter(self._motions))]
+    def _files_key(self, frame_id: str) -> tuple:
+        """(frame id, (modification time ns, size) of each of its MOTION_FILES, None where absent)."""
+        paths, stats = self._paths(frame_id), []
+        for uid in MOTION_FILES:
+            try:
+                st = paths[uid].stat()
+                stats.append((st.st_mtime_ns, st.st_size))
+            except (KeyError, OSError):
+                stats.append(None)
+        return frame_id, tuple(stats)
 
-    def _motion(self, frame_id: str) -> FrameMotion | None:
-        """Time, ego velocity and boxes of a neighbouring frame; None where it has no boxes or its
-        files do not give them (its own read names what is wrong)."""
-        if frame_id in self._motions:
-            return self._motions[frame_id]
+    def _recall(self, kept: OrderedDict, key: tuple):
+        with self._kept_lock:
+            return kept.get(key)
+
+    def _keep(self, kept: OrderedDict, key: tuple, value: object) -> None:
+        """Keep ``value`` of the last few frames or pairs read: a frame's neighbours are read next."""
+        with self._kept_lock:
+            kept[key] = value
+            kept.move_to_end(key)
+            while len(kept) > MOTIONS_KEPT:
+                kept.popitem(last=False)
+
+    def _motion(self, key: tuple) -> FrameMotion | None:
+        """Time, ego velocity and boxes of a neighbouring frame (its :meth:`_files_key`); None where
+        it has no boxes or its files do not give them (its own read names what is wrong)."""
+        frame_id = key[0]
+        seen = self._recall(self._motions, key)
+        if seen is not None:
+            return seen
         try:
             labels = self._labels(frame_id)
             if not labels:
@@ -371,10 +397,10 @@ class AstyxReader(_AstyxIndex):
         if fit.n_used < 3 or len(lidar) == 0:
             return None
         motion = FrameMotion(float(np.median(lidar[:, 5])) * 1e-6, fit, labels, lidar, T_radar_lidar)
-        self._remember(frame_id, motion)
+        self._keep(self._motions, key, motion)
         return motion
 
-    def _object_velocities(self, frame_id: str, motion: FrameMotion) -> None:
+    def _object_velocities(self, key: tuple, motion: FrameMotion) -> None:
         """Set each box's velocity over ground (in {D}) from the same object's boxes in the
         neighbouring frames (ids one apart in the sequence, at most MAX_NEIGHBOUR_GAP_S away),
         associated by :func:`pipeline.boxmatch.match_boxes` once the ego's motion between the two
@@ -389,24 +415,25 @@ class AstyxReader(_AstyxIndex):
         without; beyond 25 m 1.47 against 3.3 m/s. What is left is the boxes' own jitter."""
         if not motion.labels:
             return
+        frame_id = key[0]
         centres = box_reference_points(motion.labels)
         classes = [o.class_name for o in motion.labels]
         neighbours = []
         for step in (-1, 1):
             other_id = self._neighbour(frame_id, step)
-            other = self._motion(other_id) if other_id is not None else None
+            other_key = self._files_key(other_id) if other_id is not None else None
+            other = self._motion(other_key) if other_key is not None else None
             if other is None or not 0 < abs(other.time_s - motion.time_s) <= MAX_NEIGHBOUR_GAP_S:
                 continue
             dt = other.time_s - motion.time_s
             ego = (motion.ego_velocity_D + other.ego_velocity_D) / 2
-            pair = (min(frame_id, other_id), max(frame_id, other_id))
-            if pair not in self._yaw_rates:  # from the first frame of the pair to the second, whichever is read
-                first, second = (motion, other) if pair[0] == frame_id else (other, motion)
-                self._yaw_rates[pair] = estimate_yaw_rate(first.lidar_D, second.lidar_D, ego,
-                                                          second.time_s - first.time_s)
-                while len(self._yaw_rates) > MOTIONS_KEPT:
-                    del self._yaw_rates[next(iter(self._yaw_rates))]
-            T_now_other = ego_motion_transform(ego, -dt, self._yaw_rates[pair])
+            pair = tuple(sorted((key, other_key)))
+            yaw_rate = self._recall(self._yaw_rates, pair)
+            if yaw_rate is None:  # from the first frame of the pair to the second, whichever is read
+                first, second = (motion, other) if pair[0] == key else (other, motion)
+                yaw_rate = estimate_yaw_rate(first.lidar_D, second.lidar_D, ego, second.time_s - first.time_s)
+                self._keep(self._yaw_rates, pair, yaw_rate)
+            T_now_other = ego_motion_transform(ego, -dt, yaw_rate)
             other_centres = (box_reference_points(other.labels) @ T_now_other[:3, :3].T
                              + T_now_other[:3, 3])
             same = match_boxes(centres, classes, other_centres, [o.class_name for o in other.labels],
