@@ -62,6 +62,10 @@ class RunEnv:
     cache_root: str
     dataset: str
     data_root: str
+    session: str = field(default_factory=lambda: uuid.uuid4().hex[:12], compare=False)
+    """This environment's own token (one per command): what a process keeps of the raw dataset for
+    its frames (the reader and its index, the split) is kept for one session, so that a cluster's
+    workers, which outlive a run, read a dataset changed since (frames added) as it is now."""
 
     def store(self, stage: str) -> FrameStore:
         return frame_store(self.cache_root, self.dataset, stage)
@@ -70,7 +74,6 @@ class RunEnv:
         return dir_store(self.cache_root, self.dataset, stage)
 
 
-_READERS: dict[tuple, Any] = {}
 _MEMO: dict[tuple, Any] = {}
 
 
@@ -118,10 +121,11 @@ class FrameInputs:
 
     @property
     def reader(self):
-        """The dataset reader (built once per process)."""
+        """The dataset reader (built once per process and RunEnv.session)."""
         from pipeline.readers import get_reader
 
-        key = ("reader", self.env.cfg.dataset, self.env.cfg.camera, self.env.cfg.radar, self.env.data_root)
+        key = ("reader", self.env.cfg.dataset, self.env.cfg.camera, self.env.cfg.radar, self.env.data_root,
+               self.env.session)
         return process_memo(key, lambda: get_reader(self.env.cfg, self.env.data_root))
 
     def rng(self, seed: int, salt: int = 0) -> np.random.Generator:

@@ -74,7 +74,7 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
 
 
 def _split_table(inputs: FrameInputs) -> dict[str, int]:
-    """Split of every frame of the dataset (computed once per process)."""
+    """Split of every frame of the dataset (computed once per process and RunEnv.session)."""
     cfg = inputs.cfg
 
     def build() -> dict[str, int]:
@@ -85,7 +85,7 @@ def _split_table(inputs: FrameInputs) -> dict[str, int]:
         parts = assign_split(ids, seqs, s.rule, tuple(s.fractions), s.block_len, s.seed)
         return dict(zip(ids, (int(p) for p in parts)))
 
-    return process_memo(("split", inputs.env.data_root, cfg.split, cfg.dataset), build)
+    return process_memo(("split", inputs.env.data_root, cfg.split, cfg.dataset, inputs.env.session), build)
 
 
 def _labels_array(labels) -> np.ndarray:

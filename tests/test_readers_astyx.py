@@ -268,6 +268,33 @@ def test_calibrate_counts_radar_points_beyond_max_range(tmp_path):
         report.notes[0], report.notes
 
 
+def test_calibrate_reads_frames_added_since_a_run_in_the_same_process(tmp_path):
+    """A cluster's workers outlive a run and keep what they read of the dataset (its reader, the
+    split): frames added since are read as the new index has them, into the split a fresh process
+    gives (the kept reader called the new frame unknown and failed it)."""
+    from pipeline import executor
+    from pipeline.executor import Executor, RunEnv
+    from pipeline.runner import Pipeline
+    from stages import calibrate
+
+    cfg = load_config("astyx").with_overrides({"camera.full_size": "64,48", "camera.crop_rows": "0,48",
+                                               "camera.working_size": "64,48", "split.block_len": "1"})
+
+    def run(cache: str):
+        env = RunEnv(cfg=cfg, cache_root=str(tmp_path / cache), dataset="astyx", data_root=str(tmp_path / "data"))
+        report = Pipeline([calibrate.STAGE], env, Executor(1), progress=False, log=lambda m: None).run("calibrate")[0]
+        return report, env.store("calibrate").array("split")[:]
+
+    make_astyx_dataset(tmp_path / "data", n_frames=4)
+    assert run("cache")[0].done == 4
+    make_astyx_dataset(tmp_path / "data", n_frames=7)
+    report, split = run("cache")
+    assert (report.done, report.failed) == (7, 0), report.failures
+    executor._MEMO.clear()  # a fresh process
+    np.testing.assert_array_equal(split, run("fresh")[1])
+    assert len(set(split.tolist())) > 1
+
+
 def _rot(axis: str, angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     return {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
