@@ -32,6 +32,7 @@ fingerprint.
 from __future__ import annotations
 
 import hashlib
+import threading
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -384,16 +385,20 @@ def _with_own_camera(inputs: FrameInputs, cfg: Config, nets: Nets, prob_map: np.
     size = tuple(cfg.camera.working_size)
     key = (hashlib.sha1(prior.tobytes()).hexdigest(), repr(transfer.camera_record(camera)), K.tobytes(), T.tobytes(),
            size)
-    if key not in _MOVED_PRIORS:  # a few calibrations per dataset; KITTI's differ by drive
-        while len(_MOVED_PRIORS) >= MOVED_PRIORS_KEPT:
-            _MOVED_PRIORS.pop(next(iter(_MOVED_PRIORS)))
-        _MOVED_PRIORS[key] = transfer.prior_in_target(prior, camera, K, T, size)
-    return transfer.rebase_mixed_prior(prob_map, prior, _MOVED_PRIORS[key], float(nets.disnet.prior_mix))
+    moved = _MOVED_PRIORS.get(key)
+    if moved is None:  # a few calibrations per dataset; KITTI's differ by drive
+        moved = transfer.prior_in_target(prior, camera, K, T, size)
+        with _MOVED_PRIORS_LOCK:  # a dask worker's threads share it
+            while len(_MOVED_PRIORS) >= MOVED_PRIORS_KEPT:
+                _MOVED_PRIORS.pop(next(iter(_MOVED_PRIORS)))
+            _MOVED_PRIORS[key] = moved
+    return transfer.rebase_mixed_prior(prob_map, prior, moved, float(nets.disnet.prior_mix))
 
 
 MOVED_PRIORS_KEPT = 8
 """Moved priors a process keeps (one per distinct calibration, oldest dropped first)."""
 _MOVED_PRIORS: dict[tuple, np.ndarray] = {}
+_MOVED_PRIORS_LOCK = threading.Lock()
 
 
 def summarise(store, cfg: Config) -> list[str]:
