@@ -377,8 +377,9 @@ def test_fixture_car_velocity_from_neighbouring_boxes(tmp_path):
 
 
 def test_fixture_reader_reads_a_neighbour_again_once_its_files_change(tmp_path):
-    """A reader outlives a run on a cluster's workers: a neighbour's box moved in its file since
-    the reader last read it gives the velocity a new reader gives (the kept copy gave the old one)."""
+    """A reader used again (one RunEnv over several runs; a worker keeps one per command): a
+    neighbour's box moved in its file since the reader last read it gives the velocity a new reader
+    gives (the kept copy gave the old one)."""
     import json
 
     make_astyx_dataset(tmp_path, n_frames=2, speed_mps=8.0, car_velocity_D=(8.0, 0.0, 0.0))

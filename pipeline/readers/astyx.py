@@ -71,7 +71,8 @@ MOTIONS_KEPT = 4
 """Frames (time, ego velocity, boxes, lidar) and frame pairs (yaw rate) a reader keeps for the
 frames it reads next: a frame's neighbours are read next, as the neighbour or the frame itself.
 Each is kept with the modification time and size of the files it was read from, and read again
-once one of them changes (a reader outlives a run on a cluster's workers)."""
+once one of them changes. A worker keeps its reader for one command (RunEnv.session); this covers a
+reader used longer (the Python API: one RunEnv, several runs) or files rewritten during a run."""
 MOTION_FILES = ("radar_6455", "lidar_vlp16", "groundtruth_obj3d", "calibration")
 """The files of a frame its FrameMotion is read from."""
 

@@ -86,7 +86,8 @@ class VodReader(Reader):
 
     def _parsed(self, path: Path, parse: Callable[[], _T]) -> _T:
         """``parse()`` of ``path``, kept for the next call while the file keeps its modification time
-        and size (the last PARSED_FILES_KEPT files; a reader outlives a run on a cluster's workers).
+        and size (the last PARSED_FILES_KEPT files; a worker keeps its reader for one command,
+        RunEnv.session, and a reader used longer sees files changed since).
         A file that fails to parse is not kept: its error is raised again each time."""
         st = path.stat()
         key = (str(path), st.st_mtime_ns, st.st_size)
