@@ -387,7 +387,7 @@ def write_report(out_dir: str | Path, dataset: str, split: str,
         "Lower is better except precision, recall and F1. L_n is the mean of the squared relative "
         "count error; GOSPA parts are squared-metre contributions summing to GOSPA^2.\n\n"
         f"{metrics_table_md(table)}\n\n"
-        "## Distribution distances (1-D Wasserstein, all evaluated frames)\n\n"
+        "## Distribution distances (1-D Wasserstein; each method against the real points of the frames it has)\n\n"
         f"{distances_table_md(distances)}\n\n"
         + (f"## The model by ego speed (means over frames)\n\n{speed_table_md(by_speed)}\n\n" if by_speed else "")
         + f"## Physics checks (real frames)\n\n{physics_md(physics)}\n\n"

@@ -65,10 +65,11 @@ says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; 
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
 wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on (13: with another dataset's
 nets the report says that the baselines know this dataset's own radar)."""
-REPORT_VERSION = 16
+REPORT_VERSION = 17
 """The evaluate report's version (12: the RSS histogram bins each set apart when the units differ;
 14: the model compared with a baseline on the frames both have, the frames per row in the table;
-15: not compared with one that has none of its frames; 16: the count's parts, count_parts);
+15: not compared with one that has none of its frames; 16: the count's parts, count_parts; 17: a
+method's distribution distances against the real points of the frames it has, not of every frame);
 evaluate-frames keeps VERSION."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
@@ -460,14 +461,16 @@ def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool,
     real_counts = np.asarray(part.array("abs_dr_count").oindex[frames], np.float64)  # one row per real point
     bar = tqdm(total=3 * len(frames), desc="evaluate (report)", unit="frame", disable=not progress)
     with bar:
-        (points, n_points), (abs_dr, n_dr), (abs_dv, n_dv) = (_pooled(part, name, frames, rows_max, bar)
-                                                                for name in ("points", "abs_dr", "abs_dv"))
-    real = points[points[:, 0] == -1, 1:]
+        (points, n_points, point_frame), (abs_dr, n_dr, _), (abs_dv, n_dv, _) = (
+            _pooled(part, name, frames, rows_max, bar) for name in ("points", "abs_dr", "abs_dv"))
+    is_real = points[:, 0] == -1
+    real = points[is_real, 1:]
     distances = {}
     for row, spec in enumerate(METHODS):
         sph = points[points[:, 0] == row, 1:]
-        if spec.name in columns and len(sph):
-            distances[spec.name] = distribution_distances(sph, real, doppler_span_mps)
+        if spec.name in columns and len(sph):  # against the real points of the frames the method has
+            own_real = real if present[:, row].all() else points[is_real & present[point_frame, row], 1:]
+            distances[spec.name] = distribution_distances(sph, own_real, doppler_span_mps)
             if not with_rss:
                 distances[spec.name]["rss"] = float("nan")
     model_row = [spec.name for spec in METHODS].index("model")
@@ -486,8 +489,9 @@ def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool,
                    real_sph=real, model_sph=points[points[:, 0] == model_row, 1:], sampled=sampled)
 
 
-def _pooled(part, name: str, frames: np.ndarray, rows_max: int, bar) -> tuple[np.ndarray, int]:
-    """The rows of ragged array ``name`` of ``frames`` (F,), in order, and how many there are; above
+def _pooled(part, name: str, frames: np.ndarray, rows_max: int, bar) -> tuple[np.ndarray, int, np.ndarray]:
+    """The rows of ragged array ``name`` of ``frames`` (F,), in order, how many there are, and the
+    position in ``frames`` of each row's frame (int, one per row returned); above
     ``rows_max`` rows a random sample of about that many: each row kept with probability
     rows_max / rows (each frame's count drawn from the binomial, then that many of its rows without
     replacement; one stream, from the array's name, in frame order: the sample does not depend on
@@ -518,7 +522,7 @@ def _pooled(part, name: str, frames: np.ndarray, rows_max: int, bar) -> tuple[np
                 values = values[np.sort(rng.choice(rows[j], keep[j], replace=False))]
             out[offsets[j]:offsets[j + 1]] = values
         bar.update(len(block))
-    return out, total
+    return out, total, np.repeat(np.arange(len(frames)), keep)
 
 
 def count_parts(parts: np.ndarray, n_hat: np.ndarray, real: np.ndarray) -> str:

@@ -114,6 +114,36 @@ def test_a_failed_frame_is_left_out_and_said(synthesized, tmp_path, monkeypatch)
     assert reports["evaluate-frames"].processed == 1 and _report(pipe)["meta"]["frames"] == FRAMES
 
 
+def test_a_method_s_distribution_distances_use_the_real_points_of_its_own_frames(synthesized, tmp_path):
+    """previous-frame has no points on a sequence's first frame: its distribution distances compare
+    it with the real points of the frames it has, as its metrics are (before, with every frame's)."""
+    from pipeline.baselines import METHODS
+    from pipeline.metrics import distribution_distances
+
+    pipe = _copy(synthesized, tmp_path)
+    pipe.run("evaluate")
+    part = pipe.env.store("evaluate-frames")
+    frames = np.flatnonzero(part.status() == DONE)
+    names = [spec.name for spec in METHODS]
+    present = np.asarray(part.array("present").oindex[frames], bool)
+    counts = np.asarray(part.array("points_count")[:])[frames]
+    rows = [np.asarray(part.array("points")[int(i), :n]) for i, n in zip(frames, counts)]
+    summary = evaluate.summarise(part, frames, 0.0, True, 10**9, False)
+    previous, model = names.index("previous-frame"), names.index("model")
+    assert present[:, previous].any() and not present[:, previous].all()
+
+    def pooled(method: int, only: np.ndarray) -> np.ndarray:
+        return np.concatenate([r[r[:, 0] == method, 1:] for r, keep in zip(rows, only) if keep])
+
+    everywhere = np.ones(len(frames), bool)
+    mine = distribution_distances(pooled(previous, everywhere), pooled(-1, present[:, previous]), 0.0)
+    assert summary.distances["previous-frame"] == mine
+    assert mine != distribution_distances(pooled(previous, everywhere), pooled(-1, everywhere), 0.0)
+    assert summary.distances["model"] == distribution_distances(pooled(model, everywhere), pooled(-1, everywhere), 0.0)
+    assert "real points of the frames it has" in (Path(pipe.env.cache_root) / "synthetic" / "evaluate" /
+                                                  "report.md").read_text()
+
+
 def test_the_report_pools_a_random_sample_above_eval_pooled_rows_max(synthesized, tmp_path, monkeypatch):
     """Above eval.pooled_rows_max the report's pooled rows are a random sample of the rows of every
     frame, the same however the frames are read; the per-frame metrics are untouched, and the
@@ -125,12 +155,15 @@ def test_the_report_pools_a_random_sample_above_eval_pooled_rows_max(synthesized
     part = pipe.env.store("evaluate-frames")
     frames = np.flatnonzero(part.status() == DONE)
     counts = np.asarray(part.array("points_count")[:])[frames]
-    full, total = evaluate._pooled(part, "points", frames, 10**9, tqdm(disable=True))
+    full, total, row_frame = evaluate._pooled(part, "points", frames, 10**9, tqdm(disable=True))
     assert total == len(full) == counts.sum()
+    assert np.array_equal(row_frame, np.repeat(np.arange(len(frames)), counts))
     assert np.array_equal(full, np.concatenate([np.asarray(part.array("points")[int(i), :n]) for i, n in
                                                 zip(frames, counts)]))
     k = total // 3
-    sample, sampled_total = evaluate._pooled(part, "points", frames, k, tqdm(disable=True))
+    sample, sampled_total, sample_frame = evaluate._pooled(part, "points", frames, k, tqdm(disable=True))
+    assert len(sample_frame) == len(sample) and np.all(np.diff(sample_frame) >= 0)
+    assert all(tuple(r) in {tuple(x) for x in full[row_frame == f]} for r, f in zip(sample[:50], sample_frame[:50]))
     assert sampled_total == total and abs(len(sample) - k) < 4 * np.sqrt(k)  # each row kept with probability k / total
     full_rows = {tuple(r) for r in full}
     assert all(tuple(r) in full_rows for r in sample) and len({tuple(r) for r in sample}) > 0.95 * len(sample)
