@@ -115,10 +115,9 @@ def export_frame(f, fid: str, pts: np.ndarray, split_name: str, cfg: Config, roo
     subset = "testing" if split_name == "test" else "training"
     calib_src, label, image_src, record = _detector_files(f, fid, K, T_cam_radar, cfg)
     if label is not None:
-        found = label_classes(label)
-        tally.unused -= set(found)
-        tally.classes[subset].update({class_map.get(kind, kind): n for kind, n in found.items()})
+        tally.unused -= set(label_classes(label))
         label = rename_classes(label, class_map)
+        tally.classes[subset].update(label_classes(label))  # as written: two classes renamed to one add up
     radar_root = root / "radar"
     write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
     if len(rows) == 0:

@@ -523,6 +523,17 @@ def test_the_export_stage_writes_noise_pcd_previews_and_counts_what_it_wrote(tmp
         written = cv2.imread(str(radar / "image_2" / f"{fid}.png"))[:, :, ::-1]
         np.testing.assert_array_equal(written, reader.read(fid).image)
 
+    # two classes renamed to one: the counts are those of the written labels (before 2026-12-06 the
+    # renamed class's count replaced the other's)
+    merged = replace(env, cfg=cfg.with_overrides({"export.class_names": "Pedestrian=Car", "export.pcd": "false",
+                                                  "export.previews": "false"}))
+    written = label_classes("".join((radar / "label_2" / f"{fid}.txt").read_text() for fid in ids))
+    summary = _export(merged, points, tmp_path / "merged")
+    labels = label_classes("".join((tmp_path / "merged/radar/training/label_2" / f"{fid}.txt").read_text()
+                                   for fid in ids))
+    assert written["Pedestrian"] >= 1 and written["Car"] >= 1
+    assert summary["classes"]["training"] == dict(labels) and labels["Car"] == written["Car"] + written["Pedestrian"]
+
 
 def test_the_export_stage_generates_calib_labels_and_images_for_a_dataset_without_kitti_files(tmp_path: Path):
     """Astyx has no KITTI files: the export writes a calib generated for the full-resolution
