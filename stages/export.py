@@ -19,7 +19,9 @@ ego_velocity_unknown.txt, the frames whose dataset records no ego motion (their 
 stopped car's: filter them out of Doppler-using training), absent when there are none;
 object_velocity_unknown.txt, the frames with points on labelled objects whose velocity the dataset
 does not record (no track to difference: the View-of-Delft example frames, Astyx), whose Doppler is
-a static object's, absent when there are none.
+a static object's, absent when there are none; label_missing.txt, the frames under training/
+written without a label_2 file (the dataset labels none for them; OpenPCDet's info generation
+needs one for every train and val frame), absent when there are none.
 Config: export.* (noise_fraction: the paper's 5% uniform noise points; class_names: classes renamed
 in the labels, whose boxes per class the summary counts), radar.* (noise bounds, the
 Doppler span that v_r and v_r_compensated lie in),
@@ -47,7 +49,7 @@ CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
                "radar.doppler_span_mps",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
-VERSION = 6
+VERSION = 7
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
 3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
 out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
@@ -56,7 +58,8 @@ v_r_compensated wrapped into an aliasing radar's span (Astyx: 56% of its points 
 4: a track id's truncation column gets the box's truncation from the calib's P2, not 0 (boxes cut by
 the image edge were rated 'Easy' by OpenPCDet).
 5: export.class_names renames classes in the labels; the summary counts the boxes per class.
-6: object_velocity_unknown.txt and the summary's count of points on objects of unknown velocity."""
+6: object_velocity_unknown.txt and the summary's count of points on objects of unknown velocity.
+7: label_missing.txt and the summary's count of training/ frames without a label file."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 
@@ -67,6 +70,7 @@ class _Tally:
     lists: dict[str, list[str]] = field(default_factory=lambda: {name: [] for name in SPLIT_NAMES.values()})
     no_motion: list[str] = field(default_factory=list)  # frames whose dataset records no ego motion
     empty: list[str] = field(default_factory=list)      # frames written without a point
+    unlabelled: list[str] = field(default_factory=list)  # frames under training/ written without label_2
     unknown_motion: dict[str, int] = field(default_factory=dict)  # frame -> points on objects of unknown velocity
     classes: dict[str, Counter[str]] = field(default_factory=lambda: {"training": Counter(), "testing": Counter()})
     unused: set[str] = field(default_factory=set)  # names of export.class_names no label holds (a misspelt class)
@@ -94,10 +98,13 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         (root / NO_MOTION_LIST).write_text("\n".join(tally.no_motion) + "\n")
     if tally.unknown_motion:
         (root / UNKNOWN_OBJECT_MOTION_LIST).write_text("\n".join(tally.unknown_motion) + "\n")
+    if tally.unlabelled:
+        (root / UNLABELLED_LIST).write_text("\n".join(tally.unlabelled) + "\n")
     n_unknown = sum(tally.unknown_motion.values())
     return {"frames": int(len(done)), "points": int(tally.points), "noise_points": int(tally.noise),
             "output": str(root), "no_ego_motion": len(tally.no_motion), "empty_frames": tally.empty,
             "object_motion_unknown": {"frames": len(tally.unknown_motion), "points": int(n_unknown)},
+            "training_frames_without_label": len(tally.unlabelled),
             "classes": {subset: dict(counts) for subset, counts in tally.classes.items()},
             "classes_not_found": sorted(tally.unused), "message": _message(tally, len(done), root, cfg)}
 
@@ -118,6 +125,8 @@ def export_frame(f, fid: str, pts: np.ndarray, split_name: str, cfg: Config, roo
         tally.unused -= set(label_classes(label))
         label = rename_classes(label, class_map)
         tally.classes[subset].update(label_classes(label))  # as written: two classes renamed to one add up
+    elif subset == "training":
+        tally.unlabelled.append(fid)
     radar_root = root / "radar"
     write_kitti_layout(radar_root, fid, rows, calib=calib_src, image=image_src, subset=subset, label=label)
     if len(rows) == 0:
@@ -208,6 +217,10 @@ def _message(tally: _Tally, frames: int, root: Path, cfg: Config) -> str:
             + (f"; {len(empty)} of them without a point (an empty .bin, on which a detector's "
                f"voxelisation may fail): {', '.join(empty[:5])}{' ...' if len(empty) > 5 else ''}"
                if empty else "")
+            + (f"; {len(tally.unlabelled)} of the frames under training/ have no label_2 file (the dataset "
+               f"labels none for them), which OpenPCDet's info generation needs for every train and val frame: "
+               f"label them or take them out of ImageSets/train.txt and val.txt (listed in "
+               f"{root / UNLABELLED_LIST})" if tally.unlabelled else "")
             + ("" if tally.lists["train"] else _no_train_hint(cfg)))
 
 
@@ -240,6 +253,12 @@ UNKNOWN_OBJECT_MOTION_LIST = "object_velocity_unknown.txt"
 """Under the export folder: the exported frames with points on labelled objects whose velocity the
 dataset does not record (their Doppler is a static object's), one id per line; absent when there
 are none."""
+
+
+UNLABELLED_LIST = "label_missing.txt"
+"""Under the export folder: the frames under training/ written without a label_2 file (the dataset
+labels none for them: MSC-Rad4R, an Astyx frame without its ground-truth file), one id per line;
+absent when there are none."""
 
 
 def check(cfg: Config) -> None:

@@ -594,3 +594,34 @@ def test_the_export_message_names_five_empty_frames_and_marks_more():
         message = _message(tally, k, Path("out"), cfg)
         listed = message.split("voxelisation may fail): ")[1]
         assert listed == ", ".join(tally.empty[:5]) + (" ..." if k > 5 else "")
+
+
+def test_the_export_names_training_frames_without_a_label_file(tmp_path: Path):
+    """A View-of-Delft frame of the train split without its label file is written without label_2,
+    which OpenPCDet's info generation asserts on: the message says so and lists it (before
+    2026-12-06 nothing did); a test frame without one is no problem (OpenPCDet reads no test label)."""
+    from pipeline.readers.testing import make_vod_dataset
+    from stages.export import UNLABELLED_LIST
+
+    ids = make_vod_dataset(tmp_path / "data", n_frames=3, speed_mps=5.0).frame_ids
+    (tmp_path / "data/lidar/training/label_2" / f"{ids[1]}.txt").unlink()
+    overrides = {"camera.working_size": "64,48", "export.images": "false", "export.pcd": "false",
+                 "export.previews": "false", "split.rule": "random", "split.fractions": "1,0,0", "synth.split": "all"}
+    env = _calibrated(tmp_path, "vod", overrides)
+    rng = np.random.default_rng(0)
+    points = [_synthesized(env.store("calibrate").read("lidar", i)[:5].astype(np.float64), rng, env.cfg)
+              for i in range(3)]
+    summary = _export(env, points, tmp_path / "out")
+    labels = tmp_path / "out" / "radar" / "training" / "label_2"
+    assert sorted(p.stem for p in labels.iterdir()) == sorted([ids[0], ids[2]])
+    assert summary["training_frames_without_label"] == 1
+    assert (tmp_path / "out" / UNLABELLED_LIST).read_text().split() == [ids[1]]
+    assert "1 of the frames under training/ have no label_2 file" in summary["message"]
+    assert str(tmp_path / "out" / UNLABELLED_LIST) in summary["message"]
+
+    (tmp_path / "test").mkdir()
+    (tmp_path / "test" / "data").symlink_to(tmp_path / "data")
+    tested = _calibrated(tmp_path / "test", "vod", {**overrides, "split.fractions": "0,0,1"})
+    summary = _export(tested, points, tmp_path / "test" / "out")
+    assert summary["training_frames_without_label"] == 0 and "label_2 file" not in summary["message"]
+    assert not (tmp_path / "test" / "out" / UNLABELLED_LIST).exists()
