@@ -33,7 +33,8 @@ def _cfg():
 
 def _write_calibration(folder: Path) -> None:
     folder.mkdir(parents=True)
-    kt = "\n".join("  " + " ".join(f"{v:g}" for v in row) for row in K.T)  # MATLAB (transposed) form
+    matlab = K + np.array([[0, 0, 1], [0, 0, 1], [0, 0, 0]])  # MATLAB's pixel centres start at (1, 1)
+    kt = "\n".join("  " + " ".join(f"{v:g}" for v in row) for row in matlab.T)  # MATLAB (transposed) form
     (folder / "CALIBRATION_CAMERA.txt").write_text(
         f"Stereo parameters\nLeft camera\nIntrinsic (K)\n{kt}\nRadial Distortion\n  -0.23 0.12\n"
         f"Right camera\nIntrinsic (K)\n  99 0 0\n 0 99 0\n 30 20 1\nRadial Distortion\n -0.1 0.0\n")
@@ -257,3 +258,17 @@ def test_folder_turned_extrinsics_millimetres_and_three_radial_terms(tmp_path):
     np.testing.assert_allclose(lidar_cam, truth["lidar"][1][:, :3] @ R_lidar.T + T_CAM_LIDAR_T, atol=1e-4)
     expected = cv2.undistort(_image(2), K, np.array([-0.23, 0.12, 0.0, 0.0, -0.05]))[:, :, ::-1]
     np.testing.assert_array_equal(rec.image, expected)
+
+
+def test_camera_calibration_moves_matlabs_one_based_principal_point(tmp_path):
+    """MATLAB's export puts the centre of a 720 x 540 image at (360.5, 270.5), OpenCV at (359.5,
+    269.5): K comes back in OpenCV's convention, in either orientation of the matrix (before
+    2026-12-06 it kept MATLAB's, one pixel off)."""
+    from pipeline.readers.msc import read_camera_calibration
+
+    for text in ("700 0 0\n0 700 0\n360.5 270.5 1", "700 0 360.5\n0 700 270.5\n0 0 1"):
+        path = tmp_path / "CALIBRATION_CAMERA.txt"
+        path.write_text(f"Left camera\nIntrinsic (K)\n{text}\nRadial Distortion\n-0.23 0.12\n")
+        K, dist = read_camera_calibration(path)
+        np.testing.assert_allclose(K, [[700, 0, 359.5], [0, 700, 269.5], [0, 0, 1]])
+        np.testing.assert_allclose(dist, [-0.23, 0.12, 0, 0, 0])

@@ -97,13 +97,21 @@ def _numbers_after(lines: list[str], keyword: str, count: int, path: Path, start
     return np.array(found if one_line else found[:count])
 
 
+MATLAB_PIXEL_ORIGIN = 1.0
+"""MATLAB's pixel coordinates put the top-left pixel's centre at (1, 1), OpenCV's (and {D}'s
+projections') at (0, 0): a MATLAB principal point is this much larger (MathWorks'
+cameraIntrinsicsToOpenCV subtracts it)."""
+
+
 def read_camera_calibration(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(K (3, 3), distortion (5,) k1 k2 p1 p2 k3) of the left camera from the MATLAB-style export."""
+    """(K (3, 3) in OpenCV's pixel convention, distortion (5,) k1 k2 p1 p2 k3) of the left camera
+    from the MATLAB stereo export (its principal point moved by MATLAB_PIXEL_ORIGIN)."""
     lines = require_file(path, None, "camera calibration").read_text(errors="replace").splitlines()
     start = next((i for i, line in enumerate(lines) if "left" in line.lower()), 0)
     K = _numbers_after(lines, r"intrinsic", 9, path, start).reshape(3, 3)
     if np.allclose(K[:2, 2], 0) and not np.allclose(K[2, :2], 0):
         K = K.T  # MATLAB IntrinsicMatrix is the transpose of the OpenCV K
+    K[:2, 2] -= MATLAB_PIXEL_ORIGIN * K[2, 2]
     radial = _numbers_after(lines, r"radial\s*distortion", 1, path, start, one_line=True)
     dist = np.zeros(5)
     dist[[0, 1, 4][:min(3, radial.size)]] = radial[:3]
@@ -153,6 +161,8 @@ class MscReader(Reader):
     """Common calibration, conversion and record building; use ``MscReader.open`` to get a reader."""
 
     name = "msc"
+    version = 2
+    """2 (2026-12-06): K's principal point in OpenCV's pixel convention (MATLAB_PIXEL_ORIGIN)."""
 
     def __init__(self, cfg: Config, data_root: str | Path, pair_tolerance_s: float = 0.05,
                  calib_dir: str | Path | None = None) -> None:
