@@ -272,3 +272,23 @@ def test_camera_calibration_moves_matlabs_one_based_principal_point(tmp_path):
         K, dist = read_camera_calibration(path)
         np.testing.assert_allclose(K, [[700, 0, 359.5], [0, 700, 269.5], [0, 0, 1]])
         np.testing.assert_allclose(dist, [-0.23, 0.12, 0, 0, 0])
+
+
+def test_lidar_beams_without_a_return_are_left_out(tmp_path):
+    """An organized Ouster scan keeps beams without a return as NaN or (0, 0, 0): they are left out
+    and counted (before 2026-12-06 a NaN refused the whole frame, and zeros became a cluster of
+    points at the lidar's mount)."""
+    truth = make_folder(tmp_path)
+    pts = truth["lidar"][1].copy()
+    pts[::7, :3] = np.nan
+    pts[3::7, :3] = 0.0
+    PointCloud.from_points(pts, ("x", "y", "z", "intensity"), [np.float32] * 4).save(tmp_path / "2_LIDAR/PCD/000001.pcd")
+    reader = get_reader(_cfg(), tmp_path)
+    rec = reader.read("000002")
+    kept = np.isfinite(pts[:, 0]) & np.any(pts[:, :3] != 0, axis=1)
+    assert len(rec.lidar_D) == kept.sum() < len(pts) and np.all(np.isfinite(rec.lidar_D))
+    lidar_cam = pts[kept, :3] @ R_CAM_D.T + T_CAM_LIDAR_T
+    T_cam_radar = invert_transform(rec.T_radar_cam)
+    np.testing.assert_allclose(rec.lidar_D @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3], lidar_cam, atol=1e-4)
+    np.testing.assert_array_equal(rec.lidar_intensity, pts[kept, 3])
+    assert reader.report()["lidar_points_without_return"] == len(pts) - kept.sum()

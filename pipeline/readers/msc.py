@@ -162,7 +162,9 @@ class MscReader(Reader):
 
     name = "msc"
     version = 2
-    """2 (2026-12-06): K's principal point in OpenCV's pixel convention (MATLAB_PIXEL_ORIGIN)."""
+    """2 (2026-12-06): K's principal point in OpenCV's pixel convention (MATLAB_PIXEL_ORIGIN); lidar
+    beams without a return (NaN or the origin in an organized scan) left out, counted in the report's
+    lidar_points_without_return."""
 
     def __init__(self, cfg: Config, data_root: str | Path, pair_tolerance_s: float = 0.05,
                  calib_dir: str | Path | None = None) -> None:
@@ -223,6 +225,11 @@ class MscReader(Reader):
             raise ReaderError(image_path, f"image is {w}x{h} pixels, expected "
                                           f"{self.cfg.camera.full_size[0]}x{self.cfg.camera.full_size[1]}", frame=fid)
         image = cv2.undistort(image_bgr, K, dist)[:, :, ::-1]
+        xyz = lidar_xyzi[:, :3]
+        no_return = ~np.all(np.isfinite(xyz), axis=1) | np.all(xyz == 0, axis=1)
+        if no_return.any():  # an organized Ouster scan keeps its beams without a return, as NaN or (0, 0, 0)
+            self._counts["lidar_points_without_return"] += int(no_return.sum())
+            lidar_xyzi = lidar_xyzi[~no_return]
         check_finite(lidar_xyzi, lidar_path, fid, "lidar")
         check_not_empty(lidar_xyzi, lidar_path, fid, "lidar")
         lidar_D = lidar_xyzi[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
