@@ -37,6 +37,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from pipeline import augment
 from pipeline import checkpoint as ckpt
 from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS
+from pipeline.continuation import continuation_problem
 from pipeline.errors import ConfigError
 from pipeline.net_baselines import mean_map_baseline, speed_count_prior
 from pipeline.inference import (RESIDUAL_KEY, RESIDUAL_LEVELS, device_of, disnet_inputs, jsonable_arch,
@@ -238,7 +239,7 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     scored = ema.module if ema is not None else spec.model  # the weights validated and saved as best
     rng = np.random.default_rng(cfg.train.seed)
     state = {"epoch": 0, "best_epoch": 0, "best_metric": math.inf, "curves": []}
-    resumed = _resume(last, best, spec, optimizer, fingerprint, device, ema)
+    resumed = _resume(last, best, spec, optimizer, fingerprint, device, n_epochs, ema)
     if resumed is not None:
         state, rng = resumed
     start = state["epoch"]
@@ -359,15 +360,20 @@ def _save_last(path: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, rng
 
 
 def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, fingerprint: str,
-            device: torch.device, ema: AveragedModel | None = None) -> tuple[dict[str, Any], np.random.Generator] | None:
-    """Restore model, optimizer, RNGs (and ``ema``) from ``last`` when it matches; else clear stale files."""
+            device: torch.device, n_epochs: int,
+            ema: AveragedModel | None = None) -> tuple[dict[str, Any], np.random.Generator] | None:
+    """Restore model, optimizer, RNGs (and ``ema``) from ``last`` when it matches and a run of
+    ``n_epochs`` may continue it (pipeline.continuation); else clear the net's checkpoints, so that
+    it trains from scratch."""
     if not last.exists():
         return None
     meta = ckpt.read_meta(last)
     if meta.get("net") != spec.name:
         raise ValueError(f"{last} is a {meta.get('net')!r} checkpoint: train {spec.name} in its own folder")
-    if meta.get("fingerprint") != fingerprint or meta.get("arch") != spec.arch:
-        log.warning("%s: saved for other settings; training %s from scratch", last, spec.name)
+    problem = ("saved for other settings" if meta.get("fingerprint") != fingerprint or meta.get("arch") != spec.arch
+               else continuation_problem(meta, n_epochs))
+    if problem:
+        log.warning("%s: %s; training %s from scratch", last, problem, spec.name)
         for p in (last, best, last.with_suffix(".json"), best.with_suffix(".json")):
             p.unlink(missing_ok=True)
         return None

@@ -145,7 +145,7 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
     training afresh instead of resuming checkpoints that never saw it).
 
     Raising train.epochs (placement.epochs for PlaceNet) re-runs the stage but continues from the
-    last finished epoch.
+    last finished epoch; lowering them below it trains the net again (pipeline.continuation).
     """
     from pipeline.training import default_fingerprint
 
@@ -333,11 +333,13 @@ HEADER_READ_BYTES = 1 << 16
 
 def resume_point(inputs, cfg: Config, out) -> str | None:
     """What an unfinished train left in ``out`` (a DirStore) for `pipeline status`: each net's last
-    finished epoch, or that it was saved for other settings or data, from which a run starts that
-    net over; None when no net has a checkpoint. The epoch is the last checkpoint's own (its
+    finished epoch, or that it was saved for other settings or data or has more epochs than now
+    asked (pipeline.continuation), from which a run starts that net over; None when no net has a
+    checkpoint. The epoch is the last checkpoint's own (its
     header, without torch), the one a run resumes from: on a remote cache the JSON sidecar beside
     it may arrive before it, and named one epoch more."""
     from pipeline.config import EPOCHS_KEYS
+    from pipeline.continuation import continuation_problem
     from pipeline.safetensors_meta import read_metadata
 
     said = []
@@ -352,10 +354,13 @@ def resume_point(inputs, cfg: Config, out) -> str | None:
         except (OSError, ValueError):
             said.append(f"{net}: an unreadable checkpoint")
             continue
-        if meta.get("fingerprint") == training_fingerprint(inputs, cfg, net):
-            said.append(f"{net} epoch {meta.get('epoch')} of {cfg.get(EPOCHS_KEYS[net])}")
-        else:
+        n_epochs = int(cfg.get(EPOCHS_KEYS[net]))
+        if meta.get("fingerprint") != training_fingerprint(inputs, cfg, net):
             said.append(f"{net} epoch {meta.get('epoch')} for other settings or data (trains again)")
+        elif continuation_problem(meta, n_epochs):
+            said.append(f"{net} epoch {meta.get('epoch')}, more than the {n_epochs} now asked (trains again)")
+        else:
+            said.append(f"{net} epoch {meta.get('epoch')} of {n_epochs}")
     return ", ".join(said) or None
 
 

@@ -58,6 +58,8 @@ def test_status_says_which_epochs_an_unfinished_train_resumes_from(tmp_path, mon
     assert _train_row(pipe)["resumes_from"] == "disnet epoch 1 of 3"
     assert _train_row(_pipe(cache, world, tmp_path / "staging", **{**settings, "train.epochs": "5"}))[
         "resumes_from"] == "disnet epoch 1 of 5"
+    assert _train_row(_pipe(cache, world, tmp_path / "staging", **{**settings, "train.epochs": "0"}))[
+        "resumes_from"] == "disnet epoch 1, more than the 0 now asked (trains again)"  # a fresh run of 0
     assert _train_row(_pipe(cache, world, tmp_path / "staging", **{**settings, "train.lr": "0.01"}))[
         "resumes_from"] == "disnet epoch 1 for other settings or data (trains again)"
     if where == "remote":  # another machine's staging folder holds nothing: the remote has no checkpoint yet

@@ -22,6 +22,7 @@ from pipeline import net_baselines as B
 from pipeline import rows as R
 from pipeline import training as T
 from pipeline.config import load_config
+from pipeline.continuation import continuation_problem
 from pipeline.errors import ConfigError
 
 torch.set_num_threads(1)
@@ -167,6 +168,25 @@ def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
     fresh = T.train_disnet(tiny_cfg(**{"train.epochs": "1"}), data, tmp_path / "b", progress=False,
                            fingerprint="other")
     assert fresh.resumed_from == 0 and fresh.epoch == 1
+
+
+def test_fewer_epochs_than_a_checkpoint_has_train_again_from_scratch(tmp_path):
+    """Lowering train.epochs below a finished run's gives the nets a fresh run of that length:
+    before 2026-12-06 training 'resumed' from the longer run's last epoch, did nothing, and kept
+    its nets (and best epoch) under the shorter setting without a word."""
+    data = make_disnet_data(n=12)
+    long = T.train_disnet(tiny_cfg(**{"train.epochs": "3"}), data, tmp_path / "a", progress=False, fingerprint="fp")
+    assert long.epoch == 3
+    short = T.train_disnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "a", progress=False, fingerprint="fp")
+    fresh = T.train_disnet(tiny_cfg(**{"train.epochs": "2"}), data, tmp_path / "b", progress=False, fingerprint="fp")
+    assert short.resumed_from == 0 and short.epoch == 2 == ckpt.read_meta(short.last_path)["epoch"]
+    a, b = _all_tensors(short.best_path), _all_tensors(fresh.best_path)
+    assert set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a)
+    # the same length again, or more, continues
+    assert T.train_disnet(tiny_cfg(**{"train.epochs": "3"}), data, tmp_path / "a", progress=False,
+                          fingerprint="fp").resumed_from == 2
+    assert continuation_problem({"epoch": 3}, 2) == "it has 3 epochs, more than the 2 asked"
+    assert continuation_problem({"epoch": 2}, 2) is None and continuation_problem({}, 0) is None
 
 
 def test_cosine_schedule_and_its_fingerprint():
