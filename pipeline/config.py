@@ -437,6 +437,14 @@ ADDED_KEYS: dict[str, Any] = {"synth.rss_sampling": "mean", "disnet.prior_mix": 
 made with: at that value a key is left out of the fingerprint, so adding it recomputes nothing."""
 
 
+READER_KEYS: dict[str, str] = {"dataset.world_frames": "synthetic", "dataset.world_seed": "synthetic",
+                               "dataset.world_resolution": "synthetic", "dataset.world_sequence_len": "synthetic",
+                               "dataset.radar_mount_T_radar_lidar": "kitti"}
+"""Keys that only one reader (dataset.reader) uses: under another, a fingerprint takes them at their
+defaults, so that setting one (PIPELINE__DATASET__WORLD_FRAMES for `make demo-large`, say) leaves
+that dataset's outputs current (since 2026-12-06; before, it recomputed them from calibrate on)."""
+
+
 @dataclass(frozen=True)
 class Config:
     """A complete configuration: the profile name plus one frozen section per concern."""
@@ -465,10 +473,19 @@ class Config:
 
     def fingerprint(self, keys: tuple[str, ...] | list[str]) -> str:
         """Stable hash (16 hex digits) of the values of ``keys``; a key of ADDED_KEYS at the value
-        it names is left out (outputs made before the key existed stay current)."""
-        payload = json.dumps({k: _jsonable(self.get(k)) for k in sorted(keys)
-                              if k not in ADDED_KEYS or self.get(k) != ADDED_KEYS[k]}, sort_keys=True)
+        it names is left out (outputs made before the key existed stay current), a key of
+        READER_KEYS under another reader taken at its default."""
+        values = {k: self._fingerprinted(k) for k in sorted(keys)}
+        payload = json.dumps({k: _jsonable(v) for k, v in values.items()
+                              if k not in ADDED_KEYS or v != ADDED_KEYS[k]}, sort_keys=True)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+    def _fingerprinted(self, key: str) -> Any:
+        """The value of ``key`` that a fingerprint takes (READER_KEYS)."""
+        if key in READER_KEYS and READER_KEYS[key] != self.dataset.reader:
+            section, name = _split_key(key)
+            return getattr(SECTIONS[section](), name)
+        return self.get(key)
 
     def with_overrides(self, overrides: dict[str, str]) -> "Config":
         """A copy with ``{'section.key': 'text value'}`` applied (values parsed by the field type)."""

@@ -1063,6 +1063,32 @@ def test_a_key_added_later_is_left_out_of_fingerprints_at_its_old_value():
         assert residual.fingerprint(without) == cfg.fingerprint(without)
 
 
+def test_a_key_of_another_reader_leaves_a_dataset_s_fingerprints_alone():
+    """dataset.world_* only shape the synthetic world, dataset.radar_mount_T_radar_lidar only
+    KITTI's radar: set for another dataset (PIPELINE__DATASET__WORLD_FRAMES=2400 from `make
+    demo-large` left in a shell, say) they recomputed its whole cache from calibrate on until
+    2026-12-06; now its fingerprints stay those of before, and the reader that uses a key still
+    sees it change."""
+    import hashlib
+    import json
+
+    from pipeline.config import READER_KEYS, _jsonable
+    from stages.calibrate import CONFIG_KEYS
+
+    world = {"dataset.world_frames": "40", "dataset.world_seed": "3", "dataset.world_resolution": "320,192",
+             "dataset.world_sequence_len": "10"}
+    mount = {"dataset.radar_mount_T_radar_lidar": "1,0,0,-1.5,0,1,0,0,0,0,1,1.0,0,0,0,1"}
+    assert set(world) | set(mount) == set(READER_KEYS) <= set(CONFIG_KEYS)
+    for profile in ("astyx", "vod", "msc", "kitti", "synthetic"):
+        cfg = load_config(profile, {}, environ={})
+        for overrides in (world, mount):
+            changed = cfg.with_overrides(overrides).fingerprint(CONFIG_KEYS) != cfg.fingerprint(CONFIG_KEYS)
+            assert changed == (READER_KEYS[next(iter(overrides))] == cfg.dataset.reader), (profile, overrides)
+        # the profiles as they are keep the fingerprint of before the rule: every key at its value
+        before = json.dumps({k: _jsonable(cfg.get(k)) for k in sorted(CONFIG_KEYS)}, sort_keys=True)
+        assert cfg.fingerprint(CONFIG_KEYS) == hashlib.sha256(before.encode()).hexdigest()[:16]
+
+
 def test_the_stages_and_the_cli_load_without_torch():
     """`pipeline status` and every command that only lists the stages took 0.8 s longer (1.9 s
     against 1.1 s on the demo's cache) while stages.train imported torch through pipeline.checkpoint
