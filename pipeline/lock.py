@@ -15,6 +15,7 @@ output's exclusively, so an output is not rewritten while another run reads it. 
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
@@ -159,6 +160,10 @@ def rewriting(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
         yield
 
 
+READ_ONLY_ERRNOS = (errno.EACCES, errno.EPERM, errno.EROFS)
+"""Errors of creating a file where this user may not write."""
+
+
 @contextmanager
 def _readers_locks(urls: list[str], mode: int, wait_s: float, refusal: str) -> Iterator[None]:
     deadline = time.monotonic() + wait_s
@@ -169,20 +174,33 @@ def _readers_locks(urls: list[str], mode: int, wait_s: float, refusal: str) -> I
             if not is_local(fs):
                 continue
             try:
-                fs.makedirs(fs._parent(path), exist_ok=True)
-                held.append(_flock_readers(path, mode, deadline, refusal))
+                fd = _flock_readers(path, mode, deadline, refusal)
             except OSError as exc:
                 raise cache_error(exc, f"taking the lock {url}.readers") from None
+            if fd is not None:
+                held.append(fd)
         yield
     finally:
         for fd in held:
             os.close(fd)
 
 
-def _flock_readers(lock_path: str, mode: int, deadline: float, refusal: str) -> int:
+def _flock_readers(lock_path: str, mode: int, deadline: float, refusal: str) -> int | None:
     """Open ``lock_path``.readers (kept, never deleted) and flock it with ``mode`` (LOCK_SH or LOCK_EX),
-    waiting until ``deadline``; the open descriptor (closing it releases the lock)."""
-    fd = os.open(lock_path + ".readers", os.O_CREAT | os.O_RDWR, 0o644)
+    waiting until ``deadline``; the open descriptor (closing it releases the lock). A reader (LOCK_SH)
+    of a cache it may not write (a copy made read-only, an archive) flocks the file read-only, or,
+    where it does not exist, takes no lock: None (a run that can rewrite the output creates it)."""
+    path = lock_path + ".readers"
+    try:
+        os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+    except OSError as exc:
+        if mode != fcntl.LOCK_SH or exc.errno not in READ_ONLY_ERRNOS:
+            raise
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except FileNotFoundError:
+            return None
     while True:
         try:
             fcntl.flock(fd, mode | fcntl.LOCK_NB)

@@ -549,6 +549,38 @@ def test_verify_names_every_damaged_frame_and_nothing_else(tmp_path):
     assert all(not r.get("damaged") for r in pipe.verify())
 
 
+def test_verify_reads_a_cache_this_user_may_not_write(tmp_path, monkeypatch):
+    """A cache copied read-only (or archived) was refused by verify ('the cache is not writable')
+    because its shared readers' locks opened their files for writing: they are now flocked
+    read-only, or not taken where they do not exist; a run that rewrites an output still needs
+    to write its lock."""
+    import errno
+    import os
+
+    from pipeline.lock import reading, rewriting
+
+    pipe = _pipe(tmp_path)
+    pipe.run("train")
+    real_open = os.open
+
+    def read_only(path, flags, *args):
+        if flags & (os.O_CREAT | os.O_WRONLY | os.O_RDWR):
+            raise PermissionError(errno.EACCES, "Permission denied", path)
+        return real_open(path, flags, *args)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(os, "open", read_only)
+        rows = pipe.verify()
+        assert [(r["stage"], r.get("checked"), r.get("damaged")) for r in rows] == \
+            [("calibrate", 8, {}), ("heatmaps", 8, {}), ("train", None, None)]
+        lock = str(tmp_path / "no-such-lock")
+        with reading([lock], "a read"):  # no lock file, none can be made: no lock taken
+            pass
+        with pytest.raises(Exception, match="not writable"):
+            with rewriting(lock, "a rewrite"):
+                pass
+
+
 def test_verify_reads_arrays_in_blocks_and_names_the_frame_inside_a_block(tmp_path):
     pipe = _pipe(tmp_path)
     pipe.run("calibrate")
