@@ -95,6 +95,16 @@ def _check_url(option: str, url: str) -> None:
         raise ConfigError(f"{option} {url}: fsspec cannot open it ({str(exc).splitlines()[0]}); {hint}") from None
 
 
+def _same_folder(a: str, b: str) -> bool:
+    """True when local paths ``a`` and ``b`` name one existing folder (through a symbolic link, say)."""
+    if "://" in a or "://" in b:
+        return False
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
     from pipeline.executor import RunEnv
     from pipeline.runner import default_data_root
@@ -109,12 +119,15 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
     _check_url("--cache", cache_root)
     explicit = set(overrides) | set(env_overrides(dict(os.environ)))
     cfg = with_nets_from(cfg, cache_root, explicit, require_trained=need_root)  # their radar's settings come too
+    calib = frame_store(cache_root, dataset, "calibrate")
+    try:
+        recorded = calib.attrs().get("data_root", "") if calib.exists() else ""
+    except MetadataError:  # nothing recorded to read: the default, or --data-root is needed
+        recorded = ""
+    if data_root and recorded and _same_folder(data_root, recorded):
+        data_root = recorded  # a link or another spelling of the cache's own data root: its outputs stay current
     if not data_root:
-        calib = frame_store(cache_root, dataset, "calibrate")
-        try:
-            data_root = calib.attrs().get("data_root", "") if calib.exists() else ""
-        except MetadataError:  # nothing recorded to read: the default, or --data-root is needed
-            data_root = ""
+        data_root = recorded
         if data_root and "://" not in data_root and not os.path.exists(data_root) and need_root:
             world = join(cache_root, dataset, "world")
             hint = f" (the synthetic world moved with the cache: --data-root {world})" if os.path.isdir(world) else ""

@@ -811,6 +811,27 @@ def test_cli_names_relocate_when_the_recorded_data_root_is_gone(tmp_path, fake_c
     assert "`pipeline relocate --dataset synthetic --data-root NEW_PLACE`" in out.stderr
 
 
+def test_cli_takes_a_link_to_the_cache_s_data_root_as_that_data_root(tmp_path, fake_cli, monkeypatch):
+    """--data-root through a symbolic link (or another spelling) of the folder the cache was made
+    from was refused as moved data, offering relocate; it is the same folder: the outputs stay
+    current. A link to another folder with the same frames is still a move."""
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0   # --data-root tmp_path
+    link = tmp_path.parent / f"{tmp_path.name}-link"
+    link.symlink_to(tmp_path)
+    for root in (link, f"{tmp_path}/./"):
+        out = CliRunner().invoke(cli.main, ["run", "heatmaps", "--workers", "1", "--dataset", "synthetic", "--cache",
+                                            str(tmp_path / "cache"), "--data-root", str(root)])
+        assert out.exit_code == 0, out.output
+        assert "processed 0 frame(s)" in out.stderr and "relocate" not in out.output
+    other = tmp_path / "other"
+    other.mkdir()
+    moved = tmp_path.parent / f"{tmp_path.name}-other"
+    moved.symlink_to(other)
+    out = CliRunner().invoke(cli.main, ["run", "heatmaps", "--workers", "1", "--dataset", "synthetic", "--cache",
+                                        str(tmp_path / "cache"), "--data-root", str(moved)])
+    assert out.exit_code == 2 and "pipeline relocate" in out.stderr
+
+
 def test_cli_counts_each_failed_frame_once_under_the_stage_it_first_failed_in(tmp_path, fake_cli, monkeypatch):
     """Until 2026-12-05 the run printed '2 frame(s) failed across stages' for one bad frame: heatmaps
     marks the frame calibrate failed on failed too, and the counts were summed."""
