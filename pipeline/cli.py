@@ -465,8 +465,10 @@ def _first_sentence(doc: str) -> str:
 @click.option("--lidar-lines", type=click.Choice(["16", "64", "128"]), default="64", show_default=True,
               help="The lidar's lines (VLP-16, HDL-64 or OS1-128 pattern). The same seed gives the same "
                    "scenes, images and radar with any of them.")
+@click.option("--replace", is_flag=True, help="Replace a world of other settings in --out (caches made from it "
+                                               "must then be recomputed: pipeline run calibrate --force).")
 @_handle_errors
-def generate_world(frames, seed, out, scene_mix, resolution, sequence_len, lidar_lines):
+def generate_world(frames, seed, out, scene_mix, resolution, sequence_len, lidar_lines, replace):
     """Generate the built-in synthetic world (camera, lidar and a hidden radar model).
 
     With the defaults it is the world `make demo` generates into its cache."""
@@ -476,10 +478,29 @@ def generate_world(frames, seed, out, scene_mix, resolution, sequence_len, lidar
         w, h = (int(v) for v in resolution.lower().split("x"))
     except ValueError:
         raise ConfigError(f"--resolution: expected WxH, got '{resolution}'") from None
-    summary = generate(out, frames=frames, seed=seed, resolution_wh=(w, h),
-                       scene_mix=tuple(s.strip() for s in scene_mix.split(",") if s.strip()),
+    mix = tuple(s.strip() for s in scene_mix.split(",") if s.strip())
+    wanted = {"seed": seed, "frames": frames, "resolution_wh": [w, h], "scene_mix": list(mix),
+              "lidar_lines": int(lidar_lines), "sequence_len": sequence_len}
+    if not replace:
+        _refuse_another_world(Path(out), wanted)
+    summary = generate(out, frames=frames, seed=seed, resolution_wh=(w, h), scene_mix=mix,
                        lidar_lines=int(lidar_lines), sequence_len=sequence_len, progress=sys.stderr.isatty())
     click.echo(json.dumps(summary, indent=2, default=str))
+
+
+def _refuse_another_world(out: Path, wanted: dict) -> None:
+    """ConfigError when ``out`` holds a finished world whose settings differ from ``wanted``: a
+    cache made from it, run again, would mix its frames with the new world's (its finished frames
+    are kept, the others read from the new files) without a word."""
+    try:
+        world = json.loads((out / "world.json").read_text())
+    except (OSError, ValueError):
+        return  # no finished world there (or not one of ours): nothing a cache was made from
+    differ = [f"{k} {world.get(k)} (asked: {v})" for k, v in wanted.items() if world.get(k) != v]
+    if differ:
+        raise ConfigError(f"--out {out} holds a synthetic world of other settings: {'; '.join(differ)}. Caches made "
+                          f"from it would mix its frames with the new one's: write to another --out, or pass "
+                          f"--replace (and recompute those caches: pipeline run calibrate --force)")
 
 
 @main.command("estimate-sigma")

@@ -36,6 +36,24 @@ def test_generate_world_is_the_same_bytes_for_the_same_seed(world, tmp_path):
     assert other.exit_code == 0 and _digest(world) != _digest(tmp_path / "o")
 
 
+def test_generate_world_refuses_to_replace_a_world_of_other_settings_unless_asked(world, tmp_path):
+    """Until 2026-12-06 generating another seed over a world a cache was made from replaced it
+    without a word, and the cache, run again, mixed the old world's finished frames with the new
+    one's. The same settings again are no change; --replace replaces."""
+    import shutil
+
+    root = tmp_path / "w"
+    shutil.copytree(world, root)
+    args = ["generate-world", "--frames", "4", "--out", str(root)]
+    out = CliRunner().invoke(main, [*args, "--seed", "5"])
+    assert out.exit_code == 2 and "seed 1 (asked: 5)" in out.stderr and "--replace" in out.stderr
+    assert _digest(root) == _digest(world)  # untouched
+    assert CliRunner().invoke(main, [*args, "--seed", "1"]).exit_code == 0 and _digest(root) == _digest(world)
+    out = CliRunner().invoke(main, [*args, "--seed", "5", "--replace"])
+    assert out.exit_code == 0, out.output
+    assert json.loads((root / "world.json").read_text())["seed"] == 5
+
+
 def test_generate_world_defaults_to_the_demo_world_and_changes_only_the_lidar_with_its_lines(world, tmp_path):
     """The CLI's world has the synthetic profile's sequences (the world `make demo` generates;
     until 2026-12-06 its sequences were 40 frames, the profile's 20), and another lidar changes the
