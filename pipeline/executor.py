@@ -211,6 +211,9 @@ def check_scheduler_answers(address: str, timeout_s: float | None = None) -> Non
         return
     if scheme != "tcp":
         return
+    if not 0 < int(port or 0) < 65536:  # dask would try to connect to it for 30 s
+        raise PipelineError(f"dask cluster at {address}: port {port} is not a TCP port (1-65535); give the "
+                            f"scheduler's address, tcp://HOST:PORT (its port is 8786 by default)")
     timeout_s = HANDSHAKE_TIMEOUT_S if timeout_s is None else timeout_s
     try:
         socket.create_connection((host, port), timeout=timeout_s).close()

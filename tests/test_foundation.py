@@ -374,6 +374,9 @@ def test_a_scheduler_address_where_something_else_answers_is_an_error_not_a_hang
         server.server_close()
     E.check_scheduler_answers(address)  # nothing listens there now: left to the Client, which says so
     E.check_scheduler_answers("foo")    # malformed: the same
+    for port in (0, 65536, 99999):      # no TCP port: the Client tried it for 30 s until 2026-12-06
+        with pytest.raises(PipelineError, match=f"port {port} is not a TCP port"):
+            E.check_scheduler_answers(f"tcp://127.0.0.1:{port}")
 
 
 def test_second_writer_refused_and_stale_lock_recovered(tmp_path):
