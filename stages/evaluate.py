@@ -29,6 +29,7 @@ Every method is evaluated on the same frames: those of eval.split that evaluate-
 
 from __future__ import annotations
 
+import shlex
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -110,12 +111,50 @@ def _train_stats(inputs, cfg: Config) -> dict:
     """Training-split statistics the baselines use: mean count, mean map, RSS values."""
     patches = inputs.store("patches")
     train, counts = _train_counts(inputs)
-    mean_map = np.load(inputs.dir("train").local_copy(cfg.run.staging_dir) / "mean_heatmap.npy", allow_pickle=False)
+    mean_map = read_mean_map(inputs, cfg)
     pc = np.asarray(patches.array("rss_count")[:])
     rss = np.asarray(patches.array("rss").oindex[train])
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)
     return {"n_bar": _mean_count(train, counts), "mean_map": mean_map,
             "train_rss": rss_values, "rss_median": float(np.median(rss_values)) if len(rss_values) else 0.0}
+
+
+MEAN_MAP_FILE = "mean_heatmap.npy"
+"""The train stage's file of the mean training heatmap (H, W) float32, which the mean-map baseline uses."""
+
+
+def read_mean_map(inputs, cfg: Config) -> np.ndarray:
+    """The train stage's mean training heatmap (H, W) float32 (``inputs``: a RunEnv or the inputs of
+    a stage). CacheError naming the file, what is wrong and the command that writes it again when it
+    is missing or damaged (cannot be read as a plain .npy array, or is not a finite 2-D float map)."""
+    train = inputs.dir("train")
+    name = f"{train.url.rstrip('/')}/{MEAN_MAP_FILE}"
+    try:
+        mean_map = np.load(train.local_copy(cfg.run.staging_dir) / MEAN_MAP_FILE, allow_pickle=False)
+    except FileNotFoundError:
+        if not len(_train_counts(inputs)[0]):
+            raise CacheError(f"{name} is not there: split 'train' has no finished frame with radar, whose mean "
+                             "map the mean-map baseline needs (use more frames, or other split.* settings)") from None
+        problem = "is missing"
+    except (ValueError, EOFError, OSError) as exc:  # numpy's words for a damaged file end in pickle advice
+        problem = f"is damaged: it cannot be read as a .npy array ({_npy_problem(exc)})"
+    else:
+        if mean_map.ndim == 2 and mean_map.dtype.kind == "f" and bool(np.isfinite(mean_map).all()):
+            return mean_map
+        problem = (f"is damaged: it holds a {mean_map.dtype} array of shape {mean_map.shape}, "
+                   "not a finite 2-D map")
+    env = getattr(inputs, "env", inputs)
+    raise CacheError(f"{name} {problem}; write it again with `pipeline run train --dataset "
+                     f"{shlex.quote(env.dataset)} --cache {shlex.quote(env.cache_root)} --force` "
+                     "(which trains the nets again), or restore the file from a copy of the cache")
+
+
+def _npy_problem(exc: BaseException) -> str:
+    """numpy's reason, in a few words (its advice to load pickled data is wrong here)."""
+    text = " ".join(str(exc).split())
+    if "pickled" in text or not text:
+        return "not an .npy array header" if text else f"{type(exc).__name__}: the file ends early"
+    return text.split(". ")[0][:100]
 
 
 def _shared(inputs: FrameInputs, cfg: Config) -> tuple[dict, list[str]]:
@@ -347,6 +386,13 @@ def select_frames(inputs, cfg: Config) -> np.ndarray:
     dataset, e.g. KITTI with train.nets_from, has nothing to compare the synthetic radar with)."""
     calib = inputs.store("calibrate")
     return split_mask(calib.array("split")[:], cfg.eval.split) & np.asarray(calib.array("has_radar")[:], bool)
+
+
+def ready(inputs, cfg: Config) -> None:
+    """Before evaluate-frames' output is recreated: the train stage's mean map is readable, where a
+    frame is to be evaluated (a damaged one stops the run here; met by a frame, it stops the run too)."""
+    if select_frames(inputs, cfg).any():
+        read_mean_map(inputs, cfg)
 
 
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
@@ -589,7 +635,7 @@ def check(cfg: Config) -> None:
 
 FRAMES = FrameStage(name="evaluate-frames", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize"),
                     config_keys=FRAME_KEYS, outputs=frame_outputs, process=evaluate_frame, select=select_frames,
-                    version=VERSION, doc=__doc__, check=check, part_of="evaluate")
+                    version=VERSION, doc=__doc__, check=check, part_of="evaluate", ready=ready)
 STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize", FRAMES.name),
                      config_keys=CONFIG_KEYS, version=REPORT_VERSION, run=run, doc=__doc__, check=check,
                      local_files=True)

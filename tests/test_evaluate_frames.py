@@ -213,6 +213,41 @@ def test_nets_retrained_under_the_same_fingerprint_are_loaded_again(synthesized,
     assert models(frame, pipe.env.cfg) is not before
 
 
+def test_a_damaged_mean_map_stops_the_run_naming_the_file_and_the_command(synthesized, tmp_path):
+    """A damaged train/mean_heatmap.npy is one error naming the file, that it is damaged and the
+    command that writes it again; it stops the run before any frame (before, every frame failed with
+    numpy's advice to load the file with allow_pickle), and a frame that meets it stops the run too."""
+    from pipeline.errors import CacheError
+    from pipeline.executor import process_frame
+
+    pipe = _copy(synthesized, tmp_path)
+    path = Path(pipe.env.dir("train").path) / "mean_heatmap.npy"
+    path.write_text("garbage\n")
+    command = f"pipeline run train --dataset synthetic --cache {tmp_path / 'cache'} --force"
+    with pytest.raises(CacheError) as info:
+        pipe.run("evaluate")
+    text = str(info.value)
+    assert text.startswith(f"{path} is damaged") and command in text, text
+    assert "pickle" not in text and "\n" not in text, text
+    assert not (tmp_path / "cache" / "synthetic" / "evaluate-frames.zarr").exists()  # stopped before any frame
+    with pytest.raises(CacheError, match="is damaged"):   # met by a frame (a run that resumes)
+        process_frame(evaluate.FRAMES, pipe.env, 0, pipe.frame_ids()[0])
+    good = np.load(Path(synthesized[1]) / "synthetic" / "train" / "mean_heatmap.npy")
+    for damaged, problem in ((good.tobytes()[:40], "cannot be read"), (b"", "cannot be read"),
+                             (None, "not a finite 2-D map")):
+        if damaged is None:
+            np.save(path, good.reshape(-1), allow_pickle=False)
+        else:
+            path.write_bytes(damaged)
+        with pytest.raises(CacheError, match=problem):
+            evaluate.read_mean_map(pipe.env, pipe.env.cfg)
+    path.unlink()
+    with pytest.raises(CacheError, match=f"is missing; write it again with `{command}`"):
+        evaluate.read_mean_map(pipe.env, pipe.env.cfg)
+    np.save(path, good, allow_pickle=False)
+    assert np.array_equal(evaluate.read_mean_map(pipe.env, pipe.env.cfg), good)
+
+
 def test_previous_frame_needs_consecutive_frames_and_keeps_to_the_evaluated_region():
     """EVALUATION.md: previous-frame 'where consecutive frames exist'. A previous frame 5 s back
     (Astyx's subset skips seconds between neighbouring ids) gives no points rather than points moved
