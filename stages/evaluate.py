@@ -44,7 +44,7 @@ from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.metrics import region_mask
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
-from stages.synthesize import capacity, check_generation, check_split, generate, models, split_mask
+from stages.synthesize import SPLITS, capacity, check_generation, check_split, generate, models, split_mask
 
 MAX_FRAME_GAP_S = 1.0
 """The previous-frame baseline needs consecutive frames: a previous frame further back than this
@@ -410,8 +410,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     failed = int((in_split & (part_status == FAILED)).sum())
     if len(frames) == 0:
         if not (in_split & calib_done).any():
-            raise PipelineError(f"evaluate: dataset {inputs.env.dataset} records no radar in split '{cfg.eval.split}': "
-                                f"there is no real radar to compare the synthetic one with")
+            raise PipelineError(_nothing_to_compare(inputs.env.dataset, cfg, np.asarray(calib.array("split")[:]),
+                                                    has_radar, calib_done))
         why = f"; {failed} failed (`pipeline status` lists why)" if failed else ""
         raise PipelineError(f"evaluate: no evaluated frame in split '{cfg.eval.split}' "
                             f"(synth.split = '{cfg.synth.split}'{why})")
@@ -446,6 +446,27 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     return {"report": str(md_path), "figures": str(figs),
             "message": (f"{len(frames)} frames{tail}: model chamfer {model['chamfer_m']['mean']:.2f} m, "
                         f"F1 {model['f1']['mean']:.3f}; report {md_path}")}
+
+
+def _nothing_to_compare(dataset: str, cfg: Config, split: np.ndarray, has_radar: np.ndarray,
+                        calibrated: np.ndarray) -> str:
+    """Why split eval.split holds no frame with real radar, of split codes ``split`` (F,), which
+    frames record radar ``has_radar`` (F,) and which calibrate finished ``calibrated`` (F,): the
+    dataset records none, the split has no frame (the split's settings left it empty), or its
+    frames record none."""
+    name = cfg.eval.split
+    real = "there is no real radar to compare the synthetic one with"
+    if not (has_radar & calibrated).any():
+        return f"evaluate: dataset {dataset} records no radar: {real}"
+    in_split = split_mask(split, name) & calibrated
+    if not in_split.any():
+        shares = ", ".join(f"{int((split[calibrated] == code).sum())} in {part}" for part, code in SPLITS.items())
+        rule = cfg.split.rule + (f", split.block_len={cfg.split.block_len}" if cfg.split.rule == "block" else "")
+        return (f"evaluate: split '{name}' of dataset {dataset} has no frames ({int(calibrated.sum())} calibrated "
+                f"frames: {shares}; split.rule={rule}): use more frames, other split settings (split.fractions, "
+                f"split.block_len) or --set eval.split=all")
+    return (f"evaluate: the {int(in_split.sum())} frames of split '{name}' of dataset {dataset} record no radar: "
+            f"{real}; --set eval.split=all compares the frames that record it")
 
 
 def _left_out(meta: dict, not_synthesized: np.ndarray, not_evaluated: np.ndarray, failed: int) -> list[str]:

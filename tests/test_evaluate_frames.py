@@ -327,6 +327,36 @@ def test_evaluate_frames_selects_eval_split_not_synth_split():
     assert list(evaluate.select_frames(_FakeEnv(calibrate=calib), cfg)) == [False, False, False, True]
 
 
+def test_an_empty_split_is_told_apart_from_frames_without_radar():
+    """evaluate with nothing to compare: a split the split's settings left empty (12 Astyx frames in
+    blocks of 15 all land in train) says so with the frames per split and the way out (before, it
+    said the dataset records no radar in that split); frames of the split that record no radar, and
+    a dataset without radar, say that."""
+    from types import SimpleNamespace
+
+    from pipeline.cache import EXCLUDED
+    from pipeline.errors import PipelineError
+
+    def message(split, has_radar, **settings) -> str:
+        n = len(split)
+        calib = _FakeStore([DONE] * n, split=split, has_radar=has_radar)
+        env = _FakeEnv(calibrate=calib, synthesize=_FakeStore([DONE] * n),
+                       **{"evaluate-frames": _FakeStore([EXCLUDED] * n)})
+        env.env = SimpleNamespace(dataset="astyx")
+        cfg = load_config("astyx", settings, environ={})
+        with pytest.raises(PipelineError) as info:
+            evaluate.run(env, cfg, None, "")
+        return str(info.value)
+
+    text = message([0] * 12, [True] * 12)
+    assert "split 'test' of dataset astyx has no frames (12 calibrated frames: 12 in train, 0 in val, 0 in test; " \
+           "split.rule=block, split.block_len=15)" in text and "--set eval.split=all" in text, text
+    assert "records no radar" not in text
+    text = message([0, 0, 1, 2, 2], [True, True, True, False, False])
+    assert "the 2 frames of split 'test' of dataset astyx record no radar" in text, text
+    assert "records no radar" in message([0, 1, 2], [False] * 3, **{"eval.split": "all"})
+
+
 def test_previous_frame_is_none_across_a_sequence_boundary_or_before_a_frame_not_calibrated():
     from pipeline.executor import FrameInputs
 
