@@ -17,6 +17,8 @@ raises ChunkError naming the array, the frame and the file: it fails only the fr
 A frame whose ``status`` chunk is deleted counts as pending (the fill value) and is recomputed.
 A group ``zarr.json`` that cannot be read, or is gone while the arrays are there, raises
 MetadataError: the output is not taken for absent (and recomputed, its frames lost) unless forced.
+So does a dataset stage's ``_stage.json`` that is there but not a JSON object (written whole by a
+rename, such a file is damaged); a missing one means the stage has not finished.
 """
 
 from __future__ import annotations
@@ -665,14 +667,34 @@ class DirStore:
         return join(self.path, name)
 
     def meta(self) -> dict[str, Any] | None:
-        """Content of ``_stage.json`` (None if the stage never finished)."""
+        """Content of ``_stage.json`` (None if the stage never finished, or its last run did not).
+        MetadataError when the file is there but is not a JSON object: :meth:`finish` writes it
+        whole (a temporary file renamed into place), so a kill cannot leave part of it, and such a
+        file is damaged; taken for absent, the output would pass as unfinished and be recomputed
+        without a word (until 2026-12-06)."""
         try:
             with self.fs.open(self.file("_stage.json"), "r") as fh:
-                return json.load(fh)
-        except (FileNotFoundError, json.JSONDecodeError):
+                meta = json.load(fh)
+        except FileNotFoundError:
             return None
+        except ValueError as exc:  # json.JSONDecodeError, UnicodeDecodeError
+            raise self._damaged_meta(f"cannot be read ({_one_line(exc)})") from None
         except OSError as exc:  # e.g. the cache path is a file
             raise cache_error(exc, f"reading {self.file('_stage.json')}") from None
+        if not isinstance(meta, dict):
+            raise self._damaged_meta(f"holds a JSON {type(meta).__name__}, not an object")
+        return meta
+
+    def _damaged_meta(self, problem: str) -> MetadataError:
+        """MetadataError for a damaged ``_stage.json`` (:meth:`meta`), with the two ways out."""
+        parts = self.url.rstrip("/").rsplit("/", 2)  # <cache root>/<dataset>/<stage>
+        stage = parts[-1]
+        where = f" --dataset {shlex.quote(parts[1])} --cache {shlex.quote(parts[0])}" if len(parts) == 3 else ""
+        return MetadataError(
+            f"{join(self.url, '_stage.json')}: the record of stage output {stage} {problem}, so whether it finished, "
+            f"and with which settings, is unknown (the file is written whole, so it is damaged). Restore the file "
+            f"(from a backup or another copy of the cache), or make the output again with `pipeline run {stage}"
+            f"{where} --force`")
 
     def fingerprint(self) -> str | None:
         meta = self.meta()

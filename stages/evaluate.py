@@ -29,6 +29,7 @@ Every method is evaluated on the same frames: those of eval.split that evaluate-
 
 from __future__ import annotations
 
+import shlex
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +44,7 @@ from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.metrics import region_mask
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
-from stages.synthesize import capacity, check_generation, check_split, generate, models, split_mask
+from stages.synthesize import SPLITS, capacity, check_generation, check_split, generate, models, split_mask
 
 MAX_FRAME_GAP_S = 1.0
 """The previous-frame baseline needs consecutive frames: a previous frame further back than this
@@ -110,12 +111,50 @@ def _train_stats(inputs, cfg: Config) -> dict:
     """Training-split statistics the baselines use: mean count, mean map, RSS values."""
     patches = inputs.store("patches")
     train, counts = _train_counts(inputs)
-    mean_map = np.load(inputs.dir("train").local_copy(cfg.run.staging_dir) / "mean_heatmap.npy", allow_pickle=False)
+    mean_map = read_mean_map(inputs, cfg)
     pc = np.asarray(patches.array("rss_count")[:])
     rss = np.asarray(patches.array("rss").oindex[train])
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)
     return {"n_bar": _mean_count(train, counts), "mean_map": mean_map,
             "train_rss": rss_values, "rss_median": float(np.median(rss_values)) if len(rss_values) else 0.0}
+
+
+MEAN_MAP_FILE = "mean_heatmap.npy"
+"""The train stage's file of the mean training heatmap (H, W) float32, which the mean-map baseline uses."""
+
+
+def read_mean_map(inputs, cfg: Config) -> np.ndarray:
+    """The train stage's mean training heatmap (H, W) float32 (``inputs``: a RunEnv or the inputs of
+    a stage). CacheError naming the file, what is wrong and the command that writes it again when it
+    is missing or damaged (cannot be read as a plain .npy array, or is not a finite 2-D float map)."""
+    train = inputs.dir("train")
+    name = f"{train.url.rstrip('/')}/{MEAN_MAP_FILE}"
+    try:
+        mean_map = np.load(train.local_copy(cfg.run.staging_dir) / MEAN_MAP_FILE, allow_pickle=False)
+    except FileNotFoundError:
+        if not len(_train_counts(inputs)[0]):
+            raise CacheError(f"{name} is not there: split 'train' has no finished frame with radar, whose mean "
+                             "map the mean-map baseline needs (use more frames, or other split.* settings)") from None
+        problem = "is missing"
+    except (ValueError, EOFError, OSError) as exc:  # numpy's words for a damaged file end in pickle advice
+        problem = f"is damaged: it cannot be read as a .npy array ({_npy_problem(exc)})"
+    else:
+        if mean_map.ndim == 2 and mean_map.dtype.kind == "f" and bool(np.isfinite(mean_map).all()):
+            return mean_map
+        problem = (f"is damaged: it holds a {mean_map.dtype} array of shape {mean_map.shape}, "
+                   "not a finite 2-D map")
+    env = getattr(inputs, "env", inputs)
+    raise CacheError(f"{name} {problem}; write it again with `pipeline run train --dataset "
+                     f"{shlex.quote(env.dataset)} --cache {shlex.quote(env.cache_root)} --force` "
+                     "(which trains the nets again), or restore the file from a copy of the cache")
+
+
+def _npy_problem(exc: BaseException) -> str:
+    """numpy's reason, in a few words (its advice to load pickled data is wrong here)."""
+    text = " ".join(str(exc).split())
+    if "pickled" in text or not text:
+        return "not an .npy array header" if text else f"{type(exc).__name__}: the file ends early"
+    return text.split(". ")[0][:100]
 
 
 def _shared(inputs: FrameInputs, cfg: Config) -> tuple[dict, list[str]]:
@@ -349,6 +388,13 @@ def select_frames(inputs, cfg: Config) -> np.ndarray:
     return split_mask(calib.array("split")[:], cfg.eval.split) & np.asarray(calib.array("has_radar")[:], bool)
 
 
+def ready(inputs, cfg: Config) -> None:
+    """Before evaluate-frames' output is recreated: the train stage's mean map is readable, where a
+    frame is to be evaluated (a damaged one stops the run here; met by a frame, it stops the run too)."""
+    if select_frames(inputs, cfg).any():
+        read_mean_map(inputs, cfg)
+
+
 def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     """The report over the frames evaluate-frames finished (module docstring)."""
     from pipeline.figures import bev, fig8, histograms
@@ -364,8 +410,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     failed = int((in_split & (part_status == FAILED)).sum())
     if len(frames) == 0:
         if not (in_split & calib_done).any():
-            raise PipelineError(f"evaluate: dataset {inputs.env.dataset} records no radar in split '{cfg.eval.split}': "
-                                f"there is no real radar to compare the synthetic one with")
+            raise PipelineError(_nothing_to_compare(inputs.env.dataset, cfg, np.asarray(calib.array("split")[:]),
+                                                    has_radar, calib_done))
         why = f"; {failed} failed (`pipeline status` lists why)" if failed else ""
         raise PipelineError(f"evaluate: no evaluated frame in split '{cfg.eval.split}' "
                             f"(synth.split = '{cfg.synth.split}'{why})")
@@ -400,6 +446,27 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     return {"report": str(md_path), "figures": str(figs),
             "message": (f"{len(frames)} frames{tail}: model chamfer {model['chamfer_m']['mean']:.2f} m, "
                         f"F1 {model['f1']['mean']:.3f}; report {md_path}")}
+
+
+def _nothing_to_compare(dataset: str, cfg: Config, split: np.ndarray, has_radar: np.ndarray,
+                        calibrated: np.ndarray) -> str:
+    """Why split eval.split holds no frame with real radar, of split codes ``split`` (F,), which
+    frames record radar ``has_radar`` (F,) and which calibrate finished ``calibrated`` (F,): the
+    dataset records none, the split has no frame (the split's settings left it empty), or its
+    frames record none."""
+    name = cfg.eval.split
+    real = "there is no real radar to compare the synthetic one with"
+    if not (has_radar & calibrated).any():
+        return f"evaluate: dataset {dataset} records no radar: {real}"
+    in_split = split_mask(split, name) & calibrated
+    if not in_split.any():
+        shares = ", ".join(f"{int((split[calibrated] == code).sum())} in {part}" for part, code in SPLITS.items())
+        rule = cfg.split.rule + (f", split.block_len={cfg.split.block_len}" if cfg.split.rule == "block" else "")
+        return (f"evaluate: split '{name}' of dataset {dataset} has no frames ({int(calibrated.sum())} calibrated "
+                f"frames: {shares}; split.rule={rule}): use more frames, other split settings (split.fractions, "
+                f"split.block_len) or --set eval.split=all")
+    return (f"evaluate: the {int(in_split.sum())} frames of split '{name}' of dataset {dataset} record no radar: "
+            f"{real}; --set eval.split=all compares the frames that record it")
 
 
 def _left_out(meta: dict, not_synthesized: np.ndarray, not_evaluated: np.ndarray, failed: int) -> list[str]:
@@ -589,7 +656,7 @@ def check(cfg: Config) -> None:
 
 FRAMES = FrameStage(name="evaluate-frames", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize"),
                     config_keys=FRAME_KEYS, outputs=frame_outputs, process=evaluate_frame, select=select_frames,
-                    version=VERSION, doc=__doc__, check=check, part_of="evaluate")
+                    version=VERSION, doc=__doc__, check=check, part_of="evaluate", ready=ready)
 STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize", FRAMES.name),
                      config_keys=CONFIG_KEYS, version=REPORT_VERSION, run=run, doc=__doc__, check=check,
                      local_files=True)

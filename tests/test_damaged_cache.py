@@ -497,6 +497,40 @@ def test_damaged_group_metadata_stops_the_run_instead_of_recomputing(tmp_path, h
     assert report.processed == 8 and (pipe.env.store("heatmaps").status() == DONE).all()
 
 
+@pytest.mark.parametrize("how", list(GROUP_DAMAGES))
+def test_a_damaged_stage_record_of_a_dataset_stage_stops_the_run_instead_of_recomputing(tmp_path, how):
+    """A dataset stage's _stage.json that is not a JSON object (written whole by a rename, so
+    damaged) stops every run that reads the output, naming the file and the two ways out, as a
+    damaged group zarr.json does; its files are left alone (until 2026-12-06 the output was taken
+    for unfinished and recomputed without a word). A deleted one still means unfinished; --force
+    makes the output again."""
+    pipe = _pipe(tmp_path)
+    pipe.run("train")
+    folder = Path(pipe.env.dir("train").path)
+    record = folder / "_stage.json"
+    saved, total = record.read_bytes(), (folder / "total.txt").read_bytes()
+    record.write_bytes(GROUP_DAMAGES[how](saved))
+    command = f"`pipeline run train --dataset fake --cache {tmp_path / 'cache'} --force`"
+    problem = "holds a JSON list, not an object" if how == "a JSON list" else "cannot be read ("
+    with pytest.raises(MetadataError) as info:
+        pipe.run("train")
+    message = str(info.value)
+    assert message.startswith(f"{record}: the record of stage output train {problem}"), message
+    assert message.endswith(f"Restore the file (from a backup or another copy of the cache), or make the output "
+                            f"again with {command}") and "\n" not in message, message
+    assert record.read_bytes() == GROUP_DAMAGES[how](saved) and (folder / "total.txt").read_bytes() == total
+    with pytest.raises(MetadataError):
+        pipe.env.dir("train").meta()
+    record.write_bytes(saved)  # restored: up to date
+    assert pipe.run("train")[-1].summary["message"] == "up to date"
+    record.write_bytes(GROUP_DAMAGES[how](saved))
+    assert pipe.run("train", force=True)[-1].summary["message"] != "up to date"
+    assert pipe.run("train")[-1].summary["message"] == "up to date"
+    record.unlink()  # a stage never finished, or killed before its record: not finished, run again
+    assert pipe.env.dir("train").meta() is None
+    assert pipe.run("train")[-1].summary["message"] != "up to date" and pipe.env.dir("train").meta() is not None
+
+
 def test_damaged_first_stage_metadata_is_rebuilt_by_force(tmp_path):
     pipe = _pipe(tmp_path)
     pipe.run("heatmaps")
@@ -756,6 +790,24 @@ def test_cli_damaged_group_metadata_names_the_file_and_force(tmp_path, fake_cli)
         assert len(errors) == 1 and errors[0].startswith(f"error: {meta}: the metadata of stage output heatmaps ")
     assert fake_cli(tmp_path, "run", "heatmaps", "--force", "--workers", "1").exit_code == 0
     assert fake_cli(tmp_path, "status").exit_code == 0
+
+
+def test_cli_damaged_stage_record_names_the_file_in_status_verify_and_runs(tmp_path, fake_cli):
+    """A dataset stage's _stage.json cut short (found by a review, 2026-12-06): verify exited 0 without
+    the stage's line, status called it not finished, and a run recomputed it and the stages after it
+    without a word. Now each says so in one line naming the file and --force, exit code 2."""
+    assert fake_cli(tmp_path, "run", "train", "--workers", "1").exit_code == 0
+    record = tmp_path / "cache" / "synthetic" / "train" / "_stage.json"
+    record.write_bytes(record.read_bytes()[:40])
+    for args in (("status",), ("verify",), ("run", "train", "--workers", "1"), ("run", "train", "--dry-run")):
+        out = fake_cli(tmp_path, *args)
+        assert out.exit_code == 2 and "Traceback" not in out.output, (args, out.output)
+        errors = [line for line in out.stderr.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and errors[0].startswith(f"error: {record}: the record of stage output train "
+                                                         "cannot be read ("), (args, out.output)
+        assert f"`pipeline run train --dataset synthetic --cache {tmp_path / 'cache'} --force`" in errors[0]
+    assert fake_cli(tmp_path, "run", "train", "--force", "--workers", "1").exit_code == 0  # the way out
+    assert fake_cli(tmp_path, "verify").exit_code == 0 and fake_cli(tmp_path, "status").exit_code == 0
 
 
 @pytest.mark.parametrize("how", ["truncated", "deleted"])

@@ -213,6 +213,41 @@ def test_nets_retrained_under_the_same_fingerprint_are_loaded_again(synthesized,
     assert models(frame, pipe.env.cfg) is not before
 
 
+def test_a_damaged_mean_map_stops_the_run_naming_the_file_and_the_command(synthesized, tmp_path):
+    """A damaged train/mean_heatmap.npy is one error naming the file, that it is damaged and the
+    command that writes it again; it stops the run before any frame (before, every frame failed with
+    numpy's advice to load the file with allow_pickle), and a frame that meets it stops the run too."""
+    from pipeline.errors import CacheError
+    from pipeline.executor import process_frame
+
+    pipe = _copy(synthesized, tmp_path)
+    path = Path(pipe.env.dir("train").path) / "mean_heatmap.npy"
+    path.write_text("garbage\n")
+    command = f"pipeline run train --dataset synthetic --cache {tmp_path / 'cache'} --force"
+    with pytest.raises(CacheError) as info:
+        pipe.run("evaluate")
+    text = str(info.value)
+    assert text.startswith(f"{path} is damaged") and command in text, text
+    assert "pickle" not in text and "\n" not in text, text
+    assert not (tmp_path / "cache" / "synthetic" / "evaluate-frames.zarr").exists()  # stopped before any frame
+    with pytest.raises(CacheError, match="is damaged"):   # met by a frame (a run that resumes)
+        process_frame(evaluate.FRAMES, pipe.env, 0, pipe.frame_ids()[0])
+    good = np.load(Path(synthesized[1]) / "synthetic" / "train" / "mean_heatmap.npy")
+    for damaged, problem in ((good.tobytes()[:40], "cannot be read"), (b"", "cannot be read"),
+                             (None, "not a finite 2-D map")):
+        if damaged is None:
+            np.save(path, good.reshape(-1), allow_pickle=False)
+        else:
+            path.write_bytes(damaged)
+        with pytest.raises(CacheError, match=problem):
+            evaluate.read_mean_map(pipe.env, pipe.env.cfg)
+    path.unlink()
+    with pytest.raises(CacheError, match=f"is missing; write it again with `{command}`"):
+        evaluate.read_mean_map(pipe.env, pipe.env.cfg)
+    np.save(path, good, allow_pickle=False)
+    assert np.array_equal(evaluate.read_mean_map(pipe.env, pipe.env.cfg), good)
+
+
 def test_previous_frame_needs_consecutive_frames_and_keeps_to_the_evaluated_region():
     """EVALUATION.md: previous-frame 'where consecutive frames exist'. A previous frame 5 s back
     (Astyx's subset skips seconds between neighbouring ids) gives no points rather than points moved
@@ -290,6 +325,36 @@ def test_evaluate_frames_selects_eval_split_not_synth_split():
     assert list(evaluate.select_frames(_FakeEnv(calibrate=calib), cfg)) == [False, True, False, False]
     cfg = load_config("synthetic", {"synth.split": "test", "eval.split": "val"}, environ={})
     assert list(evaluate.select_frames(_FakeEnv(calibrate=calib), cfg)) == [False, False, False, True]
+
+
+def test_an_empty_split_is_told_apart_from_frames_without_radar():
+    """evaluate with nothing to compare: a split the split's settings left empty (12 Astyx frames in
+    blocks of 15 all land in train) says so with the frames per split and the way out (before, it
+    said the dataset records no radar in that split); frames of the split that record no radar, and
+    a dataset without radar, say that."""
+    from types import SimpleNamespace
+
+    from pipeline.cache import EXCLUDED
+    from pipeline.errors import PipelineError
+
+    def message(split, has_radar, **settings) -> str:
+        n = len(split)
+        calib = _FakeStore([DONE] * n, split=split, has_radar=has_radar)
+        env = _FakeEnv(calibrate=calib, synthesize=_FakeStore([DONE] * n),
+                       **{"evaluate-frames": _FakeStore([EXCLUDED] * n)})
+        env.env = SimpleNamespace(dataset="astyx")
+        cfg = load_config("astyx", settings, environ={})
+        with pytest.raises(PipelineError) as info:
+            evaluate.run(env, cfg, None, "")
+        return str(info.value)
+
+    text = message([0] * 12, [True] * 12)
+    assert "split 'test' of dataset astyx has no frames (12 calibrated frames: 12 in train, 0 in val, 0 in test; " \
+           "split.rule=block, split.block_len=15)" in text and "--set eval.split=all" in text, text
+    assert "records no radar" not in text
+    text = message([0, 0, 1, 2, 2], [True, True, True, False, False])
+    assert "the 2 frames of split 'test' of dataset astyx record no radar" in text, text
+    assert "records no radar" in message([0, 1, 2], [False] * 3, **{"eval.split": "all"})
 
 
 def test_previous_frame_is_none_across_a_sequence_boundary_or_before_a_frame_not_calibrated():

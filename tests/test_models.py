@@ -84,6 +84,34 @@ def test_resnet_weights_errors(tmp_path):
         load_state_dict_file(tmp_path / "evil.pth")
 
 
+def test_resnet_weights_damaged_files_are_one_line_errors_naming_the_file(tmp_path):
+    """A damaged weights file (overwritten, truncated, text under a weights name) is a ConfigError
+    naming the file, saying it is damaged and which formats are read; before, safetensors' own
+    error and torch's zip error came as tracebacks, and a text .pth got torch's advice to load it
+    with weights_only=False."""
+    good = tmp_path / "good.pth"
+    torch.save(ResNet18Backbone(8).state_dict(), good)
+    (tmp_path / "garbage.safetensors").write_text("garbage\n")
+    save_file(ResNet18Backbone(8).state_dict(), str(tmp_path / "cut.safetensors"))
+    cut = (tmp_path / "cut.safetensors").read_bytes()
+    (tmp_path / "cut.safetensors").write_bytes(cut[: len(cut) // 2])
+    (tmp_path / "head.pth").write_bytes(good.read_bytes()[:600])
+    (tmp_path / "text.pth").write_text("garbage\n")
+    (tmp_path / "empty.pt").write_bytes(b"")
+    for name in ("garbage.safetensors", "cut.safetensors", "head.pth", "text.pth", "empty.pt"):
+        with pytest.raises(ConfigError) as info:
+            load_state_dict_file(tmp_path / name)
+        text = str(info.value)
+        assert text.startswith(f"{tmp_path / name}: cannot be read as"), text
+        assert "damaged" in text and ".safetensors" in text and ".pth" in text, text
+        assert "\n" not in text and "weights_only" not in text, text
+    torch.save({"conv1.weight": torch.zeros(1), "obj": _NotATensor()}, tmp_path / "evil.pth")
+    with pytest.raises(ConfigError, match="refused") as info:
+        load_state_dict_file(tmp_path / "evil.pth")
+    assert "_NotATensor" in str(info.value) and "weights_only" not in str(info.value)
+    assert "\n" not in str(info.value)
+
+
 def test_resnet_feature_map_stride_32():
     out = ResNet18Backbone(8)(torch.rand(2, 3, 64, 96))
     assert out.shape == (2, 64, 2, 3)

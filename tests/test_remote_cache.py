@@ -75,6 +75,28 @@ def test_a_damaged_chunk_of_a_remote_cache_is_named(tmp_path, remote):
     assert list(reasons) == [3] and "calibrate.zarr/value, frame 3" in reasons[3]
 
 
+def test_a_damaged_stage_record_of_a_remote_cache_stops_the_run(tmp_path, remote):
+    """A remote dataset stage's _stage.json cut short is a MetadataError naming it, as on a local
+    cache (before, the output was taken for unfinished and recomputed without a word); deleted, it
+    means unfinished."""
+    from pipeline.errors import MetadataError
+
+    pipe = _pipe(remote, tmp_path)
+    pipe.run("train")
+    out = pipe.env.dir("train")
+    saved = out.fs.cat_file(out.file("_stage.json"))
+    out.fs.pipe_file(out.file("_stage.json"), saved[:40])
+    with pytest.raises(MetadataError, match=re.escape(f"{out.url}/_stage.json: the record of stage output train "
+                                                      "cannot be read (")):
+        pipe.run("train")
+    with pytest.raises(MetadataError, match="`pipeline run train --dataset fake --cache memory://"):
+        out.meta()
+    assert pipe.run("train", force=True)[-1].summary["message"] != "up to date"
+    assert pipe.run("train")[-1].summary["message"] == "up to date"
+    out.fs.rm(out.file("_stage.json"))
+    assert out.meta() is None
+
+
 def test_a_failed_array_write_on_a_remote_cache_leaves_the_frame_pending(tmp_path, remote, monkeypatch):
     """On zarr's path a frame's arrays are written concurrently and its status after them all: one
     array whose write fails leaves the frame pending (to be redone), never done without its data."""

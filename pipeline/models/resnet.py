@@ -103,25 +103,83 @@ def _init_like_torchvision(model: nn.Module) -> None:
             nn.init.zeros_(m.bias)
 
 
+WEIGHTS_FORMATS = ".safetensors (safetensors) or .pth / .pt (torch.save of a state dict)"
+"""The weights files :func:`load_state_dict_file` reads, as its messages name them."""
+
+_TORCH_LEGACY_MAGIC = (0x1950A86A20F9469CFC6C).to_bytes(10, "little")
+"""The magic number that opens a torch.save file of the format before torch 1.6 (pickled)."""
+
+
 def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
     """Read a state dict from ``.safetensors`` (safetensors) or ``.pth``/``.pt`` (torch.load with
-    ``weights_only=True``, which refuses arbitrary pickled objects)."""
+    ``weights_only=True``, which refuses arbitrary pickled objects).
+
+    ConfigError naming the file for a missing file, another format, a file that cannot be read as
+    its suffix says (damaged, truncated, or of another format) and one holding more than tensors.
+    """
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: weights file not found")
     suffix = path.suffix.lower()
     if suffix == ".safetensors":
+        from safetensors import SafetensorError
         from safetensors.torch import load_file
-        return load_file(str(path))
-    if suffix in (".pth", ".pt"):
         try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except pickle.UnpicklingError as exc:
-            raise ConfigError(f"{path}: refused to load (not a plain tensor state dict): {exc}") from None
-        if not isinstance(state, dict):
-            raise ConfigError(f"{path}: expected a state dict, found {type(state).__name__}")
-        return state
+            return load_file(str(path))
+        except (SafetensorError, OSError) as exc:
+            raise _unreadable(path, "a safetensors file", _first_sentence(exc)) from None
+    if suffix in (".pth", ".pt"):
+        return _load_torch_state_dict(path)
     raise ConfigError(f"{path}: unsupported weights format '{suffix}' (use .safetensors, .pth or .pt)")
+
+
+def _load_torch_state_dict(path: Path) -> dict[str, Tensor]:
+    """A ``.pth``/``.pt`` file's state dict (:func:`load_state_dict_file`)."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        if not _is_torch_save_file(path):  # text or other bytes: torch's advice (weights_only=False) is wrong
+            raise _unreadable(path, "a torch.save file", _unpickler_reason(exc)) from None
+        raise ConfigError(f"{path}: refused to load (not a plain tensor state dict: {_unpickler_reason(exc)}); "
+                          "save the model's state_dict() instead, or convert it to .safetensors") from None
+    except Exception as exc:  # noqa: BLE001 - a damaged file fails anywhere in torch's reader (zip, unpickler)
+        raise _unreadable(path, "a torch.save file", _first_sentence(exc)) from None
+    if not isinstance(state, dict):
+        raise ConfigError(f"{path}: expected a state dict, found {type(state).__name__}")
+    return state
+
+
+def _is_torch_save_file(path: Path) -> bool:
+    """Whether ``path`` is in one of torch.save's formats: a zip archive (torch >= 1.6) or a pickle
+    opened by torch's magic number (``_use_new_zipfile_serialization=False``)."""
+    import zipfile
+    if zipfile.is_zipfile(path):
+        return True
+    with open(path, "rb") as f:
+        return _TORCH_LEGACY_MAGIC in f.read(32)
+
+
+def _unpickler_reason(exc: BaseException) -> str:
+    """The reason in torch's weights-only refusal (e.g. 'Unsupported global: GLOBAL m.X'), without
+    its advice to load the file unsafely."""
+    text = str(exc)
+    _, found, after = text.partition("WeightsUnpickler error:")
+    lines = [line.strip() for line in (after if found else text).splitlines() if line.strip()]
+    return lines[0].split(" was not an allowed global")[0] if lines else type(exc).__name__
+
+
+def _first_sentence(exc: BaseException) -> str:
+    """The first sentence of ``exc``'s message (its type for an empty one)."""
+    text = " ".join(str(exc).split())
+    return text.split(". ")[0][:120] if text else type(exc).__name__
+
+
+def _unreadable(path: Path, what: str, detail: str) -> ConfigError:
+    """The one-line error for a weights file that cannot be read as ``what`` (``detail``: the reader's
+    own reason)."""
+    return ConfigError(f"{path}: cannot be read as {what} ({detail}): the file is damaged (truncated or "
+                       f"overwritten) or not a weights file; weights files are {WEIGHTS_FORMATS}: "
+                       "save or download it again")
 
 
 def resnet18_backbone(weights_path: str | Path | None = None, width: int = 64) -> ResNet18Backbone:
