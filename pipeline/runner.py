@@ -742,7 +742,11 @@ class Pipeline:
                                frame_ids_damaged=[ids[i] for i in errors])
                 else:
                     folder = self.env.dir(name)
-                    if folder.meta() is None:
+                    try:
+                        if folder.meta() is None:
+                            continue
+                    except MetadataError as exc:  # its record is damaged: made again as a whole
+                        rows.append({**row, "problem": str(exc), "checkpoints": 0})
                         continue
                     row["checkpoints"], problems = _checkpoints_read(folder)
                     row["files"], damaged = folder.check_files(progress and (lambda n, total, _name=name: progress(_name, n, total)))
@@ -758,8 +762,9 @@ class Pipeline:
         """Per stage: done / failed / pending / excluded counts and whether it is current (which
         needs its upstream stages current too: a run would rebuild it after them; None: unknown),
         and the reasons of its first ``reasons`` failed frames (default all). A frame stage whose
-        output cannot be read (damaged metadata or status chunk) gets ``damaged``, the error's
-        message, and the other stages are still listed."""
+        output cannot be read (damaged metadata or status chunk), or a dataset stage whose record
+        (_stage.json) is damaged, gets ``damaged``, the error's message, and the other stages are
+        still listed."""
         rows = []
         current_of: dict[str, bool | None] = {}
         for name in self.order:
@@ -785,10 +790,16 @@ class Pipeline:
                     current = None
             else:
                 folder = self.env.dir(name)
-                row["exists"] = folder.meta() is not None
-                row["summary"] = folder.summary()
-                if not row["exists"] and stage.resume_point is not None:
-                    row["resumes_from"] = self._resume_point(stage, folder)
+                try:
+                    row["exists"] = folder.meta() is not None
+                except MetadataError as exc:  # a damaged _stage.json
+                    row.update(exists=True, damaged=str(exc))
+                    row.pop("note", None)  # the same error, from is_current
+                    current = None
+                else:
+                    row["summary"] = folder.summary()
+                    if not row["exists"] and stage.resume_point is not None:
+                        row["resumes_from"] = self._resume_point(stage, folder)
             if name == FIRST_STAGE and row.get("exists") and (old := self.made_from()):
                 row["note"] = self._other_root_message(old)
             row["current"] = _all_of([current, *(current_of.get(u) for u in stage.upstream)]) if row["exists"] else False

@@ -799,13 +799,20 @@ def test_cli_damaged_stage_record_names_the_file_in_status_verify_and_runs(tmp_p
     assert fake_cli(tmp_path, "run", "train", "--workers", "1").exit_code == 0
     record = tmp_path / "cache" / "synthetic" / "train" / "_stage.json"
     record.write_bytes(record.read_bytes()[:40])
-    for args in (("status",), ("verify",), ("run", "train", "--workers", "1"), ("run", "train", "--dry-run")):
+    for args in (("status",), ("run", "train", "--workers", "1"), ("run", "train", "--dry-run")):
         out = fake_cli(tmp_path, *args)
         assert out.exit_code == 2 and "Traceback" not in out.output, (args, out.output)
         errors = [line for line in out.stderr.splitlines() if line.startswith("error: ")]
         assert len(errors) == 1 and errors[0].startswith(f"error: {record}: the record of stage output train "
                                                          "cannot be read ("), (args, out.output)
         assert f"`pipeline run train --dataset synthetic --cache {tmp_path / 'cache'} --force`" in errors[0]
+    status = fake_cli(tmp_path, "status").stdout  # the other stages are still listed
+    assert re.search(r"^calibrate .* done +8", status, re.M) and re.search(r"^heatmaps ", status, re.M), status
+    verify = fake_cli(tmp_path, "verify")  # every output checked; the train line names the file and the way out
+    assert verify.exit_code == 2 and "Traceback" not in verify.output
+    assert re.search(r"^calibrate .* every chunk intact", verify.stdout, re.M), verify.output
+    assert f"train           cannot be read: {record}: the record of stage output train cannot be read (" in verify.stdout
+    assert f"make it again: pipeline run train --dataset synthetic --cache {tmp_path / 'cache'} --force" in verify.stdout
     assert fake_cli(tmp_path, "run", "train", "--force", "--workers", "1").exit_code == 0  # the way out
     assert fake_cli(tmp_path, "verify").exit_code == 0 and fake_cli(tmp_path, "status").exit_code == 0
 
