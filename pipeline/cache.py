@@ -694,7 +694,15 @@ class DirStore:
             f"{join(self.url, '_stage.json')}: the record of stage output {stage} {problem}, so whether it finished, "
             f"and with which settings, is unknown (the file is written whole, so it is damaged). Restore the file "
             f"(from a backup or another copy of the cache), or make the output again with `pipeline run {stage}"
-            f"{where} --force`")
+            f"{where} --force`" + (" (or delete the file: the next run resumes from the checkpoints there, which it "
+                                   "checks, instead of training again)" if self._holds_checkpoints() else ""))
+
+    def _holds_checkpoints(self) -> bool:
+        """Whether the folder holds a training checkpoint (``<net>/last.safetensors``) a run resumes from."""
+        try:
+            return bool(self.fs.glob(self.path.rstrip("/") + "/*/last.safetensors"))
+        except OSError:
+            return False
 
     def fingerprint(self) -> str | None:
         meta = self.meta()

@@ -78,3 +78,30 @@ def test_status_line_of_an_unfinished_train(capsys):
     lines = capsys.readouterr().out.splitlines()
     assert lines == ["train           stale or missing    not finished; resumes from disnet epoch 1 of 3",
                      "export          stale or missing    not run"]
+
+
+def test_a_damaged_train_record_names_the_way_that_keeps_the_training(tmp_path):
+    """A damaged train/_stage.json stops the run; its message names, beside --force (which trains
+    again), deleting the file: the next run then resumes from the checkpoints, trains no epoch
+    and gives the same nets."""
+    import hashlib
+
+    from pipeline.errors import MetadataError
+    from pipeline.world import generate
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    pipe = _pipe(str(tmp_path / "cache"), world, tmp_path / "staging", **{"train.epochs": "2"})
+    pipe.run("train")
+    train = tmp_path / "cache" / "synthetic" / "train"
+    best = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in train.glob("*/best.safetensors")}
+    record = train / "_stage.json"
+    record.write_bytes(record.read_bytes()[:40])
+    with pytest.raises(MetadataError, match=r"--force` \(or delete the file: the next run resumes from the checkpoints"):
+        pipe.run("train")
+    record.unlink()
+    report = pipe.run("train")[-1]
+    cfg = pipe.env.cfg
+    assert report.summary["disnet"]["resumed_from"] == cfg.train.epochs == 2
+    assert report.summary["placenet"]["resumed_from"] == cfg.placement.epochs > 0
+    assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in best} == best
