@@ -255,7 +255,9 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
 
 def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None) -> None:
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
-    --frames would do; exit 2 when an output it would read is damaged (as the run would stop)."""
+    --frames would do; exit 2 when an output it would read is damaged (as the run would stop), and
+    --frames refused as the run refuses it."""
+    unchecked = _check_frames(pipe, frames_spec)
     rows = {r["stage"]: r for r in pipe.status(reasons=0)}
     for name in closure:
         _print_status_row(rows[name])
@@ -266,10 +268,26 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     elif force:
         click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
     if frames_spec:
-        click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames"
+        click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames{unchecked}"
                    f"{_whole_dataset_note(pipe, closure)}")
     rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
     _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
+
+
+def _check_frames(pipe, frames_spec: str | None) -> str:
+    """--dry-run's check of --frames against the dataset's frames: the ConfigError the run would
+    stop with (exit 2), or, when the frames cannot be listed yet (no data there: a synthetic world
+    not generated), ' (not checked: ...)' for the --frames line; '' when checked."""
+    from pipeline.runner import parse_frames
+
+    if not frames_spec:
+        return ""
+    try:
+        ids = pipe.frame_ids()
+    except PipelineError as exc:
+        return f" (not checked against the dataset's frames: {str(exc).splitlines()[0]})"
+    parse_frames(frames_spec, ids)
+    return ""
 
 
 def _exit_if_nothing_done(reports, status_cmd: str) -> None:

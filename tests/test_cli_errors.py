@@ -1,0 +1,65 @@
+"""The CLI's answers where a command cannot do what it was asked: --frames in --dry-run. The real
+CLI on the fake stages of tests/fake_stages.py."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+import pipeline.cli as cli
+from pipeline.executor import Executor
+from pipeline.runner import Pipeline
+from tests import fake_stages
+
+ROOT = Path(__file__).resolve().parents[1]
+IDS = [f"f{i:03d}" for i in range(8)]
+
+
+@pytest.fixture
+def fake_cli(monkeypatch):
+    """The real CLI (options, error handling) on the fake stages and the frames of IDS."""
+    def _pipeline(env, workers, scheduler, progress=None):
+        return Pipeline(fake_stages.STAGES, env, Executor(workers, scheduler, progress), progress,
+                        frame_lister=lambda: list(IDS))
+
+    monkeypatch.setattr(cli, "_pipeline", _pipeline)
+    monkeypatch.setattr(cli, "_ensure_world", lambda env, progress: None)
+
+    def invoke(tmp_path: Path, *args: str):
+        return CliRunner().invoke(cli.main, [*args, "--dataset", "synthetic", "--cache", str(tmp_path / "cache"),
+                                             "--data-root", str(tmp_path)])
+    return invoke
+
+
+@pytest.mark.parametrize("spec, words", [("abc", "--frames: no frame 'abc' in this dataset (8 frames)"),
+                                         ("1:2:0", "--frames: cannot parse '1:2:0'"),
+                                         ("50:60", "--frames 50:60: selects no frame (this dataset has 8")])
+def test_dry_run_refuses_the_frames_the_run_refuses(tmp_path, fake_cli, spec, words):
+    """--dry-run said '--frames abc: per-frame work would be limited to those frames' with exit
+    code 0 where the run stops with exit code 2."""
+    run = fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", "--frames", spec)
+    dry = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", "--frames", spec)
+    assert run.exit_code == dry.exit_code == 2, dry.output
+    assert dry.stderr == run.stderr and dry.stderr.startswith(f"error: {words}") and len(dry.stderr.splitlines()) == 1
+    assert "would be limited" not in dry.output and "Traceback" not in dry.output
+    assert not (tmp_path / "cache" / "synthetic" / "calibrate.zarr").exists()
+    good = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", "--frames", "0:2")
+    assert good.exit_code == 0 and "--frames 0:2: per-frame work would be limited to those frames\n" in good.stdout
+
+
+def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, monkeypatch):
+    """A dataset whose frames cannot be listed yet (the synthetic world before its generation): the
+    --frames line says it is not checked, and why."""
+    from pipeline.errors import PipelineError
+
+    def unlisted():
+        raise PipelineError("dataset 'synthetic': the data root /x/world is not a folder")
+
+    monkeypatch.setattr(Pipeline, "frame_ids", lambda self: unlisted())
+    monkeypatch.setattr(Pipeline, "status", lambda self, reasons=0: [{"stage": s.name} for s in fake_stages.STAGES])
+    dry = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", "--frames", "abc")
+    assert dry.exit_code == 0, dry.output
+    assert ("--frames abc: per-frame work would be limited to those frames (not checked against the dataset's "
+            "frames: dataset 'synthetic': the data root /x/world is not a folder)") in dry.stdout
