@@ -240,17 +240,24 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
                            wait_s=wait_s)
     finally:
         pipe.executor.close()
-    failed = failed_frames_line(reports)
-    status_cmd = f"pipeline status --dataset {shlex.quote(dataset)}"
-    if cache_root != DEFAULT_CACHE:
-        status_cmd += f" --cache {shlex.quote(cache_root)}"
-    if failed:
-        click.echo(f"{failed}; `{status_cmd}` lists why.", err=True)
+    status_cmd = _note_failed(reports, dataset, cache_root)
     for r in reports:
         for key in ("report", "figures", "checkpoints", "output"):
             if key in r.summary:
                 click.echo(f"{r.stage} {key}: {r.summary[key]}")
     _exit_if_nothing_done(reports, status_cmd)
+
+
+def _note_failed(reports, dataset: str, cache_root: str) -> str:
+    """'N frame(s) failed (first in ...); `pipeline status ...` lists why.' on stderr when frames of
+    ``reports`` failed; returns that `pipeline status` command (for :func:`_exit_if_nothing_done`)."""
+    status_cmd = f"pipeline status --dataset {shlex.quote(dataset)}"
+    if cache_root != DEFAULT_CACHE:
+        status_cmd += f" --cache {shlex.quote(cache_root)}"
+    failed = failed_frames_line(reports)
+    if failed:
+        click.echo(f"{failed}; `{status_cmd}` lists why.", err=True)
+    return status_cmd
 
 
 def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None) -> None:
@@ -581,9 +588,11 @@ def check_physics(dataset, data_root, cache_root, sets, workers):
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
     _ensure_world(env, pipe.progress)
     try:
-        pipe.run("calibrate")
+        reports = pipe.run("calibrate")
     finally:
         pipe.executor.close()
+    status_cmd = _note_failed(reports, dataset, cache_root)  # the checks leave those frames out
+    _exit_if_nothing_done(reports, status_cmd)
     frames = np.flatnonzero(env.store("calibrate").status() == DONE)
     result = physics_checks(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, frames)
     click.echo(f"{len(frames)} frame(s) of {dataset}:")

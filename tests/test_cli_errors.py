@@ -1,8 +1,9 @@
-"""The CLI's answers where a command cannot do what it was asked: --frames in --dry-run. The real
-CLI on the fake stages of tests/fake_stages.py."""
+"""The CLI's answers where a command cannot do what it was asked: --frames in --dry-run, a stage
+that made nothing before check-physics. The real CLI on the fake stages of tests/fake_stages.py."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
@@ -63,3 +64,35 @@ def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, mo
     assert dry.exit_code == 0, dry.output
     assert ("--frames abc: per-frame work would be limited to those frames (not checked against the dataset's "
             "frames: dataset 'synthetic': the data root /x/world is not a folder)") in dry.stdout
+
+
+def _physics(monkeypatch) -> list:
+    """stages.evaluate.physics_checks replaced: the frames it was given, one row of their count."""
+    import stages.evaluate
+
+    given = []
+
+    def checks(inputs, cfg, frames):
+        given.append(list(frames))
+        return {"doppler (static points)": {"frames": len(frames)}}
+
+    monkeypatch.setattr(stages.evaluate, "physics_checks", checks)
+    return given
+
+
+def test_check_physics_exits_1_when_calibrate_made_nothing_and_names_the_failed_frames(tmp_path, fake_cli,
+                                                                                       monkeypatch):
+    """With every calibrate frame failed it printed '0 frame(s) of synthetic:' and exit code 0; with
+    some failed it reported on the rest without a word about them."""
+    given = _physics(monkeypatch)
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
+    out = fake_cli(tmp_path / "all", "check-physics", "--workers", "1")
+    assert out.exit_code == 1, out.output
+    assert "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. " in out.stderr
+    assert "frame(s) of synthetic" not in out.output and given == []
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "f001", "f002"])
+    out = fake_cli(tmp_path / "some", "check-physics", "--workers", "1")
+    assert out.exit_code == 0, out.output
+    status = f"`pipeline status --dataset synthetic --cache {tmp_path / 'some' / 'cache'}` lists why."
+    assert f"1 frame(s) failed (first in calibrate: 1); {status}" in out.stderr
+    assert "2 frame(s) of synthetic:\n  doppler (static points): frames = 2" in out.stdout and given == [[1, 2]]
