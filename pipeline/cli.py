@@ -301,7 +301,7 @@ def _exit_if_nothing_done(reports, status_cmd: str) -> None:
     """Exit 1 when a frame stage with failed frames has none done: it made nothing (the run stopped
     after it unless it was the target), which is no success for a script (some failed frames beside
     done ones are: see --strict)."""
-    nothing = [r for r in reports if r.action != "dataset" and r.done == 0 and r.failed]
+    nothing = _made_nothing(reports)
     if not nothing:
         return
     r = nothing[0]
@@ -313,6 +313,11 @@ def _exit_if_nothing_done(reports, status_cmd: str) -> None:
               f"--retry-failed tries them again)"
     click.echo(f"error: stage {r.stage} has no frame done: {why}", err=True)
     sys.exit(1)
+
+
+def _made_nothing(reports) -> list:
+    """The reports of frame stages with failed frames and none done."""
+    return [r for r in reports if r.action != "dataset" and r.done == 0 and r.failed]
 
 
 def _whole_dataset_note(pipe, names: list[str]) -> str:
@@ -557,10 +562,12 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
     _ensure_world(env, pipe.progress)
     try:
-        pipe.run("heatmaps")
-        pipe.run("patches")
+        reports = pipe.run("heatmaps")
+        if not _made_nothing(reports):  # else the stages after it were not run: nothing to train on
+            reports += [r for r in pipe.run("patches") if r.stage not in {s.stage for s in reports}]
     finally:
         pipe.executor.close()
+    _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it
     folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, then uploaded
     work = folder.work_folder(env.cfg.run.staging_dir)
     run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen)

@@ -1,5 +1,6 @@
 """The CLI's answers where a command cannot do what it was asked: --frames in --dry-run, a stage
-that made nothing before check-physics. The real CLI on the fake stages of tests/fake_stages.py."""
+that made nothing before check-physics and ablate. The real CLI on the fake stages of
+tests/fake_stages.py."""
 
 from __future__ import annotations
 
@@ -96,3 +97,19 @@ def test_check_physics_exits_1_when_calibrate_made_nothing_and_names_the_failed_
     status = f"`pipeline status --dataset synthetic --cache {tmp_path / 'some' / 'cache'}` lists why."
     assert f"1 frame(s) failed (first in calibrate: 1); {status}" in out.stderr
     assert "2 frame(s) of synthetic:\n  doppler (static points): frames = 2" in out.stdout and given == [[1, 2]]
+
+
+def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, monkeypatch):
+    """It said 'error: .../heatmaps.zarr does not exist' (the calibrate line printed twice): the
+    runs of heatmaps and patches before training were not looked at."""
+    import stages.ablations
+
+    trained = []
+    monkeypatch.setattr(stages.ablations, "run_ablations", lambda *args: trained.append(args))
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
+    out = fake_cli(tmp_path, "ablate", "--workers", "1")
+    assert out.exit_code == 1, out.output
+    assert out.stderr.splitlines()[-1].startswith(
+        "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. ")
+    assert "does not exist" not in out.output and trained == []
+    assert sum(line.startswith("calibrate ") for line in out.stderr.splitlines()) == 1, out.stderr
