@@ -424,18 +424,37 @@ class Executor:
 
 @contextlib.contextmanager
 def _workers_ignore_sigint() -> Iterator[None]:
-    """Start the local cluster's worker processes with SIGINT ignored (they inherit it; Python then
-    installs no KeyboardInterrupt handler): Ctrl-C in a terminal reaches the whole process group,
-    and each worker printed its KeyboardInterrupt traceback before the run's one line. The run
-    itself stops them when it stops."""
+    """Start the local cluster's worker processes with SIGINT blocked, and keep a SIGINT that
+    reaches this process meanwhile for the moment the cluster is up.
+
+    Ctrl-C in a terminal reaches the whole process group, and each worker printed its
+    KeyboardInterrupt traceback before the run's one 'interrupted' line. The run itself stops them
+    when it stops. SIGINT is blocked in this thread while the cluster starts: the threads started
+    here (dask's event loop, which spawns the workers) and the workers, whose own threads all come
+    from their blocked main thread, inherit the block across fork and exec, so none ever takes a
+    SIGINT. This process meanwhile records a SIGINT (another of its threads takes it, or it waits
+    until the block is lifted) and raises it once the guard is left. Before, SIGINT was ignored
+    (SIG_IGN, which workers inherit too) for the 1-2 s of the start, and a Ctrl-C then was lost:
+    the run went on to its end with exit code 0.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from multiprocessing import resource_tracker
+
+    # started now, in this thread: started by the first worker's spawn, it would lift the block in dask's
+    # event loop thread when done (it blocks SIGINT itself while it spawns, then unblocks it)
+    resource_tracker.ensure_running()
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # one still pending reaches the recorder now
         signal.signal(signal.SIGINT, previous)
+        if caught:
+            signal.raise_signal(signal.SIGINT)  # to the run's own handler: KeyboardInterrupt
 
 
 def process_frames(stage: FrameStage, env: RunEnv, batch: list[tuple[int, str]],

@@ -1,10 +1,13 @@
 """The CLI's answers where a command cannot do what it was asked: --frames in --dry-run, a stage
-that made nothing before check-physics and ablate. The real CLI on the fake stages of
-tests/fake_stages.py."""
+that made nothing before check-physics and ablate, Ctrl-C while the local dask cluster starts.
+The real CLI on the fake stages of tests/fake_stages.py."""
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -113,3 +116,59 @@ def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, mo
         "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. ")
     assert "does not exist" not in out.output and trained == []
     assert sum(line.startswith("calibrate ") for line in out.stderr.splitlines()) == 1, out.stderr
+
+
+def test_ctrl_c_while_the_local_cluster_starts_is_raised_once_it_is_up():
+    """SIGINT was ignored (SIG_IGN) in the whole process while the cluster started, 1-2 s that may
+    fall in the middle of a run: a Ctrl-C then was lost and the run went on to exit code 0."""
+    from pipeline.executor import _workers_ignore_sigint
+
+    before, reached = signal.getsignal(signal.SIGINT), False
+    with pytest.raises(KeyboardInterrupt):
+        with _workers_ignore_sigint():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+            reached = True  # the start is not broken off half-way
+    assert reached and signal.getsignal(signal.SIGINT) is before
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    with _workers_ignore_sigint():  # nothing to raise without a SIGINT
+        pass
+
+
+def test_a_run_interrupted_while_its_local_cluster_starts_ends_as_interrupted(tmp_path, fake_cli, monkeypatch):
+    """The real LocalCluster, with a SIGINT sent to this process as it starts: the run stops with
+    Ctrl-C's line and exit code 130 (it ran on to the end and exit code 0)."""
+    import distributed
+
+    real = distributed.LocalCluster
+
+    def interrupted(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "LocalCluster", interrupted)
+    out = fake_cli(tmp_path, "run", "heatmaps", "--workers", "2")
+    assert out.exit_code == 130, out.output
+    assert out.stderr.splitlines()[-1] == ("interrupted in calibrate: its finished frames are kept; run the same "
+                                           "command again to resume")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the workers' signal masks from /proc")
+def test_local_cluster_workers_never_take_a_ctrl_c():
+    """Ctrl-C reaches the terminal's whole process group: each worker printed a KeyboardInterrupt
+    traceback. The workers start with SIGINT blocked (multiprocessing's resource tracker, started by
+    the first worker's spawn, lifted the block in dask's event loop thread, which spawns the others)."""
+    def masks(pid: int) -> tuple[int, int]:
+        rows = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
+        return int(rows["SigBlk"], 16), int(rows["SigIgn"], 16)
+
+    bit = 1 << (signal.SIGINT - 1)
+    with Executor(2) as executor:
+        client = executor.client()
+        pids = list(client.run(os.getpid).values())
+        assert len(pids) == 2
+        assert all(blocked & bit or ignored & bit for blocked, ignored in map(masks, pids))
+        for pid in pids:
+            os.kill(pid, signal.SIGINT)
+        time.sleep(1.0)
+        assert sorted(client.run(os.getpid).values()) == sorted(pids)  # the same workers, alive
