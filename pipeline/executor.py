@@ -269,10 +269,15 @@ class Executor:
                 # threshold at 128 KiB: every image-sized array is then a fresh mmap and page-faults
                 # in (measured on Astyx calibrate: 3.9 M faults and 1.3x on 2 workers; with these
                 # settings 0.1 M faults and 1.8x).
-                with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_MALLOC.items()}), \
-                        _workers_ignore_sigint():
-                    self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                                 dashboard_address=":0", silence_logs=logging.CRITICAL)
+                try:
+                    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v
+                                          for k, v in WORKER_MALLOC.items()}), _workers_ignore_sigint():
+                        self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                                     dashboard_address=":0", silence_logs=logging.CRITICAL)
+                except Exception as exc:  # e.g. 'Nanny failed to start.': dask's own traceback runs to 118 lines
+                    raise PipelineError(f"the local dask cluster of {self.workers} workers could not start "
+                                        f"({_cause_line(exc)}); --workers 1 runs the stages in this process, "
+                                        f"without a cluster") from None
                 self._client = Client(self._cluster)
         return self._client
 
@@ -420,6 +425,20 @@ class Executor:
         if self._cluster is not None:
             return self.workers
         return max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()))
+
+
+def _cause_line(exc: BaseException) -> str:
+    """'RuntimeError: Nanny failed to start.; caused by FileNotFoundError: ...': the first line of
+    ``exc`` and of the exception at the end of its chain of causes, where that is another."""
+    def line(e: BaseException) -> str:
+        text = str(e).strip()
+        return f"{type(e).__name__}: {text.splitlines()[0]}" if text else type(e).__name__
+
+    root, seen = exc, {id(exc)}
+    while (root.__cause__ or root.__context__) is not None and id(root.__cause__ or root.__context__) not in seen:
+        root = root.__cause__ or root.__context__
+        seen.add(id(root))
+    return line(exc) if root is exc or line(root) == line(exc) else f"{line(exc)}; caused by {line(root)}"
 
 
 @contextlib.contextmanager

@@ -1,6 +1,6 @@
 """The CLI's answers where a command cannot do what it was asked: --frames in --dry-run, a stage
-that made nothing before check-physics and ablate, Ctrl-C while the local dask cluster starts.
-The real CLI on the fake stages of tests/fake_stages.py."""
+that made nothing before check-physics and ablate, Ctrl-C and failures while the local dask
+cluster starts. The real CLI on the fake stages of tests/fake_stages.py."""
 
 from __future__ import annotations
 
@@ -172,3 +172,23 @@ def test_local_cluster_workers_never_take_a_ctrl_c():
             os.kill(pid, signal.SIGINT)
         time.sleep(1.0)
         assert sorted(client.run(os.getpid).values()) == sorted(pids)  # the same workers, alive
+
+
+def test_a_local_cluster_that_cannot_start_is_one_line_naming_workers_1(tmp_path, fake_cli, monkeypatch):
+    """dask's 'Nanny failed to start.' was a 118-line traceback."""
+    import distributed
+
+    def failing(*args, **kwargs):
+        try:
+            raise FileNotFoundError(2, "No such file or directory", "/nonexistent/preload.py")
+        except FileNotFoundError as exc:
+            raise RuntimeError("Nanny failed to start.") from exc
+
+    monkeypatch.setattr(distributed, "LocalCluster", failing)
+    out = fake_cli(tmp_path, "run", "heatmaps", "--workers", "2")
+    assert out.exit_code == 2 and "Traceback" not in out.output, out.output
+    assert out.stderr.splitlines()[-1] == (
+        "error: the local dask cluster of 2 workers could not start (RuntimeError: Nanny failed to start.; caused "
+        "by FileNotFoundError: [Errno 2] No such file or directory: '/nonexistent/preload.py'); --workers 1 runs "
+        "the stages in this process, without a cluster")
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
