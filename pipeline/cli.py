@@ -33,6 +33,9 @@ def _handle_errors(fn):
         except PipelineError as exc:
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
+        except BrokenPipeError:  # stdout's reader is gone (`| head`): stop quietly, as Python's docs advise
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the flush at exit fails no more
+            sys.exit(1)
         except OSError as exc:  # e.g. a dataset folder or index that cannot be read
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
@@ -396,6 +399,7 @@ def _exit_if_damaged(rows: list[dict]) -> None:
 
 
 @main.command()
+@_handle_errors
 def datasets():
     """List the dataset profiles shipped with the package."""
     for name in profile_names():

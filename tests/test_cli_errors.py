@@ -1,11 +1,12 @@
 """The CLI's answers where a command cannot do what it was asked: --frames in --dry-run, a stage
 that made nothing before check-physics and ablate, Ctrl-C and failures while the local dask
-cluster starts. The real CLI on the fake stages of tests/fake_stages.py."""
+cluster starts, a closed stdout. The real CLI on the fake stages of tests/fake_stages.py."""
 
 from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -192,3 +193,19 @@ def test_a_local_cluster_that_cannot_start_is_one_line_naming_workers_1(tmp_path
         "by FileNotFoundError: [Errno 2] No such file or directory: '/nonexistent/preload.py'); --workers 1 runs "
         "the stages in this process, without a cluster")
     assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
+
+
+@pytest.mark.parametrize("command", [["status"], ["config"], ["datasets"]])
+def test_a_closed_stdout_ends_the_command_quietly(tmp_path, command):
+    """`pipeline status | head -3` printed 'error: [Errno 32] Broken pipe' with exit code 2. Here
+    the reader is gone before the first line (deterministic where `| head -1` races the output)."""
+    args = [*command, "--cache", str(tmp_path / "cache")] if command != ["datasets"] else command
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=120)
+    assert err.decode() == "" and proc.returncode == 1, err.decode()
+    piped = subprocess.run(f"{sys.executable} -m pipeline.cli {' '.join(args)} | head -1", shell=True, cwd=tmp_path,
+                           env=env, capture_output=True, text=True, timeout=120)
+    assert piped.stderr == "" and len(piped.stdout.splitlines()) == 1, piped.stderr
