@@ -33,6 +33,9 @@ def _handle_errors(fn):
         except PipelineError as exc:
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
+        except BrokenPipeError:  # stdout's reader is gone (`| head`): stop quietly, as Python's docs advise
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the flush at exit fails no more
+            sys.exit(1)
         except OSError as exc:  # e.g. a dataset folder or index that cannot be read
             click.echo(f"error: {exc}", err=True)
             sys.exit(2)
@@ -253,12 +256,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
                            wait_s=wait_s)
     finally:
         pipe.executor.close()
-    failed = failed_frames_line(reports)
-    status_cmd = f"pipeline status --dataset {shlex.quote(dataset)}"
-    if cache_root != DEFAULT_CACHE:
-        status_cmd += f" --cache {shlex.quote(cache_root)}"
-    if failed:
-        click.echo(f"{failed}; `{status_cmd}` lists why.", err=True)
+    status_cmd = _note_failed(reports, dataset, cache_root)
     for r in reports:
         for key in ("report", "figures", "checkpoints", "output"):
             if key in r.summary:
@@ -266,9 +264,23 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     _exit_if_nothing_done(reports, status_cmd)
 
 
+def _note_failed(reports, dataset: str, cache_root: str) -> str:
+    """'N frame(s) failed (first in ...); `pipeline status ...` lists why.' on stderr when frames of
+    ``reports`` failed; returns that `pipeline status` command (for :func:`_exit_if_nothing_done`)."""
+    status_cmd = f"pipeline status --dataset {shlex.quote(dataset)}"
+    if cache_root != DEFAULT_CACHE:
+        status_cmd += f" --cache {shlex.quote(cache_root)}"
+    failed = failed_frames_line(reports)
+    if failed:
+        click.echo(f"{failed}; `{status_cmd}` lists why.", err=True)
+    return status_cmd
+
+
 def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None) -> None:
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
-    --frames would do; exit 2 when an output it would read is damaged (as the run would stop)."""
+    --frames would do; exit 2 when an output it would read is damaged (as the run would stop), and
+    --frames refused as the run refuses it."""
+    unchecked = _check_frames(pipe, frames_spec)
     rows = {r["stage"]: r for r in pipe.status(reasons=0)}
     for name in closure:
         _print_status_row(rows[name])
@@ -279,17 +291,33 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     elif force:
         click.echo(f"--force: {stage} would be recomputed from scratch, and what depends on it marked stale")
     if frames_spec:
-        click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames"
+        click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames{unchecked}"
                    f"{_whole_dataset_note(pipe, closure)}")
     rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
     _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
+
+
+def _check_frames(pipe, frames_spec: str | None) -> str:
+    """--dry-run's check of --frames against the dataset's frames: the ConfigError the run would
+    stop with (exit 2), or, when the frames cannot be listed yet (no data there: a synthetic world
+    not generated), ' (not checked: ...)' for the --frames line; '' when checked."""
+    from pipeline.runner import parse_frames
+
+    if not frames_spec:
+        return ""
+    try:
+        ids = pipe.frame_ids()
+    except PipelineError as exc:
+        return f" (not checked against the dataset's frames: {str(exc).splitlines()[0]})"
+    parse_frames(frames_spec, ids)
+    return ""
 
 
 def _exit_if_nothing_done(reports, status_cmd: str) -> None:
     """Exit 1 when a frame stage with failed frames has none done: it made nothing (the run stopped
     after it unless it was the target), which is no success for a script (some failed frames beside
     done ones are: see --strict)."""
-    nothing = [r for r in reports if r.action != "dataset" and r.done == 0 and r.failed]
+    nothing = _made_nothing(reports)
     if not nothing:
         return
     r = nothing[0]
@@ -301,6 +329,11 @@ def _exit_if_nothing_done(reports, status_cmd: str) -> None:
               f"--retry-failed tries them again)"
     click.echo(f"error: stage {r.stage} has no frame done: {why}", err=True)
     sys.exit(1)
+
+
+def _made_nothing(reports) -> list:
+    """The reports of frame stages with failed frames and none done."""
+    return [r for r in reports if r.action != "dataset" and r.done == 0 and r.failed]
 
 
 def _whole_dataset_note(pipe, names: list[str]) -> str:
@@ -379,6 +412,7 @@ def _exit_if_damaged(rows: list[dict]) -> None:
 
 
 @main.command()
+@_handle_errors
 def datasets():
     """List the dataset profiles shipped with the package."""
     for name in profile_names():
@@ -566,10 +600,12 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
     _ensure_world(env, pipe.progress)
     try:
-        pipe.run("heatmaps")
-        pipe.run("patches")
+        reports = pipe.run("heatmaps")
+        if not _made_nothing(reports):  # else the stages after it were not run: nothing to train on
+            reports += [r for r in pipe.run("patches") if r.stage not in {s.stage for s in reports}]
     finally:
         pipe.executor.close()
+    _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it
     folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, then uploaded
     work = folder.work_folder(env.cfg.run.staging_dir)
     run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen)
@@ -597,9 +633,11 @@ def check_physics(dataset, data_root, cache_root, sets, workers):
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
     _ensure_world(env, pipe.progress)
     try:
-        pipe.run("calibrate")
+        reports = pipe.run("calibrate")
     finally:
         pipe.executor.close()
+    status_cmd = _note_failed(reports, dataset, cache_root)  # the checks leave those frames out
+    _exit_if_nothing_done(reports, status_cmd)
     frames = np.flatnonzero(env.store("calibrate").status() == DONE)
     result = physics_checks(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, frames)
     click.echo(f"{len(frames)} frame(s) of {dataset}:")

@@ -592,6 +592,7 @@ def all_keys() -> list[str]:
 
 _KEYS = all_keys()
 _KEY_OF_VARIABLE = {f"PIPELINE__{k.replace('.', '__').upper()}": k for k in _KEYS}
+_KEY_OF_LOWER = {k.lower(): k for k in _KEYS}
 
 
 def _split_key(key: str) -> tuple[str, str]:
@@ -599,8 +600,8 @@ def _split_key(key: str) -> tuple[str, str]:
         section, name = key.split(".", 1)
         if section in SECTIONS and name in {f.name for f in fields(SECTIONS[section])}:
             return section, name
-    near = difflib.get_close_matches(key, all_keys(), n=1, cutoff=0.5)
-    hint = f"; did you mean '{near[0]}'?" if near else ""
+    near = difflib.get_close_matches(key.lower(), list(_KEY_OF_LOWER), n=1, cutoff=0.5)  # any case, as --set's
+    hint = f"; did you mean '{_KEY_OF_LOWER[near[0]]}'?" if near else ""
     raise ConfigError(f"unknown configuration key '{key}'{hint}")
 
 
@@ -773,12 +774,15 @@ def _variable(key: str) -> str:
 
 
 def parse_set_options(items: tuple[str, ...] | list[str]) -> dict[str, str]:
-    """Parse ``key=value`` strings from --set; ConfigError on a malformed item."""
+    """Parse ``key=value`` strings from --set into ``{'section.key': value}``; a key is matched
+    ignoring case, as the PIPELINE__ variables' are (TRAIN.EPOCHS is train.epochs), and returned as
+    the configuration spells it. ConfigError on a malformed item or an unknown key (with the nearest)."""
     out: dict[str, str] = {}
     for item in items:
         if "=" not in item:
             raise ConfigError(f"--set expects key=value, got '{item}'")
         key, value = item.split("=", 1)
-        _split_key(key.strip())
-        out[key.strip()] = value.strip()
+        key = _KEY_OF_LOWER.get(key.strip().lower(), key.strip())
+        _split_key(key)
+        out[key] = value.strip()
     return out

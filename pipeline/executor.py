@@ -272,10 +272,15 @@ class Executor:
                 # threshold at 128 KiB: every image-sized array is then a fresh mmap and page-faults
                 # in (measured on Astyx calibrate: 3.9 M faults and 1.3x on 2 workers; with these
                 # settings 0.1 M faults and 1.8x).
-                with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_MALLOC.items()}), \
-                        _workers_ignore_sigint():
-                    self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
-                                                 dashboard_address=":0", silence_logs=logging.CRITICAL)
+                try:
+                    with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v
+                                          for k, v in WORKER_MALLOC.items()}), _workers_ignore_sigint():
+                        self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
+                                                     dashboard_address=":0", silence_logs=logging.CRITICAL)
+                except Exception as exc:  # e.g. 'Nanny failed to start.': dask's own traceback runs to 118 lines
+                    raise PipelineError(f"the local dask cluster of {self.workers} workers could not start "
+                                        f"({_cause_line(exc)}); --workers 1 runs the stages in this process, "
+                                        f"without a cluster") from None
                 self._client = Client(self._cluster)
         return self._client
 
@@ -425,20 +430,53 @@ class Executor:
         return max(1, sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()))
 
 
+def _cause_line(exc: BaseException) -> str:
+    """'RuntimeError: Nanny failed to start.; caused by FileNotFoundError: ...': the first line of
+    ``exc`` and of the exception at the end of its chain of causes, where that is another."""
+    def line(e: BaseException) -> str:
+        text = str(e).strip()
+        return f"{type(e).__name__}: {text.splitlines()[0]}" if text else type(e).__name__
+
+    root, seen = exc, {id(exc)}
+    while (root.__cause__ or root.__context__) is not None and id(root.__cause__ or root.__context__) not in seen:
+        root = root.__cause__ or root.__context__
+        seen.add(id(root))
+    return line(exc) if root is exc or line(root) == line(exc) else f"{line(exc)}; caused by {line(root)}"
+
+
 @contextlib.contextmanager
 def _workers_ignore_sigint() -> Iterator[None]:
-    """Start the local cluster's worker processes with SIGINT ignored (they inherit it; Python then
-    installs no KeyboardInterrupt handler): Ctrl-C in a terminal reaches the whole process group,
-    and each worker printed its KeyboardInterrupt traceback before the run's one line. The run
-    itself stops them when it stops."""
+    """Start the local cluster's worker processes with SIGINT blocked, and keep a SIGINT that
+    reaches this process meanwhile for the moment the cluster is up.
+
+    Ctrl-C in a terminal reaches the whole process group, and each worker printed its
+    KeyboardInterrupt traceback before the run's one 'interrupted' line. The run itself stops them
+    when it stops. SIGINT is blocked in this thread while the cluster starts: the threads started
+    here (dask's event loop, which spawns the workers) and the workers, whose own threads all come
+    from their blocked main thread, inherit the block across fork and exec, so none ever takes a
+    SIGINT. This process meanwhile records a SIGINT (another of its threads takes it, or it waits
+    until the block is lifted) and raises it once the guard is left. Before, SIGINT was ignored
+    (SIG_IGN, which workers inherit too) for the 1-2 s of the start, and a Ctrl-C then was lost:
+    the run went on to its end with exit code 0.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from multiprocessing import resource_tracker
+
+    # started now, in this thread: started by the first worker's spawn, it would lift the block in dask's
+    # event loop thread when done (it blocks SIGINT itself while it spawns, then unblocks it)
+    resource_tracker.ensure_running()
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # one still pending reaches the recorder now
         signal.signal(signal.SIGINT, previous)
+        if caught:
+            signal.raise_signal(signal.SIGINT)  # to the run's own handler: KeyboardInterrupt
 
 
 def process_frames(stage: FrameStage, env: RunEnv, batch: list[tuple[int, str]],

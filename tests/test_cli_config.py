@@ -57,6 +57,23 @@ def test_an_unknown_key_names_the_nearest(tmp_path):
     assert "no configuration key or section 'placement.map_wieght'; did you mean 'placement.map_weight'?" in out.output
 
 
+def test_set_keys_are_matched_ignoring_case_as_the_environment_variables_are(tmp_path):
+    """--set TRAIN.EPOCHS=2 was 'unknown configuration key' with no suggestion, while
+    PIPELINE__TRAIN__EPOCHS (any case) sets train.epochs."""
+    from pipeline.config import parse_set_options
+
+    args = ["config", "--cache", str(tmp_path / "cache"), "train.epochs", "dataset.radar_mount_T_radar_lidar"]
+    eye = "1,0,0,0,0,1,0,0,0,0,1,0,0,0,0,1"
+    out = CliRunner().invoke(main, [*args, "--set", "TRAIN.EPOCHS=2", "--set", f"Dataset.Radar_Mount_t_radar_lidar={eye}"])
+    assert out.exit_code == 0, out.output
+    lines = _lines(out.output)
+    assert lines["train.epochs"] == ("2", "--set") and lines["dataset.radar_mount_T_radar_lidar"][1] == "--set"
+    assert parse_set_options(["TRAIN.EPOCHS=2"]) == {"train.epochs": "2"}  # the key as the configuration spells it
+    assert load_config("synthetic", parse_set_options(["Train.Epochs=3"]), environ={}).train.epochs == 3
+    bad = CliRunner().invoke(main, [*args, "--set", "TRAIN.EPOCS=2"])
+    assert bad.exit_code == 2 and "unknown configuration key 'TRAIN.EPOCS'; did you mean 'train.epochs'?" in bad.output
+
+
 def test_a_value_the_nets_of_another_dataset_bring_is_named_so(tmp_path, monkeypatch):
     """With train.nets_from the nets' radar settings replace the profile's (pipeline.transfer):
     those keys are said to come from that dataset's nets."""

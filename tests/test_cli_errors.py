@@ -1,0 +1,211 @@
+"""The CLI's answers where a command cannot do what it was asked: --frames in --dry-run, a stage
+that made nothing before check-physics and ablate, Ctrl-C and failures while the local dask
+cluster starts, a closed stdout. The real CLI on the fake stages of tests/fake_stages.py."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+import pipeline.cli as cli
+from pipeline.executor import Executor
+from pipeline.runner import Pipeline
+from tests import fake_stages
+
+ROOT = Path(__file__).resolve().parents[1]
+IDS = [f"f{i:03d}" for i in range(8)]
+
+
+@pytest.fixture
+def fake_cli(monkeypatch):
+    """The real CLI (options, error handling) on the fake stages and the frames of IDS."""
+    def _pipeline(env, workers, scheduler, progress=None):
+        return Pipeline(fake_stages.STAGES, env, Executor(workers, scheduler, progress), progress,
+                        frame_lister=lambda: list(IDS))
+
+    monkeypatch.setattr(cli, "_pipeline", _pipeline)
+    monkeypatch.setattr(cli, "_ensure_world", lambda env, progress: None)
+
+    def invoke(tmp_path: Path, *args: str):
+        return CliRunner().invoke(cli.main, [*args, "--dataset", "synthetic", "--cache", str(tmp_path / "cache"),
+                                             "--data-root", str(tmp_path)])
+    return invoke
+
+
+@pytest.mark.parametrize("spec, words", [("abc", "--frames: no frame 'abc' in this dataset (8 frames)"),
+                                         ("1:2:0", "--frames: cannot parse '1:2:0'"),
+                                         ("50:60", "--frames 50:60: selects no frame (this dataset has 8")])
+def test_dry_run_refuses_the_frames_the_run_refuses(tmp_path, fake_cli, spec, words):
+    """--dry-run said '--frames abc: per-frame work would be limited to those frames' with exit
+    code 0 where the run stops with exit code 2."""
+    run = fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", "--frames", spec)
+    dry = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", "--frames", spec)
+    assert run.exit_code == dry.exit_code == 2, dry.output
+    assert dry.stderr == run.stderr and dry.stderr.startswith(f"error: {words}") and len(dry.stderr.splitlines()) == 1
+    assert "would be limited" not in dry.output and "Traceback" not in dry.output
+    assert not (tmp_path / "cache" / "synthetic" / "calibrate.zarr").exists()
+    good = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", "--frames", "0:2")
+    assert good.exit_code == 0 and "--frames 0:2: per-frame work would be limited to those frames\n" in good.stdout
+
+
+def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, monkeypatch):
+    """A dataset whose frames cannot be listed yet (the synthetic world before its generation): the
+    --frames line says it is not checked, and why."""
+    from pipeline.errors import PipelineError
+
+    def unlisted():
+        raise PipelineError("dataset 'synthetic': the data root /x/world is not a folder")
+
+    monkeypatch.setattr(Pipeline, "frame_ids", lambda self: unlisted())
+    monkeypatch.setattr(Pipeline, "status", lambda self, reasons=0: [{"stage": s.name} for s in fake_stages.STAGES])
+    dry = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", "--frames", "abc")
+    assert dry.exit_code == 0, dry.output
+    assert ("--frames abc: per-frame work would be limited to those frames (not checked against the dataset's "
+            "frames: dataset 'synthetic': the data root /x/world is not a folder)") in dry.stdout
+
+
+def _physics(monkeypatch) -> list:
+    """stages.evaluate.physics_checks replaced: the frames it was given, one row of their count."""
+    import stages.evaluate
+
+    given = []
+
+    def checks(inputs, cfg, frames):
+        given.append(list(frames))
+        return {"doppler (static points)": {"frames": len(frames)}}
+
+    monkeypatch.setattr(stages.evaluate, "physics_checks", checks)
+    return given
+
+
+def test_check_physics_exits_1_when_calibrate_made_nothing_and_names_the_failed_frames(tmp_path, fake_cli,
+                                                                                       monkeypatch):
+    """With every calibrate frame failed it printed '0 frame(s) of synthetic:' and exit code 0; with
+    some failed it reported on the rest without a word about them."""
+    given = _physics(monkeypatch)
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
+    out = fake_cli(tmp_path / "all", "check-physics", "--workers", "1")
+    assert out.exit_code == 1, out.output
+    assert "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. " in out.stderr
+    assert "frame(s) of synthetic" not in out.output and given == []
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "f001", "f002"])
+    out = fake_cli(tmp_path / "some", "check-physics", "--workers", "1")
+    assert out.exit_code == 0, out.output
+    status = f"`pipeline status --dataset synthetic --cache {tmp_path / 'some' / 'cache'}` lists why."
+    assert f"1 frame(s) failed (first in calibrate: 1); {status}" in out.stderr
+    assert "2 frame(s) of synthetic:\n  doppler (static points): frames = 2" in out.stdout and given == [[1, 2]]
+
+
+def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, monkeypatch):
+    """It said 'error: .../heatmaps.zarr does not exist' (the calibrate line printed twice): the
+    runs of heatmaps and patches before training were not looked at."""
+    import stages.ablations
+
+    trained = []
+    monkeypatch.setattr(stages.ablations, "run_ablations", lambda *args: trained.append(args))
+    monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
+    out = fake_cli(tmp_path, "ablate", "--workers", "1")
+    assert out.exit_code == 1, out.output
+    assert out.stderr.splitlines()[-1].startswith(
+        "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. ")
+    assert "does not exist" not in out.output and trained == []
+    assert sum(line.startswith("calibrate ") for line in out.stderr.splitlines()) == 1, out.stderr
+
+
+def test_ctrl_c_while_the_local_cluster_starts_is_raised_once_it_is_up():
+    """SIGINT was ignored (SIG_IGN) in the whole process while the cluster started, 1-2 s that may
+    fall in the middle of a run: a Ctrl-C then was lost and the run went on to exit code 0."""
+    from pipeline.executor import _workers_ignore_sigint
+
+    before, reached = signal.getsignal(signal.SIGINT), False
+    with pytest.raises(KeyboardInterrupt):
+        with _workers_ignore_sigint():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+            reached = True  # the start is not broken off half-way
+    assert reached and signal.getsignal(signal.SIGINT) is before
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    with _workers_ignore_sigint():  # nothing to raise without a SIGINT
+        pass
+
+
+def test_a_run_interrupted_while_its_local_cluster_starts_ends_as_interrupted(tmp_path, fake_cli, monkeypatch):
+    """The real LocalCluster, with a SIGINT sent to this process as it starts: the run stops with
+    Ctrl-C's line and exit code 130 (it ran on to the end and exit code 0)."""
+    import distributed
+
+    real = distributed.LocalCluster
+
+    def interrupted(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(distributed, "LocalCluster", interrupted)
+    out = fake_cli(tmp_path, "run", "heatmaps", "--workers", "2")
+    assert out.exit_code == 130, out.output
+    assert out.stderr.splitlines()[-1] == ("interrupted in calibrate: its finished frames are kept; run the same "
+                                           "command again to resume")
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the workers' signal masks from /proc")
+def test_local_cluster_workers_never_take_a_ctrl_c():
+    """Ctrl-C reaches the terminal's whole process group: each worker printed a KeyboardInterrupt
+    traceback. The workers start with SIGINT blocked (multiprocessing's resource tracker, started by
+    the first worker's spawn, lifted the block in dask's event loop thread, which spawns the others)."""
+    def masks(pid: int) -> tuple[int, int]:
+        rows = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines())
+        return int(rows["SigBlk"], 16), int(rows["SigIgn"], 16)
+
+    bit = 1 << (signal.SIGINT - 1)
+    with Executor(2) as executor:
+        client = executor.client()
+        pids = list(client.run(os.getpid).values())
+        assert len(pids) == 2
+        assert all(blocked & bit or ignored & bit for blocked, ignored in map(masks, pids))
+        for pid in pids:
+            os.kill(pid, signal.SIGINT)
+        time.sleep(1.0)
+        assert sorted(client.run(os.getpid).values()) == sorted(pids)  # the same workers, alive
+
+
+def test_a_local_cluster_that_cannot_start_is_one_line_naming_workers_1(tmp_path, fake_cli, monkeypatch):
+    """dask's 'Nanny failed to start.' was a 118-line traceback."""
+    import distributed
+
+    def failing(*args, **kwargs):
+        try:
+            raise FileNotFoundError(2, "No such file or directory", "/nonexistent/preload.py")
+        except FileNotFoundError as exc:
+            raise RuntimeError("Nanny failed to start.") from exc
+
+    monkeypatch.setattr(distributed, "LocalCluster", failing)
+    out = fake_cli(tmp_path, "run", "heatmaps", "--workers", "2")
+    assert out.exit_code == 2 and "Traceback" not in out.output, out.output
+    assert out.stderr.splitlines()[-1] == (
+        "error: the local dask cluster of 2 workers could not start (RuntimeError: Nanny failed to start.; caused "
+        "by FileNotFoundError: [Errno 2] No such file or directory: '/nonexistent/preload.py'); --workers 1 runs "
+        "the stages in this process, without a cluster")
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
+
+
+@pytest.mark.parametrize("command", [["status"], ["config"], ["datasets"]])
+def test_a_closed_stdout_ends_the_command_quietly(tmp_path, command):
+    """`pipeline status | head -3` printed 'error: [Errno 32] Broken pipe' with exit code 2. Here
+    the reader is gone before the first line (deterministic where `| head -1` races the output)."""
+    args = [*command, "--cache", str(tmp_path / "cache")] if command != ["datasets"] else command
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=120)
+    assert err.decode() == "" and proc.returncode == 1, err.decode()
+    piped = subprocess.run(f"{sys.executable} -m pipeline.cli {' '.join(args)} | head -1", shell=True, cwd=tmp_path,
+                           env=env, capture_output=True, text=True, timeout=120)
+    assert piped.stderr == "" and len(piped.stdout.splitlines()) == 1, piped.stderr
