@@ -52,3 +52,25 @@ STAGES = [
                lambda cfg: (ArraySpec("total", (), "float64", "-"),), second),
     DatasetStage("train", ("heatmaps",), ("train.epochs",), summarise),
 ]
+
+
+def fake_cli(monkeypatch, ids):
+    """The real CLI (its options and error handling) on these stages, with the frames ``ids()``
+    lists (read at each run, so a test may change them): a function ``(tmp_path, *args)`` that
+    invokes it on the cache ``tmp_path/cache`` and the data root ``tmp_path``."""
+    from click.testing import CliRunner
+
+    import pipeline.cli as cli
+    from pipeline.executor import Executor
+    from pipeline.runner import Pipeline
+
+    def _pipeline(env, workers, scheduler, progress=None):
+        return Pipeline(STAGES, env, Executor(workers, scheduler, progress), progress, frame_lister=lambda: list(ids()))
+
+    monkeypatch.setattr(cli, "_pipeline", _pipeline)
+    monkeypatch.setattr(cli, "_ensure_world", lambda env, progress: None)
+
+    def invoke(tmp_path, *args: str):
+        return CliRunner().invoke(cli.main, [*args, "--dataset", "synthetic", "--cache", str(tmp_path / "cache"),
+                                             "--data-root", str(tmp_path)])
+    return invoke

@@ -12,9 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
 
-import pipeline.cli as cli
 from pipeline.executor import Executor
 from pipeline.runner import Pipeline
 from tests import fake_stages
@@ -26,17 +24,7 @@ IDS = [f"f{i:03d}" for i in range(8)]
 @pytest.fixture
 def fake_cli(monkeypatch):
     """The real CLI (options, error handling) on the fake stages and the frames of IDS."""
-    def _pipeline(env, workers, scheduler, progress=None):
-        return Pipeline(fake_stages.STAGES, env, Executor(workers, scheduler, progress), progress,
-                        frame_lister=lambda: list(IDS))
-
-    monkeypatch.setattr(cli, "_pipeline", _pipeline)
-    monkeypatch.setattr(cli, "_ensure_world", lambda env, progress: None)
-
-    def invoke(tmp_path: Path, *args: str):
-        return CliRunner().invoke(cli.main, [*args, "--dataset", "synthetic", "--cache", str(tmp_path / "cache"),
-                                             "--data-root", str(tmp_path)])
-    return invoke
+    return fake_stages.fake_cli(monkeypatch, lambda: IDS)
 
 
 @pytest.mark.parametrize("spec, words", [("abc", "--frames: no frame 'abc' in this dataset (8 frames)"),

@@ -751,17 +751,7 @@ def test_chunk_error_survives_pickling():
 @pytest.fixture
 def fake_cli(monkeypatch):
     """The real CLI (options, error handling) on the fake stages and frames."""
-    def _pipeline(env, workers, scheduler, progress=None):
-        return Pipeline(fake_stages.STAGES, env, Executor(workers, scheduler, progress), progress,
-                        frame_lister=lambda: list(IDS))
-
-    monkeypatch.setattr(cli, "_pipeline", _pipeline)
-    monkeypatch.setattr(cli, "_ensure_world", lambda env, progress: None)
-
-    def invoke(tmp_path: Path, *args: str):
-        return CliRunner().invoke(cli.main, [*args, "--dataset", "synthetic", "--cache", str(tmp_path / "cache"),
-                                             "--data-root", str(tmp_path)])
-    return invoke
+    return fake_stages.fake_cli(monkeypatch, lambda: IDS)
 
 
 def test_cli_damaged_status_chunk_is_one_line(tmp_path, fake_cli):
