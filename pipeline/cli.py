@@ -181,9 +181,15 @@ def _world_matches(env) -> bool:
         return False
     if not _is_cache_world(env):
         return True
-    world, ds = json.loads(path.read_text()), env.cfg.dataset
-    return (world.get("frames"), world.get("seed"), world.get("resolution_wh"), world.get("sequence_len")) == \
-        (ds.world_frames, ds.world_seed, list(ds.world_resolution), ds.world_sequence_len)
+    ds = env.cfg.dataset
+    return not _world_differences(json.loads(path.read_text()), {
+        "frames": ds.world_frames, "seed": ds.world_seed, "resolution_wh": list(ds.world_resolution),
+        "sequence_len": ds.world_sequence_len})
+
+
+def _world_differences(world: dict, wanted: dict) -> list[str]:
+    """'seed 1 (asked: 5)' for each setting of ``wanted`` that the world's world.json ``world`` has otherwise."""
+    return [f"{k} {world.get(k)} (asked: {v})" for k, v in wanted.items() if world.get(k) != v]
 
 
 def _is_cache_world(env) -> bool:
@@ -530,7 +536,7 @@ def _refuse_another_world(out: Path, wanted: dict) -> None:
         world = json.loads((out / "world.json").read_text())
     except (OSError, ValueError):
         return  # no finished world there (or not one of ours): nothing a cache was made from
-    differ = [f"{k} {world.get(k)} (asked: {v})" for k, v in wanted.items() if world.get(k) != v]
+    differ = _world_differences(world, wanted)
     if differ:
         raise ConfigError(f"--out {out} holds a synthetic world of other settings: {'; '.join(differ)}. Caches made "
                           f"from it would mix its frames with the new one's: write to another --out, or pass "
@@ -602,7 +608,8 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     try:
         reports = pipe.run("heatmaps")
         if not _made_nothing(reports):  # else the stages after it were not run: nothing to train on
-            reports += [r for r in pipe.run("patches") if r.stage not in {s.stage for s in reports}]
+            ran = {r.stage for r in reports}
+            reports += [r for r in pipe.run("patches") if r.stage not in ran]
     finally:
         pipe.executor.close()
     _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it

@@ -143,3 +143,10 @@ class ClusterFailed(PipelineError):
 
     def __reduce__(self):
         return type(self), (self.what, self.stage, self.kind, self.forced, self.after)
+
+
+def first_sentence(exc: BaseException, limit: int = 120) -> str:
+    """The first sentence of ``exc``'s message on one line, at most ``limit`` characters (its type
+    for an empty message): a library's reason without the advice it appends."""
+    text = " ".join(str(exc).split())
+    return text.split(". ")[0][:limit] if text else type(exc).__name__

@@ -274,7 +274,7 @@ class Executor:
                 # settings 0.1 M faults and 1.8x).
                 try:
                     with dask.config.set({f"distributed.nanny.pre-spawn-environ.{k}": v
-                                          for k, v in WORKER_MALLOC.items()}), _workers_ignore_sigint():
+                                          for k, v in WORKER_MALLOC.items()}), _workers_without_sigint():
                         self._cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1, processes=True,
                                                      dashboard_address=":0", silence_logs=logging.CRITICAL)
                 except Exception as exc:  # e.g. 'Nanny failed to start.': dask's own traceback runs to 118 lines
@@ -445,7 +445,7 @@ def _cause_line(exc: BaseException) -> str:
 
 
 @contextlib.contextmanager
-def _workers_ignore_sigint() -> Iterator[None]:
+def _workers_without_sigint() -> Iterator[None]:
     """Start the local cluster's worker processes with SIGINT blocked, and keep a SIGINT that
     reaches this process meanwhile for the moment the cluster is up.
 

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE, FAILED
 from pipeline.config import Config
-from pipeline.errors import CacheError, PipelineError
+from pipeline.errors import CacheError, PipelineError, first_sentence
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.metrics import region_mask
@@ -154,7 +154,7 @@ def _npy_problem(exc: BaseException) -> str:
     text = " ".join(str(exc).split())
     if "pickled" in text or not text:
         return "not an .npy array header" if text else f"{type(exc).__name__}: the file ends early"
-    return text.split(". ")[0][:100]
+    return first_sentence(exc, 100)
 
 
 def _shared(inputs: FrameInputs, cfg: Config) -> tuple[dict, list[str]]:

@@ -110,17 +110,17 @@ def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, mo
 def test_ctrl_c_while_the_local_cluster_starts_is_raised_once_it_is_up():
     """SIGINT was ignored (SIG_IGN) in the whole process while the cluster started, 1-2 s that may
     fall in the middle of a run: a Ctrl-C then was lost and the run went on to exit code 0."""
-    from pipeline.executor import _workers_ignore_sigint
+    from pipeline.executor import _workers_without_sigint
 
     before, reached = signal.getsignal(signal.SIGINT), False
     with pytest.raises(KeyboardInterrupt):
-        with _workers_ignore_sigint():
+        with _workers_without_sigint():
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.2)
             reached = True  # the start is not broken off half-way
     assert reached and signal.getsignal(signal.SIGINT) is before
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
-    with _workers_ignore_sigint():  # nothing to raise without a SIGINT
+    with _workers_without_sigint():  # nothing to raise without a SIGINT
         pass
 
 

@@ -362,12 +362,12 @@ def test_local_cluster_workers_start_with_ctrl_c_ignored():
     import subprocess
     import sys
 
-    from pipeline.executor import _workers_ignore_sigint
+    from pipeline.executor import _workers_without_sigint
 
     probe = [sys.executable, "-c", "import os, signal, time; os.kill(os.getpid(), signal.SIGINT); time.sleep(0.2); "
                                    "print('survived')"]
     before = signal.getsignal(signal.SIGINT)
-    with _workers_ignore_sigint():
+    with _workers_without_sigint():
         inside = subprocess.run(probe, capture_output=True, text=True)
     assert (inside.returncode, inside.stdout.strip(), inside.stderr) == (0, "survived", "")
     assert signal.getsignal(signal.SIGINT) is before

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, first_sentence
 
 
 class BasicBlock(nn.Module):
@@ -127,7 +127,7 @@ def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
         try:
             return load_file(str(path))
         except (SafetensorError, OSError) as exc:
-            raise _unreadable(path, "a safetensors file", _first_sentence(exc)) from None
+            raise _unreadable(path, "a safetensors file", first_sentence(exc)) from None
     if suffix in (".pth", ".pt"):
         return _load_torch_state_dict(path)
     raise ConfigError(f"{path}: unsupported weights format '{suffix}' (use .safetensors, .pth or .pt)")
@@ -143,7 +143,7 @@ def _load_torch_state_dict(path: Path) -> dict[str, Tensor]:
         raise ConfigError(f"{path}: refused to load (not a plain tensor state dict: {_unpickler_reason(exc)}); "
                           "save the model's state_dict() instead, or convert it to .safetensors") from None
     except Exception as exc:  # noqa: BLE001 - a damaged file fails anywhere in torch's reader (zip, unpickler)
-        raise _unreadable(path, "a torch.save file", _first_sentence(exc)) from None
+        raise _unreadable(path, "a torch.save file", first_sentence(exc)) from None
     if not isinstance(state, dict):
         raise ConfigError(f"{path}: expected a state dict, found {type(state).__name__}")
     return state
@@ -166,12 +166,6 @@ def _unpickler_reason(exc: BaseException) -> str:
     _, found, after = text.partition("WeightsUnpickler error:")
     lines = [line.strip() for line in (after if found else text).splitlines() if line.strip()]
     return lines[0].split(" was not an allowed global")[0] if lines else type(exc).__name__
-
-
-def _first_sentence(exc: BaseException) -> str:
-    """The first sentence of ``exc``'s message (its type for an empty one)."""
-    text = " ".join(str(exc).split())
-    return text.split(". ")[0][:120] if text else type(exc).__name__
 
 
 def _unreadable(path: Path, what: str, detail: str) -> ConfigError:
