@@ -192,3 +192,11 @@ def test_a_failed_frame_is_named_once_in_its_reason(tmp_path):
     (_, reason), = report.failures
     assert reason.startswith("stage calibrate, frame 000007: ") and reason.count("000007") == 2, reason  # + the file
     assert "image is 200x150 pixels" in reason
+
+
+def test_the_kitti_profile_describes_the_only_layout_its_reader_reads():
+    """`pipeline datasets` called it 'KITTI object/raw layout', but the reader reads the object layout
+    only (training/velodyne, image_2, calib; an oxts/ID.txt per frame at most): a raw drive folder
+    finds no frame."""
+    description = load_config("kitti").dataset.description
+    assert "object layout" in description and "raw" not in description
