@@ -605,11 +605,8 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     env = _context(dataset, data_root, cache_root, sets)
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
     _ensure_world(env, pipe.progress)
-    try:
-        reports = pipe.run("heatmaps")
-        if not _made_nothing(reports):  # else the stages after it were not run: nothing to train on
-            ran = {r.stage for r in reports}
-            reports += [r for r in pipe.run("patches") if r.stage not in ran]
+    try:  # one run, which reports each stage once (calibrate, which both need, too)
+        reports = pipe.run(("heatmaps", "patches"))
     finally:
         pipe.executor.close()
     _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it

@@ -11,10 +11,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.executor import Executor
 from pipeline.runner import Pipeline
+from pipeline.stage import ArraySpec, FrameStage
 from tests import fake_stages
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,11 +93,23 @@ def test_check_physics_exits_1_when_calibrate_made_nothing_and_names_the_failed_
     assert "2 frame(s) of synthetic:\n  doppler (static points): frames = 2" in out.stdout and given == [[1, 2]]
 
 
+def _patches(inputs, cfg):
+    """A fake patches stage (as the real one: after calibrate, beside heatmaps)."""
+    return {"count": np.float64(len(inputs.get("calibrate", "points")))}
+
+
+def _with_patches(monkeypatch) -> None:
+    """The fake stages with a patches stage, which ablate brings up to date with heatmaps."""
+    patches = FrameStage("patches", ("calibrate",), (), lambda cfg: (ArraySpec("count", (), "float64", "-"),), _patches)
+    monkeypatch.setattr(fake_stages, "STAGES", [*fake_stages.STAGES[:2], patches, *fake_stages.STAGES[2:]])
+
+
 def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, monkeypatch):
     """It said 'error: .../heatmaps.zarr does not exist' (the calibrate line printed twice): the
     runs of heatmaps and patches before training were not looked at."""
     import stages.ablations
 
+    _with_patches(monkeypatch)
     trained = []
     monkeypatch.setattr(stages.ablations, "run_ablations", lambda *args: trained.append(args))
     monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
@@ -105,6 +119,28 @@ def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, mo
         "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. ")
     assert "does not exist" not in out.output and trained == []
     assert sum(line.startswith("calibrate ") for line in out.stderr.splitlines()) == 1, out.stderr
+
+
+def test_ablate_prints_each_stage_line_once(tmp_path, fake_cli, monkeypatch):
+    """A successful ablate printed the calibrate line twice: heatmaps and patches were brought up
+    to date by two runs, and the second reported calibrate (current by then) again."""
+    import stages.ablations
+
+    _with_patches(monkeypatch)
+    trained = []
+
+    def ablations(inputs, cfg, folder, tables):
+        trained.append(tables)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "ablations.md").write_text("| variant |\n")
+
+    monkeypatch.setattr(stages.ablations, "run_ablations", ablations)
+    for _ in range(2):  # made, then current
+        out = fake_cli(tmp_path, "ablate", "--workers", "1")
+        assert out.exit_code == 0, out.output
+        lines = [line.split()[0] for line in out.stderr.splitlines() if line.strip() and not line.startswith(" ")]
+        assert lines == ["calibrate", "heatmaps", "patches"], out.stderr
+    assert trained == [("2", "3")] * 2 and "| variant |" in out.stdout
 
 
 def test_ctrl_c_while_the_local_cluster_starts_is_raised_once_it_is_up():
