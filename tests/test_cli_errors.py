@@ -46,8 +46,8 @@ def test_dry_run_refuses_the_frames_the_run_refuses(tmp_path, fake_cli, spec, wo
 
 
 def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, monkeypatch):
-    """A dataset whose frames cannot be listed yet (the synthetic world before its generation): the
-    --frames line says it is not checked, and why."""
+    """A dataset whose frames cannot be listed (its data root not a folder): the --frames line says
+    it is not checked, and why."""
     from pipeline.errors import PipelineError
 
     def unlisted():
@@ -59,6 +59,47 @@ def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, mo
     assert dry.exit_code == 0, dry.output
     assert ("--frames abc: per-frame work would be limited to those frames (not checked against the dataset's "
             "frames: dataset 'synthetic': the data root /x/world is not a folder)") in dry.stdout
+
+
+def _real_cli(cache: Path, frames: int, *args: str):
+    """The real CLI on a synthetic world of ``frames`` tiny frames in the cache ``cache``."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    world = ["--set", f"dataset.world_frames={frames}", "--set", "dataset.world_resolution=64,48",
+             "--set", "dataset.world_sequence_len=2"]
+    return CliRunner().invoke(main, [*args, "--dataset", "synthetic", "--cache", str(cache), *world])
+
+
+def test_dry_run_checks_the_frames_of_the_synthetic_world_it_would_generate(tmp_path):
+    """The synthetic world in the cache, not generated yet or of other settings: --dry-run checked
+    --frames against no frames ('not checked') or the old world's; now against the frames its
+    settings give (frame_ids: a pure function of dataset.world_frames), generating nothing."""
+    from pipeline.cli import _ensure_world, _context
+
+    cache = tmp_path / "cache"
+    dry = _real_cli(cache, 3, "run", "heatmaps", "--dry-run", "--frames", "5:9")
+    assert dry.exit_code == 2, dry.output
+    assert dry.stderr == "error: --frames 5:9: selects no frame (this dataset has 3, indices 0 to 2)\n"
+    assert not cache.exists()  # nothing generated
+    dry = _real_cli(cache, 3, "run", "heatmaps", "--dry-run", "--frames", "00001,00002")
+    assert dry.exit_code == 0, dry.output
+    assert dry.stdout.startswith(f"the synthetic world would be generated first (3 frames, seed 0) into "
+                                 f"{cache / 'synthetic' / 'world'}\n")
+    assert "--frames 00001,00002: per-frame work would be limited to those frames\n" in dry.stdout
+    _ensure_world(_context("synthetic", "", str(cache), ("dataset.world_frames=3", "dataset.world_resolution=64,48",
+                                                         "dataset.world_sequence_len=2")), progress=False)
+    dry = _real_cli(cache, 5, "run", "heatmaps", "--dry-run", "--frames", "3:5")  # the run would make 5 frames
+    assert dry.exit_code == 0 and "--frames 3:5: per-frame work would be limited to those frames\n" in dry.stdout
+    assert "would be generated first (5 frames, seed 0)" in dry.stdout
+    same = _real_cli(cache, 3, "run", "heatmaps", "--dry-run", "--frames", "3:5")  # the world there: its frames
+    assert same.exit_code == 2 and "this dataset has 3" in same.stderr and "generated first" not in same.output
+    run = _real_cli(cache, 5, "run", "calibrate", "--frames", "7:9")  # the run refuses as the dry run does
+    dry = _real_cli(cache, 5, "run", "calibrate", "--dry-run", "--frames", "7:9")
+    assert run.exit_code == dry.exit_code == 2, run.output
+    assert run.stderr.splitlines()[-1] == dry.stderr.strip() == \
+        "error: --frames 7:9: selects no frame (this dataset has 5, indices 0 to 4)"
 
 
 def _physics(monkeypatch) -> list:
