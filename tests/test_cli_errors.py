@@ -184,6 +184,46 @@ def test_ablate_prints_each_stage_line_once(tmp_path, fake_cli, monkeypatch):
     assert trained == [("2", "3")] * 2 and "| variant |" in out.stdout
 
 
+def test_ctrl_c_while_verify_reads_a_checkpoint_is_an_interrupt(tmp_path, fake_cli, monkeypatch):
+    """A Ctrl-C that fell in torch's making of a checkpoint's tensors said the checkpoint was
+    damaged ('cannot be read: ... unreadable checkpoint', 'make it again: ... --force', exit code
+    2): it is Ctrl-C's line and exit code 130, and the checkpoint is intact."""
+    import torch
+
+    from pipeline.checkpoint import save_checkpoint
+    from tests.test_training import _ctrl_c_in_torch
+
+    assert fake_cli(tmp_path, "run", "train", "--workers", "1").exit_code == 0
+    path = tmp_path / "cache" / "synthetic" / "train" / "net" / "best.safetensors"
+    save_checkpoint(path, {"model.w": torch.ones(4)}, {"epoch": 1})
+    with monkeypatch.context() as m:
+        _ctrl_c_in_torch(m, 2)  # the call whose errors torch reports as ValueError
+        out = fake_cli(tmp_path, "verify")
+    assert out.exit_code == 130 and out.stderr == "interrupted\n", out.output
+    again = fake_cli(tmp_path, "verify")
+    assert again.exit_code == 0 and "train           1 file(s) intact; 1 checkpoint(s) read" in again.stdout, again.output
+
+
+def test_sigint_deferred_raises_a_ctrl_c_once_the_body_is_done():
+    """sigint_deferred: a SIGINT in the body is raised as KeyboardInterrupt after it, also when the
+    body raised (the interrupt wins); the handler before is restored; nothing without a SIGINT."""
+    from pipeline.errors import sigint_deferred
+
+    before, done = signal.getsignal(signal.SIGINT), []
+    with pytest.raises(KeyboardInterrupt):
+        with sigint_deferred():
+            signal.raise_signal(signal.SIGINT)
+            done.append(1)
+    with pytest.raises(KeyboardInterrupt) as info:
+        with sigint_deferred():
+            signal.raise_signal(signal.SIGINT)
+            raise ValueError("what a library makes of the interrupt")
+    assert done == [1] and isinstance(info.value.__context__, ValueError)
+    with sigint_deferred():
+        pass
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def test_ctrl_c_while_the_local_cluster_starts_is_raised_once_it_is_up():
     """SIGINT was ignored (SIG_IGN) in the whole process while the cluster started, 1-2 s that may
     fall in the middle of a run: a Ctrl-C then was lost and the run went on to exit code 0."""
