@@ -24,7 +24,7 @@ from safetensors.torch import save_file
 from torch import Tensor, nn
 
 from pipeline.cache import cache_error
-from pipeline.errors import CacheError
+from pipeline.errors import CacheError, sigint_deferred
 from pipeline.fileio import FILE_MODE, atomic_path, write_atomic
 
 FORMAT = "pipeline-checkpoint/1"
@@ -49,10 +49,12 @@ def save_checkpoint(path: str | Path, tensors: dict[str, Tensor], meta: dict[str
 
 
 def load_checkpoint(path: str | Path, prefix: str = "") -> tuple[dict[str, Tensor], dict[str, Any]]:
-    """Read a checkpoint: (tensors whose key starts with ``prefix``, metadata dict)."""
+    """Read a checkpoint: (tensors whose key starts with ``prefix``, metadata dict). A Ctrl-C
+    during the read stops it as KeyboardInterrupt once the read is done (:func:`sigint_deferred`),
+    never as an unreadable checkpoint."""
     path = Path(path)
     try:
-        with safe_open(str(path), framework="pt", device="cpu") as f:
+        with sigint_deferred(), safe_open(str(path), framework="pt", device="cpu") as f:
             meta = json.loads((f.metadata() or {}).get("meta", "{}"))
             tensors = {k: f.get_tensor(k) for k in f.keys() if k.startswith(prefix)}
     except FileNotFoundError:
@@ -84,10 +86,10 @@ def check_finite_weights(path: str | Path, tensors: dict[str, Tensor]) -> None:
 
 
 def read_meta(path: str | Path) -> dict[str, Any]:
-    """Metadata of a checkpoint without reading its tensors."""
+    """Metadata of a checkpoint without reading its tensors (a Ctrl-C as for :func:`load_checkpoint`)."""
     path = Path(path)
     try:
-        with safe_open(str(path), framework="pt", device="cpu") as f:
+        with sigint_deferred(), safe_open(str(path), framework="pt", device="cpu") as f:
             return json.loads((f.metadata() or {}).get("meta", "{}"))
     except Exception as exc:
         raise CacheError(f"{path}: unreadable checkpoint ({exc})") from None

@@ -147,7 +147,7 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
 def _ensure_world(env, progress: bool) -> None:
     """Generate the built-in synthetic world into the cache (when it is the data root) once, and
     again when the profile's world settings no longer match the one there."""
-    if env.cfg.dataset.reader != "synthetic" or _world_matches(env):
+    if not _world_to_make(env):
         return
     if not _is_cache_world(env):  # never generate into (or over) a folder the user named
         raise ConfigError(f"--data-root {env.data_root}: no synthetic world there (no world.json). Omit "
@@ -171,6 +171,12 @@ def _ensure_world(env, progress: bool) -> None:
         kept = summary.get("resumed_sequences", 0)
         resumed = f" ({kept} of {summary['sequences']} sequences kept from an interrupted run)" if kept else ""
         click.echo(f"  done in {summary.get('seconds', 0):.1f} s{resumed}", err=True)
+
+
+def _world_to_make(env) -> bool:
+    """True when a run would generate (or finish) the synthetic world first: none there yet, or, in
+    the cache, one of other settings."""
+    return env.cfg.dataset.reader == "synthetic" and not _world_matches(env)
 
 
 def _world_matches(env) -> bool:
@@ -287,6 +293,10 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     --frames would do; exit 2 when an output it would read is damaged (as the run would stop), and
     --frames refused as the run refuses it."""
     unchecked = _check_frames(pipe, frames_spec)
+    if _world_to_make(pipe.env) and _is_cache_world(pipe.env):
+        ds = pipe.env.cfg.dataset
+        click.echo(f"the synthetic world would be generated first ({ds.world_frames} frames, seed {ds.world_seed}) "
+                   f"into {pipe.env.data_root}")
     rows = {r["stage"]: r for r in pipe.status(reasons=0)}
     for name in closure:
         _print_status_row(rows[name])
@@ -305,16 +315,23 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
 
 def _check_frames(pipe, frames_spec: str | None) -> str:
     """--dry-run's check of --frames against the dataset's frames: the ConfigError the run would
-    stop with (exit 2), or, when the frames cannot be listed yet (no data there: a synthetic world
-    not generated), ' (not checked: ...)' for the --frames line; '' when checked."""
+    stop with (exit 2), or, when the frames cannot be listed (no data there), ' (not checked:
+    ...)' for the --frames line; '' when checked. The frames of a synthetic world the run would
+    generate into the cache first (none there yet, or one of other settings) are those its
+    settings give, without generating it."""
     from pipeline.runner import parse_frames
+    from pipeline.world.generator import frame_ids
 
     if not frames_spec:
         return ""
-    try:
-        ids = pipe.frame_ids()
-    except PipelineError as exc:
-        return f" (not checked against the dataset's frames: {str(exc).splitlines()[0]})"
+    env = pipe.env
+    if _world_to_make(env) and _is_cache_world(env):
+        ids = frame_ids(env.cfg.dataset.world_frames)
+    else:
+        try:
+            ids = pipe.frame_ids()
+        except PipelineError as exc:
+            return f" (not checked against the dataset's frames: {str(exc).splitlines()[0]})"
     parse_frames(frames_spec, ids)
     return ""
 
@@ -605,11 +622,8 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     env = _context(dataset, data_root, cache_root, sets)
     pipe = _pipeline(env, env.cfg.run.workers if workers is None else workers, None)
     _ensure_world(env, pipe.progress)
-    try:
-        reports = pipe.run("heatmaps")
-        if not _made_nothing(reports):  # else the stages after it were not run: nothing to train on
-            ran = {r.stage for r in reports}
-            reports += [r for r in pipe.run("patches") if r.stage not in ran]
+    try:  # one run, which reports each stage once (calibrate, which both need, too)
+        reports = pipe.run(("heatmaps", "patches"))
     finally:
         pipe.executor.close()
     _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal, get_args
+import contextlib
+import signal
+import threading
+from typing import Any, Iterator, Literal, get_args
 
 
 class PipelineError(Exception):
@@ -116,6 +119,31 @@ def resume_advice(stage: str | None, kind: InterruptedKind, forced: bool) -> str
     if kind == "resumes":
         return f"what it saved is kept; {again} to resume from its last checkpoint"
     return f"the stages before it are kept, {stage} starts over when you run the same command again"
+
+
+@contextlib.contextmanager
+def sigint_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C (SIGINT) that comes during the body until it ends, then deliver it to the
+    handler there was (KeyboardInterrupt by default), also when the body raised.
+
+    For library calls that turn the KeyboardInterrupt a SIGINT raises in the Python code they call
+    into another error: torch, making the tensors of a safetensors file (safetensors 0.8, torch
+    2.13), calls UntypedStorage.__getitem__ and reports any error there as ValueError ('could not
+    determine the shape of object type UntypedStorage'), and a Ctrl-C that fell in a checkpoint's
+    load was reported as a damaged checkpoint (a third of them for a checkpoint of many small
+    tensors). A load is milliseconds; this costs 9 us. Only the main thread runs signal handlers:
+    elsewhere, or with a handler not set from Python, a no-op."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            signal.raise_signal(signal.SIGINT)
 
 
 class ClusterFailed(PipelineError):

@@ -233,26 +233,31 @@ class Pipeline:
 
     # ---- running --------------------------------------------------------------------------
 
-    def run(self, target: str, frames: list[int] | None = None, strict: bool = False, force: bool = False,
-            retry_failed: bool = False, wait_s: float = 0.0) -> list[StageReport]:
-        """Bring ``target`` and its upstream stages up to date; returns one report per stage.
+    def run(self, target: str | tuple[str, ...], frames: list[int] | None = None, strict: bool = False,
+            force: bool = False, retry_failed: bool = False, wait_s: float = 0.0) -> list[StageReport]:
+        """Bring ``target`` (a stage, or a tuple of stages) and its upstream stages up to date, each
+        stage once; returns one report per stage.
 
         ``frames``: restrict per-frame work to these frame indices. ``force``: recompute ``target``
         even if current; with ``frames``, a current frame stage recomputes only those frames (and
         the same frames of the frame stages after it, the dataset stages after it marked stale).
         With ``strict`` the first failed frame raises FrameError.
         """
+        targets = (target,) if isinstance(target, str) else tuple(target)
         reports = []
         self._done.clear()
-        self.check_config(target)
+        for name in targets:
+            self.check_config(name)
         old = self.made_from()
-        if old and not (force and target == FIRST_STAGE):  # every output would be recomputed: only when asked
+        if old and not (force and FIRST_STAGE in targets):  # every output would be recomputed: only when asked
             raise PipelineError(self._other_root_message(old))
-        for name in self.upstream_closure(target):
+        needed = {name for t in targets for name in self.upstream_closure(t)}
+        closure = [name for name in self.order if name in needed]
+        for name in closure:
             stage = self.stages[name]
             what = f"stage '{name}' of dataset '{self.env.dataset}'"
             t0 = time.perf_counter()
-            forced = force and (name == target or getattr(stage, "part_of", "") == target)
+            forced = force and (name in targets or getattr(stage, "part_of", "") in targets)
             # up to date with nothing to run: found under a shared lock, which runs started together can
             # all hold; otherwise the exclusive one, which a run writing the output holds
             report = None if forced else self._report_if_nothing_to_do(stage, what, retry_failed)
@@ -265,7 +270,7 @@ class Pipeline:
                 self.log(f"{'':<{NAME_WIDTH}} {note}")
             if strict and report.failed:
                 raise self._strict_error(name, report)
-            if isinstance(stage, FrameStage) and name != target and report.done == 0 and report.failed:
+            if isinstance(stage, FrameStage) and name != closure[-1] and report.done == 0 and report.failed:
                 # every frame failed: the stages after it would fail or refuse for want of input
                 self.log(f"{'':<{NAME_WIDTH}} no frame of {name} is done: the stages after it were not run")
                 break

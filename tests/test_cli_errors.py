@@ -11,10 +11,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.executor import Executor
 from pipeline.runner import Pipeline
+from pipeline.stage import ArraySpec, FrameStage
 from tests import fake_stages
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,8 +46,8 @@ def test_dry_run_refuses_the_frames_the_run_refuses(tmp_path, fake_cli, spec, wo
 
 
 def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, monkeypatch):
-    """A dataset whose frames cannot be listed yet (the synthetic world before its generation): the
-    --frames line says it is not checked, and why."""
+    """A dataset whose frames cannot be listed (its data root not a folder): the --frames line says
+    it is not checked, and why."""
     from pipeline.errors import PipelineError
 
     def unlisted():
@@ -57,6 +59,47 @@ def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, mo
     assert dry.exit_code == 0, dry.output
     assert ("--frames abc: per-frame work would be limited to those frames (not checked against the dataset's "
             "frames: dataset 'synthetic': the data root /x/world is not a folder)") in dry.stdout
+
+
+def _real_cli(cache: Path, frames: int, *args: str):
+    """The real CLI on a synthetic world of ``frames`` tiny frames in the cache ``cache``."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    world = ["--set", f"dataset.world_frames={frames}", "--set", "dataset.world_resolution=64,48",
+             "--set", "dataset.world_sequence_len=2"]
+    return CliRunner().invoke(main, [*args, "--dataset", "synthetic", "--cache", str(cache), *world])
+
+
+def test_dry_run_checks_the_frames_of_the_synthetic_world_it_would_generate(tmp_path):
+    """The synthetic world in the cache, not generated yet or of other settings: --dry-run checked
+    --frames against no frames ('not checked') or the old world's; now against the frames its
+    settings give (frame_ids: a pure function of dataset.world_frames), generating nothing."""
+    from pipeline.cli import _ensure_world, _context
+
+    cache = tmp_path / "cache"
+    dry = _real_cli(cache, 3, "run", "heatmaps", "--dry-run", "--frames", "5:9")
+    assert dry.exit_code == 2, dry.output
+    assert dry.stderr == "error: --frames 5:9: selects no frame (this dataset has 3, indices 0 to 2)\n"
+    assert not cache.exists()  # nothing generated
+    dry = _real_cli(cache, 3, "run", "heatmaps", "--dry-run", "--frames", "00001,00002")
+    assert dry.exit_code == 0, dry.output
+    assert dry.stdout.startswith(f"the synthetic world would be generated first (3 frames, seed 0) into "
+                                 f"{cache / 'synthetic' / 'world'}\n")
+    assert "--frames 00001,00002: per-frame work would be limited to those frames\n" in dry.stdout
+    _ensure_world(_context("synthetic", "", str(cache), ("dataset.world_frames=3", "dataset.world_resolution=64,48",
+                                                         "dataset.world_sequence_len=2")), progress=False)
+    dry = _real_cli(cache, 5, "run", "heatmaps", "--dry-run", "--frames", "3:5")  # the run would make 5 frames
+    assert dry.exit_code == 0 and "--frames 3:5: per-frame work would be limited to those frames\n" in dry.stdout
+    assert "would be generated first (5 frames, seed 0)" in dry.stdout
+    same = _real_cli(cache, 3, "run", "heatmaps", "--dry-run", "--frames", "3:5")  # the world there: its frames
+    assert same.exit_code == 2 and "this dataset has 3" in same.stderr and "generated first" not in same.output
+    run = _real_cli(cache, 5, "run", "calibrate", "--frames", "7:9")  # the run refuses as the dry run does
+    dry = _real_cli(cache, 5, "run", "calibrate", "--dry-run", "--frames", "7:9")
+    assert run.exit_code == dry.exit_code == 2, run.output
+    assert run.stderr.splitlines()[-1] == dry.stderr.strip() == \
+        "error: --frames 7:9: selects no frame (this dataset has 5, indices 0 to 4)"
 
 
 def _physics(monkeypatch) -> list:
@@ -91,11 +134,23 @@ def test_check_physics_exits_1_when_calibrate_made_nothing_and_names_the_failed_
     assert "2 frame(s) of synthetic:\n  doppler (static points): frames = 2" in out.stdout and given == [[1, 2]]
 
 
+def _patches(inputs, cfg):
+    """A fake patches stage (as the real one: after calibrate, beside heatmaps)."""
+    return {"count": np.float64(len(inputs.get("calibrate", "points")))}
+
+
+def _with_patches(monkeypatch) -> None:
+    """The fake stages with a patches stage, which ablate brings up to date with heatmaps."""
+    patches = FrameStage("patches", ("calibrate",), (), lambda cfg: (ArraySpec("count", (), "float64", "-"),), _patches)
+    monkeypatch.setattr(fake_stages, "STAGES", [*fake_stages.STAGES[:2], patches, *fake_stages.STAGES[2:]])
+
+
 def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, monkeypatch):
     """It said 'error: .../heatmaps.zarr does not exist' (the calibrate line printed twice): the
     runs of heatmaps and patches before training were not looked at."""
     import stages.ablations
 
+    _with_patches(monkeypatch)
     trained = []
     monkeypatch.setattr(stages.ablations, "run_ablations", lambda *args: trained.append(args))
     monkeypatch.setattr(sys.modules[__name__], "IDS", ["bad000", "bad001"])
@@ -105,6 +160,68 @@ def test_ablate_with_no_calibrate_frame_done_says_so_once(tmp_path, fake_cli, mo
         "error: stage calibrate has no frame done: all 2 frame(s) it tried in this run failed, e.g. ")
     assert "does not exist" not in out.output and trained == []
     assert sum(line.startswith("calibrate ") for line in out.stderr.splitlines()) == 1, out.stderr
+
+
+def test_ablate_prints_each_stage_line_once(tmp_path, fake_cli, monkeypatch):
+    """A successful ablate printed the calibrate line twice: heatmaps and patches were brought up
+    to date by two runs, and the second reported calibrate (current by then) again."""
+    import stages.ablations
+
+    _with_patches(monkeypatch)
+    trained = []
+
+    def ablations(inputs, cfg, folder, tables):
+        trained.append(tables)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "ablations.md").write_text("| variant |\n")
+
+    monkeypatch.setattr(stages.ablations, "run_ablations", ablations)
+    for _ in range(2):  # made, then current
+        out = fake_cli(tmp_path, "ablate", "--workers", "1")
+        assert out.exit_code == 0, out.output
+        lines = [line.split()[0] for line in out.stderr.splitlines() if line.strip() and not line.startswith(" ")]
+        assert lines == ["calibrate", "heatmaps", "patches"], out.stderr
+    assert trained == [("2", "3")] * 2 and "| variant |" in out.stdout
+
+
+def test_ctrl_c_while_verify_reads_a_checkpoint_is_an_interrupt(tmp_path, fake_cli, monkeypatch):
+    """A Ctrl-C that fell in torch's making of a checkpoint's tensors said the checkpoint was
+    damaged ('cannot be read: ... unreadable checkpoint', 'make it again: ... --force', exit code
+    2): it is Ctrl-C's line and exit code 130, and the checkpoint is intact."""
+    import torch
+
+    from pipeline.checkpoint import save_checkpoint
+    from tests.test_training import _ctrl_c_in_torch
+
+    assert fake_cli(tmp_path, "run", "train", "--workers", "1").exit_code == 0
+    path = tmp_path / "cache" / "synthetic" / "train" / "net" / "best.safetensors"
+    save_checkpoint(path, {"model.w": torch.ones(4)}, {"epoch": 1})
+    with monkeypatch.context() as m:
+        _ctrl_c_in_torch(m, 2)  # the call whose errors torch reports as ValueError
+        out = fake_cli(tmp_path, "verify")
+    assert out.exit_code == 130 and out.stderr == "interrupted\n", out.output
+    again = fake_cli(tmp_path, "verify")
+    assert again.exit_code == 0 and "train           1 file(s) intact; 1 checkpoint(s) read" in again.stdout, again.output
+
+
+def test_sigint_deferred_raises_a_ctrl_c_once_the_body_is_done():
+    """sigint_deferred: a SIGINT in the body is raised as KeyboardInterrupt after it, also when the
+    body raised (the interrupt wins); the handler before is restored; nothing without a SIGINT."""
+    from pipeline.errors import sigint_deferred
+
+    before, done = signal.getsignal(signal.SIGINT), []
+    with pytest.raises(KeyboardInterrupt):
+        with sigint_deferred():
+            signal.raise_signal(signal.SIGINT)
+            done.append(1)
+    with pytest.raises(KeyboardInterrupt) as info:
+        with sigint_deferred():
+            signal.raise_signal(signal.SIGINT)
+            raise ValueError("what a library makes of the interrupt")
+    assert done == [1] and isinstance(info.value.__context__, ValueError)
+    with sigint_deferred():
+        pass
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 def test_ctrl_c_while_the_local_cluster_starts_is_raised_once_it_is_up():

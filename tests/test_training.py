@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import signal
 import time
 import types
 
@@ -381,6 +382,100 @@ def test_checkpoint_mode_and_disk_full(tmp_path, monkeypatch):
         ckpt.save_checkpoint(path, {"model.w": torch.zeros(3)}, {"epoch": 2})
     assert sorted(p.name for p in path.parent.iterdir()) == ["last.json", "last.safetensors"]  # no temporary left
     assert ckpt.read_meta(path)["epoch"] == 1  # the last good one
+
+
+def _ctrl_c_in_torch(monkeypatch, at_call: int) -> list[int]:
+    """A Ctrl-C (a real SIGINT to this process) at the ``at_call``-th call of UntypedStorage.__getitem__,
+    the Python code torch runs while it makes the tensors of a safetensors file; returns the count of
+    calls (a list of one number)."""
+    calls = [0]
+    getitem = torch.UntypedStorage.__getitem__
+
+    def interrupted(self, *args, **kwargs):
+        calls[0] += 1
+        if calls[0] == at_call:
+            signal.raise_signal(signal.SIGINT)
+        return getitem(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.UntypedStorage, "__getitem__", interrupted)
+    return calls
+
+
+def test_ctrl_c_while_a_checkpoint_loads_is_an_interrupt_not_a_damaged_checkpoint(tmp_path, monkeypatch):
+    """torch turns the KeyboardInterrupt a SIGINT raises in the Python code it runs while it makes a
+    safetensors file's tensors into ValueError ('could not determine the shape of object type
+    UntypedStorage'): a Ctrl-C then was 'unreadable checkpoint' (the message of a damaged file; a
+    SIGINT at each call of it in turn: the second). Whatever call it falls in, it is a
+    KeyboardInterrupt, raised once the read is done; the weights files a net starts from too
+    (read_meta makes no tensor: tested with a fake reader below)."""
+    from pipeline.models.resnet import load_state_dict_file
+
+    path = tmp_path / "net" / "last.safetensors"
+    ckpt.save_checkpoint(path, {"model.w": torch.ones(3), "model.b": torch.zeros(2)}, {"epoch": 1})
+    for read in (ckpt.load_checkpoint, load_state_dict_file):
+        with monkeypatch.context() as m:
+            total = _ctrl_c_in_torch(m, 0)
+            read(path)
+        assert total[0] >= 2
+        for at_call in range(1, total[0] + 1):
+            with monkeypatch.context() as m:
+                _ctrl_c_in_torch(m, at_call)
+                with pytest.raises(KeyboardInterrupt):
+                    read(path)
+    assert ckpt.load_checkpoint(path)[1]["epoch"] == 1  # untouched
+
+
+def test_a_keyboard_interrupt_raised_in_a_checkpoint_load_is_raised_as_it_is(tmp_path, monkeypatch):
+    """A KeyboardInterrupt from the safetensors reader itself is no 'unreadable checkpoint' (the
+    loaders catch Exception, which it is not); one that the library turns into another error is
+    raised as the interrupt (a fake reader does as torch does)."""
+    path = tmp_path / "net" / "last.safetensors"
+    ckpt.save_checkpoint(path, {"model.w": torch.ones(3)}, {"epoch": 1})
+
+    def raising(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    class Swallowing:  # a SIGINT while it reads: the interrupt turned into ValueError
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            try:
+                signal.raise_signal(signal.SIGINT)
+            except KeyboardInterrupt:
+                raise ValueError("could not determine the shape of object type 'torch.storage.UntypedStorage'") from None
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    for reader in (raising, Swallowing):
+        monkeypatch.setattr(ckpt, "safe_open", reader)
+        for read in (ckpt.load_checkpoint, ckpt.read_meta):
+            with pytest.raises(KeyboardInterrupt):
+                read(path)
+
+
+def test_ctrl_c_while_a_checkpoint_is_written_leaves_the_last_one_whole(tmp_path, monkeypatch):
+    """An interrupted write (part of the new file written) leaves the last checkpoint as it was and
+    no temporary file: the next run's load reads the last one, never a part of the new one."""
+    path = tmp_path / "net" / "last.safetensors"
+    ckpt.save_checkpoint(path, {"model.w": torch.ones(3)}, {"epoch": 1})
+    save_file = ckpt.save_file
+
+    def interrupted(tensors, filename, metadata=None):
+        save_file(tensors, filename, metadata=metadata)
+        with open(filename, "r+b") as fh:
+            fh.truncate(40)  # part of it written
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ckpt, "save_file", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        ckpt.save_checkpoint(path, {"model.w": torch.zeros(3)}, {"epoch": 2})
+    assert sorted(p.name for p in path.parent.iterdir()) == ["last.json", "last.safetensors"]
+    tensors, meta = ckpt.load_checkpoint(path)
+    assert meta["epoch"] == 1 and torch.equal(tensors["model.w"], torch.ones(3))
+    assert json.loads(path.with_suffix(".json").read_text())["epoch"] == 1
 
 
 def test_a_checkpoint_reaches_the_disk_before_it_is_renamed_into_place(tmp_path, monkeypatch):

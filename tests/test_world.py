@@ -370,6 +370,21 @@ def test_bad_arguments_raise_config_error(tmp_path: Path, kwargs: dict) -> None:
         generate(tmp_path, **args)
 
 
+@pytest.mark.parametrize("frames, sequence_len", [(FRAMES, SEQ_LEN), (5, 2)])
+def test_frame_ids_are_those_the_reader_lists(world, tmp_path, frames, sequence_len):
+    """frame_ids (what --dry-run checks --frames against before the world is generated) gives the
+    frames the reader lists from the generated files, a last sequence shorter than the others too."""
+    from pipeline.config import load_config
+    from pipeline.readers import get_reader
+    from pipeline.world.generator import frame_ids
+
+    root = world
+    if frames != FRAMES:
+        root = tmp_path / "world"
+        generate(root, frames=frames, seed=1, resolution_wh=(64, 48), lidar_lines=16, sequence_len=sequence_len)
+    assert get_reader(load_config("synthetic", environ={}), root).frame_ids() == frame_ids(frames)
+
+
 def test_world_in_the_cache_follows_the_profile(tmp_path: Path) -> None:
     """The world generated into the cache is made once, and again when its profile settings
     change; a world the user points at with --data-root is never regenerated."""

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from pipeline.errors import ConfigError, first_sentence
+from pipeline.errors import ConfigError, first_sentence, sigint_deferred
 
 
 class BasicBlock(nn.Module):
@@ -116,6 +116,7 @@ def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
 
     ConfigError naming the file for a missing file, another format, a file that cannot be read as
     its suffix says (damaged, truncated, or of another format) and one holding more than tensors.
+    A Ctrl-C during the read stops it as KeyboardInterrupt once the read is done (:func:`sigint_deferred`).
     """
     path = Path(path)
     if not path.is_file():
@@ -125,7 +126,8 @@ def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
         from safetensors import SafetensorError
         from safetensors.torch import load_file
         try:
-            return load_file(str(path))
+            with sigint_deferred():  # torch turns a KeyboardInterrupt while it makes the tensors into ValueError
+                return load_file(str(path))
         except (SafetensorError, OSError) as exc:
             raise _unreadable(path, "a safetensors file", first_sentence(exc)) from None
     if suffix in (".pth", ".pt"):
@@ -136,7 +138,8 @@ def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
 def _load_torch_state_dict(path: Path) -> dict[str, Tensor]:
     """A ``.pth``/``.pt`` file's state dict (:func:`load_state_dict_file`)."""
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        with sigint_deferred():
+            state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         if not _is_torch_save_file(path):  # text or other bytes: torch's advice (weights_only=False) is wrong
             raise _unreadable(path, "a torch.save file", _unpickler_reason(exc)) from None

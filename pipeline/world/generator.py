@@ -198,7 +198,7 @@ def run_sequence(root: str, seq_index: int, first_frame: int, n_frames: int, see
     speeds, counts, v_radar = [], [], []
     for k in range(n_frames):
         data = sim.frame(k)
-        write_frame(Path(root), f"{first_frame + k:05d}", data, rig, T_map_world, T_utm_map)
+        write_frame(Path(root), frame_id(first_frame + k), data, rig, T_map_world, T_utm_map)
         speeds.append(round(data.ego_speed_mps, 4))
         counts.append(int(len(data.radar.points_D)))
         v_radar.append([round(float(v), 6) for v in data.v_radar_D])
@@ -215,12 +215,24 @@ def _planar_transform(xy: np.ndarray, yaw: float) -> np.ndarray:
     return T
 
 
+def frame_id(number: int) -> str:
+    """The id of the world's frame ``number`` (counted from 0): the stem of its files."""
+    return f"{number:05d}"
+
+
+def frame_ids(frames: int) -> list[str]:
+    """The frame ids of a world of ``frames`` frames, as its reader lists them: every frame is
+    written whole, numbered 0 to frames - 1 whatever the other settings (the dry run checks
+    --frames against them before the world is generated)."""
+    return [frame_id(i) for i in range(frames)]
+
+
 def _write_index(root: Path, results: list[dict]) -> None:
     """ImageSets/full.txt (frame ids) and ImageSets/sequences.txt (name first last, inclusive)."""
-    ids = [f"{f:05d}" for r in results for f in range(r["first_frame"], r["last_frame"] + 1)]
+    ids = [frame_id(f) for r in results for f in range(r["first_frame"], r["last_frame"] + 1)]
     (root / "ImageSets" / "full.txt").write_text("".join(i + "\n" for i in ids))
     (root / "ImageSets" / "sequences.txt").write_text(
-        "".join(f"{r['name']} {r['first_frame']:05d} {r['last_frame']:05d}\n" for r in results))
+        "".join(f"{r['name']} {frame_id(r['first_frame'])} {frame_id(r['last_frame'])}\n" for r in results))
 
 
 def _radar_description(model: RadarModel) -> dict:
