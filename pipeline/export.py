@@ -388,9 +388,14 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
     ``T_cam_radar`` (4, 4) and ``K`` (3, 3), R0_rect identity (:func:`kitti_calib_text`), written so
     that OpenPCDet's reading gives the boxes back: ``location`` the bottom centre (the box centre
     lowered by h/2 along {D}'s z) in the camera frame, rotation_y = -(yaw + pi/2) (its
-    ``boxes3d_kitti_camera_to_lidar``). alpha = rotation_y - atan2(x, z); the 2D box is the
-    projection of the 8 corners clipped to the image ``image_wh`` (W, H), truncation the share of it
-    outside the image; occlusion 0 (not known). Boxes with a corner at or behind the camera plane
+    ``boxes3d_kitti_camera_to_lidar``). OpenPCDet's boxes are upright in the point cloud's frame,
+    here {D}: a tilted box (Astyx) is written as the upright box with its centre, size and heading,
+    the yaw being the heading of its length axis projected on {D}'s x-y plane (Object3D's
+    convention), not measured in the camera's x-z plane (on Astyx, whose camera is turned 1 deg
+    against the radar, that differs by 0.9-1.2 deg and OpenPCDet would read every box turned by
+    it). alpha = rotation_y - atan2(x, z); the 2D box is the projection of the 8 corners of the box
+    with its full rotation (``Object3D.rotation``) clipped to the image ``image_wh`` (W, H),
+    truncation the share of it outside the image; occlusion 0 (not known). Boxes with a corner at or behind the camera plane
     or wholly outside the image are left out (KITTI labels what the camera sees); spaces in class
     names become '_'. A frame without boxes gets :data:`DONT_CARE_LINE`."""
     T = check_shape("T_cam_radar", np.asarray(T_cam_radar, np.float64), (4, 4))
@@ -398,11 +403,12 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
     lines = []
     for obj in objects:
         length, width, height = (float(v) for v in obj.size_lwh_m)
-        c, s = np.cos(obj.yaw_rad), np.sin(obj.yaw_rad)
-        dx, dy, dz = np.meshgrid([-length / 2, length / 2], [-width / 2, width / 2], [-height / 2, height / 2],
-                                 indexing="ij")
+        r = obj.rotation
+        dx, dy, dz = (v.ravel() for v in np.meshgrid([-length / 2, length / 2], [-width / 2, width / 2],
+                                                     [-height / 2, height / 2], indexing="ij"))
+        # r @ (dx, dy, dz) written out: no BLAS rounding, so an upright box gives the bits of cos/sin(yaw)
         corners_D = np.asarray(obj.center_D, np.float64) + np.stack(
-            [c * dx.ravel() - s * dy.ravel(), s * dx.ravel() + c * dy.ravel(), dz.ravel()], axis=1)
+            [r[k, 0] * dx + r[k, 1] * dy + r[k, 2] * dz for k in range(3)], axis=1)
         corners_cam = corners_D @ T[:3, :3].T + T[:3, 3]
         if np.any(corners_cam[:, 2] <= 0.1):
             continue

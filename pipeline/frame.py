@@ -35,12 +35,29 @@ def check_shape(name: str, array: np.ndarray, shape: tuple[int | None, ...]) -> 
     return array
 
 
+def box_rotations(yaw_rad, pitch_rad, roll_rad) -> np.ndarray:
+    """Rotations (..., 3, 3) R = Rz(yaw) @ Ry(pitch) @ Rx(roll), box frame -> {D}, of boxes with
+    these angles (rad, arrays of one shape or scalars). Column k is the box's axis k in {D}: x along
+    the length, y along the width, z along the height. With pitch = roll = 0 the entries are
+    exactly cos(yaw), -sin(yaw), sin(yaw), cos(yaw), 0 and 1 (no rounding)."""
+    cz, sz = np.cos(yaw_rad), np.sin(yaw_rad)
+    cy, sy = np.cos(pitch_rad), np.sin(pitch_rad)
+    cx, sx = np.cos(roll_rad), np.sin(roll_rad)
+    return np.stack([np.stack([cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx], axis=-1),
+                     np.stack([sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx], axis=-1),
+                     np.stack([-sy, cy * sx, cy * cx], axis=-1)], axis=-2).astype(np.float64)
+
+
 @dataclass
 class Object3D:
     """One annotated object, expressed in the radar frame {D}.
 
     ``center_D`` (3,) m: box centre. ``size_lwh_m`` (3,): length (along heading), width, height.
     ``yaw_rad``: heading about the z axis of {D}, 0 = pointing along +x, positive to the left.
+    ``pitch_rad``, ``roll_rad``: the box's tilt, 0 for a box upright in {D} (every dataset but
+    Astyx, whose boxes are upright in the lidar's frame, not the radar's). The box's orientation is
+    ``rotation`` = Rz(yaw) @ Ry(pitch) @ Rx(roll), box frame -> {D} (:func:`box_rotations`), so
+    that ``yaw_rad`` is the heading of the box's length axis projected on the x-y plane of {D}.
     ``velocity_D`` (3,) m/s over ground in {D}; NaN where unknown.
     ``track_id``: identity across frames, -1 where the dataset has none.
     """
@@ -51,17 +68,24 @@ class Object3D:
     yaw_rad: float
     track_id: int = -1
     velocity_D: np.ndarray = field(default_factory=lambda: np.full(3, np.nan, np.float32))
+    pitch_rad: float = 0.0
+    roll_rad: float = 0.0
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """(3, 3) box frame -> {D}, :func:`box_rotations` of the box's yaw, pitch and roll."""
+        return box_rotations(self.yaw_rad, self.pitch_rad, self.roll_rad)
 
 
-LABEL_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw", "vx", "vy", "vz", "track_id")
+LABEL_COLUMNS = ("cx", "cy", "cz", "length", "width", "height", "yaw", "pitch", "roll", "vx", "vy", "vz", "track_id")
 """Columns of a label row (calibrate's ``labels`` array): an Object3D's centre_D, size_lwh_m,
-yaw_rad, velocity_D and track_id."""
+yaw_rad, pitch_rad, roll_rad, velocity_D and track_id."""
 
 
 def label_rows(labels: Sequence[Object3D]) -> np.ndarray:
     """(L, len(LABEL_COLUMNS)) float64 rows of ``labels`` in LABEL_COLUMNS order."""
-    return np.array([[*o.center_D, *o.size_lwh_m, o.yaw_rad, *o.velocity_D, o.track_id] for o in labels],
-                    np.float64).reshape(-1, len(LABEL_COLUMNS))
+    return np.array([[*o.center_D, *o.size_lwh_m, o.yaw_rad, o.pitch_rad, o.roll_rad, *o.velocity_D, o.track_id]
+                     for o in labels], np.float64).reshape(-1, len(LABEL_COLUMNS))
 
 
 @dataclass

@@ -280,11 +280,13 @@ def estimate_sigma_px(points_uv_per_object: Sequence[np.ndarray], min_points: in
 
 
 def points_in_box(points_D: np.ndarray, box: Object3D, grow_m: float = 0.0) -> np.ndarray:
-    """Bool (N,): points (N, 3) in {D}, metres, inside the box grown by ``grow_m`` on every side."""
+    """Bool (N,): points (N, 3) in {D}, metres, inside the box (its full rotation,
+    ``Object3D.rotation``) grown by ``grow_m`` on every side."""
     p = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
-    c, s = np.cos(box.yaw_rad), np.sin(box.yaw_rad)
+    r = box.rotation
     d = p - np.asarray(box.center_D, dtype=np.float64)[None, :]
-    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], axis=1)
+    # box-frame coordinates d @ r, written out: no BLAS rounding, so an upright box gives the bits of cos/sin(yaw)
+    local = np.stack([r[0, k] * d[:, 0] + r[1, k] * d[:, 1] + r[2, k] * d[:, 2] for k in range(3)], axis=1)
     half = 0.5 * np.asarray(box.size_lwh_m, dtype=np.float64) + grow_m
     return np.all(np.abs(local) <= half[None, :], axis=1)
 

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.frame import LABEL_COLUMNS, Object3D, check_shape, label_rows
+from pipeline.frame import LABEL_COLUMNS, Object3D, box_rotations, check_shape, label_rows
 from pipeline.geometry import cartesian_to_spherical, pixel_rays_D, radial_velocity, wrap_doppler
 
 ESTIMATORS = ("mean", "nearest", "median", "min")
@@ -403,17 +403,19 @@ def place_on_camera_ray(
 
 BOX_COLUMNS = LABEL_COLUMNS.index("vz") + 1
 """Leading columns of a label row (pipeline.frame.LABEL_COLUMNS) that describe the moving box:
-centre, size, yaw, velocity; the track id is not needed."""
+centre, size, yaw, pitch, roll, velocity; the track id is not needed."""
+_YAW, _VX = LABEL_COLUMNS.index("yaw"), LABEL_COLUMNS.index("vx")
 
 
 def label_boxes(labels: Sequence[Object3D] | np.ndarray) -> np.ndarray:
-    """(L, BOX_COLUMNS) float64 rows of ``labels``: Object3D objects, or label rows (L, >= 10) as
-    calibrate stores them (taken as they are, without building objects)."""
+    """(L, BOX_COLUMNS) float64 rows of ``labels``: Object3D objects, or label rows (L, >= BOX_COLUMNS)
+    as calibrate stores them (taken as they are, without building objects)."""
     rows = np.asarray(labels, np.float64) if isinstance(labels, np.ndarray) else label_rows(labels)
     if rows.size == 0:
         return np.zeros((0, BOX_COLUMNS))
     if rows.ndim != 2 or rows.shape[1] < BOX_COLUMNS:
-        raise ValueError(f"label rows: need shape (L, >= {BOX_COLUMNS}), got {rows.shape}")
+        raise ValueError(f"label rows: need shape (L, >= {BOX_COLUMNS}) ({', '.join(LABEL_COLUMNS[:BOX_COLUMNS])}), "
+                         f"got {rows.shape}")
     return rows[:, :BOX_COLUMNS]
 
 
@@ -423,34 +425,35 @@ def object_velocities_for_points(
     """Velocity over ground (n, 3) m/s in {D} of the labelled object containing each point.
 
     ``labels``: Object3D objects or calibrate's label rows (see ``label_boxes``). A point belongs
-    to a box when it lies inside the oriented box (centre, yaw about z, size l/w/h) grown by
-    ``margin_m`` on every face; where boxes overlap, the one with the nearest centre wins. Points
-    in no box (the static world) get 0. Labels whose velocity is unknown (NaN) give their points
-    ``unknown`` (0: static, so a dataset without velocities gives a static-world Doppler for its
-    objects; NaN marks them as not known).
+    to a box when it lies inside the oriented box (centre, size l/w/h, rotation from yaw, pitch and
+    roll: pipeline.frame.box_rotations) grown by ``margin_m`` on every face; where boxes overlap,
+    the one with the nearest centre wins. Points in no box (the static world) get 0. Labels whose
+    velocity is unknown (NaN) give their points ``unknown`` (0: static, so a dataset without
+    velocities gives a static-world Doppler for its objects; NaN marks them as not known).
     """
     points = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
     out = np.zeros((points.shape[0], 3))
     boxes = label_boxes(labels)
     if points.shape[0] == 0 or len(boxes) == 0:
         return out
-    centres, half, yaw = boxes[:, 0:3], boxes[:, 3:6] / 2 + margin_m, boxes[:, 6]     # (L, 3), (L, 3), (L,)
-    vel = np.where(np.isnan(boxes[:, 7:10]), unknown, boxes[:, 7:10])
-    # A point inside box l lies within its x extent |dx| <= hypot(half_x, half_y): each box tests
+    centres, half = boxes[:, 0:3], boxes[:, 3:6] / 2 + margin_m                        # (L, 3), (L, 3)
+    rot = box_rotations(boxes[:, _YAW], boxes[:, _YAW + 1], boxes[:, _YAW + 2])      # (L, 3, 3) box -> {D}
+    vel = np.where(np.isnan(boxes[:, _VX:_VX + 3]), unknown, boxes[:, _VX:_VX + 3])
+    # A point inside box l lies within its x extent |dx| <= sum_k |R[0, k]| half_k: each box tests
     # only the points of that slice of the points sorted by x (one loop step per box, not per point).
     order = np.argsort(points[:, 0], kind="stable")
     xs = points[order, 0]
-    reach = np.hypot(half[:, 0], half[:, 1]) * (1 + 1e-9) + 1e-9  # slack for rounding
+    reach = np.einsum("lk,lk->l", np.abs(rot[:, 0, :]), half) * (1 + 1e-9) + 1e-9  # slack for rounding
     lo = np.searchsorted(xs, centres[:, 0] - reach, side="left")
     hi = np.searchsorted(xs, centres[:, 0] + reach, side="right")
     box_of, point_of, dist_of = [], [], []
     for box in np.flatnonzero(hi > lo):
         idx = order[lo[box]:hi[box]]
         rel = points[idx] - centres[box]                                                 # (k, 3)
-        cos, sin = np.cos(yaw[box]), np.sin(yaw[box])
-        inside = ((np.abs(cos * rel[:, 0] + sin * rel[:, 1]) <= half[box, 0])
-                  & (np.abs(-sin * rel[:, 0] + cos * rel[:, 1]) <= half[box, 1])
-                  & (np.abs(rel[:, 2]) <= half[box, 2]))
+        r = rot[box]  # rel @ r written out (no BLAS rounding): an upright box gives cos/sin(yaw)'s bits
+        inside = ((np.abs(r[0, 0] * rel[:, 0] + r[1, 0] * rel[:, 1] + r[2, 0] * rel[:, 2]) <= half[box, 0])
+                  & (np.abs(r[0, 1] * rel[:, 0] + r[1, 1] * rel[:, 1] + r[2, 1] * rel[:, 2]) <= half[box, 1])
+                  & (np.abs(r[0, 2] * rel[:, 0] + r[1, 2] * rel[:, 1] + r[2, 2] * rel[:, 2]) <= half[box, 2]))
         if inside.any():
             box_of.append(np.full(int(inside.sum()), box))
             point_of.append(idx[inside])

@@ -8,7 +8,8 @@ Writes (calibrate.zarr, one chunk per frame):
   radar.max_range_m + lidar.range_margin_m; radar (<= radar.store_max_points, 5) float32
   [x, y, z m in {D}, range rate m/s, RSS]: points in the common field of view within max range;
   radar_object, radar_material (same rows, int32; -2 when the dataset has no such side data);
-  labels (<= 64, 11) float32 [centre xyz, l w h, yaw, velocity xyz, track id] in {D};
+  labels (<= 64, 13) float32 [centre xyz, l w h, yaw, pitch, roll, velocity xyz, track id] in {D}
+  (pipeline.frame.LABEL_COLUMNS; the rotation Rz(yaw) Ry(pitch) Rx(roll), pipeline.frame.box_rotations);
   ego_velocity (3,) float64 m/s in {D}; ego_velocity_known bool (False: the dataset records no
   motion for the frame, ego_velocity is zero); timestamp float64 s; sequence str; split int8
   (0 train, 1 val, 2 test); has_radar bool; radar_beyond_range int32, the radar points in the
@@ -34,8 +35,9 @@ from pipeline.working import common_fov_mask, crop_resize
 
 MAX_LABELS = 64
 
-VERSION = 2
-"""Bump when the outputs change for the same inputs (2: ego_velocity_known, radar_beyond_range)."""
+VERSION = 3
+"""Bump when the outputs change for the same inputs (2: ego_velocity_known, radar_beyond_range; 3: labels
+gain the pitch and roll columns)."""
 
 CONFIG_KEYS = (
     "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution", "dataset.world_sequence_len",
@@ -161,7 +163,7 @@ def summarise(store, cfg: Config) -> list[str]:
     if not known.all():
         lines.append(f"ego velocity unknown on {np.count_nonzero(~known)} of {n_done} frames (the dataset records no "
                      f"motion for them): their Doppler is synthesized as for a stopped car")
-    labels = np.asarray(store.array("labels")[:])[done]  # (F, MAX_LABELS, 11), NaN beyond each frame's count
+    labels = np.asarray(store.array("labels")[:])[done]  # (F, MAX_LABELS, len(LABEL_COLUMNS)), NaN beyond each frame's count
     real = np.arange(labels.shape[1])[None, :] < np.asarray(store.array("labels_count")[:])[done][:, None]
     unknown = real & ~np.isfinite(labels[..., LABEL_COLUMNS.index("vx")])
     if unknown.any():

@@ -280,6 +280,51 @@ def test_track_id_labels_get_the_truncation_of_their_box():
         calib_P2("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
 
 
+def test_kitti_label_text_projects_a_tilted_box_with_its_tilt():
+    """A box pitched 10 deg and rolled -6 deg (Astyx keeps its boxes' tilt since 2026-12-06): its 2D
+    box is the clipped projection of its own 8 corners, not of the upright box's; location, size,
+    rotation_y and alpha are the upright box's (OpenPCDet's boxes are upright in {D}, the yaw the
+    heading of the length axis on {D}'s x-y plane). Upright boxes are written to the byte as the
+    yaw-only corners (cos and sin of the yaw, before 2026-12-06) give them."""
+    from pipeline.export import _clipped_box, kitti_label_text
+    from pipeline.frame import Object3D
+    from pipeline.readers.testing import R_CAM_D, rigid
+    from pipeline.world.rig import rotation_zyx
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 200], [0, 0, 1]])
+    T_cam_radar = rigid(R_CAM_D, np.array([0.05, 0.8, -0.4])) @ rigid(
+        np.array([[1, 0, 0], [0, np.cos(0.05), -np.sin(0.05)], [0, np.sin(0.05), np.cos(0.05)]]), np.zeros(3))
+    pitch, roll = np.radians(10.0), np.radians(-6.0)
+    upright = Object3D("Car", np.array([12.0, 1.5, 0.3]), np.array([4.2, 1.8, 1.5]), 0.7)
+    tilted = Object3D("Car", upright.center_D, upright.size_lwh_m, 0.7, pitch_rad=pitch, roll_rad=roll)
+    a, b = (kitti_label_text([o], T_cam_radar, K, (640, 400)).split() for o in (upright, tilted))
+    assert a[:4] == b[:4] and a[8:] == b[8:] and a[4:8] != b[4:8]
+    signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
+    for obj, fields, R in ((tilted, b, rotation_zyx(0.7, pitch, roll)), (upright, a, rotation_zyx(0.7, 0.0, 0.0))):
+        corners_cam = (obj.center_D + 0.5 * signs * obj.size_lwh_m @ R.T) @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3]
+        (box, _) = _clipped_box((corners_cam @ K.T)[:, :2] / corners_cam[:, 2:3], (640, 400))
+        np.testing.assert_allclose([float(v) for v in fields[4:8]], box, rtol=1e-5)
+
+    rng, checked = np.random.default_rng(6), 0
+    for _ in range(30):
+        obj = Object3D("Car", np.array([rng.uniform(5, 40), rng.uniform(-10, 10), rng.uniform(-1, 1)]),
+                       rng.uniform(0.5, 5, 3), rng.uniform(-np.pi, np.pi))
+        (length, width, height), (c, s) = obj.size_lwh_m, (np.cos(obj.yaw_rad), np.sin(obj.yaw_rad))
+        dx, dy, dz = np.meshgrid([-length / 2, length / 2], [-width / 2, width / 2], [-height / 2, height / 2],
+                                 indexing="ij")
+        corners_D = obj.center_D + np.stack([c * dx.ravel() - s * dy.ravel(), s * dx.ravel() + c * dy.ravel(),
+                                             dz.ravel()], axis=1)
+        corners_cam = corners_D @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3]
+        text = kitti_label_text([obj], T_cam_radar, K, (640, 400))
+        if np.any(corners_cam[:, 2] <= 0.1) or text == DONT_CARE_LINE + "\n":
+            continue
+        (box, truncation) = _clipped_box((corners_cam @ K.T)[:, :2] / corners_cam[:, 2:3], (640, 400))
+        fields = text.split()
+        assert fields[1] == f"{truncation:.6g}" and fields[4:8] == [f"{v:.6g}" for v in box]
+        checked += 1
+    assert checked > 10
+
+
 def test_class_names_rename_label_classes():
     assert parse_class_map("") == {} and parse_class_map(" Person = Pedestrian , Other_Vehicle=Car,") == {
         "Person": "Pedestrian", "Other_Vehicle": "Car"}

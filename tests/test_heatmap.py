@@ -162,6 +162,36 @@ def test_points_in_box_follows_the_yaw_direction():
     np.testing.assert_array_equal(points_in_box(pts, box), [True, True, False, True])
 
 
+def test_points_in_box_follows_the_tilt():
+    """A box pitched 15 deg and rolled -8 deg (Astyx's boxes lean about 4 deg in {D}): its corners,
+    shrunk a little, are inside, the upright box's are not; an upright box gives, to the bit, the
+    yaw-only test it had before boxes had a tilt (2026-12-06, a93a48f), points on its faces included."""
+    from pipeline.world.rig import rotation_zyx
+
+    box = Object3D("car", np.array([12.0, -3.0, 0.5]), np.array([4.0, 2.0, 1.5]), 0.7,
+                   pitch_rad=np.radians(15.0), roll_rad=np.radians(-8.0))
+    upright = Object3D("car", box.center_D, box.size_lwh_m, 0.7)
+    signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
+    local = 0.49 * signs * box.size_lwh_m
+    inside = box.center_D + local @ rotation_zyx(0.7, np.radians(15.0), np.radians(-8.0)).T
+    assert points_in_box(inside, box).all()
+    assert not points_in_box(inside, upright).any()
+    assert not points_in_box(upright.center_D + local @ rotation_zyx(0.7, 0.0, 0.0).T, box).any()
+
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        obj = Object3D("car", rng.uniform(-5, 5, 3), rng.uniform(0.5, 5, 3), rng.uniform(-np.pi, np.pi))
+        c, s = np.cos(obj.yaw_rad), np.sin(obj.yaw_rad)
+        pts = obj.center_D + rng.uniform(-4, 4, (300, 3))
+        pts[:4] = obj.center_D + np.outer([-0.5, 0.5, -0.5, 0.5], obj.size_lwh_m[0]) * [c, s, 0]  # on the end faces
+        d = pts - obj.center_D
+        for grow in (0.0, 0.2):
+            before = ((np.abs(c * d[:, 0] + s * d[:, 1]) <= obj.size_lwh_m[0] / 2 + grow)
+                      & (np.abs(-s * d[:, 0] + c * d[:, 1]) <= obj.size_lwh_m[1] / 2 + grow)
+                      & (np.abs(d[:, 2]) <= obj.size_lwh_m[2] / 2 + grow))
+            np.testing.assert_array_equal(points_in_box(pts, obj, grow), before)
+
+
 def _frame_with_objects(rng: np.random.Generator) -> tuple[FrameRecord, np.ndarray]:
     """Camera looking along +x of {D}; two boxes with radar points; a stray point outside boxes."""
     K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.stats import chisquare
 
 from pipeline import synthesis
-from pipeline.frame import Object3D
+from pipeline.frame import LABEL_COLUMNS, Object3D, label_rows
 from pipeline.geometry import (
     cartesian_to_spherical, invert_transform, pixel_rays_D, project_to_image, spherical_to_cartesian,
 )
@@ -19,6 +19,7 @@ from pipeline.synthesis import (
     SUPPORT_WIDENED, LidarAngularIndex, _refill_draws, doppler_for_points, object_velocities_for_points,
     place_on_camera_ray, sample_pixels, synthesize_frame,
 )
+from pipeline.world.rig import rotation_zyx
 
 # Radar {D}: x fwd, y left, z up. Camera: x right, y down, z fwd. Columns = camera axes in {D}.
 R_RADAR_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -337,52 +338,108 @@ def test_object_velocities_oriented_boxes():
     vel = object_velocities_for_points(points, [car, unknown])
     np.testing.assert_allclose(vel, [[0, 3, 0], [0, 3, 0], [0, 0, 0], [0, 3, 0], [0, 0, 0]])
     assert object_velocities_for_points(points, []).shape == (5, 3)
-    # calibrate's label rows (centre, size, yaw, velocity, track id) give the same, without objects
-    rows = np.array([[*o.center_D, *o.size_lwh_m, o.yaw_rad, *o.velocity_D, 7.0] for o in (car, unknown)])
+    # calibrate's label rows (centre, size, yaw, pitch, roll, velocity, track id) give the same, without objects
+    rows = np.array([[*o.center_D, *o.size_lwh_m, o.yaw_rad, 0.0, 0.0, *o.velocity_D, 7.0] for o in (car, unknown)])
     np.testing.assert_array_equal(object_velocities_for_points(points, rows), vel)
-    np.testing.assert_array_equal(object_velocities_for_points(points, np.zeros((0, 11))), np.zeros((5, 3)))
+    np.testing.assert_array_equal(object_velocities_for_points(points, np.zeros((0, len(LABEL_COLUMNS)))),
+                                  np.zeros((5, 3)))
     with pytest.raises(ValueError, match="label rows"):
         object_velocities_for_points(points, rows[:, :6])
 
 
+def test_object_velocities_follow_a_tilted_box():
+    """A box pitched 20 deg (nose down) and rolled 10 deg: points inside it but outside the upright
+    box of the same yaw get its velocity, points of the upright box outside it do not (until
+    2026-12-06 every box was taken upright: Astyx's lean 4 deg in {D})."""
+    pitch, roll = np.radians(20.0), np.radians(10.0)
+    tilted = Object3D("Car", np.array([10.0, 2.0, 0.0]), np.array([4.0, 2.0, 1.0]), 0.6,
+                      velocity_D=np.array([1.0, 2.0, 0.0]), pitch_rad=pitch, roll_rad=roll)
+    upright = Object3D("Car", tilted.center_D, tilted.size_lwh_m, 0.6, velocity_D=tilted.velocity_D)
+    R = rotation_zyx(0.6, pitch, roll)  # the world's rotation (box -> {D}), built independently
+    local = np.array([[1.9, 0.0, 0.0], [-1.9, 0.0, 0.0], [0.0, 0.95, 0.45], [0.0, -0.95, -0.45], [0.0, 0.0, 0.0]])
+    inside_tilted = tilted.center_D + local @ R.T
+    np.testing.assert_array_equal(object_velocities_for_points(inside_tilted, [tilted], margin_m=0.0),
+                                  np.tile(tilted.velocity_D, (5, 1)))
+    assert (object_velocities_for_points(inside_tilted[:4], [upright], margin_m=0.0) == 0).all()
+    corners_upright = upright.center_D + np.array([[1.9, 0.0, 0.45], [-1.9, 0.0, -0.45]]) @ rotation_zyx(0.6, 0, 0).T
+    assert (object_velocities_for_points(corners_upright, [tilted], margin_m=0.0) == 0).all()
+    np.testing.assert_array_equal(object_velocities_for_points(corners_upright, [upright], margin_m=0.0),
+                                  np.tile(tilted.velocity_D, (2, 1)))
+    # the same from calibrate's label rows
+    np.testing.assert_array_equal(object_velocities_for_points(inside_tilted, label_rows([tilted]), margin_m=0.0),
+                                  np.tile(tilted.velocity_D, (5, 1)))
+
+
+_COL = {name: i for i, name in enumerate(LABEL_COLUMNS)}
+_YAW, _VX = _COL["yaw"], _COL["vx"]
+
+
 def _velocities_every_pair(points: np.ndarray, rows: np.ndarray, margin_m: float = 0.3) -> np.ndarray:
-    """Reference: every point tested against every box; the nearest centre wins, then the lower index."""
+    """Reference: every point tested against every box (its rotation Rz(yaw) Ry(pitch) Rx(roll) from
+    the world's rig.rotation_zyx); the nearest centre wins, then the lower index."""
     out = np.zeros((len(points), 3))
     for i, p in enumerate(points):
         best = (np.inf, -1)
         for j, r in enumerate(rows):
             rel = p - r[0:3]
-            c, s = np.cos(r[6]), np.sin(r[6])
+            R = rotation_zyx(r[_YAW], r[_YAW + 1], r[_YAW + 2])
+            local = [R[0, k] * rel[0] + R[1, k] * rel[1] + R[2, k] * rel[2] for k in range(3)]
+            half = r[3:6] / 2 + margin_m
+            if all(abs(local[k]) <= half[k] for k in range(3)) and np.linalg.norm(rel) < best[0]:
+                best = (np.linalg.norm(rel), j)
+        if best[1] >= 0:
+            out[i] = np.nan_to_num(rows[best[1], _VX:_VX + 3], nan=0.0)
+    return out
+
+
+def _velocities_upright_as_before(points: np.ndarray, rows: np.ndarray, margin_m: float = 0.3) -> np.ndarray:
+    """object_velocities_for_points as it was before boxes had a tilt (2026-12-06, a93a48f): every
+    point against every box, the box's frame from cos and sin of its yaw alone."""
+    out = np.zeros((len(points), 3))
+    for i, p in enumerate(points):
+        best = (np.inf, -1)
+        for j, r in enumerate(rows):
+            rel = p - r[0:3]
+            c, s = np.cos(r[_YAW]), np.sin(r[_YAW])
             half = r[3:6] / 2 + margin_m
             if (abs(c * rel[0] + s * rel[1]) <= half[0] and abs(-s * rel[0] + c * rel[1]) <= half[1]
                     and abs(rel[2]) <= half[2] and np.linalg.norm(rel) < best[0]):
                 best = (np.linalg.norm(rel), j)
         if best[1] >= 0:
-            out[i] = np.nan_to_num(rows[best[1], 7:10], nan=0.0)
+            out[i] = np.nan_to_num(rows[best[1], _VX:_VX + 3], nan=0.0)
     return out
 
 
-def test_object_velocities_match_every_pair_test():
+@pytest.mark.parametrize("tilted", [False, True])
+def test_object_velocities_match_every_pair_test(tilted):
     """Overlapping, rotated, coincident boxes and points on their faces: the sorted-x search finds
-    the same box for every point as testing every pair."""
+    the same box for every point as testing every pair; tilted boxes too (their x extent, which
+    the search slices the points by, grows with the tilt). Upright boxes give, to the bit, what the
+    yaw-only test before the tilt gave, points on the faces included."""
     rng = np.random.default_rng(5)
     for _ in range(20):
-        rows = np.zeros((12, 11))
+        rows = np.zeros((12, len(LABEL_COLUMNS)))
         rows[:, 0:2] = rng.uniform(-8, 8, (12, 2))
         rows[:, 3:6] = rng.uniform(0.5, 6, (12, 3))
-        rows[:, 6] = rng.uniform(-np.pi, np.pi, 12)
-        rows[:, 7:10] = rng.normal(0, 5, (12, 3))
-        rows[1, :7] = rows[0, :7]        # the same box twice: the lower index wins
-        rows[2, 7] = np.nan              # unknown velocity: static
+        rows[:, _YAW] = rng.uniform(-np.pi, np.pi, 12)
+        if tilted:  # box 3 stays upright: its face points below are exact only for it
+            rows[:, _YAW + 1:_YAW + 3] = rng.uniform(-0.6, 0.6, (12, 2))
+            rows[3, _YAW + 1:_YAW + 3] = 0.0
+        rows[:, _VX:_VX + 3] = rng.normal(0, 5, (12, 3))
+        rows[1, :_VX] = rows[0, :_VX]    # the same box twice: the lower index wins
+        rows[2, _VX] = np.nan            # unknown velocity: static
         points = rng.uniform(-10, 10, (400, 3))
         points[:, 2] *= 0.3
-        c, s = np.cos(rows[3, 6]), np.sin(rows[3, 6])
+        c, s = np.cos(rows[3, _YAW]), np.sin(rows[3, _YAW])
         edge = rows[3, 3] / 2 + 0.3      # points on box 3's grown +x face
         points[:5, :2] = rows[3, :2] + np.outer([edge] * 5, [c, s]) + np.outer(rng.uniform(-0.2, 0.2, 5), [-s, c])
         points[:5, 2] = 0.0
-        np.testing.assert_array_equal(object_velocities_for_points(points, rows), _velocities_every_pair(points, rows))
+        got = object_velocities_for_points(points, rows)
+        np.testing.assert_array_equal(got, _velocities_every_pair(points, rows))
+        if not tilted:
+            np.testing.assert_array_equal(got, _velocities_upright_as_before(points, rows))
     # points beside a box (within its x extent) but inside none, as on Astyx frame 000492
-    rows = np.array([[50.0, 3.0, 1.0, 3.7, 1.7, 1.4, -3.1, np.nan, np.nan, np.nan, 0.0]])
+    rows = np.array([[50.0, 3.0, 1.0, 3.7, 1.7, 1.4, -3.1, 0.0, 0.0, np.nan, np.nan, np.nan, 0.0]])
     beside = np.array([[50.0, -10.0, 0.0], [49.0, 20.0, 1.0]])
     np.testing.assert_array_equal(object_velocities_for_points(beside, rows), np.zeros((2, 3)))
 
