@@ -24,6 +24,7 @@ working resolution; azimuth / elevation in radians. Pure numpy / scipy / OpenCV.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -76,7 +77,7 @@ def candidate_features(
     whole lidar cloud ``lidar_D``: |cos| of the angle between the surface normal and the line of
     sight, planarity (smallest / summed covariance eigenvalue), log distance of the farthest
     neighbour (lidar density) and the normal's squared z (ground or wall). ``workers``: threads of
-    the neighbour query (the features do not depend on it). ``tree``: :func:`neighbour_tree` of
+    the neighbour query and the normals (the features do not depend on it). ``tree``: :func:`neighbour_tree` of
     ``lidar_D`` when the caller has it (a frame's range images can use the same tree).
     """
     from pipeline.synthesis import object_velocities_for_points
@@ -122,12 +123,28 @@ def neighbour_tree(lidar_D: np.ndarray) -> cKDTree:
 
 def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, tree: cKDTree, workers: int = 1) -> np.ndarray:
     """(C, 4): |cos incidence|, planarity, log neighbour distance, normal z^2 from the neighbours in
-    ``tree`` (:func:`neighbour_tree`; zeros with too few lidar points)."""
+    ``tree`` (:func:`neighbour_tree`; zeros with too few lidar points). With ``workers`` > 1 the
+    candidates are split into that many blocks, each on a thread of its own (the query and numpy's
+    loops release the GIL); every row is computed alone, so the values do not depend on it."""
+    if workers <= 1 or len(points_D) < workers * MIN_BLOCK_ROWS:
+        return _geometry_rows(points_D, range_m, tree)
+    ends = np.linspace(0, len(points_D), workers + 1).astype(int)
+    with ThreadPoolExecutor(workers) as pool:
+        blocks = pool.map(lambda s, e: _geometry_rows(points_D[s:e], range_m[s:e], tree), ends[:-1], ends[1:])
+        return np.concatenate(list(blocks))
+
+
+MIN_BLOCK_ROWS = 1000
+"""Fewest candidates per thread of :func:`_geometry_features` (fewer: one thread does them all)."""
+
+
+def _geometry_rows(points_D: np.ndarray, range_m: np.ndarray, tree: cKDTree) -> np.ndarray:
+    """:func:`_geometry_features` of some candidates, on the calling thread."""
     cloud = tree.data
     k = min(NORMAL_NEIGHBOURS, len(cloud))
     if k < 3:
         return np.zeros((len(points_D), 4))
-    dist, idx = tree.query(points_D, k=k, workers=workers)
+    dist, idx = tree.query(points_D, k=k)
     # neighbour-major (k, C, 3): each neighbour's rows are contiguous, so the sums and the centring run
     # over long rows; summed neighbour by neighbour as nb.mean(axis=1) sums (the same bits)
     nb = np.take(cloud, idx.T, axis=0)

@@ -104,12 +104,14 @@ def test_candidate_features_hand_computed():
     # too few lidar points for a normal: the geometry columns are zeros, not NaN
     few = P.candidate_features(cand, uv, image, lidar[:2], ego, [])
     assert np.all(np.isfinite(few)) and np.all(few[:, -4:] == 0)
-    # the neighbour query's threads change nothing (synthesize gives it the nets' threads)
-    cloud = np.random.default_rng(2).uniform(-5, 5, (3000, 3)) + [20.0, 0.0, 0.0]
+    # the threads of the neighbour query and the normals change nothing (synthesize gives them the nets'
+    # threads; the candidates are split into blocks of at least MIN_BLOCK_ROWS)
+    cloud = np.random.default_rng(2).uniform(-5, 5, (3 * 3 * P.MIN_BLOCK_ROWS, 3)) + [20.0, 0.0, 0.0]
     many = cloud[::3]
     pixels = np.zeros((len(many), 2))
-    np.testing.assert_array_equal(P.candidate_features(many, pixels, image, cloud, ego, [], workers=2),
-                                  P.candidate_features(many, pixels, image, cloud, ego, []))
+    for workers in (2, 3):
+        np.testing.assert_array_equal(P.candidate_features(many, pixels, image, cloud, ego, [], workers=workers),
+                                      P.candidate_features(many, pixels, image, cloud, ego, []))
 
 
 def test_planarity_is_the_smallest_share_of_the_spread():
