@@ -304,7 +304,7 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     if len(real) and compared.rss:
         patches, ranges = point_inputs(f.get("calibrate", "image"), f.get("calibrate", "K"),
                                        f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"), real[:, :3], cfg,
-                                       lidar_tree(f))  # the frame's tree, which the methods' placements use too
+                                       lidar_tree(f, cfg))  # the frame's tree, which the model's placement uses too
         pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
         rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
     methods = _methods_for_frame(f, cfg, stats, nets, _previous(f, frame_ids), target)

@@ -97,7 +97,7 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
             out = generate(f, cfg, prob, n, nets, f.rng(rep, 1), rss=False)
             pts = out["points"][:, :3].astype(np.float64)
             patches, ranges = point_inputs(image, f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam"),
-                                           f.get("calibrate", "lidar"), pts, cfg, lidar_tree(f))  # as generate
+                                           f.get("calibrate", "lidar"), pts, cfg, lidar_tree(f, cfg))  # as generate
             t2 = time.perf_counter()
             rssnet_predict(rssnet, patches, ranges, out["points"][:, [0, 1, 2, 8]])
             t3 = time.perf_counter()
