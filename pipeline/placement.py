@@ -24,6 +24,7 @@ working resolution; azimuth / elevation in radians. Pure numpy / scipy / OpenCV.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -64,7 +65,7 @@ def lidar_candidates(
 
 def candidate_features(
     points_D: np.ndarray, uv: np.ndarray, image: np.ndarray, lidar_D: np.ndarray, ego_velocity_D: np.ndarray,
-    labels: Sequence[Object3D] | np.ndarray, workers: int = 1,
+    labels: Sequence[Object3D] | np.ndarray, workers: int = 1, tree: cKDTree | None = None,
 ) -> np.ndarray:
     """PlaceNet inputs (C, len(FEATURES)) float32 of candidates ``points_D`` (C, 3) at pixels ``uv``.
 
@@ -76,7 +77,8 @@ def candidate_features(
     whole lidar cloud ``lidar_D``: |cos| of the angle between the surface normal and the line of
     sight, planarity (smallest / summed covariance eigenvalue), log distance of the farthest
     neighbour (lidar density) and the normal's squared z (ground or wall). ``workers``: threads of
-    the neighbour query (the features do not depend on it).
+    the neighbour query and the normals (the features do not depend on it). ``tree``: :func:`neighbour_tree` of
+    ``lidar_D`` when the caller has it (a frame's range images can use the same tree).
     """
     from pipeline.synthesis import object_velocities_for_points
 
@@ -87,13 +89,15 @@ def candidate_features(
     rae = cartesian_to_spherical(pts)
     ego = check_shape("ego_velocity_D", np.asarray(ego_velocity_D, np.float64), (3,))
     v_obj = object_velocities_for_points(pts, labels)
-    on_object = np.any(v_obj != 0, axis=1)
     rate = np.abs(radial_velocity(pts, ego, v_obj))
-    colour = _colour_features(image, uv)
-    geometry = _geometry_features(pts, rae[:, 0], lidar_D, workers)
-    cols = [np.log(rae[:, 0]), pts[:, 2], rate, np.minimum(rate, 3.0), np.minimum(rate, 0.5), on_object,
-            np.full(len(pts), np.linalg.norm(ego)), rae[:, 1], rae[:, 2]]
-    return np.column_stack([*cols, colour, geometry]).astype(np.float32)
+    # each column written once into the float32 rows (the values column_stack(...).astype gave)
+    out = np.empty((len(pts), len(FEATURES)), np.float32)
+    for k, col in enumerate((np.log(rae[:, 0]), pts[:, 2], rate, np.minimum(rate, 3.0), np.minimum(rate, 0.5),
+                             np.any(v_obj != 0, axis=1), np.linalg.norm(ego), rae[:, 1], rae[:, 2])):
+        out[:, k] = col
+    out[:, 9:18] = _colour_features(image, uv)
+    out[:, 18:] = _geometry_features(pts, rae[:, 0], neighbour_tree(lidar_D) if tree is None else tree, workers)
+    return out
 
 
 def _colour_features(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -101,25 +105,55 @@ def _colour_features(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     img = check_shape("image", np.asarray(image), (None, None, 3)).astype(np.float32) / 255.0
     h, w = img.shape[:2]
     k = (COLOUR_WINDOW_PX, COLOUR_WINDOW_PX)
-    mean = cv2.blur(img, k)
-    std = np.sqrt(np.maximum(cv2.blur(img * img, k) - mean * mean, 0.0))
     px = np.clip(np.rint(uv).astype(np.int64), 0, [w - 1, h - 1])
-    return np.concatenate([a[px[:, 1], px[:, 0]] for a in (img, mean, std)], axis=1)
+    at = px[:, 1] * w + px[:, 0]                                   # the pixels' rows of the (h w, 3) images
+    rgb, mean, mean_sq = (a.reshape(-1, 3)[at] for a in (img, cv2.blur(img, k), cv2.blur(img * img, k)))
+    std = np.sqrt(np.maximum(mean_sq - mean * mean, 0.0))          # at the pixels only
+    return np.concatenate([rgb, mean, std], axis=1)
 
 
-def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, lidar_D: np.ndarray,
-                       workers: int = 1) -> np.ndarray:
-    """(C, 4): |cos incidence|, planarity, log neighbour distance, normal z^2 (zeros with too few
-    lidar points). The tree is built unbalanced (median splits cost more than they save for one
-    query of each candidate: 11.6 against 12.3 ms for a demo frame's 8,800, the same neighbours)."""
+def neighbour_tree(lidar_D: np.ndarray) -> cKDTree:
+    """The cKDTree of the finite lidar points (M, 3) in which :func:`candidate_features` finds the
+    candidates' neighbours. Built unbalanced (median splits cost more than they save for one query
+    of each candidate: 11.6 against 12.3 ms for a demo frame's 8,800, the same neighbours)."""
     cloud = np.asarray(lidar_D, np.float64).reshape(-1, 3)
-    cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
+    finite = np.isfinite(cloud).all(axis=1)
+    return cKDTree(cloud if finite.all() else cloud[finite], balanced_tree=False, compact_nodes=False)
+
+
+def _geometry_features(points_D: np.ndarray, range_m: np.ndarray, tree: cKDTree, workers: int = 1) -> np.ndarray:
+    """(C, 4): |cos incidence|, planarity, log neighbour distance, normal z^2 from the neighbours in
+    ``tree`` (:func:`neighbour_tree`; zeros with too few lidar points). With ``workers`` > 1 the
+    candidates are split into that many blocks, each on a thread of its own (the query and numpy's
+    loops release the GIL); every row is computed alone, so the values do not depend on it."""
+    if workers <= 1 or len(points_D) < workers * MIN_BLOCK_ROWS:
+        return _geometry_rows(points_D, range_m, tree)
+    ends = np.linspace(0, len(points_D), workers + 1).astype(int)
+    with ThreadPoolExecutor(workers) as pool:
+        blocks = pool.map(lambda s, e: _geometry_rows(points_D[s:e], range_m[s:e], tree), ends[:-1], ends[1:])
+        return np.concatenate(list(blocks))
+
+
+MIN_BLOCK_ROWS = 1000
+"""Fewest candidates per thread of :func:`_geometry_features` (fewer: one thread does them all)."""
+
+
+def _geometry_rows(points_D: np.ndarray, range_m: np.ndarray, tree: cKDTree) -> np.ndarray:
+    """:func:`_geometry_features` of some candidates, on the calling thread."""
+    cloud = tree.data
     k = min(NORMAL_NEIGHBOURS, len(cloud))
     if k < 3:
         return np.zeros((len(points_D), 4))
-    dist, idx = cKDTree(cloud, balanced_tree=False, compact_nodes=False).query(points_D, k=k, workers=workers)
-    nb = cloud[idx]
-    nb -= nb.mean(axis=1, keepdims=True)                          # (C, k, 3)
+    dist, idx = tree.query(points_D, k=k)
+    # neighbour-major (k, C, 3): each neighbour's rows are contiguous, so the sums and the centring run
+    # over long rows; summed neighbour by neighbour as nb.mean(axis=1) sums (the same bits)
+    nb = np.take(cloud, idx.T, axis=0)
+    centre = nb[0].copy()
+    for j in range(1, k):
+        centre += nb[j]
+    centre /= k
+    nb -= centre
+    nb = nb.transpose(1, 0, 2)                                     # (C, k, 3), a view
     cov = np.matmul(nb.transpose(0, 2, 1), nb)
     smallest, normal = smallest_eigenpair_sym3(cov)
     cos_inc = np.abs(np.sum(normal * points_D, axis=1)) / np.maximum(range_m, 1e-9)
@@ -137,7 +171,8 @@ def smallest_eigenpair_sym3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     eigh would); an isotropic matrix gives z.
     """
     a = check_shape("a", np.asarray(a, np.float64), (None, 3, 3))
-    xx, yy, zz, xy, xz, yz = a[:, 0, 0], a[:, 1, 1], a[:, 2, 2], a[:, 0, 1], a[:, 0, 2], a[:, 1, 2]
+    e = a.reshape(-1, 9).T.copy()                  # (9, C): row 3 i + j holds the entries (i, j), contiguous
+    xx, yy, zz, xy, xz, yz = e[0], e[4], e[8], e[1], e[2], e[5]
     q = (xx + yy + zz) / 3
     dx, dy, dz = xx - q, yy - q, zz - q
     p = np.sqrt((dx * dx + dy * dy + dz * dz + 2 * (xy * xy + xz * xz + yz * yz)) / 6)
@@ -145,21 +180,28 @@ def smallest_eigenpair_sym3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
     phi = np.arccos(np.clip(det / safe ** 3 / 2, -1.0, 1.0)) / 3
     smallest = np.where(p > 0, q + 2 * p * np.cos(phi + 2 * np.pi / 3), q)
-    m = a - smallest[:, None, None] * np.eye(3)                            # (C, 3, 3), rows r0, r1, r2
-    r0, r1, r2 = m[:, 0], m[:, 1], m[:, 2]
-    crosses = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)   # (C, 3, 3)
-    size = np.einsum("cij,cij->ci", crosses, crosses)
-    best = np.argmax(size, axis=1)
-    rows = np.arange(len(a))
-    vec = crosses[rows, best]
-    scale = np.max(np.abs(m), axis=(1, 2))
-    degenerate = size[rows, best] <= (1e-10 * scale * scale) ** 2
+    m = e - smallest * 0.0                         # a - lambda I, entry by entry (9, C): rows r0, r1, r2
+    m[[0, 4, 8]] = e[[0, 4, 8]] - smallest
+    r0, r1, r2 = m[0:3], m[3:6], m[6:9]
+    crosses = np.stack([_cross(r0, r1), _cross(r0, r2), _cross(r1, r2)])          # (3 pairs, 3, C)
+    # squared lengths summed as np.einsum sums three terms ((x^2 + z^2) + y^2): the bits it gave
+    size = (crosses[:, 0] * crosses[:, 0] + crosses[:, 2] * crosses[:, 2]) + crosses[:, 1] * crosses[:, 1]
+    best = np.argmax(size, axis=0)
+    cols = np.arange(len(a))
+    vec = crosses[best, :, cols]                                                   # (C, 3)
+    scale = np.max(np.abs(m), axis=0)
+    degenerate = size[best, cols] <= (1e-10 * scale * scale) ** 2
     if np.any(degenerate):  # a - lambda I has rank <= 1: its largest row spans the other eigenspace
-        m = m[degenerate]
-        row = m[np.arange(len(m)), np.argmax(np.einsum("cij,cij->ci", m, m), axis=1)]
+        md = m[:, degenerate].T.reshape(-1, 3, 3)
+        row = md[np.arange(len(md)), np.argmax(np.einsum("cij,cij->ci", md, md), axis=1)]
         other = np.cross(row, np.eye(3)[np.argmin(np.abs(row), axis=1)])
         vec[degenerate] = np.where(np.any(row != 0, axis=1)[:, None], other, [0.0, 0.0, 1.0])
     return smallest, vec / np.linalg.norm(vec, axis=1, keepdims=True)
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Cross products (3, C) of vectors given as rows (3, C): np.cross's formula and order."""
+    return np.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
 
 
 def radar_counts(candidates_D: np.ndarray, radar_D: np.ndarray, gate_m: float) -> np.ndarray:
@@ -203,8 +245,7 @@ def placement_weights(
         a32 = a.astype(np.float32)
         return cv2.GaussianBlur(a32, (0, 0), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_CONSTANT).astype(np.float64)
 
-    splat = np.zeros((mh, mw))
-    np.add.at(splat, (px[:, 1], px[:, 0]), lam)
+    splat = np.bincount(px[:, 1] * mw + px[:, 0], lam, minlength=mh * mw).reshape(mh, mw)  # summed in order
     z = blur(splat)
     ratio = np.zeros_like(z)
     reached = z > 1e-12 * z.max()  # map mass no candidate can take is lost, not blown up

@@ -44,7 +44,8 @@ from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.metrics import region_mask
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
-from stages.synthesize import SPLITS, capacity, check_generation, check_split, generate, models, split_mask
+from stages.synthesize import (SPLITS, capacity, check_generation, check_split, generate, lidar_tree, models,
+                               split_mask)
 
 MAX_FRAME_GAP_S = 1.0
 """The previous-frame baseline needs consecutive frames: a previous frame further back than this
@@ -302,7 +303,8 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     rss_err = float("nan")
     if len(real) and compared.rss:
         patches, ranges = point_inputs(f.get("calibrate", "image"), f.get("calibrate", "K"),
-                                       f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"), real[:, :3], cfg)
+                                       f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"), real[:, :3], cfg,
+                                       lidar_tree(f, cfg))  # the frame's tree, which the model's placement uses too
         pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
         rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
     methods = _methods_for_frame(f, cfg, stats, nets, _previous(f, frame_ids), target)

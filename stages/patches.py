@@ -54,16 +54,18 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
 
 
 def point_inputs(image: np.ndarray, K: np.ndarray, T_radar_cam: np.ndarray, lidar_D: np.ndarray,
-                 points_D: np.ndarray, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+                 points_D: np.ndarray, cfg: Config, tree=None) -> tuple[np.ndarray, np.ndarray]:
     """Image patches (n, s, s, 3) and local range images (n, h, w) of points (n, 3) in {D}.
 
     Shared by training-sample extraction and by synthesis (RSS-Net inputs for generated points).
+    ``tree``: a cKDTree of ``lidar_D`` the caller has already (synthesize: the one its candidates'
+    neighbours came from), else one is built.
     """
     c = cfg.camera
     r_c = scale_rc(cfg.patches.r_c_px, tuple(c.crop_rows), tuple(c.full_size), tuple(c.working_size))
     uv, _, _ = project_to_image(points_D, K, invert_transform(T_radar_cam), tuple(c.working_size))
     patches = image_patches(image, uv, r_c, cfg.patches.patch_size_px)
-    ranges = local_range_images(lidar_D, points_D, cfg.patches.r_l_m, tuple(cfg.patches.range_image_size))
+    ranges = local_range_images(lidar_D, points_D, cfg.patches.r_l_m, tuple(cfg.patches.range_image_size), tree)
     return patches, ranges
 
 
@@ -92,11 +94,12 @@ def candidates(inputs: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray
     return lidar[idx], uv
 
 
-def features(inputs: FrameInputs, points_D: np.ndarray, uv: np.ndarray, workers: int = 1) -> np.ndarray:
+def features(inputs: FrameInputs, points_D: np.ndarray, uv: np.ndarray, workers: int = 1, tree=None) -> np.ndarray:
     """PlaceNet features of candidates (shared with synthesis; ``workers`` threads for the neighbour
-    query)."""
+    query; ``tree``: the frame's pipeline.placement.neighbour_tree when the caller keeps it)."""
     return candidate_features(points_D, uv, inputs.get("calibrate", "image"), inputs.get("calibrate", "lidar"),
-                              inputs.get("calibrate", "ego_velocity"), inputs.get("calibrate", "labels"), workers)
+                              inputs.get("calibrate", "ego_velocity"), inputs.get("calibrate", "labels"), workers,
+                              tree)
 
 
 def placement_rows(inputs: FrameInputs, cfg: Config, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:

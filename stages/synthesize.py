@@ -268,6 +268,18 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
     return process_memo(key, build)
 
 
+def lidar_tree(inputs: FrameInputs, cfg: Config):
+    """With synth.placement = lidar, the frame's lidar (finite: calibrate's spec) in one cKDTree
+    (pipeline.placement.neighbour_tree), built once per frame: the candidates' neighbours and the
+    range images of the points placed on them (RSS-Net's inputs) are found in it. None with the ray
+    placement, whose range images alone build the tree made for them (pipeline.rangeimage.lidar_tree)."""
+    from pipeline.placement import neighbour_tree
+
+    if cfg.synth.placement != "lidar":
+        return None
+    return inputs.memo(("lidar-tree",), lambda: neighbour_tree(inputs.get("calibrate", "lidar")))
+
+
 def lidar_candidates(inputs: FrameInputs, cfg: Config,
                      placenet) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The frame's lidar candidates (C, 3) m in {D}, their pixels (C, 2), PlaceNet's intensities
@@ -281,7 +293,7 @@ def lidar_candidates(inputs: FrameInputs, cfg: Config,
     def build() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         points, uv = candidates(inputs, cfg)
         # the neighbour query gets the threads the nets get (one per dask worker on a full machine)
-        x = (features(inputs, points, uv, workers=torch.get_num_threads()) if len(points)
+        x = (features(inputs, points, uv, torch.get_num_threads(), lidar_tree(inputs, cfg)) if len(points)
              else np.zeros((0, len(FEATURES)), np.float32))
         intensity = placenet_predict(placenet, x) if len(points) else np.zeros(0)
         outside = (placenet.outside_range(x).sum(0) if placenet.has_training_range()
@@ -332,7 +344,7 @@ def generate(inputs: FrameInputs, cfg: Config, prob_map: np.ndarray, n: float, n
     range_rate = np.asarray(syn["doppler"], np.float64)
     rss_outside = np.zeros(len(INPUT_SUMMARIES), np.int32)
     if len(pts) and rss:
-        patches, ranges = point_inputs(image, K, T_radar_cam, lidar, pts, cfg)
+        patches, ranges = point_inputs(image, K, T_radar_cam, lidar, pts, cfg, lidar_tree(inputs, cfg))
         vectors = np.column_stack([pts, range_rate]).astype(np.float32)
         values = rssnet_predict(nets.rssnet, patches, ranges, vectors)
         if cfg.synth.rss_sampling == "residual":  # the checkpoint's quantiles were checked before any frame

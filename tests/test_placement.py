@@ -4,9 +4,11 @@ standardisation, loss, training and resume."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from pipeline import inference as Inf
 from pipeline import net_baselines as B
@@ -102,12 +104,14 @@ def test_candidate_features_hand_computed():
     # too few lidar points for a normal: the geometry columns are zeros, not NaN
     few = P.candidate_features(cand, uv, image, lidar[:2], ego, [])
     assert np.all(np.isfinite(few)) and np.all(few[:, -4:] == 0)
-    # the neighbour query's threads change nothing (synthesize gives it the nets' threads)
-    cloud = np.random.default_rng(2).uniform(-5, 5, (3000, 3)) + [20.0, 0.0, 0.0]
+    # the threads of the neighbour query and the normals change nothing (synthesize gives them the nets'
+    # threads; the candidates are split into blocks of at least MIN_BLOCK_ROWS)
+    cloud = np.random.default_rng(2).uniform(-5, 5, (3 * 3 * P.MIN_BLOCK_ROWS, 3)) + [20.0, 0.0, 0.0]
     many = cloud[::3]
     pixels = np.zeros((len(many), 2))
-    np.testing.assert_array_equal(P.candidate_features(many, pixels, image, cloud, ego, [], workers=2),
-                                  P.candidate_features(many, pixels, image, cloud, ego, []))
+    for workers in (2, 3):
+        np.testing.assert_array_equal(P.candidate_features(many, pixels, image, cloud, ego, [], workers=workers),
+                                      P.candidate_features(many, pixels, image, cloud, ego, []))
 
 
 def test_planarity_is_the_smallest_share_of_the_spread():
@@ -146,6 +150,78 @@ def test_smallest_eigenpair_matches_eigh_and_handles_degenerate_matrices():
     assert abs(vector[0, 2]) < 1e-6 and abs(vector[1, 0]) < 1e-6
     np.testing.assert_allclose(np.linalg.norm(vector, axis=1), 1.0)
     np.testing.assert_allclose(vector[2:], [[0, 0, 1], [0, 0, 1]])
+
+
+def _reference_colour_and_geometry(points_D, uv, image, lidar_D):
+    """Columns 9: of candidate_features as computed until 2026-12-06, whole-array numpy steps: the
+    faster steps since (std at the pixels only, neighbour-major sums, the eigenpair on (9, C) rows)
+    must give the same bits."""
+    img = image.astype(np.float32) / 255.0
+    mean = cv2.blur(img, (P.COLOUR_WINDOW_PX, P.COLOUR_WINDOW_PX))
+    std = np.sqrt(np.maximum(cv2.blur(img * img, (P.COLOUR_WINDOW_PX, P.COLOUR_WINDOW_PX)) - mean * mean, 0.0))
+    px = np.clip(np.rint(uv).astype(np.int64), 0, [img.shape[1] - 1, img.shape[0] - 1])
+    colour = np.concatenate([a[px[:, 1], px[:, 0]] for a in (img, mean, std)], axis=1)
+    cloud = np.asarray(lidar_D, np.float64)
+    cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
+    dist, idx = cKDTree(cloud, balanced_tree=False, compact_nodes=False).query(points_D, k=P.NORMAL_NEIGHBOURS)
+    nb = cloud[idx]
+    nb -= nb.mean(axis=1, keepdims=True)
+    cov = np.matmul(nb.transpose(0, 2, 1), nb)
+    smallest, normal = _reference_eigenpair(cov)
+    r = np.linalg.norm(points_D, axis=1)
+    geometry = np.column_stack([np.abs(np.sum(normal * points_D, axis=1)) / np.maximum(r, 1e-9),
+                                np.maximum(smallest, 0.0) / np.maximum(np.trace(cov, axis1=1, axis2=2), 1e-12),
+                                np.log(dist[:, -1] + 1e-3), normal[:, 2] ** 2])
+    return np.column_stack([colour, geometry]).astype(np.float32)
+
+
+def _reference_eigenpair(a):
+    """smallest_eigenpair_sym3 as computed until 2026-12-06, on (C, 3, 3) arrays."""
+    xx, yy, zz, xy, xz, yz = a[:, 0, 0], a[:, 1, 1], a[:, 2, 2], a[:, 0, 1], a[:, 0, 2], a[:, 1, 2]
+    q = (xx + yy + zz) / 3
+    dx, dy, dz = xx - q, yy - q, zz - q
+    p = np.sqrt((dx * dx + dy * dy + dz * dz + 2 * (xy * xy + xz * xz + yz * yz)) / 6)
+    safe = np.where(p > 0, p, 1.0)
+    det = dx * (dy * dz - yz * yz) - xy * (xy * dz - yz * xz) + xz * (xy * yz - dy * xz)
+    phi = np.arccos(np.clip(det / safe ** 3 / 2, -1.0, 1.0)) / 3
+    smallest = np.where(p > 0, q + 2 * p * np.cos(phi + 2 * np.pi / 3), q)
+    m = a - smallest[:, None, None] * np.eye(3)
+    crosses = np.stack([np.cross(m[:, 0], m[:, 1]), np.cross(m[:, 0], m[:, 2]), np.cross(m[:, 1], m[:, 2])], axis=1)
+    size = np.einsum("cij,cij->ci", crosses, crosses)
+    rows = np.arange(len(a))
+    best = np.argmax(size, axis=1)
+    vec = crosses[rows, best]
+    scale = np.max(np.abs(m), axis=(1, 2))
+    degenerate = size[rows, best] <= (1e-10 * scale * scale) ** 2
+    if np.any(degenerate):
+        m = m[degenerate]
+        row = m[np.arange(len(m)), np.argmax(np.einsum("cij,cij->ci", m, m), axis=1)]
+        other = np.cross(row, np.eye(3)[np.argmin(np.abs(row), axis=1)])
+        vec[degenerate] = np.where(np.any(row != 0, axis=1)[:, None], other, [0.0, 0.0, 1.0])
+    return smallest, vec / np.linalg.norm(vec, axis=1, keepdims=True)
+
+
+def test_features_keep_the_bits_of_the_whole_array_steps():
+    """A scene of planes, a pole (a line: rank-1 neighbourhoods), a repeated point and noise; lidar
+    stored as float32 as calibrate stores it; the frame's tree passed in or built: the same bits."""
+    rng = np.random.default_rng(8)
+    ground = np.column_stack([rng.uniform(2, 40, 4000), rng.uniform(-15, 15, 4000), np.full(4000, -1.6)])
+    walls = np.column_stack([np.full(2000, 25.0), rng.uniform(-10, 10, 2000), rng.uniform(-1.6, 3, 2000)])
+    pole = np.column_stack([np.full(40, 12.0), np.full(40, 3.0), np.linspace(-1.6, 2.4, 40)])
+    blob = rng.normal(size=(1500, 3)) * 0.4 + [15.0, -4.0, 0.5]
+    lidar = np.vstack([ground, walls, pole, blob, np.repeat([[8.0, 1.0, 0.0]], 12, axis=0)]).astype(np.float32)
+    lidar += rng.normal(size=lidar.shape).astype(np.float32) * np.float32(0.01) * (rng.random((len(lidar), 1)) < 0.5)
+    cand = lidar[::2].astype(np.float64)
+    uv = rng.uniform(-0.5, [159.4, 79.4], (len(cand), 2))
+    image = rng.integers(0, 256, (80, 160, 3), dtype=np.uint8)
+    expect = _reference_colour_and_geometry(cand, uv, image, lidar)
+    for tree in (None, P.neighbour_tree(lidar)):
+        got = P.candidate_features(cand, uv, image, lidar, np.array([3.0, 0.5, 0.0]), [], tree=tree)
+        np.testing.assert_array_equal(got[:, 9:], expect)
+    cov = rng.normal(size=(20000, 3, 3))
+    cov = np.concatenate([cov @ cov.transpose(0, 2, 1), cov, np.round(cov) * 0.5, -np.eye(3)[None], np.zeros((1, 3, 3))])
+    for got, want in zip(P.smallest_eigenpair_sym3(cov), _reference_eigenpair(cov)):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_radar_counts_against_brute_force():

@@ -155,6 +155,19 @@ def test_reuses_given_tree_and_matches_single():
         np.testing.assert_array_equal(batch[i], local_range_image(lidar, points[i], 1.0, tree=tree))
 
 
+def test_any_tree_of_the_lidar_gives_the_same_images():
+    """synthesize passes the tree its candidates' neighbours came from (pipeline.placement's, other
+    leaves): the pairs come in another order, the images are the same to the bit."""
+    from pipeline.placement import neighbour_tree
+    from pipeline.rangeimage import lidar_tree
+
+    rng = np.random.default_rng(1)
+    lidar = (rng.uniform(-3, 3, (3000, 3)) + P).astype(np.float32)
+    points = lidar[:200].astype(np.float64) + rng.normal(size=(200, 3)) * 0.05
+    expect = local_range_images(lidar, points, 1.0, tree=lidar_tree(lidar.astype(np.float64)))
+    np.testing.assert_array_equal(local_range_images(lidar, points, 1.0, tree=neighbour_tree(lidar)), expect)
+
+
 def test_64_bit_sort_keys_give_the_same_images(monkeypatch):
     """Large batches sort 64-bit keys (32-bit ones would overflow): same images as 32-bit keys."""
     import pipeline.rangeimage as R

@@ -34,7 +34,8 @@ from pipeline.inference import (disnet_predict, load_disnet, load_placenet, load
 from pipeline.world import generate as generate_world  # noqa: E402
 from stages import all_stages  # noqa: E402
 from stages.patches import point_inputs  # noqa: E402
-from stages.synthesize import Nets, frame_count, generate, lidar_candidates, uses_placenet_count  # noqa: E402
+from stages.synthesize import (Nets, frame_count, generate, lidar_candidates, lidar_tree,  # noqa: E402
+                               uses_placenet_count)
 
 
 TRAINED_CACHE = "cache"
@@ -96,7 +97,7 @@ def measure(frames, cfg, disnet, rssnet, placenet, source: str) -> tuple[float, 
             out = generate(f, cfg, prob, n, nets, f.rng(rep, 1), rss=False)
             pts = out["points"][:, :3].astype(np.float64)
             patches, ranges = point_inputs(image, f.get("calibrate", "K"), f.get("calibrate", "T_radar_cam"),
-                                           f.get("calibrate", "lidar"), pts, cfg)
+                                           f.get("calibrate", "lidar"), pts, cfg, lidar_tree(f, cfg))  # as generate
             t2 = time.perf_counter()
             rssnet_predict(rssnet, patches, ranges, out["points"][:, [0, 1, 2, 8]])
             t3 = time.perf_counter()
