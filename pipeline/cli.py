@@ -337,8 +337,8 @@ def _check_frames(pipe, frames_spec: str | None) -> str:
 
 
 def _exit_if_nothing_done(reports, status_cmd: str) -> None:
-    """Exit 1 when a frame stage with failed frames has none done: it made nothing (the run stopped
-    after it unless it was the target), which is no success for a script (some failed frames beside
+    """Exit 1 when a frame stage with failed frames has none done: it made nothing (the stages that
+    need it were not run), which is no success for a script (some failed frames beside
     done ones are: see --strict)."""
     nothing = _made_nothing(reports)
     if not nothing:

@@ -236,7 +236,8 @@ class Pipeline:
     def run(self, target: str | tuple[str, ...], frames: list[int] | None = None, strict: bool = False,
             force: bool = False, retry_failed: bool = False, wait_s: float = 0.0) -> list[StageReport]:
         """Bring ``target`` (a stage, or a tuple of stages) and its upstream stages up to date, each
-        stage once; returns one report per stage.
+        stage once; returns one report per stage run. A frame stage with failed frames and none done
+        stops the stages that need it (they get no report), not the others.
 
         ``frames``: restrict per-frame work to these frame indices. ``force``: recompute ``target``
         even if current; with ``frames``, a current frame stage recomputes only those frames (and
@@ -253,7 +254,10 @@ class Pipeline:
             raise PipelineError(self._other_root_message(old))
         needed = {name for t in targets for name in self.upstream_closure(t)}
         closure = [name for name in self.order if name in needed]
+        skipped: set[str] = set()  # stages needing a frame stage that has no frame done
         for name in closure:
+            if name in skipped:
+                continue
             stage = self.stages[name]
             what = f"stage '{name}' of dataset '{self.env.dataset}'"
             t0 = time.perf_counter()
@@ -270,10 +274,14 @@ class Pipeline:
                 self.log(f"{'':<{NAME_WIDTH}} {note}")
             if strict and report.failed:
                 raise self._strict_error(name, report)
-            if isinstance(stage, FrameStage) and name != closure[-1] and report.done == 0 and report.failed:
-                # every frame failed: the stages after it would fail or refuse for want of input
-                self.log(f"{'':<{NAME_WIDTH}} no frame of {name} is done: the stages after it were not run")
-                break
+            if isinstance(stage, FrameStage) and report.done == 0 and report.failed:
+                # every frame failed: the stages that need it would fail or refuse for want of input; the
+                # others (another target's, e.g. patches beside heatmaps) still run
+                after = [n for n in closure if n != name and name in self.upstream_closure(n) and n not in skipped]
+                if after:
+                    skipped.update(after)
+                    self.log(f"{'':<{NAME_WIDTH}} no frame of {name} is done: the stages that need it were not run "
+                             f"({', '.join(after)})")
         return reports
 
     def made_from(self) -> str | None:

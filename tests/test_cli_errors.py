@@ -5,6 +5,7 @@ cluster starts, a closed stdout. The real CLI on the fake stages of tests/fake_s
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -182,6 +183,31 @@ def test_ablate_prints_each_stage_line_once(tmp_path, fake_cli, monkeypatch):
         lines = [line.split()[0] for line in out.stderr.splitlines() if line.strip() and not line.startswith(" ")]
         assert lines == ["calibrate", "heatmaps", "patches"], out.stderr
     assert trained == [("2", "3")] * 2 and "| variant |" in out.stdout
+
+
+def _failing_heatmaps(inputs, cfg):
+    raise ValueError(f"frame {inputs.frame_id}: no heatmap")
+
+
+def test_a_target_with_no_frame_done_stops_only_the_stages_that_need_it(tmp_path, fake_cli, monkeypatch):
+    """ablate's one run of heatmaps and patches: every heatmaps frame failing stopped the run there,
+    and patches, which needs calibrate only, was not run (the runner stopped at any frame stage with
+    no frame done but the last). patches is brought up to date; ablate still exits 1 on heatmaps."""
+    import stages.ablations
+
+    _with_patches(monkeypatch)
+    stages_ = list(fake_stages.STAGES)
+    stages_[1] = FrameStage("heatmaps", ("calibrate",), (), stages_[1].outputs, _failing_heatmaps)
+    monkeypatch.setattr(fake_stages, "STAGES", stages_)
+    trained = []
+    monkeypatch.setattr(stages.ablations, "run_ablations", lambda *args: trained.append(args))
+    out = fake_cli(tmp_path, "ablate", "--workers", "1")
+    assert out.exit_code == 1 and trained == [], out.output
+    assert out.stderr.splitlines()[-1].startswith("error: stage heatmaps has no frame done: all 8 frame(s) it tried")
+    lines = [line.split()[0] for line in out.stderr.splitlines() if line.strip() and not line.startswith(" ")]
+    assert lines[:3] == ["calibrate", "heatmaps", "patches"], out.stderr
+    assert re.search(r"^patches +processed 8 frame\(s\) in [\d.]+ s; done 8, failed 0,", out.stderr, re.M), out.stderr
+    assert "the stages that need it were not run" not in out.stderr  # nothing after heatmaps needs it here
 
 
 def test_ctrl_c_while_verify_reads_a_checkpoint_is_an_interrupt(tmp_path, fake_cli, monkeypatch):

@@ -925,7 +925,7 @@ def test_cli_run_exits_1_when_a_stage_made_nothing(tmp_path, fake_cli, monkeypat
     # the stages after one with no frame done are not run (until 2026-12-04 they were, and failed or
     # refused for want of input), and a rerun with nothing to retry still exits 1, saying why
     out = fake_cli(tmp_path / "all", "run", "heatmaps", "--workers", "1")
-    assert out.exit_code == 1 and "no frame of calibrate is done: the stages after it were not run" in out.output
+    assert out.exit_code == 1 and "no frame of calibrate is done: the stages that need it were not run (heatmaps)" in out.output
     assert "heatmaps " not in out.output and "its 2 failed frame(s) failed in an earlier run" in out.stderr
     assert f"`pipeline status --dataset synthetic --cache {tmp_path / 'all' / 'cache'}`" in out.stderr
     from pipeline.cache import frame_store
