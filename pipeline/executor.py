@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE, FAILED, FrameStore, dir_store, frame_store
 from pipeline.config import Config
-from pipeline.errors import CacheError, ClusterFailed, FrameError, PipelineError
+from pipeline.errors import CacheError, ClusterFailed, FrameError, PipelineError, sigint_deferred
 from pipeline.stage import FrameStage
 
 # glibc heap settings for local dask workers: arrays under 64 MiB come from a reused heap.
@@ -467,16 +467,12 @@ def _workers_without_sigint() -> Iterator[None]:
     # started now, in this thread: started by the first worker's spawn, it would lift the block in dask's
     # event loop thread when done (it blocks SIGINT itself while it spawns, then unblocks it)
     resource_tracker.ensure_running()
-    caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # one still pending reaches the recorder now
-        signal.signal(signal.SIGINT, previous)
-        if caught:
-            signal.raise_signal(signal.SIGINT)  # to the run's own handler: KeyboardInterrupt
+    with sigint_deferred():  # records a SIGINT, raised to the run's own handler (KeyboardInterrupt) at the end
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            yield
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # one still pending reaches the recorder now
 
 
 def process_frames(stage: FrameStage, env: RunEnv, batch: list[tuple[int, str]],
