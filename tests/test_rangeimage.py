@@ -168,6 +168,18 @@ def test_any_tree_of_the_lidar_gives_the_same_images():
     np.testing.assert_array_equal(local_range_images(lidar, points, 1.0, tree=neighbour_tree(lidar)), expect)
 
 
+def test_a_tree_of_other_points_is_refused():
+    """The tree's indices are taken as rows of lidar_D: pipeline.placement.neighbour_tree of a cloud
+    with a NaN row holds its finite points only, whose indices would pick the wrong lidar points."""
+    from pipeline.placement import neighbour_tree
+
+    rng = np.random.default_rng(2)
+    lidar = rng.uniform(-3, 3, (500, 3)) + P
+    lidar[10] = np.nan
+    with pytest.raises(ValueError, match="the tree holds 499 points, lidar_D 500"):
+        local_range_images(lidar, lidar[20:30], 1.0, tree=neighbour_tree(lidar))
+
+
 def test_64_bit_sort_keys_give_the_same_images(monkeypatch):
     """Large batches sort 64-bit keys (32-bit ones would overflow): same images as 32-bit keys."""
     import pipeline.rangeimage as R
