@@ -43,6 +43,7 @@ FEATURES = ("log_range", "z_m", "abs_range_rate", "abs_range_rate_clip3", "abs_r
             "ego_speed", "azimuth", "elevation", "red", "green", "blue", "red_mean", "green_mean", "blue_mean",
             "red_std", "green_std", "blue_std", "cos_incidence", "planarity", "log_neighbour_dist", "normal_z2")
 """Columns of :func:`candidate_features`, in order."""
+_RED, _COS_INCIDENCE = FEATURES.index("red"), FEATURES.index("cos_incidence")  # the colour and geometry blocks
 
 
 def lidar_candidates(
@@ -95,8 +96,9 @@ def candidate_features(
     for k, col in enumerate((np.log(rae[:, 0]), pts[:, 2], rate, np.minimum(rate, 3.0), np.minimum(rate, 0.5),
                              np.any(v_obj != 0, axis=1), np.linalg.norm(ego), rae[:, 1], rae[:, 2])):
         out[:, k] = col
-    out[:, 9:18] = _colour_features(image, uv)
-    out[:, 18:] = _geometry_features(pts, rae[:, 0], neighbour_tree(lidar_D) if tree is None else tree, workers)
+    out[:, _RED:_COS_INCIDENCE] = _colour_features(image, uv)
+    tree = neighbour_tree(lidar_D) if tree is None else tree
+    out[:, _COS_INCIDENCE:] = _geometry_features(pts, rae[:, 0], tree, workers)
     return out
 
 

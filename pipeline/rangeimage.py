@@ -100,7 +100,8 @@ def local_range_images(lidar_D: np.ndarray, points_D: np.ndarray, r_l: float,
         return np.full((n, h, w), EMPTY, dtype=np.float32)
     tree = lidar_tree(lidar) if tree is None else tree
     if tree.n != lidar.shape[0]:  # its indices are rows of lidar_D (a tree of its finite points only is not)
-        raise ValueError(f"range image: the tree holds {tree.n} points, lidar_D {lidar.shape[0]}: not a tree of lidar_D")
+        raise ValueError(f"range image: the tree holds {tree.n} points, lidar_D {lidar.shape[0]}: "
+                         "not a tree of lidar_D")
     # all (point, lidar) pairs within r_l as arrays, in the trees' order (any order: see _render)
     pairs = cKDTree(points).sparse_distance_matrix(tree, r_l, output_type="ndarray")
     return _render(lidar, points, pairs["i"].astype(np.int64), pairs["j"].astype(np.int64), r_l, w, h)
