@@ -54,8 +54,10 @@ class Object3D:
 
     ``center_D`` (3,) m: box centre. ``size_lwh_m`` (3,): length (along heading), width, height.
     ``yaw_rad``: heading about the z axis of {D}, 0 = pointing along +x, positive to the left.
-    ``pitch_rad``, ``roll_rad``: the box's tilt, 0 for a box upright in {D} (every dataset but
-    Astyx, whose boxes are upright in the lidar's frame, not the radar's). The box's orientation is
+    ``pitch_rad``, ``roll_rad``: the box's tilt, 0 for a box upright in {D}. Only the Astyx reader
+    sets them (its boxes are upright in its lidar's frame, 4.2 deg from {D}'s z); the others read
+    their boxes upright in {D} (View-of-Delft's are upright in its lidar's frame too, whose z is
+    0.5 deg from {D}'s in vod_example, 2026-12-06: kept upright in {D}). The box's orientation is
     ``rotation`` = Rz(yaw) @ Ry(pitch) @ Rx(roll), box frame -> {D} (:func:`box_rotations`), so
     that ``yaw_rad`` is the heading of the box's length axis projected on the x-y plane of {D}.
     ``velocity_D`` (3,) m/s over ground in {D}; NaN where unknown.
