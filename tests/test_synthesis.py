@@ -345,6 +345,10 @@ def test_object_velocities_oriented_boxes():
                                   np.zeros((5, 3)))
     with pytest.raises(ValueError, match="label rows"):
         object_velocities_for_points(points, rows[:, :6])
+    # rows of calibrate's layout before pitch and roll (11 columns, calibrate version 2) are refused,
+    # never read with their velocity taken as the tilt
+    with pytest.raises(ValueError, match=r"need shape \(L, >= 12\).*got \(2, 11\)"):
+        object_velocities_for_points(points, np.delete(rows, [_COL["pitch"], _COL["roll"]], axis=1))
 
 
 def test_object_velocities_follow_a_tilted_box():
