@@ -20,6 +20,16 @@ from stages import all_stages  # noqa: E402
 REPEATS = 2
 DEMO = ROOT / "cache" / "synthetic"
 READ = ("calibrate.zarr", "heatmaps.zarr", "patches.zarr", "synthesize.zarr", "train")
+STAGES_READ = ("calibrate", "heatmaps", "patches", "synthesize", "train")
+
+
+def _stale_stages() -> list[str]:
+    """The demo's stages that this code would make again (another stage version or setting since the
+    demo ran): linked into the temporary cache they would be rebuilt there, through the links."""
+    env = RunEnv(load_config("synthetic", environ={}), str(DEMO.parent), "synthetic", str(DEMO / "world"))
+    with Executor(1, progress=False) as ex:
+        pipe = Pipeline(all_stages(), env, ex, progress=False, log=lambda m: None)
+        return [name for name in STAGES_READ if not pipe.is_current(name)]
 
 
 def _import_stages() -> None:
@@ -44,6 +54,11 @@ def run(workers: int, cache: Path) -> tuple[float, float, int]:
 def main() -> None:
     if not all((DEMO / name).exists() for name in READ):
         print("evaluate: skipped (run `make demo` first: it needs the demo's trained networks and synthesized frames)")
+        return
+    stale = _stale_stages()
+    if stale:
+        print(f"evaluate: skipped (the demo's {', '.join(stale)} would be made again by this code: run `make demo` "
+              "first to bring its cache up to date)")
         return
     best = {1: (0.0, float("inf")), 2: (0.0, float("inf"))}
     with tempfile.TemporaryDirectory() as tmp:
