@@ -292,8 +292,9 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
     --frames would do; exit 2 when an output it would read is damaged (as the run would stop), and
     --frames refused as the run refuses it."""
-    unchecked = _check_frames(pipe, frames_spec)
-    if _world_to_make(pipe.env) and _is_cache_world(pipe.env):
+    makes_world = _world_to_make(pipe.env) and _is_cache_world(pipe.env)
+    unchecked = _check_frames(pipe, frames_spec, makes_world)
+    if makes_world:
         ds = pipe.env.cfg.dataset
         click.echo(f"the synthetic world would be generated first ({ds.world_frames} frames, seed {ds.world_seed}) "
                    f"into {pipe.env.data_root}")
@@ -313,20 +314,19 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
 
 
-def _check_frames(pipe, frames_spec: str | None) -> str:
+def _check_frames(pipe, frames_spec: str | None, makes_world: bool) -> str:
     """--dry-run's check of --frames against the dataset's frames: the ConfigError the run would
     stop with (exit 2), or, when the frames cannot be listed (no data there), ' (not checked:
     ...)' for the --frames line; '' when checked. The frames of a synthetic world the run would
-    generate into the cache first (none there yet, or one of other settings) are those its
-    settings give, without generating it."""
+    generate into the cache first (``makes_world``: none there yet, or one of other settings) are
+    those its settings give, without generating it."""
     from pipeline.runner import parse_frames
     from pipeline.world.generator import frame_ids
 
     if not frames_spec:
         return ""
-    env = pipe.env
-    if _world_to_make(env) and _is_cache_world(env):
-        ids = frame_ids(env.cfg.dataset.world_frames)
+    if makes_world:
+        ids = frame_ids(pipe.env.cfg.dataset.world_frames)
     else:
         try:
             ids = pipe.frame_ids()

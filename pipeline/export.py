@@ -32,7 +32,7 @@ from pypcd4 import PointCloud
 
 from pipeline.errors import ReaderError
 from pipeline.fileio import atomic_path, write_atomic
-from pipeline.frame import Object3D, check_shape
+from pipeline.frame import Object3D, check_shape, from_box_frame
 from pipeline.geometry import spherical_to_cartesian, wrap_doppler
 from pipeline.working import full_K
 
@@ -403,12 +403,9 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
     lines = []
     for obj in objects:
         length, width, height = (float(v) for v in obj.size_lwh_m)
-        r = obj.rotation
-        dx, dy, dz = (v.ravel() for v in np.meshgrid([-length / 2, length / 2], [-width / 2, width / 2],
-                                                     [-height / 2, height / 2], indexing="ij"))
-        # r @ (dx, dy, dz) written out: no BLAS rounding, so an upright box gives the bits of cos/sin(yaw)
-        corners_D = np.asarray(obj.center_D, np.float64) + np.stack(
-            [r[k, 0] * dx + r[k, 1] * dy + r[k, 2] * dz for k in range(3)], axis=1)
+        local = np.stack([v.ravel() for v in np.meshgrid([-length / 2, length / 2], [-width / 2, width / 2],
+                                                         [-height / 2, height / 2], indexing="ij")], axis=1)
+        corners_D = np.asarray(obj.center_D, np.float64) + from_box_frame(local, obj.rotation)
         corners_cam = corners_D @ T[:3, :3].T + T[:3, 3]
         if np.any(corners_cam[:, 2] <= 0.1):
             continue

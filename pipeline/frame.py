@@ -48,6 +48,21 @@ def box_rotations(yaw_rad, pitch_rad, roll_rad) -> np.ndarray:
                      np.stack([-sy, cy * sx, cy * cx], axis=-1)], axis=-2).astype(np.float64)
 
 
+def to_box_frame(offsets_D: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """(N, 3) m: offsets (N, 3) in {D} from a box's centre, in the box's frame (``offsets_D @
+    rotation``, ``rotation`` (3, 3) as :func:`box_rotations` gives it). Written out term by term, not
+    through BLAS, so that an upright box gives the bits of cos/sin(yaw) alone."""
+    d, r = offsets_D, rotation
+    return np.stack([r[0, k] * d[:, 0] + r[1, k] * d[:, 1] + r[2, k] * d[:, 2] for k in range(3)], axis=1)
+
+
+def from_box_frame(local: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """(N, 3) m: offsets (N, 3) in a box's frame, in {D} (``rotation @ local``, the inverse of
+    :func:`to_box_frame`), written out term by term as it is."""
+    p, r = local, rotation
+    return np.stack([r[k, 0] * p[:, 0] + r[k, 1] * p[:, 1] + r[k, 2] * p[:, 2] for k in range(3)], axis=1)
+
+
 @dataclass
 class Object3D:
     """One annotated object, expressed in the radar frame {D}.

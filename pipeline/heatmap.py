@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.frame import FrameRecord, Object3D, check_shape
+from pipeline.frame import FrameRecord, Object3D, check_shape, to_box_frame
 from pipeline.geometry import invert_transform, project_to_image
 
 _FACTOR_CHUNK = 128
@@ -283,10 +283,7 @@ def points_in_box(points_D: np.ndarray, box: Object3D, grow_m: float = 0.0) -> n
     """Bool (N,): points (N, 3) in {D}, metres, inside the box (its full rotation,
     ``Object3D.rotation``) grown by ``grow_m`` on every side."""
     p = check_shape("points_D", np.asarray(points_D, dtype=np.float64), (None, 3))
-    r = box.rotation
-    d = p - np.asarray(box.center_D, dtype=np.float64)[None, :]
-    # box-frame coordinates d @ r, written out: no BLAS rounding, so an upright box gives the bits of cos/sin(yaw)
-    local = np.stack([r[0, k] * d[:, 0] + r[1, k] * d[:, 1] + r[2, k] * d[:, 2] for k in range(3)], axis=1)
+    local = to_box_frame(p - np.asarray(box.center_D, dtype=np.float64)[None, :], box.rotation)
     half = 0.5 * np.asarray(box.size_lwh_m, dtype=np.float64) + grow_m
     return np.all(np.abs(local) <= half[None, :], axis=1)
 

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.frame import LABEL_COLUMNS, Object3D, box_rotations, check_shape, label_rows
+from pipeline.frame import LABEL_COLUMNS, Object3D, box_rotations, check_shape, label_rows, to_box_frame
 from pipeline.geometry import cartesian_to_spherical, pixel_rays_D, radial_velocity, wrap_doppler
 
 ESTIMATORS = ("mean", "nearest", "median", "min")
@@ -450,10 +450,7 @@ def object_velocities_for_points(
     for box in np.flatnonzero(hi > lo):
         idx = order[lo[box]:hi[box]]
         rel = points[idx] - centres[box]                                                 # (k, 3)
-        r = rot[box]  # rel @ r written out (no BLAS rounding): an upright box gives cos/sin(yaw)'s bits
-        inside = ((np.abs(r[0, 0] * rel[:, 0] + r[1, 0] * rel[:, 1] + r[2, 0] * rel[:, 2]) <= half[box, 0])
-                  & (np.abs(r[0, 1] * rel[:, 0] + r[1, 1] * rel[:, 1] + r[2, 1] * rel[:, 2]) <= half[box, 1])
-                  & (np.abs(r[0, 2] * rel[:, 0] + r[1, 2] * rel[:, 1] + r[2, 2] * rel[:, 2]) <= half[box, 2]))
+        inside = np.all(np.abs(to_box_frame(rel, rot[box])) <= half[box], axis=1)
         if inside.any():
             box_of.append(np.full(int(inside.sum()), box))
             point_of.append(idx[inside])
