@@ -234,3 +234,22 @@ def test_ctrl_c_while_the_world_is_generated_says_its_sequences_are_kept(tmp_pat
     assert out.output.strip().splitlines()[-1] == (
         "interrupted in the synthetic world's generation: its finished frames are kept; "
         "run the same command again to resume")
+
+
+def test_start_stop_written_as_frame_ids_is_refused_where_the_ids_are_not_the_indices():
+    """'--frames 000100:000110' on Astyx (141 frames, ids 000000-000545 with gaps) selected the
+    frames at indices 100-109 (ids 000370-000374 and 000420-000424), and --force recomputed them without a word."""
+    from pipeline.errors import ConfigError
+    from pipeline.runner import parse_frames
+
+    ids = [f"{i:06d}" for i in [*range(0, 11), *range(60, 80), *range(300, 315)]]
+    with pytest.raises(ConfigError, match=r"'000060' is written as a frame id \(there is no index 60\): the "
+                                          r"frames with ids from 000060 up to 000070 \(not included\) are `--frames 11:21`"):
+        parse_frames("000060:000070", ids)
+    with pytest.raises(ConfigError, match="'000005' .* are `--frames 3:`"):
+        parse_frames("000005:", [f"{i:06d}" for i in [1, 2, 3, 5, 8]])
+    with pytest.raises(ConfigError, match="no frame here has one of the ids from 000100 up to 000200"):
+        parse_frames("000100:000200", ids)
+    # where the ids name the frames the indices do, START:STOP stands (the synthetic world's ids)
+    assert parse_frames("000000:000005", ids) == [0, 1, 2, 3, 4] and parse_frames("5:7", ids) == [5, 6]
+    assert parse_frames("00005:00007", [f"{i:05d}" for i in range(20)]) == [5, 6]
