@@ -314,22 +314,29 @@ class Pipeline:
             return (f"{start}lists the same frames, and would make every stage recompute, training included. The "
                     f"same data moved: `pipeline relocate --dataset {dataset} --data-root {new}` checks some of its "
                     f"frames and keeps every output. Other data: {force} (or use another --cache)")
+        return (f"{start}{self._frames_here()}. Running on it would recompute every stage, training included, "
+                f"and replace what the cache holds. To do so: {force}; to keep this cache, use another --cache for "
+                f"the new data; to run on the cache's own data, omit --data-root")
+
+    def _frames_here(self, shown: int = 3) -> str:
+        """How the frames at this data root compare with the cache's: 'lists 1 frame(s), 1 of them
+        among the cache's 2 (not listed here: 01047)', or that they are the same but the first
+        stage's settings or code differ."""
         try:
             cached = self.env.store(FIRST_STAGE).frame_ids()
         except MetadataError:
             cached = None
         here = self.frame_ids()
         if cached is None:
-            frames = f"lists {len(here)} frame(s)"
-        elif cached == here:
-            frames = (f"lists the same {len(here)} frame(s), but {FIRST_STAGE}'s settings or code differ from those "
-                      f"of the cache's output (so `pipeline relocate` cannot keep it)")
-        else:
-            common = len(set(cached) & set(here))
-            frames = f"lists {len(here)} frame(s), {common} of them among the cache's {len(cached)}"
-        return (f"{start}{frames}. Running on it would recompute every stage, training included, and replace "
-                f"what the cache holds. To do so: {force}; to keep this cache, use another --cache for the new "
-                f"data; to run on the cache's own data, omit --data-root")
+            return f"lists {len(here)} frame(s)"
+        if cached == here:
+            return (f"lists the same {len(here)} frame(s), but {FIRST_STAGE}'s settings or code differ from those "
+                    f"of the cache's output (so `pipeline relocate` cannot keep it)")
+        listed = set(here)
+        absent = [f for f in cached if f not in listed]
+        more = f" and {len(absent) - shown} more" if len(absent) > shown else ""
+        lacking = f" (not listed here: {', '.join(absent[:shown])}{more})" if absent else ""
+        return f"lists {len(here)} frame(s), {len(cached) - len(absent)} of them among the cache's {len(cached)}{lacking}"
 
     def _at(self, data_root: str) -> "Pipeline":
         """This pipeline reading its frames (as listed here) at ``data_root``."""
@@ -343,6 +350,10 @@ class Pipeline:
         and array otherwise); then every output current for the old place gets the fingerprint it
         has here, the first stage last, so that a relocation stopped half-way can be run again."""
         old = self.moved_from()
+        if old is None and (made := self.made_from()) is not None:
+            raise PipelineError(f"dataset '{self.env.dataset}': cannot relocate the cache, made from the data at "
+                                f"{made}, to {_root(self.env.data_root)}: it {self._frames_here()}; "
+                                f"nothing was changed")
         if old is None:
             raise PipelineError(f"dataset '{self.env.dataset}': nothing to relocate (no output made from data at "
                                 f"another place with the same frames; `pipeline status` shows what is current)")

@@ -650,6 +650,14 @@ def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced
             with pytest.raises(PipelineError):
                 at(other, ids, overrides).run(target, force=True)  # forcing another stage is no answer
         assert frames in {r["stage"]: r for r in at(other, ids, overrides).status()}["calibrate"]["note"]
+        # relocate names why it cannot keep the outputs (it said 'nothing to relocate', as if the
+        # cache were made from this root already)
+        with pytest.raises(PipelineError, match=re.escape(f"cannot relocate the cache, made from the data at "
+                                                          f"{tmp_path}, to {other}: it {frames[frames.index('lists'):]}")):
+            at(other, ids, overrides).relocate()
+    with pytest.raises(PipelineError, match=re.escape(f"lists {len(IDS) - 1} frame(s), {len(IDS) - 1} of them among "
+                                                      f"the cache's {len(IDS)} (not listed here: {IDS[3]})")):
+        at(other, IDS[:3] + IDS[4:]).relocate()
     assert not log.exists()  # nothing computed, nothing replaced
     assert (tmp_path / "cache" / "fake" / "train" / "_stage.json").read_bytes() == trained
     assert at(tmp_path, IDS).is_current("train")
