@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import time
 import types
 from pathlib import Path
@@ -492,6 +493,15 @@ def test_cli_says_where_it_looked_when_a_data_root_holds_no_frames(tmp_path):
                                      "--data-root", str(tmp_path / "data")])
         assert above.exit_code == 2 and "no frames found" in above.output and needs in above.output, above.output
         assert len(above.output.strip().splitlines()) == 1 and "Traceback" not in above.output
+    # one sensor's folder missing: the line says what the frames lack, not only what a frame needs
+    shutil.rmtree(tmp_path / "data" / "vod" / "lidar" / "training" / "velodyne")
+    partial = runner.invoke(main, ["run", "calibrate", "--dataset", "vod", "--cache", cache,
+                                   "--data-root", str(tmp_path / "data" / "vod")])
+    assert partial.exit_code == 2 and "Traceback" not in partial.output
+    assert "reader          skipped missing: 2 (e.g. 00010: no lidar/training/velodyne/00010.bin; 00011: no " in partial.output
+    assert partial.output.strip().splitlines()[-1].endswith(
+        "frames skipped for want of files (e.g. 00010: no lidar/training/velodyne/00010.bin; "
+        "00011: no lidar/training/velodyne/00011.bin)"), partial.output
     assert not (tmp_path / "cache" / "vod").exists()
 
 

@@ -65,6 +65,10 @@ class Reader:
         """The recorded radar's settings (with train.nets_from the dataset's own, not the nets')."""
         self.root = Path(data_root)
         self._counts: Counter[str] = Counter()
+        self._missing: list[str] = []
+
+    SKIPPED_SHOWN = 3
+    """How many skipped frames :meth:`skipped_examples` names."""
 
     def frame_ids(self) -> list[str]:
         """Sorted ids of all frames whose files are present (absent ones are skipped and counted)."""
@@ -81,6 +85,18 @@ class Reader:
     def report(self) -> dict:
         """Counters of what the reader skipped or dropped, e.g. ``{"skipped_missing": 3}``."""
         return dict(self._counts)
+
+    def skip_missing(self, frame_id: str, missing: list[Path | str]) -> None:
+        """Count a frame skipped for want of files, and keep the first few as examples."""
+        self._counts["skipped_missing"] += 1
+        if len(self._missing) < self.SKIPPED_SHOWN:
+            names = [os.path.relpath(p, self.root) if os.path.isabs(p) else str(p) for p in missing]
+            self._missing.append(f"{frame_id}: no {' or '.join(names)}" if names else frame_id)
+
+    def skipped_examples(self) -> list[str]:
+        """The first frames skipped for want of files, each with what it lacks ('01047: no
+        lidar/training/velodyne/01047.bin'); empty where the reader does not say."""
+        return list(self._missing)
 
     def detector_files(self, frame_id: str) -> DetectorFiles:
         """The frame's calib, label and image files for a detector's KITTI layout (export stage)."""

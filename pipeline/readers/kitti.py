@@ -85,10 +85,11 @@ class KittiReader(Reader):
         stems = sorted(p.stem for p in folder.glob("*.bin")) if folder.is_dir() else []
         ids = []
         for fid in stems:
-            if self._path("image_2", fid, ".png").is_file() and self._path("calib", fid, ".txt").is_file():
+            needed = [self._path("image_2", fid, ".png"), self._path("calib", fid, ".txt")]
+            if all(p.is_file() for p in needed):
                 ids.append(fid)
             else:
-                self._counts["skipped_missing"] += 1
+                self.skip_missing(fid, [p for p in needed if not p.is_file()])
         return ids
 
     def frame_ids(self) -> list[str]:

@@ -288,7 +288,9 @@ class MscFolderReader(MscReader):
             paths = (radar_files.get(int(frame)), image_files.get(int(i_frames[img_idx[row]])),
                      lidar_files.get(int(l_frames[lid_idx[row]])))
             if any(p is None for p in paths):
-                self._counts["skipped_missing"] += 1
+                wanted = (f"3_RADAR/PCD file of frame {int(frame)}", f"1_IMAGE/LEFT file of frame {int(i_frames[img_idx[row]])}",
+                          f"2_LIDAR/PCD file of frame {int(l_frames[lid_idx[row]])}")
+                self.skip_missing(f"{int(frame):06d}", [w for w, p in zip(wanted, paths) if p is None])
                 continue
             index[f"{int(frame):06d}"] = (row, float(t), *paths)
         return index

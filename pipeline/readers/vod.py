@@ -176,7 +176,9 @@ class VodReader(Reader):
             complete = [fid for fid in group
                         if all(p.is_file() for p in self._required(fid)) and self._image_candidates(fid)]
             if not complete:
-                self._counts["skipped_missing"] += len(group)
+                for fid in group:
+                    lacking = [p for p in self._required(fid) if not p.is_file()]
+                    self.skip_missing(fid, lacking or [f"{self.radar_folder}/training/image_2/{fid}.jpg or .png"])
                 continue
             ids.append(complete[0])
             if len(group) > 1:
