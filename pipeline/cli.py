@@ -721,6 +721,22 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     for bar in bars.values():
         bar.close()
     click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")
+    again = "".join(f" --set {shlex.quote(s)}" for s in sets)  # the repair runs with this command's settings
+
+    def unless_stale(name: str) -> None:
+        """Say so where the repair command would not find the output current: made with other
+        settings (a --set left out, e.g. train.nets_from), the run would make it, and the stages
+        before it that are stale too, with this command's settings."""
+        try:
+            stale = [n for n in pipe.upstream_closure(name) if not pipe.is_current(n)]
+        except Exception:  # noqa: BLE001 - only words: the data may not be here (a copied cache)
+            return
+        if stale:
+            before = [n for n in stale if n != name]
+            redo = f"recomputes {before[0]} and every stage after it" if before else f"makes {name} anew"
+            click.echo(f"{'':<{NAME_WIDTH}} (not current with this command's settings, with which that run {redo}: "
+                       f"give verify and the run the --set options the cache was made with)")
+
     bad = 0
     for row in rows:
         name = row["stage"]
@@ -729,7 +745,8 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
             click.echo(f"{name:<{NAME_WIDTH}} cannot be read: {row['problem']}")
             if "checkpoints" in row:  # a dataset stage: its output is made again as a whole
                 click.echo(f"{'':<{NAME_WIDTH}} make it again: pipeline run {name} --dataset {shlex.quote(dataset)} "
-                           f"--cache {shlex.quote(env.cache_root)} --force")
+                           f"--cache {shlex.quote(env.cache_root)}{again} --force")
+                unless_stale(name)
         elif "checkpoints" in row:
             read = [f"{row['files']} file(s) intact"] * (row["files"] is not None) + \
                 [f"{row['checkpoints']} checkpoint(s) read"] * bool(row["checkpoints"])
@@ -744,7 +761,8 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
             if len(ids) > 5:
                 click.echo(f"{'':<{NAME_WIDTH}} ... and {len(ids) - 5} more")
             click.echo(f"{'':<{NAME_WIDTH}} recompute them: pipeline run {name} --dataset {shlex.quote(dataset)} "
-                       f"--cache {shlex.quote(env.cache_root)} --force --frames {shlex.quote(','.join(ids))}")
+                       f"--cache {shlex.quote(env.cache_root)}{again} --force --frames {shlex.quote(','.join(ids))}")
+            unless_stale(name)
         else:
             click.echo(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: every chunk intact")
     if not rows:

@@ -710,6 +710,35 @@ def test_verify_checks_the_files_a_dataset_stage_recorded_when_it_finished(tmp_p
     assert old.exit_code == 0 and "train           finished (its files are not checked" in old.stdout
 
 
+def test_verify_repair_commands_carry_its_settings_and_say_when_the_output_is_not_current(tmp_path, fake_cli):
+    """A cache made with --set options (e.g. the transfer's train.nets_from=astyx): verify's repair
+    line left them out, and pasted it recomputed every stage with the profile's settings, the nets
+    trained again and the transferred outputs replaced (found 2026-12-06 on the View-of-Delft frames
+    with the Astyx nets). It now carries verify's own --set options and says where the output is not
+    current with them."""
+    settings = ("--set", "heatmap.sigma_px=5,5")
+    assert fake_cli(tmp_path, "run", "train", "--workers", "1", *settings).exit_code == 0
+    (tmp_path / "cache" / "synthetic" / "train" / "total.txt").unlink()
+    _damage(tmp_path / "cache" / "synthetic" / "heatmaps.zarr" / "total" / "c" / "2", "empty")
+    cache = tmp_path / "cache"
+    plain = fake_cli(tmp_path, "verify")
+    assert plain.exit_code == 2
+    assert f"make it again: pipeline run train --dataset synthetic --cache {cache} --force\n" in plain.stdout
+    assert ("(not current with this command's settings, with which that run recomputes heatmaps and every stage "
+            "after it: give verify and the run the --set options the cache was made with)") in plain.stdout
+    assert "(not current with this command's settings, with which that run makes heatmaps anew: " in plain.stdout
+    same = fake_cli(tmp_path, "verify", *settings)
+    assert same.exit_code == 2 and "not current" not in same.stdout, same.stdout
+    for stage, tail in (("train", " --force"), ("heatmaps", " --force --frames f002")):
+        command = re.search(rf"(?:make it again|recompute them): pipeline (run {stage} .*)$", same.stdout, re.M).group(1)
+        assert command == f"run {stage} --dataset synthetic --cache {cache} --set heatmap.sigma_px=5,5{tail}"
+    heatmaps = re.search(r"recompute them: pipeline (run heatmaps .*)$", same.stdout, re.M).group(1).split()
+    assert fake_cli(tmp_path, *heatmaps[:2], *heatmaps[6:], "--workers", "1").exit_code == 0
+    train = re.search(r"make it again: pipeline (run train .*)$", same.stdout, re.M).group(1).split()
+    assert fake_cli(tmp_path, *train[:2], *train[6:], "--workers", "1").exit_code == 0
+    assert fake_cli(tmp_path, "verify", *settings).exit_code == 0
+
+
 def test_verify_names_the_first_five_damaged_files_of_a_stage_and_counts_the_rest(tmp_path):
     """A dataset stage output that lost many files (an export of thousands of frames, half deleted)
     is one problem naming the first five and how many more, not thousands of lines; verify's
