@@ -108,6 +108,25 @@ def _made_with_other_radar(cfg: Config, cache_root: str) -> bool:
     return any(key in recorded and recorded[key] != _json(cfg.get(key)) for key in RADAR_SETTINGS)
 
 
+def _refuse_other_nets_by_default(cfg: Config, cache_root: str) -> None:
+    """ConfigError where this dataset's finished train stage took the nets of another dataset than
+    ``cfg.train.nets_from`` names (the profile's value: the user did not set it)."""
+    try:
+        meta = dir_store(cache_root, cfg.profile, "train").meta()
+    except MetadataError:  # the run stops on it, naming the file
+        return
+    taken = ((meta or {}).get("summary") or {}).get("nets_from") or ""
+    if not taken or taken == cfg.train.nets_from:
+        return
+    now = (f"take those of '{cfg.train.nets_from}' (the profile's train.nets_from)" if cfg.train.nets_from
+           else "train its own nets (the profile's train.nets_from is empty)")
+    raise ConfigError(f"dataset '{cfg.profile}': its outputs in this cache were made with the nets of '{taken}' "
+                      f"(train.nets_from = {taken}); without train.nets_from this run would {now} and make those "
+                      f"outputs again, from the first stage whose settings differ. Add `--set train.nets_from={taken}` "
+                      f"to go on with them, or set train.nets_from to change them (`--set train.nets_from=` trains "
+                      f"here); nothing was run")
+
+
 def mismatches(cfg: Config, trained: dict[str, Any]) -> list[str]:
     """'key=trained value (here: value)' for each of ``trained`` that ``cfg`` does not have."""
     return [f"{key}={_text(value)} (here: {_text(_json(cfg.get(key)))})" for key, value in trained.items()
@@ -120,8 +139,13 @@ def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = (), r
     with a message). ``explicit``: the keys the user set (--set, PIPELINE__ variables); one of them
     set to another value than the nets were trained with is a ConfigError. ``require_trained`` (a
     run): no finished train stage there is a ConfigError too where this dataset's calibrate output
-    was made with other radar settings (the nets', before): the profile's would replace it."""
+    was made with other radar settings (the nets', before): the profile's would replace it; so is
+    a train.nets_from left to the profile (not in ``explicit``) that differs from the one this
+    dataset's finished train stage took its nets with: the run would make its outputs again with
+    other nets (a --set train.nets_from=astyx forgotten on a later command)."""
     source = cfg.train.nets_from
+    if require_trained and "train.nets_from" not in set(explicit):
+        _refuse_other_nets_by_default(cfg, cache_root)
     if not source:
         return cfg
     if source == cfg.profile:

@@ -552,3 +552,36 @@ def test_the_nets_of_a_dataset_on_a_remote_cache_are_taken_through_a_local_copy(
         assert len(list((tmp_path / "staging").glob("train-*/copies/*/disnet/best.safetensors"))) == 1
     finally:
         fs.rm(f"/{name}", recursive=True)
+
+
+def test_a_run_leaving_out_the_nets_a_dataset_was_made_with_is_refused(trained, tmp_path, monkeypatch):
+    """A target made with `--set train.nets_from=...` and a later command without it (found
+    2026-12-06 on the View-of-Delft frames with the Astyx nets): the profile's train.nets_from
+    (empty for VoD: train its own; 'vod' for KITTI) made every output stale, and the run recomputed
+    them from calibrate with the profile's radar, replacing the transferred outputs without a word.
+    It is now refused, naming the --set that goes on; an explicit train.nets_from changes the nets."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    cache = _synthetic_only(trained, tmp_path)
+    kitti = _kitti(tmp_path / "kitti")
+    args = ["run", "train", "--workers", "1", "--dataset", "kitti", "--data-root", str(kitti), "--cache", str(cache)]
+    assert CliRunner().invoke(main, [*args, "--set", "train.nets_from=synthetic"]).exit_code == 0
+    record = (cache / "kitti" / "train" / "_stage.json").read_bytes()
+    for extra in ((), ("--dry-run",)):
+        out = CliRunner().invoke(main, [*args, *extra])
+        assert out.exit_code == 2 and "Traceback" not in out.output, out.output
+        assert ("error: dataset 'kitti': its outputs in this cache were made with the nets of 'synthetic' "
+                "(train.nets_from = synthetic); without train.nets_from this run would take those of 'vod' (the "
+                "profile's train.nets_from)") in out.output, out.output
+        assert "Add `--set train.nets_from=synthetic` to go on with them" in out.output
+    assert (cache / "kitti" / "train" / "_stage.json").read_bytes() == record  # nothing was run
+    again = CliRunner().invoke(main, [*args, "--set", "train.nets_from=synthetic"])
+    assert again.exit_code == 0 and "train           up to date" in again.output, again.output
+    monkeypatch.setenv("PIPELINE__TRAIN__NETS_FROM", "synthetic")
+    assert CliRunner().invoke(main, args).exit_code == 0
+    # set explicitly to other nets, the run goes on with them (here: none trained in this cache)
+    monkeypatch.delenv("PIPELINE__TRAIN__NETS_FROM")
+    other = CliRunner().invoke(main, [*args, "--set", "train.nets_from=msc"])
+    assert other.exit_code == 2 and "no finished train stage at" in other.output, other.output
