@@ -108,6 +108,11 @@ def _same_folder(a: str, b: str) -> bool:
         return False
 
 
+def _explicit_keys(sets: tuple[str, ...]) -> set[str]:
+    """The configuration keys the user set: --set options and PIPELINE__ variables."""
+    return set(parse_set_options(sets)) | set(env_overrides(dict(os.environ)))
+
+
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
     from pipeline.executor import RunEnv
     from pipeline.runner import default_data_root
@@ -120,7 +125,7 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
         raise ConfigError("--cache (or $PIPELINE_CACHE) is empty: give the cache folder or URL")
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
     _check_url("--cache", cache_root)
-    explicit = set(overrides) | set(env_overrides(dict(os.environ)))
+    explicit = _explicit_keys(sets)
     cfg = with_nets_from(cfg, cache_root, explicit, require_trained=need_root)  # their radar's settings come too
     calib = frame_store(cache_root, dataset, "calibrate")
     try:
@@ -409,6 +414,12 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
         click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}  data {env.data_root or '(none)'}")
         if missing:
             click.echo("(no cache of this dataset there: nothing has run with this --cache and --dataset)")
+        from pipeline.transfer import other_nets_taken
+
+        taken = "" if "train.nets_from" in _explicit_keys(sets) else other_nets_taken(env.cfg, env.cache_root)
+        if taken:
+            click.echo(f"(made with the nets of '{taken}', which this command leaves out: the stages below are as a "
+                       f"run without them would find them; add --set train.nets_from={taken})")
         notes = Counter(row["note"] for row in rows if row.get("note"))
         for row in rows:
             _print_status_row(row, notes)

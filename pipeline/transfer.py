@@ -108,15 +108,22 @@ def _made_with_other_radar(cfg: Config, cache_root: str) -> bool:
     return any(key in recorded and recorded[key] != _json(cfg.get(key)) for key in RADAR_SETTINGS)
 
 
-def _refuse_other_nets_by_default(cfg: Config, cache_root: str) -> None:
-    """ConfigError where this dataset's finished train stage took the nets of another dataset than
-    ``cfg.train.nets_from`` names (the profile's value: the user did not set it)."""
+def other_nets_taken(cfg: Config, cache_root: str) -> str:
+    """The dataset whose nets this dataset's finished train stage took, where that is not the one
+    ``cfg.train.nets_from`` names; '' otherwise (or where the record cannot be read)."""
     try:
         meta = dir_store(cache_root, cfg.profile, "train").meta()
     except MetadataError:  # the run stops on it, naming the file
-        return
+        return ""
     taken = ((meta or {}).get("summary") or {}).get("nets_from") or ""
-    if not taken or taken == cfg.train.nets_from:
+    return taken if taken != cfg.train.nets_from else ""
+
+
+def _refuse_other_nets_by_default(cfg: Config, cache_root: str) -> None:
+    """ConfigError where this dataset's finished train stage took the nets of another dataset than
+    ``cfg.train.nets_from`` names (the profile's value: the user did not set it)."""
+    taken = other_nets_taken(cfg, cache_root)
+    if not taken:
         return
     now = (f"take those of '{cfg.train.nets_from}' (the profile's train.nets_from)" if cfg.train.nets_from
            else "train its own nets (the profile's train.nets_from is empty)")

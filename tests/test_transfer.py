@@ -577,6 +577,12 @@ def test_a_run_leaving_out_the_nets_a_dataset_was_made_with_is_refused(trained, 
                 "profile's train.nets_from)") in out.output, out.output
         assert "Add `--set train.nets_from=synthetic` to go on with them" in out.output
     assert (cache / "kitti" / "train" / "_stage.json").read_bytes() == record  # nothing was run
+    status = CliRunner().invoke(main, ["status", *args[4:]])  # says why every stage reads stale
+    assert status.exit_code == 0 and status.output.splitlines()[1] == (
+        "(made with the nets of 'synthetic', which this command leaves out: the stages below are as a run without "
+        "them would find them; add --set train.nets_from=synthetic)"), status.output
+    assert "made with the nets" not in CliRunner().invoke(main, ["status", *args[4:], "--set",
+                                                                 "train.nets_from=synthetic"]).output
     again = CliRunner().invoke(main, [*args, "--set", "train.nets_from=synthetic"])
     assert again.exit_code == 0 and "train           up to date" in again.output, again.output
     monkeypatch.setenv("PIPELINE__TRAIN__NETS_FROM", "synthetic")
