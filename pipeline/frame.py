@@ -57,10 +57,13 @@ def to_box_frame(offsets_D: np.ndarray, rotation: np.ndarray) -> np.ndarray:
 
 
 def from_box_frame(local: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-    """(N, 3) m: offsets (N, 3) in a box's frame, in {D} (``rotation @ local``, the inverse of
-    :func:`to_box_frame`), written out term by term as it is."""
+    """(..., 3) m: offsets (..., 3) in a box's frame, in {D} (``rotation @ local``, the inverse of
+    :func:`to_box_frame`), written out term by term as it is. ``rotation`` (3, 3) for one box, or
+    (..., 3, 3) broadcasting against ``local``'s leading axes (several boxes at once: offsets
+    (B, F, 3) with rotations (B, 1, 3, 3))."""
     p, r = local, rotation
-    return np.stack([r[k, 0] * p[:, 0] + r[k, 1] * p[:, 1] + r[k, 2] * p[:, 2] for k in range(3)], axis=1)
+    return np.stack([r[..., k, 0] * p[..., 0] + r[..., k, 1] * p[..., 1] + r[..., k, 2] * p[..., 2]
+                     for k in range(3)], axis=-1)
 
 
 @dataclass

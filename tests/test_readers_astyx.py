@@ -468,6 +468,57 @@ def test_box_reference_point_is_the_nearest_face_centre():
     assert box_reference_points([]).shape == (0, 3)
 
 
+def test_box_reference_point_of_a_tilted_box_is_where_its_rotation_puts_the_face():
+    """Astyx's boxes lean about 4 deg in {D}: the face centre is centre + R (+/-l/2, 0, 0) or
+    centre + R (0, +/-w/2, 0) with the box's whole rotation (before 2026-12-06 the yaw alone and the
+    centre's height: 0.14 m too low for the rear face of this car pitched 4 deg)."""
+    from pipeline.frame import Object3D
+    from pipeline.readers.astyx import box_reference_points
+
+    pitch, roll = np.radians(4.0), np.radians(-3.5)
+    boxes = [Object3D(class_name="Car", center_D=np.array([20.0, 0.0, -0.5]), size_lwh_m=np.array([4.0, 2.0, 1.5]),
+                      yaw_rad=0.0, pitch_rad=pitch),                                       # ahead: its rear face
+             Object3D(class_name="Car", center_D=np.array([2.0, 6.0, 0.0]), size_lwh_m=np.array([4.0, 2.0, 1.5]),
+                      yaw_rad=0.1, pitch_rad=pitch, roll_rad=roll)]                        # to the left: its right side
+    expected = [boxes[0].center_D + boxes[0].rotation @ [-2.0, 0.0, 0.0],
+                boxes[1].center_D + boxes[1].rotation @ [0.0, -1.0, 0.0]]
+    np.testing.assert_allclose(box_reference_points(boxes), expected, atol=1e-12)
+    np.testing.assert_allclose(expected[0], [20.0 - 2.0 * np.cos(pitch), 0.0, -0.5 + 2.0 * np.sin(pitch)], atol=1e-12)
+
+
+def test_box_reference_points_of_upright_boxes_are_the_yaw_only_ones_to_the_bit():
+    """Boxes without pitch or roll give the bits of the yaw-only face centres (the code until
+    2026-12-06, written out here), every face and heading among them."""
+    from pipeline.frame import Object3D
+    from pipeline.readers.astyx import box_reference_points
+
+    rng = np.random.default_rng(7)
+    n = 2000
+    centre, size, yaw = rng.uniform(-60, 60, (n, 3)), rng.uniform(0.3, 15, (n, 3)), rng.uniform(-7, 7, n)
+    boxes = [Object3D(class_name="Car", center_D=c, size_lwh_m=s, yaw_rad=float(y)) for c, s, y in zip(centre, size, yaw)]
+    half = size[:, :2] / 2
+    axes = np.stack([np.cos(yaw), np.sin(yaw), -np.sin(yaw), np.cos(yaw)], axis=1).reshape(-1, 2, 2)
+    offsets = np.concatenate([axes[:, :1] * half[:, :1, None], axes[:, 1:] * half[:, 1:, None]], axis=1)
+    faces = centre[:, None, :2] + np.concatenate([offsets, -offsets], axis=1)
+    nearest = np.argmin(np.einsum("nfk,nfk->nf", faces, faces), axis=1)
+    np.testing.assert_array_equal(box_reference_points(boxes),
+                                  np.column_stack([faces[np.arange(n), nearest], centre[:, 2]]))
+
+
+def test_from_box_frame_of_several_boxes_is_each_box_s_to_the_bit():
+    """from_box_frame with rotations (B, 1, 3, 3) and offsets (B, F, 3) gives each box's own call's bits."""
+    from pipeline.frame import box_rotations, from_box_frame
+
+    rng = np.random.default_rng(8)
+    rot = box_rotations(*rng.uniform(-1, 1, (3, 5)))
+    local = rng.normal(size=(5, 4, 3))
+    together = from_box_frame(local, rot[:, None])
+    assert together.shape == (5, 4, 3)
+    for b in range(5):
+        np.testing.assert_array_equal(together[b], from_box_frame(local[b], rot[b]))
+        np.testing.assert_allclose(together[b], local[b] @ rot[b].T, atol=1e-12)
+
+
 def test_quaternion_to_yaw_pitch_roll_rebuilds_the_rotation():
     """Random unit quaternions (w, x, y, z), pitch within +/-80 deg: box_rotations of the angles is
     the quaternion's rotation matrix (scipy's, scalar last); the yaw is the one the reader took
