@@ -172,6 +172,8 @@ def test_astyx_missing_files_are_skipped_and_counted(astyx):
     reader = _astyx_reader(astyx)
     assert reader.frame_ids() == ["000001"] and reader.report()["skipped_missing"] == 1
     _expect(reader, "000000", astyx / "dataset.json", "missing")
+    # named with the file it lacks, as the other readers do (until 2026-12-06 only counted)
+    assert reader.skipped_examples() == ["000000: no camera_front/000000.jpg"]
 
 
 def test_duplicate_frame_id_jpg_and_png(vod):

@@ -169,8 +169,9 @@ class _AstyxIndex(Reader):
                 other = seen_radar.get(paths[self.radar_uid], fid)
                 problems[fid] = problems[other] = f"duplicate index entries for frame {fid} ({other})"
                 continue
-            if not all(paths[uid].is_file() for uid in self.required_uids):
-                self._counts["skipped_missing"] += 1
+            lacking = [paths[uid] for uid in self.required_uids if not paths[uid].is_file()]
+            if lacking:
+                self.skip_missing(fid, lacking)
                 continue
             frames[fid] = paths
             seen_radar[paths[self.radar_uid]] = fid
