@@ -50,10 +50,12 @@ def box_rotations(yaw_rad, pitch_rad, roll_rad) -> np.ndarray:
 
 def to_box_frame(offsets_D: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     """(N, 3) m: offsets (N, 3) in {D} from a box's centre, in the box's frame (``offsets_D @
-    rotation``, ``rotation`` (3, 3) as :func:`box_rotations` gives it). Written out term by term, not
-    through BLAS, so that an upright box gives the bits of cos/sin(yaw) alone."""
+    rotation``, ``rotation`` (3, 3) as :func:`box_rotations` gives it, or (N, 3, 3): each offset's
+    own box, the same values). Written out term by term, not through BLAS, so that an upright box
+    gives the bits of cos/sin(yaw) alone."""
     d, r = offsets_D, rotation
-    return np.stack([r[0, k] * d[:, 0] + r[1, k] * d[:, 1] + r[2, k] * d[:, 2] for k in range(3)], axis=1)
+    return np.stack([r[..., 0, k] * d[:, 0] + r[..., 1, k] * d[:, 1] + r[..., 2, k] * d[:, 2] for k in range(3)],
+                    axis=1)
 
 
 def from_box_frame(local: np.ndarray, rotation: np.ndarray) -> np.ndarray:

@@ -439,25 +439,24 @@ def object_velocities_for_points(
     centres, half = boxes[:, 0:3], boxes[:, 3:6] / 2 + margin_m                        # (L, 3), (L, 3)
     rot = box_rotations(boxes[:, _YAW], boxes[:, _YAW + 1], boxes[:, _YAW + 2])      # (L, 3, 3) box -> {D}
     vel = np.where(np.isnan(boxes[:, _VX:_VX + 3]), unknown, boxes[:, _VX:_VX + 3])
-    # A point inside box l lies within its x extent |dx| <= sum_k |R[0, k]| half_k: each box tests
-    # only the points of that slice of the points sorted by x (one loop step per box, not per point).
+    # A point inside box l lies within its x extent |dx| <= sum_k |R[0, k]| half_k (and its y extent
+    # likewise): each box tests only the points of that slice of the points sorted by x whose y is
+    # near, all boxes' (box, point) pairs at once, in box order and x order within a box
     order = np.argsort(points[:, 0], kind="stable")
     xs = points[order, 0]
-    reach = np.einsum("lk,lk->l", np.abs(rot[:, 0, :]), half) * (1 + 1e-9) + 1e-9  # slack for rounding
-    lo = np.searchsorted(xs, centres[:, 0] - reach, side="left")
-    hi = np.searchsorted(xs, centres[:, 0] + reach, side="right")
-    box_of, point_of, dist_of = [], [], []
-    for box in np.flatnonzero(hi > lo):
-        idx = order[lo[box]:hi[box]]
-        rel = points[idx] - centres[box]                                                 # (k, 3)
-        inside = np.all(np.abs(to_box_frame(rel, rot[box])) <= half[box], axis=1)
-        if inside.any():
-            box_of.append(np.full(int(inside.sum()), box))
-            point_of.append(idx[inside])
-            dist_of.append(np.linalg.norm(rel[inside], axis=1))
-    if not box_of:  # no point inside any box
+    reach = np.einsum("lik,lk->li", np.abs(rot[:, :2, :]), half) * (1 + 1e-9) + 1e-9    # (L, 2): slack for rounding
+    lo = np.searchsorted(xs, centres[:, 0] - reach[:, 0], side="left")
+    hi = np.searchsorted(xs, centres[:, 0] + reach[:, 0], side="right")
+    counts = np.maximum(hi - lo, 0)
+    box_of = np.repeat(np.arange(len(boxes)), counts)
+    point_of = order[np.arange(len(box_of)) + np.repeat(lo - (np.cumsum(counts) - counts), counts)]
+    near = np.abs(points[point_of, 1] - centres[box_of, 1]) <= reach[box_of, 1]
+    box_of, point_of = box_of[near], point_of[near]
+    rel = points[point_of] - centres[box_of]                                             # (P, 3)
+    inside = np.all(np.abs(to_box_frame(rel, rot[box_of])) <= half[box_of], axis=1)
+    if not inside.any():  # no point inside any box
         return out
-    box_of, point_of, dist_of = np.concatenate(box_of), np.concatenate(point_of), np.concatenate(dist_of)
+    box_of, point_of, dist_of = box_of[inside], point_of[inside], np.linalg.norm(rel[inside], axis=1)
     # where boxes overlap the nearest centre wins (the lower box index on a tie)
     pick = np.lexsort((box_of, dist_of, point_of))
     first = np.r_[True, point_of[pick][1:] != point_of[pick][:-1]]

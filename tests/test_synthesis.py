@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.stats import chisquare
 
 from pipeline import synthesis
-from pipeline.frame import LABEL_COLUMNS, Object3D, label_rows
+from pipeline.frame import LABEL_COLUMNS, Object3D, box_rotations, label_rows, to_box_frame
 from pipeline.geometry import (
     cartesian_to_spherical, invert_transform, pixel_rays_D, project_to_image, spherical_to_cartesian,
 )
@@ -446,6 +446,59 @@ def test_object_velocities_match_every_pair_test(tilted):
     rows = np.array([[50.0, 3.0, 1.0, 3.7, 1.7, 1.4, -3.1, 0.0, 0.0, np.nan, np.nan, np.nan, 0.0]])
     beside = np.array([[50.0, -10.0, 0.0], [49.0, 20.0, 1.0]])
     np.testing.assert_array_equal(object_velocities_for_points(beside, rows), np.zeros((2, 3)))
+
+
+def _velocities_box_by_box(points: np.ndarray, rows: np.ndarray, margin_m: float = 0.3) -> np.ndarray:
+    """object_velocities_for_points as it was until 2026-12-06 (0059618): one loop step per box over
+    its slice of the points sorted by x, each box's frame by to_box_frame with its own rotation."""
+    boxes = synthesis.label_boxes(rows)
+    out = np.zeros((len(points), 3))
+    centres, half = boxes[:, 0:3], boxes[:, 3:6] / 2 + margin_m
+    rot = box_rotations(boxes[:, _YAW], boxes[:, _YAW + 1], boxes[:, _YAW + 2])
+    vel = np.where(np.isnan(boxes[:, _VX:_VX + 3]), 0.0, boxes[:, _VX:_VX + 3])
+    order = np.argsort(points[:, 0], kind="stable")
+    reach = np.einsum("lk,lk->l", np.abs(rot[:, 0, :]), half) * (1 + 1e-9) + 1e-9
+    lo = np.searchsorted(points[order, 0], centres[:, 0] - reach, side="left")
+    hi = np.searchsorted(points[order, 0], centres[:, 0] + reach, side="right")
+    box_of, point_of, dist_of = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros(0)]
+    for box in np.flatnonzero(hi > lo):
+        idx = order[lo[box]:hi[box]]
+        rel = points[idx] - centres[box]
+        inside = np.all(np.abs(to_box_frame(rel, rot[box])) <= half[box], axis=1)
+        box_of.append(np.full(int(inside.sum()), box))
+        point_of.append(idx[inside])
+        dist_of.append(np.linalg.norm(rel[inside], axis=1))
+    box_of, point_of, dist_of = np.concatenate(box_of), np.concatenate(point_of), np.concatenate(dist_of)
+    pick = np.lexsort((box_of, dist_of, point_of))
+    first = np.r_[True, point_of[pick][1:] != point_of[pick][:-1]]
+    out[point_of[pick][first]] = vel[box_of[pick][first]]
+    return out
+
+
+def test_object_velocities_all_boxes_at_once_as_box_by_box():
+    """The (box, point) pairs of every box tested at once (x slice, then y) give, to the bit, what
+    the loop over boxes gave; to_box_frame with one rotation per offset gives each box's own call."""
+    rng = np.random.default_rng(8)
+    for _ in range(10):
+        rows = np.zeros((25, len(LABEL_COLUMNS)))
+        rows[:, 0:3] = rng.uniform([0, -15, -1], [60, 15, 1], (25, 3))
+        rows[:, 3:6] = rng.uniform(0.5, 6, (25, 3))
+        rows[:, _YAW:_YAW + 3] = rng.uniform([-np.pi, -0.3, -0.3], [np.pi, 0.3, 0.3], (25, 3))
+        rows[:5, _YAW + 1:_YAW + 3] = 0.0                                 # upright ones too
+        rows[:, _VX:_VX + 3] = rng.normal(0, 5, (25, 3))
+        rows[6:8, 0:3] = rows[5, 0:3] + rng.uniform(-1, 1, (2, 3))       # overlapping boxes
+        rows[9, _VX] = np.nan
+        points = rng.uniform([0, -18, -2], [65, 18, 2], (4000, 3))
+        got = object_velocities_for_points(points, rows)
+        assert (got != 0).any(axis=1).sum() > 100
+        np.testing.assert_array_equal(got, _velocities_box_by_box(points, rows))
+    rot = box_rotations(rows[:, _YAW], rows[:, _YAW + 1], rows[:, _YAW + 2])
+    which = rng.integers(0, len(rows), len(points))
+    each = np.empty_like(points)
+    for box in range(len(rows)):
+        each[which == box] = to_box_frame(points[which == box], rot[box])
+    np.testing.assert_array_equal(to_box_frame(points, rot[which]), each)
+
 
 # --------------------------------------------------------------------------- one frame
 
