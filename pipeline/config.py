@@ -47,6 +47,12 @@ class DatasetSection:
     """Synthetic world only: frames per sequence (scene types cycle from one sequence to the next)."""
     radar_mount_T_radar_lidar: tuple[float, ...] = (1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)
     """KITTI only: row-major 4x4 transform from the lidar frame to the simulated radar {D}."""
+    follow_links: bool = False
+    """Astyx only: index entries may lead through symbolic links inside the data root to files
+    elsewhere (sensor folders linked to other storage). Off: an entry leading out of the root is
+    refused, as one from an untrusted index could; entries that are absolute or climb out with '..'
+    are refused either way. It changes which frames can be read, not what is read from them, so it
+    is in no fingerprint: frames refused before need ``--retry-failed``."""
 
 
 @dataclass(frozen=True)

@@ -156,6 +156,27 @@ def test_index_entry_outside_dataset_root(astyx):
     _expect(reader, "000001", astyx / "dataset.json", "points outside the dataset root")
 
 
+def test_astyx_sensor_folders_linked_elsewhere_are_read_with_follow_links(astyx, tmp_path_factory):
+    """A data root assembled from links to other storage (a cluster's usual layout): refused by
+    default, naming the setting that reads through them; read with dataset.follow_links, the same
+    values as from the real folders (until 2026-12-06 every frame failed, with no way out but a
+    copy). '..' and absolute entries stay refused."""
+    before = _astyx_reader(astyx).read("000001")
+    storage = tmp_path_factory.mktemp("storage")
+    for folder in ("camera_front", "lidar_vlp16"):
+        (astyx / folder).rename(storage / folder)
+        (astyx / folder).symlink_to(storage / folder, target_is_directory=True)
+    error = _expect(_astyx_reader(astyx), "000001", astyx / "dataset.json", "points outside the dataset root")
+    assert "dataset.follow_links=true" in str(error) and "--retry-failed" in str(error)
+    cfg = load_config("astyx").with_overrides({"camera.full_size": "64,48", "dataset.follow_links": "true"})
+    after = get_reader(cfg, astyx).read("000001")
+    assert np.array_equal(after.lidar_D, before.lidar_D) and np.array_equal(after.image, before.image)
+    index = json.loads((astyx / "dataset.json").read_text())
+    index["data"]["1"]["radar_6455"] = "radar_6455/../../outside/000001.txt"
+    (astyx / "dataset.json").write_text(json.dumps(index))
+    _expect(get_reader(cfg, astyx), "000001", astyx / "dataset.json", "points outside the dataset root")
+
+
 def test_missing_files_are_skipped_counted_and_raise_on_read(vod):
     _lidar(vod).unlink()
     reader = _vod_reader(vod)

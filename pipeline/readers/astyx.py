@@ -183,7 +183,8 @@ class _AstyxIndex(Reader):
         missing = [uid for uid in self.required_uids if uid not in entry]
         if missing:
             raise ReaderError(index_file, f"index entry lacks {', '.join(missing)}", frame=fid)
-        return {uid: inside_root(self.root, str(rel), fid, index_file, resolved) for uid, rel in entry.items()}
+        follow = self.cfg.dataset.follow_links
+        return {uid: inside_root(self.root, str(rel), fid, index_file, resolved, follow) for uid, rel in entry.items()}
 
     def layout_hint(self) -> str:
         return (f"an entry in {self.index_name} whose {', '.join(self.required_uids)} files exist "

@@ -129,9 +129,12 @@ def require_file(path: Path, frame: str | None, what: str) -> Path:
 
 
 def inside_root(root: Path, relative: str, frame: str | None, index_file: Path,
-                resolved: dict[Path, Path] | None = None) -> Path:
+                resolved: dict[Path, Path] | None = None, follow_links: bool = False) -> Path:
     """Resolve ``relative`` under ``root``; ReaderError if it is absolute or leaves the root, also
     through a symlink (an index may come from an untrusted source), or runs into a symlink loop.
+    With ``follow_links`` (``dataset.follow_links``: the root's folders are links the user made to
+    storage elsewhere) only an absolute entry or one whose '..' parts climb out of the root is
+    refused; links are followed wherever they lead.
 
     ``resolved``: the resolved folders of the calls so far ({folder: resolved}), for an index of
     many entries in a few folders: only the file itself is then looked at (the folders of 546
@@ -141,6 +144,11 @@ def inside_root(root: Path, relative: str, frame: str | None, index_file: Path,
     replaced by a link while one index is read is not noticed (as a file replaced between this
     check and its read)."""
     rel = Path(relative)
+    if follow_links:
+        if rel.is_absolute() or os.path.normpath(rel).split(os.sep)[0] == "..":
+            raise ReaderError(index_file, f"index entry '{relative}' points outside the dataset root {root}",
+                              frame=frame)
+        return root / rel
     cache = {} if resolved is None else resolved
     try:
         path = root / rel
@@ -164,7 +172,9 @@ def inside_root(root: Path, relative: str, frame: str | None, index_file: Path,
         raise ReaderError(index_file, f"index entry '{relative}' cannot be resolved ({exc})", frame=frame) from None
     if rel.is_absolute() or not target.is_relative_to(cache[root]):
         raise ReaderError(index_file, f"index entry '{relative}' points outside the dataset root {root} "
-                                      f"(symlinks followed)", frame=frame)
+                                      f"(symlinks followed); if the root's folders are links you made to storage "
+                                      f"elsewhere, `--set dataset.follow_links=true` reads through them (with "
+                                      f"--retry-failed for the frames refused before)", frame=frame)
     return root / rel
 
 
