@@ -303,6 +303,8 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
         ds = pipe.env.cfg.dataset
         click.echo(f"the synthetic world would be generated first ({ds.world_frames} frames, seed {ds.world_seed}) "
                    f"into {pipe.env.data_root}")
+    if force and frames_spec and not makes_world:
+        pipe.check_forced_frames((stage,))  # refused as the run refuses it
     rows = {r["stage"]: r for r in pipe.status(reasons=0)}
     for name in closure:
         _print_status_row(rows[name])

@@ -257,6 +257,8 @@ class Pipeline:
         old = self.made_from()
         if old and not (force and FIRST_STAGE in targets):  # every output would be recomputed: only when asked
             raise PipelineError(self._other_root_message(old))
+        if force and frames is not None:
+            self.check_forced_frames(targets)
         needed = {name for t in targets for name in self.upstream_closure(t)}
         closure = [name for name in self.order if name in needed]
         skipped: set[str] = set()  # stages needing a frame stage that has no frame done
@@ -288,6 +290,28 @@ class Pipeline:
                     self.log(f"{'':<{NAME_WIDTH}} no frame of {name} is done: the stages that need it were not run "
                              f"({', '.join(after)})")
         return reports
+
+    def check_forced_frames(self, targets: tuple[str, ...]) -> None:
+        """ConfigError where ``--force --frames`` would not recompute just those frames: a frame
+        stage the run needs holds finished frames but is not current (made with other settings,
+        code or inputs than this run's, or marked stale), so the run would make it anew, keeping
+        only those frames. The usual cause is a repair command (verify's, a damaged chunk's) run
+        without the --set options the cache was made with."""
+        needed = {name for t in targets for name in self.upstream_closure(t)}
+        for name in (n for n in self.order if n in needed and isinstance(self.stages[n], FrameStage)):
+            store = self.env.store(name)
+            try:
+                if not store.exists() or self.is_current(name):
+                    continue
+                done = int((store.status() == DONE).sum())
+            except PipelineError:  # damaged, or no frames to list: the run stops on it (a forced rebuild replaces it)
+                continue
+            if done:
+                raise ConfigError(
+                    f"--force --frames: {name} holds {done} finished frame(s) made with other settings, code or "
+                    f"inputs than this run's (`pipeline status` shows it not current), so the run would not "
+                    f"recompute just those frames but make {name} anew with only them. Give the run the --set "
+                    f"options the cache was made with, or leave out --frames to recompute it whole; nothing was run")
 
     def made_from(self) -> str | None:
         """The data root the first stage's output was made from, when this run's is another (which

@@ -46,6 +46,21 @@ def test_dry_run_refuses_the_frames_the_run_refuses(tmp_path, fake_cli, spec, wo
     assert good.exit_code == 0 and "--frames 0:2: per-frame work would be limited to those frames\n" in good.stdout
 
 
+def test_force_frames_on_an_output_of_other_settings_is_refused_by_the_run_and_the_dry_run(tmp_path, fake_cli):
+    """A repair command (`--force --frames ID`) run without the --set the cache was made with: the
+    run and --dry-run refuse it alike (exit 2, one line), and every finished frame stays."""
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
+    other = ("--set", "heatmap.sigma_px=50,50", "--force", "--frames", "0:2")
+    run = fake_cli(tmp_path, "run", "heatmaps", "--workers", "1", *other)
+    dry = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", *other)
+    assert run.exit_code == dry.exit_code == 2, run.output
+    assert dry.stderr == run.stderr and len(run.stderr.splitlines()) == 1
+    assert run.stderr.startswith(f"error: --force --frames: heatmaps holds {len(IDS)} finished frame(s) made with "
+                                 f"other settings"), run.stderr
+    status = fake_cli(tmp_path, "status")
+    assert re.search(rf"heatmaps\s+current\s+done\s+{len(IDS)}\b", status.stdout), status.stdout
+
+
 def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, monkeypatch):
     """A dataset whose frames cannot be listed (its data root not a folder): the --frames line says
     it is not checked, and why."""

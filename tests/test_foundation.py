@@ -592,6 +592,29 @@ def test_force_with_frames_recomputes_those_frames_in_place(tmp_path, monkeypatc
     assert (pipe.env.store("calibrate").status() == DONE).all() and (pipe.env.store("heatmaps").status() == DONE).all()
 
 
+def test_force_frames_on_a_stage_made_with_other_settings_is_refused_keeping_its_frames(tmp_path, monkeypatch):
+    """--force --frames means 'those frames, in place': where a stage the run needs was made with
+    other settings (a repair command run without the cache's --set options) it would be made anew
+    with only those frames. Refused, naming the stage, with every frame kept (until 2026-12-06 the
+    heatmaps below were rebuilt with frames 2 and 5 alone, the other finished frames discarded)."""
+    make_pipeline(tmp_path).run("heatmaps")
+    other = {"heatmap.sigma_px": "50,50"}  # heatmaps' own setting: calibrate stays current
+    for target in ("heatmaps", "train"):  # the stage itself, or one the target needs
+        with pytest.raises(ConfigError, match=rf"heatmaps holds {len(IDS)} finished frame\(s\) made with other settings"):
+            make_pipeline(tmp_path, **other).run(target, frames=[2, 5], force=True)
+    pipe = make_pipeline(tmp_path)
+    assert pipe.is_current("heatmaps") and (pipe.env.store("heatmaps").status() == DONE).all()
+    # with the settings it was made with, in place as before; without --frames, made anew
+    reports = {r.stage: r for r in make_pipeline(tmp_path).run("heatmaps", frames=[2, 5], force=True)}
+    assert reports["heatmaps"].processed == 2 and reports["heatmaps"].done == len(IDS)
+    reports = {r.stage: r for r in make_pipeline(tmp_path, **other).run("heatmaps", force=True)}
+    assert reports["heatmaps"].processed == len(IDS)
+    # no output yet: nothing to lose, no refusal
+    shutil.rmtree(tmp_path / "cache")
+    reports = {r.stage: r for r in make_pipeline(tmp_path).run("heatmaps", frames=[0], force=True)}
+    assert reports["heatmaps"].done == 1
+
+
 def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, monkeypatch):
     """The same frames at another data root would recompute everything: the run stops and says how
     to relocate; relocate checks frames computed from the new place against the cache (other data
