@@ -586,8 +586,12 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     from pipeline.runner import parse_frames
 
     env = _context(dataset, data_root, cache_root, sets)
+    _ensure_world(env, sys.stderr.isatty())  # as run, ablate and check-physics do (else: 0 frames)
     reader = get_reader(env.cfg, env.data_root)
     ids = reader.frame_ids()
+    if not ids:  # said as `run` says it, not as "0 readable frame(s): give more frames"
+        hint = reader.layout_hint()
+        raise PipelineError(f"dataset at {env.data_root}: no frames found" + (f" (a frame needs {hint})" if hint else ""))
     chosen = parse_frames(frames_spec, ids) or range(len(ids))
     skipped: list[tuple[str, str]] = []
 
@@ -595,9 +599,15 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
         for i in tqdm(chosen, desc="estimate-sigma", unit="frame", leave=False, file=sys.stderr,
                       disable=not sys.stderr.isatty()):
             try:
-                yield reader.read(ids[i])
+                frame = reader.read(ids[i])
             except (PipelineError, ValueError, OSError, KeyError) as exc:
                 skipped.append((ids[i], str(exc).splitlines()[0] if str(exc) else type(exc).__name__))
+                continue
+            if not frame.has_radar:  # e.g. KITTI: no frame of it can give Sigma, however many
+                raise ConfigError(f"dataset {dataset} has no radar (frame {ids[i]}): Sigma is estimated from "
+                                  f"radar points; estimate it on the dataset whose radar is simulated "
+                                  f"(train.nets_from), which trains the nets")
+            yield frame
 
     try:
         sx, sy = sigma_from_frames(readable())

@@ -253,3 +253,34 @@ def test_start_stop_written_as_frame_ids_is_refused_where_the_ids_are_not_the_in
     # where the ids name the frames the indices do, START:STOP stands (the synthetic world's ids)
     assert parse_frames("000000:000005", ids) == [0, 1, 2, 3, 4] and parse_frames("5:7", ids) == [5, 6]
     assert parse_frames("00005:00007", [f"{i:05d}" for i in range(20)]) == [5, 6]
+
+
+def test_estimate_sigma_generates_the_synthetic_world_into_the_cache_first(tmp_path, monkeypatch):
+    """Until 2026-12-06 estimate-sigma read the cache's world without generating it, as `run`,
+    ablate and check-physics do: on a fresh cache it said 'cannot estimate Sigma from the 0
+    readable frame(s) ... give more frames' (with --frames: 'selects no frame (this dataset has 0')."""
+    cache = tmp_path / "c"
+    sets = ["--set", "dataset.world_frames=4", "--set", "dataset.world_sequence_len=4"]
+    out = CliRunner().invoke(main, ["estimate-sigma", "--cache", str(cache), *sets])
+    assert out.exit_code == 0, out.output
+    assert (cache / "synthetic" / "world" / "world.json").exists()
+    assert "estimated Sigma std:" in out.stdout and "from 4 frame(s)" in out.stdout
+
+
+def test_estimate_sigma_says_no_frames_found_and_no_radar(tmp_path):
+    """A data root without frames was 'cannot estimate Sigma from the 0 readable frame(s) ... give
+    more frames', and KITTI (no radar: no frame of it can give Sigma) the same after reading every
+    frame. Now the first as `run` says it, the second at the first frame read."""
+    from tests.test_readers_kitti import _make
+
+    (tmp_path / "empty").mkdir()
+    out = CliRunner().invoke(main, ["estimate-sigma", "--dataset", "kitti", "--data-root", str(tmp_path / "empty"),
+                                    "--cache", str(tmp_path / "c")])
+    assert out.exit_code == 2 and "Traceback" not in out.output
+    assert out.stderr.startswith(f"error: dataset at {tmp_path / 'empty'}: no frames found (a frame needs "), out.stderr
+    _make(tmp_path / "kitti")
+    out = CliRunner().invoke(main, ["estimate-sigma", "--dataset", "kitti", "--data-root", str(tmp_path / "kitti"),
+                                    "--cache", str(tmp_path / "c"), "--set", "camera.full_size=64,48",
+                                    "--set", "camera.crop_rows=0,48"])
+    assert out.exit_code == 2 and "Traceback" not in out.output
+    assert out.stderr.startswith("error: dataset kitti has no radar (frame 000007)"), out.stderr
