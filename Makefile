@@ -1,9 +1,11 @@
 # One target per stage; DATASET picks the profile (default: the built-in synthetic world).
 #   make heatmaps DATASET=msc DATA_ROOT=/data/msc-rad4r/URBAN_D0
 #   make evaluate DATASET=astyx DATA_ROOT=../shared/data/astyx_hires2019/dataset_astyx_hires2019
-DATASET ?= synthetic
+# DATASET and CACHE default to $PIPELINE_DATASET and $PIPELINE_CACHE, as the pipeline's options do
+# (DATA_ROOT left empty lets the pipeline take $PIPELINE_DATA_ROOT or the cache's recorded root).
+DATASET ?= $(or $(PIPELINE_DATASET),synthetic)
 DATA_ROOT ?=
-CACHE ?= cache
+CACHE ?= $(or $(PIPELINE_CACHE),cache)
 WORKERS ?= 2
 ARGS ?=
 PYTHON ?= python3
@@ -11,7 +13,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 PIPELINE := $(BIN)/pipeline
 STAGES := calibrate heatmaps patches train synthesize export evaluate
-RUN_OPTS = --dataset $(DATASET) --cache $(CACHE) --workers $(WORKERS) $(if $(DATA_ROOT),--data-root $(DATA_ROOT)) $(ARGS)
+# quoted: a folder name with spaces stays one argument (ARGS is left to the shell: several options)
+q = '$(subst ','\'',$(1))'
+RUN_OPTS = --dataset $(call q,$(DATASET)) --cache $(call q,$(CACHE)) --workers $(WORKERS) $(if $(DATA_ROOT),--data-root $(call q,$(DATA_ROOT))) $(ARGS)
 
 .PHONY: setup demo demo-large test bench soak status clean-cache $(STAGES)
 
@@ -25,8 +29,8 @@ $(BIN)/.installed: pyproject.toml
 setup: $(BIN)/.installed  ## create .venv and install the package with pinned dependencies
 
 demo: setup  ## run the whole pipeline on the built-in synthetic world
-	$(PIPELINE) run evaluate --dataset synthetic --cache $(CACHE) --workers $(WORKERS) $(ARGS)
-	$(PIPELINE) run export --dataset synthetic --cache $(CACHE) --workers $(WORKERS) $(ARGS)
+	$(PIPELINE) run evaluate --dataset synthetic --cache $(call q,$(CACHE)) --workers $(WORKERS) $(ARGS)
+	$(PIPELINE) run export --dataset synthetic --cache $(call q,$(CACHE)) --workers $(WORKERS) $(ARGS)
 	@echo "report:  $(CACHE)/synthetic/evaluate/report.md"
 	@echo "figures: $(CACHE)/synthetic/evaluate/figures/"
 	@echo "export:  $(CACHE)/synthetic/export/"
@@ -52,10 +56,14 @@ soak: setup  ## long crash-resume soak: SIGKILL stages at random moments, compar
 	$(BIN)/python -m tests.soak --kills 30
 
 status: setup
-	$(PIPELINE) status --dataset $(DATASET) --cache $(CACHE) $(if $(DATA_ROOT),--data-root $(DATA_ROOT))
+	$(PIPELINE) status --dataset $(call q,$(DATASET)) --cache $(call q,$(CACHE)) $(if $(DATA_ROOT),--data-root $(call q,$(DATA_ROOT)))
 
 $(STAGES): setup
 	$(PIPELINE) run $@ $(RUN_OPTS)
 
+# refuses an empty CACHE or a DATASET that is no single folder name: `rm -rf cache/` (DATASET=)
+# would delete every dataset's cache, and `rm -rf /` (CACHE= DATASET=) worse
 clean-cache:
-	rm -rf $(CACHE)/$(DATASET)
+	@case $(call q,$(strip $(DATASET))) in ''|.|..|*/*) echo "clean-cache: DATASET='$(DATASET)' is no dataset name: nothing deleted" >&2; exit 2;; esac
+	@case $(call q,$(strip $(CACHE))) in '') echo "clean-cache: CACHE is empty: nothing deleted" >&2; exit 2;; esac
+	rm -rf $(call q,$(CACHE)/$(DATASET))
