@@ -129,17 +129,27 @@ def _edges(values: np.ndarray, bins: int) -> np.ndarray:
     return np.linspace(lo, hi if hi > lo else lo + 1.0, bins + 1)
 
 
+AXIS_LABELS = {"range_m": "range (m)", "azimuth_rad": "azimuth (rad)", "elevation_rad": "elevation (rad)",
+               "doppler_mps": "Doppler (m/s)", "rss": "RSS"}
+"""x-axis label of each :func:`histograms` column by default (RSS: its unit is the radar's,
+given by the caller)."""
+
+
 def histograms(out_png: str | Path, real: np.ndarray, syn: np.ndarray,
                names: Sequence[str] = ("range_m", "azimuth_rad", "elevation_rad", "doppler_mps", "rss"),
-               bins: int = 50, apart: Mapping[str, str] | None = None) -> Path:
+               bins: int = 50, apart: Mapping[str, str] | None = None,
+               labels: Mapping[str, str] | None = None) -> Path:
     """Histograms (densities) of each column of real (N, C) vs synthetic (M, C) points, C = len(names).
 
     Typically spherical arrays [range_m, azimuth_rad, elevation_rad, doppler_mps, rss]
     (pipeline.metrics.to_spherical). Shared bin edges per column over finite values of both sets,
     except the columns in ``apart`` (name -> a title saying why, e.g. RSS in different units):
-    each set over its own range. Figure size (3 * C) x 3 inches at :data:`FIG_DPI`.
+    each set over its own range. Each panel's x axis is labelled ``labels[name]``, else
+    :data:`AXIS_LABELS`' (else the name), its y axis "density (1/unit of x)".
+    Figure size (3 * C) x 3 inches at :data:`FIG_DPI`.
     """
     apart = dict(apart or {})
+    labels = {**AXIS_LABELS, **(labels or {})}
     real = check_shape("real", np.asarray(real, np.float64), (None, len(names)))
     syn = check_shape("syn", np.asarray(syn, np.float64), (None, len(names)))
     fig, axes = _figure(3.0 * len(names), 3.0, 1, len(names))
@@ -153,6 +163,8 @@ def histograms(out_png: str | Path, real: np.ndarray, syn: np.ndarray,
                             alpha=0.5, label=f"{label} ({values.size})")
             ax.legend(fontsize=6)
         ax.set_title(f"{name}: {apart[name]}" if name in apart else name, fontsize=8 if name not in apart else 6)
+        ax.set_xlabel(labels.get(name, name), fontsize=7)
+        ax.set_ylabel("density (1/unit of x)", fontsize=6)
         ax.tick_params(labelsize=6)
-    fig.subplots_adjust(left=0.05, right=0.98, top=0.88, bottom=0.12, wspace=0.3)
+    fig.subplots_adjust(left=0.05, right=0.98, top=0.88, bottom=0.17, wspace=0.35)
     return _save(fig, out_png)

@@ -67,11 +67,12 @@ says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; 
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
 wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on (13: with another dataset's
 nets the report says that the baselines know this dataset's own radar)."""
-REPORT_VERSION = 17
+REPORT_VERSION = 18
 """The evaluate report's version (12: the RSS histogram bins each set apart when the units differ;
 14: the model compared with a baseline on the frames both have, the frames per row in the table;
 15: not compared with one that has none of its frames; 16: the count's parts, count_parts; 17: a
-method's distribution distances against the real points of the frames it has, not of every frame);
+method's distribution distances against the real points of the frames it has, not of every frame;
+18: the histograms' axes labelled with their units, the RSS panel's with the radar's RSS unit);
 evaluate-frames keeps VERSION."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
@@ -642,12 +643,22 @@ def _figures(inputs, cfg, frames, figs: Path, syn_sph, real_sph, fig8, bev, hist
     if f8:
         fig8(figs / "fig8.png", f8)
         bev(figs / "bev.png", bv, cfg.radar.max_range_m, cfg.radar.fov_az_deg)
+    apart, labels = histogram_units(cfg)
+    histograms(figs / "histograms.png", real_sph, syn_sph, apart=apart, labels=labels)
+
+
+def histogram_units(cfg) -> tuple[dict[str, str], dict[str, str]]:
+    """(apart, labels) of the histograms (pipeline.figures.histograms): the RSS panel's x-axis label
+    names the radar's RSS unit; where the real and the synthesized radar measure RSS in different
+    units (nets of another dataset), each set is binned apart and both units are named."""
     from pipeline.config import own_radar
     from pipeline.transfer import comparison
 
-    apart = {} if comparison(cfg).rss else {
-        "rss": f"real {own_radar(cfg).rss_unit}, synthetic {cfg.radar.rss_unit} (not comparable)"}
-    histograms(figs / "histograms.png", real_sph, syn_sph, apart=apart)
+    real_unit, syn_unit = own_radar(cfg).rss_unit, cfg.radar.rss_unit
+    if comparison(cfg).rss:
+        return {}, {"rss": f"RSS ({syn_unit})"}
+    return ({"rss": f"real {real_unit}, synthetic {syn_unit} (not comparable)"},
+            {"rss": f"RSS (real {real_unit}, synthetic {syn_unit})"})
 
 
 def check(cfg: Config) -> None:

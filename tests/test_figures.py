@@ -122,3 +122,33 @@ def test_histograms_bin_a_column_of_other_units_apart(tmp_path, monkeypatch):
     np.testing.assert_array_equal(calls[0][1], calls[1][1])     # range: shared edges
     assert calls[0][1][0] == min(real[:, 0].min(), syn[:, 0].min())
     assert titles[-1] == "rss: real dB (Mag), synthetic dBsm (not comparable)" and titles[0] == "range_m"
+
+
+def test_histogram_axes_are_labelled_with_their_units(tmp_path, monkeypatch):
+    """Until 2026-12-06 the histograms had titles only ('rss': no unit anywhere) and no axis labels."""
+    from matplotlib.axes import Axes
+
+    xlabels, ylabels, set_xlabel, set_ylabel = [], [], Axes.set_xlabel, Axes.set_ylabel
+    monkeypatch.setattr(Axes, "set_xlabel", lambda self, t, **kw: xlabels.append(t) or set_xlabel(self, t, **kw))
+    monkeypatch.setattr(Axes, "set_ylabel", lambda self, t, **kw: ylabels.append(t) or set_ylabel(self, t, **kw))
+    rng = np.random.default_rng(2)
+    F.histograms(tmp_path / "hist.png", rng.normal(0, 1, (50, 5)), rng.normal(0, 1, (40, 5)),
+                 labels={"rss": "RSS (dB (Mag))"})
+    assert xlabels == ["range (m)", "azimuth (rad)", "elevation (rad)", "Doppler (m/s)", "RSS (dB (Mag))"]
+    assert len(ylabels) == 5 and all(y.startswith("density") for y in ylabels)
+
+
+def test_the_evaluate_histograms_name_the_radars_rss_unit():
+    """What the evaluate stage gives the histograms: the RSS unit of the dataset's radar, and with
+    the nets of a radar of other RSS units both units, binned apart."""
+    from pipeline.config import load_config
+    from pipeline.transfer import settings
+    from stages.evaluate import histogram_units
+
+    assert histogram_units(load_config("astyx", environ={})) == ({}, {"rss": "RSS (dB (Mag))"})
+    assert histogram_units(load_config("synthetic", environ={})) == ({}, {"rss": "RSS (dBsm)"})
+    astyx_on_vod = load_config("vod", {"train.nets_from": "astyx"}, environ={}).with_overrides(
+        settings(load_config("astyx", environ={})))
+    apart, labels = histogram_units(astyx_on_vod)
+    assert apart == {"rss": "real dBsm, synthetic dB (Mag) (not comparable)"}
+    assert labels == {"rss": "RSS (real dBsm, synthetic dB (Mag))"}
