@@ -17,7 +17,7 @@ STAGES := calibrate heatmaps patches train synthesize export evaluate
 q = '$(subst ','\'',$(1))'
 RUN_OPTS = --dataset $(call q,$(DATASET)) --cache $(call q,$(CACHE)) --workers $(WORKERS) $(if $(DATA_ROOT),--data-root $(call q,$(DATA_ROOT))) $(ARGS)
 
-.PHONY: setup demo demo-large test bench soak status clean-cache $(STAGES)
+.PHONY: help setup demo demo-large test bench soak status clean-cache $(STAGES)
 
 $(BIN)/.installed: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -55,7 +55,12 @@ bench: setup  ## speed benchmarks: one line per benchmark ending in the measured
 soak: setup  ## long crash-resume soak: SIGKILL stages at random moments, compare with a clean run
 	$(BIN)/python -m tests.soak --kills 30
 
-status: setup
+help:  ## this list of targets and the variables they take
+	@awk -F':.*## ' '/^[a-z-]+:.*## / {printf "  make %-12s %s\n", $$1, $$2}' $(firstword $(MAKEFILE_LIST))
+	@echo "  make STAGE        pipeline run STAGE, one target per stage: $(STAGES)"
+	@echo "variables: DATASET=$(DATASET) DATA_ROOT=$(DATA_ROOT) CACHE=$(CACHE) WORKERS=$(WORKERS) ARGS=$(ARGS)"
+
+status: setup  ## pipeline status for DATASET and CACHE
 	$(PIPELINE) status --dataset $(call q,$(DATASET)) --cache $(call q,$(CACHE)) $(if $(DATA_ROOT),--data-root $(call q,$(DATA_ROOT)))
 
 $(STAGES): setup
@@ -63,7 +68,7 @@ $(STAGES): setup
 
 # refuses an empty CACHE or a DATASET that is no single folder name: `rm -rf cache/` (DATASET=)
 # would delete every dataset's cache, and `rm -rf /` (CACHE= DATASET=) worse
-clean-cache:
+clean-cache:  ## delete CACHE/DATASET
 	@case $(call q,$(strip $(DATASET))) in ''|.|..|*/*) echo "clean-cache: DATASET='$(DATASET)' is no dataset name: nothing deleted" >&2; exit 2;; esac
 	@case $(call q,$(strip $(CACHE))) in '') echo "clean-cache: CACHE is empty: nothing deleted" >&2; exit 2;; esac
 	rm -rf $(call q,$(CACHE)/$(DATASET))

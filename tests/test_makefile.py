@@ -74,3 +74,18 @@ def test_clean_cache_refuses_what_would_delete_more_than_one_dataset(tmp_path, v
     out = _make("clean-cache", f"CACHE={tmp_path / 'cache'}", "DATASET=vod")
     assert out.returncode == 0, out.stderr
     assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == ["astyx"]
+
+
+def test_make_help_lists_every_target_the_readme_names():
+    """`make help` was 'No rule to make target' though the targets carried `##` descriptions."""
+    import re
+
+    out = _make("help")
+    assert out.returncode == 0, out.stderr
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    table = readme.split("## Make targets", 1)[1].split("\n## ", 1)[0]
+    named = set(re.findall(r"`make ([a-z-]+)`", table)) - {"calibrate", "heatmaps", "evaluate"}
+    assert named >= {"help", "setup", "demo", "status", "clean-cache"}
+    listed = set(re.findall(r"^  make (\S+)", out.stdout, re.M))
+    assert named <= listed, named - listed
+    assert "calibrate heatmaps patches train synthesize export evaluate" in out.stdout
