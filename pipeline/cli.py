@@ -113,16 +113,25 @@ def _explicit_keys(sets: tuple[str, ...]) -> set[str]:
     return set(parse_set_options(sets)) | set(env_overrides(dict(os.environ)))
 
 
+def _check_not_empty(dataset: str, cache_root: str) -> None:
+    """ConfigError for an empty --dataset or --cache: an unset shell variable in $PIPELINE_DATASET
+    or $PIPELINE_CACHE ('' joined to the dataset is a folder at the root)."""
+    if not dataset.strip():
+        raise ConfigError(f"--dataset (or $PIPELINE_DATASET) is empty: give a dataset profile "
+                          f"({', '.join(profile_names())})")
+    if not cache_root.strip():
+        raise ConfigError("--cache (or $PIPELINE_CACHE) is empty: give the cache folder or URL")
+
+
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
     from pipeline.executor import RunEnv
     from pipeline.runner import default_data_root
 
     from pipeline.transfer import with_nets_from
 
+    _check_not_empty(dataset, cache_root)
     overrides = parse_set_options(sets)
     cfg = load_config(dataset, overrides)
-    if not cache_root.strip():  # an unset shell variable: '' joined to the dataset is a folder at the root
-        raise ConfigError("--cache (or $PIPELINE_CACHE) is empty: give the cache folder or URL")
     cache_root, data_root = _absolute(cache_root), _absolute(data_root)  # workers and later runs elsewhere
     _check_url("--cache", cache_root)
     explicit = _explicit_keys(sets)
@@ -802,10 +811,13 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
 def unlock(stage, dataset, data_root, cache_root, sets):
     """Remove the lock of STAGE (or 'world', the synthetic world's generation) left by a run that
     died on another machine."""
+    from pipeline.config import check_profile
     from pipeline.lock import remove_lock
     from stages import all_stages
 
     check_stage_name(stage, [s.name for s in all_stages()] + ["world"])  # world: the synthetic world's generation
+    _check_not_empty(dataset, cache_root)
+    check_profile(dataset)  # an unknown dataset is refused, not 'no lock at cache/astx/locks/...'
     _check_url("--cache", cache_root)
     url = join(cache_root, dataset, "locks", f"{stage}.lock")
     click.echo(f"removed {url}" if remove_lock(url) else f"no lock at {url}")

@@ -203,6 +203,25 @@ def test_an_empty_cache_option_is_refused_not_a_folder_at_the_root(world, monkey
     assert not Path("/synthetic").exists()
 
 
+def test_an_empty_dataset_option_is_refused_naming_the_variable(tmp_path, monkeypatch):
+    """`PIPELINE_DATASET= pipeline status` (an unset shell variable) said "unknown dataset profile ''",
+    not where the empty name came from; unlock looked for a lock at CACHE//locks, and unlock of an
+    unknown or empty dataset (or with an empty --cache) said 'no lock at ...' with exit code 0."""
+    monkeypatch.setenv("PIPELINE_DATASET", "")
+    cache = ["--cache", str(tmp_path / "c")]
+    for command in (["status"], ["config"], ["run", "calibrate", "--dry-run"], ["unlock", "train"]):
+        out = CliRunner().invoke(main, [*command, *cache])
+        assert out.exit_code == 2 and out.stderr.startswith("error: --dataset (or $PIPELINE_DATASET) is empty: give "
+                                                             "a dataset profile (astyx, "), (command, out.output)
+    monkeypatch.delenv("PIPELINE_DATASET")
+    out = CliRunner().invoke(main, ["unlock", "train", "--dataset", "astx", *cache])
+    assert out.exit_code == 2 and "unknown dataset profile 'astx'" in out.stderr and "did you mean 'astyx'" in out.stderr
+    out = CliRunner().invoke(main, ["unlock", "train", "--cache", ""])
+    assert out.exit_code == 2 and "--cache (or $PIPELINE_CACHE) is empty" in out.stderr
+    out = CliRunner().invoke(main, ["unlock", "train", *cache])
+    assert out.exit_code == 0 and out.output.startswith("no lock at ")
+
+
 def test_verify_and_status_say_when_there_is_no_cache(tmp_path):
     """A mistyped --cache: verify said 'no stage output to verify' with exit code 0 (and made lock
     folders there); status listed every stage as not run."""
