@@ -6,7 +6,7 @@
 DATASET ?= $(or $(PIPELINE_DATASET),synthetic)
 DATA_ROOT ?=
 CACHE ?= $(or $(PIPELINE_CACHE),cache)
-WORKERS ?= 2
+WORKERS ?=
 ARGS ?=
 PYTHON ?= python3
 VENV := .venv
@@ -15,7 +15,7 @@ PIPELINE := $(BIN)/pipeline
 STAGES := calibrate heatmaps patches train synthesize export evaluate
 # quoted: a folder name with spaces stays one argument (ARGS is left to the shell: several options)
 q = '$(subst ','\'',$(1))'
-RUN_OPTS = --dataset $(call q,$(DATASET)) --cache $(call q,$(CACHE)) --workers $(WORKERS) $(if $(DATA_ROOT),--data-root $(call q,$(DATA_ROOT))) $(ARGS)
+RUN_OPTS = --dataset $(call q,$(DATASET)) --cache $(call q,$(CACHE)) $(if $(WORKERS),--workers $(WORKERS)) $(if $(DATA_ROOT),--data-root $(call q,$(DATA_ROOT))) $(ARGS)
 
 .PHONY: help setup demo demo-large test bench soak status clean-cache $(STAGES)
 
@@ -29,8 +29,8 @@ $(BIN)/.installed: pyproject.toml
 setup: $(BIN)/.installed  ## create .venv and install the package with pinned dependencies
 
 demo: setup  ## run the whole pipeline on the built-in synthetic world
-	$(PIPELINE) run evaluate --dataset synthetic --cache $(call q,$(CACHE)) --workers $(WORKERS) $(ARGS)
-	$(PIPELINE) run export --dataset synthetic --cache $(call q,$(CACHE)) --workers $(WORKERS) $(ARGS)
+	$(PIPELINE) run evaluate --dataset synthetic --cache $(call q,$(CACHE)) $(if $(WORKERS),--workers $(WORKERS)) $(ARGS)
+	$(PIPELINE) run export --dataset synthetic --cache $(call q,$(CACHE)) $(if $(WORKERS),--workers $(WORKERS)) $(ARGS)
 	@echo "report:  $(CACHE)/synthetic/evaluate/report.md"
 	@echo "figures: $(CACHE)/synthetic/evaluate/figures/"
 	@echo "export:  $(CACHE)/synthetic/export/"

@@ -89,3 +89,14 @@ def test_make_help_lists_every_target_the_readme_names():
     listed = set(re.findall(r"^  make (\S+)", out.stdout, re.M))
     assert named <= listed, named - listed
     assert "calibrate heatmaps patches train synthesize export evaluate" in out.stdout
+
+
+def test_workers_is_passed_only_when_given():
+    """Until 2026-12-06 make always passed --workers 2, which overrode `ARGS="--set run.workers=1"`
+    and PIPELINE__RUN__WORKERS: run.workers is the default, WORKERS=N still sets it."""
+    for target in ("heatmaps", "demo"):
+        out = _make("-n", "PIPELINE=pipeline", target, "ARGS=--set run.workers=1")
+        assert out.returncode == 0, out.stderr
+        runs = [shlex.split(line) for line in out.stdout.splitlines() if line.startswith("pipeline ")]
+        assert runs and all("--workers" not in argv and "run.workers=1" in argv for argv in runs), out.stdout
+    assert _option(_pipeline_argv("heatmaps", "WORKERS=3"), "--workers") == "3"
