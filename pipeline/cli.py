@@ -599,8 +599,7 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     reader = get_reader(env.cfg, env.data_root)
     ids = reader.frame_ids()
     if not ids:  # said as `run` says it, not as "0 readable frame(s): give more frames"
-        hint = reader.layout_hint()
-        raise PipelineError(f"dataset at {env.data_root}: no frames found" + (f" (a frame needs {hint})" if hint else ""))
+        raise reader.no_frames_error(env.data_root)
     chosen = parse_frames(frames_spec, ids) or range(len(ids))
     skipped: list[tuple[str, str]] = []
 

@@ -165,7 +165,7 @@ class Pipeline:
     def frame_ids(self) -> list[str]:
         """The dataset's frames, as the reader lists them."""
         if self._frame_ids is None:
-            examples = ""  # frames the reader skipped for want of files, with what each lacks
+            reader = None
             if self._frame_lister is not None:
                 ids = self._frame_lister()
             else:
@@ -179,18 +179,15 @@ class Pipeline:
                 reader = get_reader(self.env.cfg, root)
                 ids = reader.frame_ids()
                 skipped = {k: v for k, v in reader.report().items() if v}
-                examples = "; ".join(reader.skipped_examples())
-                examples = f" (e.g. {examples})" if examples else ""
                 if skipped:  # e.g. index entries without files: in no stage's status, so said here
                     self.log(f"{'reader':<{NAME_WIDTH}} " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in skipped.items())
-                             + examples)
+                             + reader.skipped_text())
             if len(set(ids)) != len(ids):
                 raise PipelineError(f"dataset at {self.env.data_root}: the reader listed duplicate frame ids")
             if not ids:
-                hint = reader.layout_hint() if self._frame_lister is None else ""
-                raise PipelineError(f"dataset at {self.env.data_root}: no frames found"
-                                    + (f" (a frame needs {hint})" if hint else "")
-                                    + (f"; frames skipped for want of files{examples}" if examples else ""))
+                if reader is not None:
+                    raise reader.no_frames_error(self.env.data_root)
+                raise PipelineError(f"dataset at {self.env.data_root}: no frames found")
             self._frame_ids = list(ids)
         return self._frame_ids
 

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from pipeline.config import Config, RadarSection, own_radar
-from pipeline.errors import ReaderError
+from pipeline.errors import PipelineError, ReaderError
 from pipeline.frame import FrameRecord
 from pipeline.geometry import cartesian_to_spherical, invert_transform
 
@@ -106,6 +106,19 @@ class Reader:
         """The files one frame needs, relative to the data root (said when no frame is found);
         empty when the reader says more itself."""
         return ""
+
+    def skipped_text(self) -> str:
+        """' (e.g. 01047: no lidar/training/velodyne/01047.bin; ...)': the frames of
+        :meth:`skipped_examples`, or '' when none was skipped for want of files."""
+        examples = "; ".join(self.skipped_examples())
+        return f" (e.g. {examples})" if examples else ""
+
+    def no_frames_error(self, data_root: str) -> PipelineError:
+        """The error for ``data_root`` (as the user gave it) where :meth:`frame_ids` lists no frame:
+        what a frame needs (:meth:`layout_hint`) and the frames skipped for want of files."""
+        hint, examples = self.layout_hint(), self.skipped_text()
+        return PipelineError(f"dataset at {data_root}: no frames found" + (f" (a frame needs {hint})" if hint else "")
+                             + (f"; frames skipped for want of files{examples}" if examples else ""))
 
     # -- helpers shared by the subclasses -------------------------------------------------------
 
