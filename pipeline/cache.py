@@ -730,10 +730,12 @@ class DirStore:
         except OSError as exc:
             raise cache_error(exc, f"writing {target}") from None
 
-    def finish(self, fingerprint: str, summary: dict[str, Any], frames: dict[str, str] | None = None) -> None:
+    def finish(self, fingerprint: str, summary: dict[str, Any], frames: dict[str, str] | None = None,
+               record: dict[str, Any] | None = None) -> None:
         """Mark the stage complete (written last). The folder's path is kept so that
         :meth:`summary` can move the summary's paths along with a moved or copied cache; ``frames``
-        (per-frame upstream stage -> :meth:`FrameStore.done_digest`) says which frames it read. On a
+        (per-frame upstream stage -> :meth:`FrameStore.done_digest`) says which frames it read;
+        ``record``: what it was made with (pipeline.runner.Pipeline.record), kept beside. On a
         local file system every file written reaches the disk first (fileio.sync_filesystem), so
         that after a power loss too a folder marked complete holds whole files."""
         if self.is_local:
@@ -742,7 +744,7 @@ class DirStore:
                 sync_filesystem(self.path)
             except OSError as exc:
                 raise cache_error(exc, f"flushing {self.url} to the disk") from None
-        self.write_text("_stage.json", json.dumps({"fingerprint": fingerprint, "finished": time.time(),
+        self.write_text("_stage.json", json.dumps({**(record or {}), "fingerprint": fingerprint, "finished": time.time(),
                                                    "path": self.path, "frames": frames or {}, "summary": summary},
                                                   indent=2, default=str))
 

@@ -400,6 +400,8 @@ def _print_status_row(row: dict, notes: dict[str, int] | None = None) -> None:
         state = "finished" if row.get("exists") else \
             f"not finished; resumes from {row['resumes_from']}" if row.get("resumes_from") else "not run"
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} {state}")
+    if row.get("why"):
+        click.echo(f"{'':<{NAME_WIDTH}} not current: {row['why']}")
     note = row.get("note")
     if note and (notes is None or notes.get(note)):
         more = notes.pop(note) if notes is not None else 1
@@ -765,8 +767,13 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
         if stale:
             before = [n for n in stale if n != name]
             redo = f"recomputes {before[0]} and every stage after it" if before else f"makes {name} anew"
+            sets, settings_only = pipe.forgotten_sets(stale)
+            options = " ".join(f"--set {shlex.quote(s)}" for s in sets)
+            give = f"add `{options}` to both" if settings_only else \
+                "give verify and the run the --set options the cache was made with" + \
+                (f" (those recorded: `{options}`)" if sets else "")
             click.echo(f"{'':<{NAME_WIDTH}} (not current with this command's settings, with which that run {redo}: "
-                       f"give verify and the run the --set options the cache was made with)")
+                       f"{give})")
 
     bad = 0
     for row in rows:

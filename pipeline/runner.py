@@ -17,6 +17,7 @@ import functools
 import hashlib
 import json
 import os
+import shlex
 import sys
 import tempfile
 import time
@@ -35,6 +36,7 @@ from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError,
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
+from pipeline.staleness import Staleness, explain
 
 FIRST_STAGE = "calibrate"
 FAILURES_LOGGED = 20
@@ -202,7 +204,7 @@ class Pipeline:
             }
             if name == FIRST_STAGE:
                 parts["data_root"] = _root(self.env.data_root)
-                parts["frames"] = hashlib.sha256("\n".join(self.frame_ids()).encode()).hexdigest()
+                parts["frames"] = self._frames_digest()
                 from pipeline.readers import reader_class
 
                 version = reader_class(self.env.cfg).version
@@ -215,6 +217,67 @@ class Pipeline:
             text = json.dumps(parts, sort_keys=True)
             self._fp[name] = hashlib.sha256(text.encode()).hexdigest()[:16]
         return self._fp[name]
+
+    def _frames_digest(self) -> str:
+        """SHA-256 of the dataset's frame ids (the first stage's fingerprint holds it)."""
+        return hashlib.sha256("\n".join(self.frame_ids()).encode()).hexdigest()
+
+    def record(self, name: str) -> dict[str, Any]:
+        """What stage ``name``'s output is made with under this command, recorded with the output
+        (frame stages in its attributes, dataset stages in _stage.json) for :meth:`why_stale`: its
+        configuration values, code version and upstream outputs' fingerprints; the first stage's
+        data root and frames; a dataset stage's other inputs (``extra``, e.g. the nets it takes)."""
+        stage, cfg = self.stages[name], self.env.cfg
+        rec: dict[str, Any] = {"version": stage.version,
+                               "config": {k: _jsonable(cfg.get(k)) for k in stage.config_keys},
+                               "upstream": {u: self.fingerprint(u) for u in stage.upstream}}
+        if name == FIRST_STAGE:
+            rec.update(data_root=self.env.data_root, frames_digest=self._frames_digest())
+        if isinstance(stage, DatasetStage) and stage.extra_fingerprint:
+            rec["extra"] = stage.extra_fingerprint(cfg, self.env)
+        return rec
+
+    def why_stale(self, name: str) -> Staleness | None:
+        """Why the output of stage ``name`` is not current under this command (its own record
+        against :meth:`record`; a stage whose upstream only is not current is current here);
+        None where it is, or there is no output. MetadataError where its record is damaged."""
+        stage = self.stages[name]
+        if isinstance(stage, FrameStage):
+            store = self.env.store(name)
+            if not store.exists():
+                return None
+            recorded = store.attrs()
+        else:
+            recorded = self.env.dir(name).meta()
+            if recorded is None:
+                return None
+        if recorded.get("fingerprint") == self.fingerprint(name):
+            if isinstance(stage, DatasetStage) and "frames" in recorded and recorded["frames"] != self.frames_read(name):
+                return Staleness(("its per-frame inputs finished other frames since it ran",))
+            return None
+        stale_up = {u for u in self.upstream_closure(name) if u != name and not self.is_current(u)}
+        return explain(recorded, self.record(name), self.env.cfg.dataset.reader, stale_up)
+
+    def forgotten_sets(self, names: list[str]) -> tuple[list[str], bool]:
+        """The ``--set`` options ('key=value') that would give this command the settings the
+        outputs of ``names`` that are not current were made with, and whether, as far as they
+        record, those options are all that differs. Where train.nets_from is among them, the radar
+        settings that come with the nets (transfer.RADAR_SETTINGS) are left out."""
+        from pipeline.transfer import RADAR_SETTINGS
+
+        sets: dict[str, None] = {}
+        settings_only = True
+        for name in names:
+            try:
+                why = self.why_stale(name)
+            except PipelineError:
+                return [], False
+            if why is not None:
+                sets.update(dict.fromkeys(why.sets))
+                settings_only &= why.settings_only
+        if any(s.startswith("train.nets_from=") for s in sets):
+            sets = {s: None for s in sets if s.split("=", 1)[0] not in RADAR_SETTINGS}
+        return list(sets), settings_only and bool(sets)
 
     def frames_read(self, name: str) -> dict[str, str]:
         """Which frames the per-frame upstream stages of stage ``name`` have done (stage -> digest)."""
@@ -304,11 +367,17 @@ class Pipeline:
             except PipelineError:  # damaged, or no frames to list: the run stops on it (a forced rebuild replaces it)
                 continue
             if done:
+                why = self.why_stale(name)
+                sets, settings_only = self.forgotten_sets([n for n in self.order if n in needed])
+                options = " ".join(f"--set {shlex.quote(s)}" for s in sets)
+                give = (f"Add `{options}` (the settings the cache was made with)" if settings_only else
+                        "Give the run the --set options the cache was made with" +
+                        (f" (those recorded: `{options}`)" if sets else ""))
                 raise ConfigError(
                     f"--force --frames: {name} holds {done} finished frame(s) made with other settings, code or "
-                    f"inputs than this run's (`pipeline status` shows it not current), so the run would not "
-                    f"recompute just those frames but make {name} anew with only them. Give the run the --set "
-                    f"options the cache was made with, or leave out --frames to recompute it whole; nothing was run")
+                    f"inputs than this run's ({why.text if why else '`pipeline status` shows it not current'}), so "
+                    f"the run would not recompute just those frames but make {name} anew with only them. {give}, "
+                    f"or leave out --frames to recompute it whole; nothing was run")
 
     def made_from(self) -> str | None:
         """The data root the first stage's output was made from, when this run's is another (which
@@ -552,8 +621,7 @@ class Pipeline:
         cfg = self.env.cfg
         specs = stage.outputs(cfg)
         attrs = {"stage": stage.name, "dataset": self.env.dataset, "profile": cfg.profile,
-                 "data_root": self.env.data_root, "config": {k: _jsonable(cfg.get(k)) for k in stage.config_keys},
-                 "upstream": {u: self.fingerprint(u) for u in stage.upstream}, "doc": stage.doc}
+                 "data_root": self.env.data_root, **self.record(stage.name), "doc": stage.doc}
         store.create(fp, self.frame_ids(), specs, {s.name: s.frame_shape(cfg) for s in specs}, attrs)
         return True
 
@@ -672,7 +740,7 @@ class Pipeline:
         if not rebuild:
             report.summary = {**out.summary(), "message": "up to date"}
             return report
-        frames = self.frames_read(stage.name)
+        frames, record = self.frames_read(stage.name), self.record(stage.name)
         if not force and out.fingerprint() == fp:
             self.log(f"{stage.name:<{NAME_WIDTH}} recomputing: its per-frame inputs finished other frames since it ran")
         # a stage writing with local file APIs on a remote cache writes into a local staging folder,
@@ -697,7 +765,7 @@ class Pipeline:
             summary = _moved_paths(summary, work.path, out.url)
             if not stage.resumes:  # nothing to resume from: the local copy of an export is not kept
                 work.clear()
-        out.finish(fp, summary, frames)
+        out.finish(fp, summary, frames, record)
         report.summary = summary
         return report
 
@@ -852,6 +920,13 @@ class Pipeline:
                         row["resumes_from"] = self._resume_point(stage, folder)
             if name == FIRST_STAGE and row.get("exists") and (old := self.made_from()):
                 row["note"] = self._other_root_message(old)
+            elif current is False and row.get("exists"):
+                try:
+                    why = self.why_stale(name)
+                except PipelineError:  # said by the row already
+                    why = None
+                if why is not None:
+                    row["why"] = why.text
             row["current"] = _all_of([current, *(current_of.get(u) for u in stage.upstream)]) if row["exists"] else False
             current_of[name] = row["current"]
             rows.append(row)

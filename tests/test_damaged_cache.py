@@ -725,7 +725,7 @@ def test_verify_repair_commands_carry_its_settings_and_say_when_the_output_is_no
     assert plain.exit_code == 2
     assert f"make it again: pipeline run train --dataset synthetic --cache {cache} --force\n" in plain.stdout
     assert ("(not current with this command's settings, with which that run recomputes heatmaps and every stage "
-            "after it: give verify and the run the --set options the cache was made with)") in plain.stdout
+            "after it: add `--set heatmap.sigma_px=5.0,5.0` to both)") in plain.stdout
     assert "(not current with this command's settings, with which that run makes heatmaps anew: " in plain.stdout
     same = fake_cli(tmp_path, "verify", *settings)
     assert same.exit_code == 2 and "not current" not in same.stdout, same.stdout
