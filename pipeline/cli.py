@@ -462,10 +462,14 @@ def _exit_if_damaged(rows: list[dict]) -> None:
 @_handle_errors
 def datasets():
     """List the dataset profiles shipped with the package."""
+    rows = []
     for name in profile_names():
         cfg = load_config(name, environ={})
-        click.echo(f"{name:<10} {cfg.radar.name:<24} working {cfg.camera.working_size[0]}x{cfg.camera.working_size[1]}  "
-                   f"{cfg.dataset.description}")
+        width, height = cfg.camera.working_size
+        rows.append((name, cfg.radar.name, f"working {width}x{height}", cfg.dataset.description))
+    name_w, radar_w, size_w = (max(len(row[i]) for row in rows) for i in range(3))
+    for name, radar, size, description in rows:
+        click.echo(f"{name:<{name_w}}  {radar:<{radar_w}}  {size:<{size_w}}  {description}")
 
 
 @main.command("config")

@@ -85,32 +85,58 @@ def fig8(out_png: str | Path, frames: Sequence[Mapping[str, Any]]) -> Path:
     return _save(fig, out_png)
 
 
+BEV_AXES_HEIGHT_IN = 3.0
+"""Height of each :func:`bev` panel's axes, inches (their width follows the panel's aspect)."""
+
+
+def _bev_half_y(max_range_m: float, fov_az_deg: float | None) -> float:
+    """Half the y span of a :func:`bev` panel, metres."""
+    if fov_az_deg is None:
+        return 0.8 * max_range_m
+    half_az = np.deg2rad(min(float(fov_az_deg), 180.0)) / 2
+    return 1.05 * max_range_m * max(np.sin(half_az), 0.2)
+
+
+BEV_MARGINS_IN = (0.45, 0.15, 0.45, 0.55)
+"""Room around each :func:`bev` panel's axes, inches: left (tick labels and "x (m, forward)"),
+right, bottom (tick labels and "y (m, left)"), top (the title and the figure's legend)."""
+
+
+def bev_size_in(n_panels: int, max_range_m: float = 50.0, fov_az_deg: float | None = None) -> tuple[float, float]:
+    """(width, height) in inches of :func:`bev` with ``n_panels`` panels: each panel's axes are
+    :data:`BEV_AXES_HEIGHT_IN` tall and as wide as the y span at equal axes, with
+    :data:`BEV_MARGINS_IN` around them."""
+    left, right, bottom, top = BEV_MARGINS_IN
+    axes_w = BEV_AXES_HEIGHT_IN * 2 * _bev_half_y(max_range_m, fov_az_deg) / max_range_m
+    return round(float(n_panels * (left + axes_w + right)), 2), round(bottom + BEV_AXES_HEIGHT_IN + top, 2)
+
+
 def bev(out_png: str | Path, frames: Sequence[Mapping[str, Any]], max_range_m: float = 50.0,
         fov_az_deg: float | None = None) -> Path:
     """Bird's-eye view of real (red) and synthetic (blue) points, one panel per frame.
 
     Each frame: ``real_points_D`` (N, 3+) and ``syn_points_D`` (M, 3+) in {D} (only x, y used),
-    ``title``. Drawn with x (forward) up and y (left) to the left, equal axes, x in [0, max_range_m].
-    With the radar's total azimuth field of view ``fov_az_deg`` its edges are drawn (dashed) and y
-    spans the field of view at ``max_range_m``, else +/- 0.8 max_range_m.
-    Figure size (4 * panels) x 4 inches at :data:`FIG_DPI`.
+    ``title`` (the evaluate stage's names the frame and both point counts). Drawn with x (forward)
+    up and y (left) to the left, equal axes, x in [0, max_range_m]. With the radar's total azimuth
+    field of view ``fov_az_deg`` its edges are drawn (dashed) and y spans the field of view at
+    ``max_range_m``, else +/- 0.8 max_range_m. One legend for the figure, above the panels.
+    Figure size :func:`bev_size_in` at :data:`FIG_DPI`.
     """
     if not frames:
         raise ValueError("bev: no frames to draw")
-    half_y = 0.8 * max_range_m
-    if fov_az_deg is not None:
-        half_az = np.deg2rad(min(float(fov_az_deg), 180.0)) / 2
-        half_y = 1.05 * max_range_m * max(np.sin(half_az), 0.2)
-    fig, axes = _figure(4.0 * len(frames), 4.0, 1, len(frames))
+    half_y = _bev_half_y(max_range_m, fov_az_deg)
+    width_in, height_in = bev_size_in(len(frames), max_range_m, fov_az_deg)
+    fig, axes = _figure(width_in, height_in, 1, len(frames))
     for ax, fr in zip(axes[0], frames):
         real = np.asarray(fr["real_points_D"], np.float64).reshape(-1, np.shape(fr["real_points_D"])[-1])
         syn = np.asarray(fr["syn_points_D"], np.float64).reshape(-1, np.shape(fr["syn_points_D"])[-1])
-        ax.scatter(real[:, 1], real[:, 0], s=2, c="red", label=f"real ({len(real)})")
-        ax.scatter(syn[:, 1], syn[:, 0], s=2, c="blue", label=f"synthetic ({len(syn)})")
+        ax.scatter(real[:, 1], real[:, 0], s=2, c="red", label="real")
+        ax.scatter(syn[:, 1], syn[:, 0], s=2, c="blue", label="synthetic")
         if fov_az_deg is not None:  # the field of view's edges out to max_range_m
+            half_az = np.deg2rad(min(float(fov_az_deg), 180.0)) / 2
             for side in (1.0, -1.0):
                 ax.plot([0.0, side * max_range_m * np.sin(half_az)], [0.0, max_range_m * np.cos(half_az)],
-                        ls="--", lw=0.6, c="0.6", zorder=0)
+                        ls="--", lw=0.6, c="0.6", zorder=0, label="field of view" if side > 0 else None)
         ax.set_xlim(half_y, -half_y)
         ax.set_ylim(0.0, max_range_m)
         ax.set_aspect("equal", adjustable="box")
@@ -118,8 +144,13 @@ def bev(out_png: str | Path, frames: Sequence[Mapping[str, Any]], max_range_m: f
         ax.set_ylabel("x (m, forward)", fontsize=7)
         ax.set_title(str(fr.get("title", "")), fontsize=8)
         ax.tick_params(labelsize=6)
-        ax.legend(fontsize=6, loc="upper right")
-    fig.subplots_adjust(left=0.14, right=0.97, top=0.92, bottom=0.1, wspace=0.35)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper center", ncols=len(labels), fontsize=7, frameon=False, markerscale=3,
+               borderaxespad=0.1)
+    left, right, bottom, top = BEV_MARGINS_IN
+    axes_w = width_in / len(frames) - left - right
+    fig.subplots_adjust(left=left / width_in, right=1 - right / width_in, bottom=bottom / height_in,
+                        top=1 - top / height_in, wspace=(left + right) / axes_w)
     return _save(fig, out_png)
 
 

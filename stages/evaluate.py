@@ -67,13 +67,13 @@ says: no RSS across RSS units, Doppler modulo the span of the radar that wraps; 
 with the real radar's own span; 11: the Doppler distribution distance on the circle of a radar that
 wraps Doppler). The report (STAGE) has its own REPORT_VERSION from 12 on (13: with another dataset's
 nets the report says that the baselines know this dataset's own radar)."""
-REPORT_VERSION = 18
+REPORT_VERSION = 19
 """The evaluate report's version (12: the RSS histogram bins each set apart when the units differ;
 14: the model compared with a baseline on the frames both have, the frames per row in the table;
 15: not compared with one that has none of its frames; 16: the count's parts, count_parts; 17: a
 method's distribution distances against the real points of the frames it has, not of every frame;
-18: the histograms' axes labelled with their units, the RSS panel's with the radar's RSS unit);
-evaluate-frames keeps VERSION."""
+18: the histograms' axes labelled with their units, the RSS panel's with the radar's RSS unit;
+19: the bird's-eye view sized to its panels, one legend above them); evaluate-frames keeps VERSION."""
 
 RANGE_CHECK_TOLERANCE_M = 1.0
 """The physics checks report the share of real points whose lidar range is within this of the

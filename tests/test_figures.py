@@ -46,13 +46,13 @@ def test_bev(tmp_path):
                "syn_points_D": rng.uniform([0, -20, -1], [50, 20, 2], (150, 3)), "title": "bev"},
               {"real_points_D": np.zeros((0, 3)), "syn_points_D": np.zeros((0, 3)), "title": "empty"}]
     path = F.bev(tmp_path / "bev.png", frames)
-    img = _check_png(path, 8.0, 4.0)
+    img = _check_png(path, *F.bev_size_in(2))
     assert _has_color(img, (0, 0, 255)) and _has_color(img, (255, 0, 0))
 
 
 def _red_quadrants(path):
     """Red pixel counts in the lower-left, lower-right quadrants and the lower half (the legend,
-    with its own red marker, sits in the upper right)."""
+    with its own red marker, sits above the panels)."""
     img = cv2.imread(str(path))
     red = np.all(np.abs(img.astype(int) - [0, 0, 255]) < 60, axis=2)
     h, w = red.shape
@@ -88,6 +88,25 @@ def test_bev_spans_the_field_of_view_when_given(tmp_path):
     assert red_and_grey("inside.png", (10.0, 25.0, 0.0), 64.0)[0] > 0
     red, grey = red_and_grey("outside.png", (10.0, 30.0, 0.0), 64.0)
     assert red == 0 and grey > grey_without + 250       # the two dashed edges
+
+
+def test_bev_fits_its_panels_and_keeps_the_legend_off_the_points(tmp_path):
+    """The figure is as wide as the panels at equal axes need (a wider field of view, a wider
+    figure), with no wide blank margin or gap between panels, and its legend (the only red of a
+    frame without points) lies above the panels' axes, not over the points."""
+    assert F.bev_size_in(4, 50.0, 110.0)[0] > F.bev_size_in(4, 50.0, 64.0)[0]
+    empty = {"real_points_D": np.zeros((0, 3)), "syn_points_D": np.zeros((0, 3)), "title": "frame 1: 0 real"}
+    for fov in (64.0, 110.0, None):
+        path = F.bev(tmp_path / f"bev{fov}.png", [empty] * 4, 50.0, fov)
+        img = _check_png(path, *F.bev_size_in(4, 50.0, fov), min_kb=1).astype(int)
+        ink = np.any(img < 250, axis=2)
+        blank = np.concatenate([[0], (~ink.any(0)).astype(int), [0]])
+        edges = np.flatnonzero(np.diff(blank))
+        assert (edges[1::2] - edges[::2]).max() < 0.3 * F.FIG_DPI, fov   # no blank strip over 0.3 inch wide
+        black = np.all(img < 60, axis=2)
+        spine_rows = np.flatnonzero(black.sum(1) > img.shape[1] / 2)     # the axes' top and bottom edges
+        red = np.all(np.abs(img - [0, 0, 255]) < 60, axis=2)
+        assert red.any() and np.flatnonzero(red.any(1)).max() < spine_rows.min(), fov
 
 
 def test_histograms(tmp_path):

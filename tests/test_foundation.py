@@ -475,6 +475,31 @@ def test_cli_help_and_errors(tmp_path):
     assert missing.exit_code == 2 and "--data-root" in missing.output
 
 
+def test_cli_datasets_columns_line_up_for_every_profile():
+    """`pipeline datasets` is a table: each column starts at the same place on every line, and a
+    long radar name ('synthetic FMCW (hidden model)') widens its column instead of pushing the
+    rest of its line to the right."""
+    from pipeline.cli import main
+    from pipeline.config import profile_names
+
+    lines = CliRunner().invoke(main, ["datasets"]).output.splitlines()
+    names = profile_names()
+    assert len(lines) == len(names)
+    starts = set()
+    for name, line in zip(names, lines):
+        cfg = load_config(name, environ={})
+        width, height = cfg.camera.working_size
+        fields = [name, cfg.radar.name, f"working {width}x{height}", cfg.dataset.description]
+        columns, at = [], 0
+        for field in fields:
+            at = line.index(field, at)
+            assert at == 0 or line[at - 2:at] == "  ", (name, line)  # two spaces between columns
+            columns.append(at)
+            at += len(field)
+        starts.add(tuple(columns))
+    assert len(starts) == 1, lines
+
+
 def test_cli_says_where_it_looked_when_a_data_root_holds_no_frames(tmp_path):
     """A wrong --data-root is one line: a missing folder is named as such, an empty one with the
     files a frame of that dataset needs (a user pointing at the folder above the right one)."""
