@@ -21,6 +21,7 @@ from pipeline.config import env_overrides, load_config, parse_set_options, profi
 from pipeline.errors import ClusterFailed, ConfigError, MetadataError, PipelineError, StageInterrupted, from_dask
 from pipeline.runner import NAME_WIDTH, check_stage_name, failed_frames_line
 from pipeline.stage import FrameStage
+from pipeline.staleness import options_text
 
 DEFAULT_CACHE = "cache"
 
@@ -772,7 +773,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
             before = [n for n in stale if n != name]
             redo = f"recomputes {before[0]} and every stage after it" if before else f"makes {name} anew"
             sets, settings_only = pipe.forgotten_sets(stale)
-            options = " ".join(f"--set {shlex.quote(s)}" for s in sets)
+            options = options_text(sets)
             give = f"add `{options}` to both" if settings_only else \
                 "give verify and the run the --set options the cache was made with" + \
                 (f" (those recorded: `{options}`)" if sets else "")

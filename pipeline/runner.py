@@ -17,7 +17,6 @@ import functools
 import hashlib
 import json
 import os
-import shlex
 import sys
 import tempfile
 import time
@@ -36,7 +35,7 @@ from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError,
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage
-from pipeline.staleness import Staleness, explain
+from pipeline.staleness import Staleness, explain, options_text
 
 FIRST_STAGE = "calibrate"
 FAILURES_LOGGED = 20
@@ -369,7 +368,7 @@ class Pipeline:
             if done:
                 why = self.why_stale(name)
                 sets, settings_only = self.forgotten_sets([n for n in self.order if n in needed])
-                options = " ".join(f"--set {shlex.quote(s)}" for s in sets)
+                options = options_text(sets)
                 give = (f"Add `{options}` (the settings the cache was made with)" if settings_only else
                         "Give the run the --set options the cache was made with" +
                         (f" (those recorded: `{options}`)" if sets else ""))

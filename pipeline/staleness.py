@@ -14,6 +14,7 @@ which ``--set`` options would give this command the recorded settings back.
 
 from __future__ import annotations
 
+import shlex
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,6 +47,11 @@ def set_text(value: Any) -> str:
     if isinstance(value, (list, tuple)):
         return ",".join(set_text(v) for v in value)
     return str(value)
+
+
+def options_text(sets: list[str] | tuple[str, ...]) -> str:
+    """'--set key=value ...' for ``sets`` ('key=value' texts), quoted for the shell."""
+    return " ".join(f"--set {shlex.quote(s)}" for s in sets)
 
 
 def setting_differences(recorded: dict[str, Any], current: dict[str, Any], reader: str) -> list[tuple[str, Any, Any]]:
