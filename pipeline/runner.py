@@ -236,10 +236,11 @@ class Pipeline:
             rec["extra"] = stage.extra_fingerprint(cfg, self.env)
         return rec
 
-    def why_stale(self, name: str) -> Staleness | None:
+    def why_stale(self, name: str, stale: set[str] | None = None) -> Staleness | None:
         """Why the output of stage ``name`` is not current under this command (its own record
         against :meth:`record`; a stage whose upstream only is not current is current here);
-        None where it is, or there is no output. MetadataError where its record is damaged."""
+        None where it is, or there is no output. MetadataError where its record is damaged.
+        ``stale``: the stages whose own output is not current, when the caller knows them."""
         stage = self.stages[name]
         if isinstance(stage, FrameStage):
             store = self.env.store(name)
@@ -254,7 +255,9 @@ class Pipeline:
             if isinstance(stage, DatasetStage) and "frames" in recorded and recorded["frames"] != self.frames_read(name):
                 return Staleness(("its per-frame inputs finished other frames since it ran",))
             return None
-        stale_up = {u for u in self.upstream_closure(name) if u != name and not self.is_current(u)}
+        closure = [u for u in self.upstream_closure(name) if u != name]
+        stale_up = {u for u in closure if u in stale} if stale is not None else \
+            {u for u in closure if not self.is_current(u)}
         return explain(recorded, self.record(name), self.env.cfg.dataset.reader, stale_up)
 
     def forgotten_sets(self, names: list[str]) -> tuple[list[str], bool]:
@@ -884,6 +887,7 @@ class Pipeline:
         still listed."""
         rows = []
         current_of: dict[str, bool | None] = {}
+        own_stale: set[str] = set()  # outputs that are not current by themselves (not only their upstream)
         for name in self.order:
             stage = self.stages[name]
             row: dict[str, Any] = {"stage": name}
@@ -917,11 +921,13 @@ class Pipeline:
                     row["summary"] = folder.summary()
                     if not row["exists"] and stage.resume_point is not None:
                         row["resumes_from"] = self._resume_point(stage, folder)
+            if current is False:
+                own_stale.add(name)
             if name == FIRST_STAGE and row.get("exists") and (old := self.made_from()):
                 row["note"] = self._other_root_message(old)
             elif current is False and row.get("exists"):
                 try:
-                    why = self.why_stale(name)
+                    why = self.why_stale(name, own_stale)
                 except PipelineError:  # said by the row already
                     why = None
                 if why is not None:
