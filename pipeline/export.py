@@ -36,9 +36,8 @@ from pipeline.frame import Object3D, check_shape, from_box_frame
 from pipeline.geometry import spherical_to_cartesian, wrap_doppler
 from pipeline.working import full_K
 
-VOD_COLUMNS = ("x_m", "y_m", "z_m", "rcs", "v_r_mps", "v_r_compensated_mps", "time_s")
-"""Columns of a VoD radar .bin point (7 float32, 28 bytes)."""
 VOD_POINT_BYTES = 28
+"""Bytes of a VoD radar .bin point: 7 float32, the columns of the module docstring."""
 PCD_FIELDS = ("x", "y", "z", "rss", "doppler")
 """Fields of the PCD files, all float32."""
 
