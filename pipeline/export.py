@@ -74,15 +74,6 @@ def radar_rows(points: np.ndarray, ego_velocity_D: np.ndarray, doppler_span_mps:
     return vod_points(points[:, :3], points[:, 7], points[:, 8], ego_velocity_D, doppler_span_mps)
 
 
-def write_vod_bin(
-    path: str | os.PathLike, points_D: np.ndarray, rss: np.ndarray, doppler_rangerate: np.ndarray,
-    ego_velocity_D: np.ndarray,
-) -> Path:
-    """Write one VoD radar .bin (7 float32 per point, see ``vod_points``) atomically; returns the path."""
-    rows = vod_points(points_D, rss, doppler_rangerate, ego_velocity_D)
-    return write_vod_rows(path, rows)
-
-
 def write_vod_rows(path: str | os.PathLike, rows: np.ndarray) -> Path:
     """Write ready (n, 7) VoD rows (e.g. with noise added) as little-endian float32, atomically."""
     rows = check_shape("rows", np.asarray(rows), (None, 7))
