@@ -127,28 +127,6 @@ def mean_count(train_counts: Iterable[int]) -> int:
     return max(1, int(round(float(counts.mean()))))
 
 
-def mean_heatmap(maps: Iterable[np.ndarray]) -> np.ndarray:
-    """Average of training heatmaps (H, W), each normalised to sum 1 (maps without mass skipped).
-
-    Streams over ``maps``; returns a float64 (H, W) map summing to 1. ValueError when no map has
-    mass or the shapes differ.
-    """
-    total, n = None, 0
-    for m in maps:
-        m = np.asarray(m, dtype=np.float64)
-        s = m.sum()
-        if not np.isfinite(s) or s <= 0:
-            continue
-        if total is None:
-            total = np.zeros_like(m)
-        check_shape("heatmap", m, total.shape)
-        total += m / s
-        n += 1
-    if total is None:
-        raise ValueError("mean_heatmap: no training heatmap with positive mass")
-    return total / total.sum()
-
-
 def uniform_map(image_size_wh: tuple[int, int]) -> np.ndarray:
     """Constant probability map (H, W) float64 summing to 1 (the ``uniform`` baseline's map)."""
     w, h = image_size_wh
