@@ -120,10 +120,11 @@ def method_by_name(name: str) -> BaselineSpec:
 
 
 def mean_count(train_counts: Iterable[int]) -> int:
-    """n_bar: the training mean of per-frame radar counts (evaluated region), rounded; >= 1."""
+    """n_bar: the training mean of per-frame radar counts (evaluated region), rounded; >= 1, and 0
+    without training frames (nothing to average)."""
     counts = np.asarray(list(train_counts), dtype=np.float64)
     if counts.size == 0:
-        raise ValueError("mean_count: no training frame counts")
+        return 0
     return max(1, int(round(float(counts.mean()))))
 
 

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from pipeline.baselines import mean_count
 from pipeline.cache import DONE, FAILED
 from pipeline.config import Config
 from pipeline.errors import CacheError, PipelineError, first_sentence
@@ -105,10 +106,6 @@ def _train_counts(inputs) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(ok & (split == 0) & (counts > 0)), counts
 
 
-def _mean_count(train: np.ndarray, counts: np.ndarray) -> int:
-    return int(round(counts[train].mean())) if len(train) else 0
-
-
 def _train_stats(inputs, cfg: Config) -> dict:
     """Training-split statistics the baselines use: mean count, mean map, RSS values."""
     patches = inputs.store("patches")
@@ -117,7 +114,7 @@ def _train_stats(inputs, cfg: Config) -> dict:
     pc = np.asarray(patches.array("rss_count")[:])
     rss = np.asarray(patches.array("rss").oindex[train])
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)
-    return {"n_bar": _mean_count(train, counts), "mean_map": mean_map,
+    return {"n_bar": mean_count(counts[train]), "mean_map": mean_map,
             "train_rss": rss_values, "rss_median": float(np.median(rss_values)) if len(rss_values) else 0.0}
 
 
@@ -425,8 +422,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     figs = root / "figures"
     _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, summary.model_sph, summary.real_sph, fig8, bev,
              histograms)
+    train, counts = _train_counts(inputs)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
-            "placement": cfg.synth.placement, "train_mean_count": _mean_count(*_train_counts(inputs)),
+            "placement": cfg.synth.placement, "train_mean_count": mean_count(counts[train]),
             "synthesize_counts": _synth_counts(syn_store, frames)}
     parts = count_parts(np.asarray(syn_store.array("n_parts").oindex[frames]),
                         np.asarray(syn_store.array("n_hat").oindex[frames]),

@@ -164,3 +164,4 @@ def test_mean_count_rounds_to_the_nearest_count():
     assert B.mean_count([10, 20, 32]) == 21          # mean 20.67
     assert B.mean_count([3, 4, 4]) == 4              # mean 3.67
     assert B.mean_count([0, 0, 0, 1]) == 1           # mean 0.25, but never 0 points
+    assert B.mean_count([]) == 0                     # no training frame: nothing to draw
