@@ -286,7 +286,7 @@ def frame_outputs(cfg: Config) -> tuple[ArraySpec, ...]:
 def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     """Every method's metrics, points and the physics residuals of one frame (FRAMES' arrays)."""
     from pipeline.baselines import METHODS
-    from pipeline.metrics import FRAME_METRICS, frame_metrics, to_spherical
+    from pipeline.metrics import FRAME_METRICS, frame_metrics, rss_loss, to_spherical
     from pipeline.inference import rssnet_predict
     from stages.patches import point_inputs
 
@@ -294,7 +294,6 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
 
     stats, frame_ids = _shared(f, cfg)
     nets = models(f, cfg)
-    r = cfg.radar
     compared = comparison(cfg)
     real = _real(f)
     target = f.get("heatmaps", "heatmap")
@@ -304,7 +303,7 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
                                        f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"), real[:, :3], cfg,
                                        lidar_tree(f, cfg))  # the frame's tree, which the model's placement uses too
         pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
-        rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
+        rss_err = rss_loss(real[:, 4], pred, cfg.radar.rss_min, cfg.radar.rss_max)
     methods = _methods_for_frame(f, cfg, stats, nets, _previous(f, frame_ids), target)
     table = np.full((len(METHODS), len(FRAME_METRICS)), np.nan)
     present, count = np.zeros(len(METHODS), bool), np.full(len(METHODS), np.nan)
