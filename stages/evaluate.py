@@ -47,6 +47,7 @@ from pipeline.metrics import region_mask
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
 from stages.synthesize import (SPLITS, capacity, check_generation, check_split, generate, lidar_tree, models,
                                split_mask)
+from stages.train import MEAN_MAP_FILE
 
 MAX_FRAME_GAP_S = 1.0
 """The previous-frame baseline needs consecutive frames: a previous frame further back than this
@@ -116,10 +117,6 @@ def _train_stats(inputs, cfg: Config) -> dict:
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)
     return {"n_bar": mean_count(counts[train]), "mean_map": mean_map,
             "train_rss": rss_values, "rss_median": float(np.median(rss_values)) if len(rss_values) else 0.0}
-
-
-MEAN_MAP_FILE = "mean_heatmap.npy"
-"""The train stage's file of the mean training heatmap (H, W) float32, which the mean-map baseline uses."""
 
 
 def read_mean_map(inputs, cfg: Config) -> np.ndarray:
