@@ -120,33 +120,12 @@ def method_by_name(name: str) -> BaselineSpec:
 
 
 def mean_count(train_counts: Iterable[int]) -> int:
-    """n_bar: the training mean of per-frame radar counts (evaluated region), rounded; >= 1."""
+    """n_bar: the training mean of per-frame radar counts (evaluated region), rounded; >= 1, and 0
+    without training frames (nothing to average)."""
     counts = np.asarray(list(train_counts), dtype=np.float64)
     if counts.size == 0:
-        raise ValueError("mean_count: no training frame counts")
+        return 0
     return max(1, int(round(float(counts.mean()))))
-
-
-def mean_heatmap(maps: Iterable[np.ndarray]) -> np.ndarray:
-    """Average of training heatmaps (H, W), each normalised to sum 1 (maps without mass skipped).
-
-    Streams over ``maps``; returns a float64 (H, W) map summing to 1. ValueError when no map has
-    mass or the shapes differ.
-    """
-    total, n = None, 0
-    for m in maps:
-        m = np.asarray(m, dtype=np.float64)
-        s = m.sum()
-        if not np.isfinite(s) or s <= 0:
-            continue
-        if total is None:
-            total = np.zeros_like(m)
-        check_shape("heatmap", m, total.shape)
-        total += m / s
-        n += 1
-    if total is None:
-        raise ValueError("mean_heatmap: no training heatmap with positive mass")
-    return total / total.sum()
 
 
 def uniform_map(image_size_wh: tuple[int, int]) -> np.ndarray:

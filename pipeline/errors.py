@@ -162,8 +162,7 @@ class ClusterFailed(PipelineError):
     def from_dask(cls, exc: BaseException, **kwargs: Any) -> "ClusterFailed":
         """The failure dask's own error ``exc`` reports (its type and first line); ``kwargs`` as
         for the constructor."""
-        first = str(exc).splitlines()[0] if str(exc) else ""
-        return cls(f"the dask cluster failed ({type(exc).__name__}: {first})", **kwargs)
+        return cls(f"the dask cluster failed ({exception_line(exc)})", **kwargs)
 
     def in_stage(self, stage: str, kind: InterruptedKind, forced: bool) -> "ClusterFailed":
         """The same failure, placed in ``stage`` (of ``kind``, ``forced`` as for the constructor)."""
@@ -171,6 +170,12 @@ class ClusterFailed(PipelineError):
 
     def __reduce__(self):
         return type(self), (self.what, self.stage, self.kind, self.forced, self.after)
+
+
+def exception_line(exc: BaseException) -> str:
+    """'Type: the first line of the message' of ``exc`` ('Type: ' for an empty message)."""
+    text = str(exc)
+    return f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}"
 
 
 def first_sentence(exc: BaseException, limit: int = 120) -> str:

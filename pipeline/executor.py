@@ -27,7 +27,8 @@ from tqdm import tqdm
 
 from pipeline.cache import DONE, FAILED, FrameStore, dir_store, frame_store
 from pipeline.config import Config
-from pipeline.errors import CacheError, ClusterFailed, FrameError, PipelineError, sigint_deferred
+from pipeline.errors import (CacheError, ClusterFailed, FrameError, PipelineError, exception_line,
+                             sigint_deferred)
 from pipeline.stage import FrameStage
 
 # glibc heap settings for local dask workers: arrays under 64 MiB come from a reused heap.
@@ -298,10 +299,6 @@ class Executor:
         import fsspec
 
         from pipeline.cache import cache_error
-        from pipeline.errors import PipelineError
-
-        def first_line(exc: BaseException) -> str:
-            return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
 
         # an empty folder is no object on an object store: a file the worker must see
         fs, path = fsspec.core.url_to_fs(cache_root)
@@ -318,8 +315,8 @@ class Executor:
             except PipelineError:
                 raise
             except Exception as exc:  # a malformed address, a refused connection
-                raise PipelineError(f"dask cluster at {self.scheduler}: cannot connect ({first_line(exc)}); give the "
-                                    f"scheduler's address, tcp://HOST:PORT") from None
+                raise PipelineError(f"dask cluster at {self.scheduler}: cannot connect ({exception_line(exc)}); "
+                                    f"give the scheduler's address, tcp://HOST:PORT") from None
             try:
                 client.wait_for_workers(1, timeout=timeout_s)
                 url = fs.unstrip_protocol(marker)
@@ -328,8 +325,8 @@ class Executor:
                 blind = sorted(w for w, seen in client.run(_worker_probe, url).items() if not seen)
             except Exception as exc:  # timeouts, a worker that cannot unpickle the task
                 raise PipelineError(f"dask cluster at {self.scheduler}: no worker ran a probe task within "
-                                    f"{timeout_s:.0f} s ({first_line(exc)}); its workers need this package installed "
-                                    f"and the cache at the same path") from None
+                                    f"{timeout_s:.0f} s ({exception_line(exc)}); its workers need this package "
+                                    f"installed and the cache at the same path") from None
         finally:
             try:
                 fs.rm_file(marker)

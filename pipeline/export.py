@@ -36,9 +36,8 @@ from pipeline.frame import Object3D, check_shape, from_box_frame
 from pipeline.geometry import spherical_to_cartesian, wrap_doppler
 from pipeline.working import full_K
 
-VOD_COLUMNS = ("x_m", "y_m", "z_m", "rcs", "v_r_mps", "v_r_compensated_mps", "time_s")
-"""Columns of a VoD radar .bin point (7 float32, 28 bytes)."""
 VOD_POINT_BYTES = 28
+"""Bytes of a VoD radar .bin point: 7 float32, the columns of the module docstring."""
 PCD_FIELDS = ("x", "y", "z", "rss", "doppler")
 """Fields of the PCD files, all float32."""
 
@@ -73,15 +72,6 @@ def radar_rows(points: np.ndarray, ego_velocity_D: np.ndarray, doppler_span_mps:
     Doppler sign +1; RSS column 7; the rest as :func:`vod_points`."""
     points = check_shape("points", np.asarray(points), (None, 9))
     return vod_points(points[:, :3], points[:, 7], points[:, 8], ego_velocity_D, doppler_span_mps)
-
-
-def write_vod_bin(
-    path: str | os.PathLike, points_D: np.ndarray, rss: np.ndarray, doppler_rangerate: np.ndarray,
-    ego_velocity_D: np.ndarray,
-) -> Path:
-    """Write one VoD radar .bin (7 float32 per point, see ``vod_points``) atomically; returns the path."""
-    rows = vod_points(points_D, rss, doppler_rangerate, ego_velocity_D)
-    return write_vod_rows(path, rows)
 
 
 def write_vod_rows(path: str | os.PathLike, rows: np.ndarray) -> Path:

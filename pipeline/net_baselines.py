@@ -11,6 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.egomotion import STOPPED_MPS
+from pipeline.metrics import rss_loss
 from pipeline.models.disnet import COUNT_PRIOR_KNOTS
 from pipeline.rows import as_rows, iter_batches, take_rows
 
@@ -106,6 +107,5 @@ def rssnet_baseline(rss: Any, train_idx: Sequence[int], eval_idx: Sequence[int],
                     rss_min: float, rss_max: float) -> dict[str, float]:
     """L_a ('a') of predicting the training median RSS for every point of ``eval_idx``."""
     median = float(np.median(take_rows(rss, np.asarray(train_idx, np.int64))))
-    a = take_rows(rss, np.asarray(eval_idx, np.int64)).astype(np.float64)
-    err = ((a - median) / (rss_max - rss_min)) ** 2
-    return {"a": float(err.mean()) if err.size else math.nan, "median": median}
+    a = take_rows(rss, np.asarray(eval_idx, np.int64))
+    return {"a": rss_loss(a, np.full(len(a), median), rss_min, rss_max), "median": median}

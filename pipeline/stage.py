@@ -55,7 +55,6 @@ class FrameStage:
 
     ``select(cfg, dataset_inputs) -> bool mask (F,)`` limits the frames the stage works on (for
     example one split); unselected frames are reported as excluded.
-    ``needs_reader``: the frame function reads raw files through ``inputs.reader``.
     ``check(cfg)``: ConfigError for settings the stage cannot run with; the runner calls it for
     every stage of a run before any output is touched.
     ``part_of``: the dataset stage whose per-frame part this is (evaluate's per-frame metrics,
@@ -74,7 +73,6 @@ class FrameStage:
     process: Callable[..., dict[str, np.ndarray]]
     version: int = 1
     select: Callable[..., np.ndarray] | None = None
-    needs_reader: bool = False
     doc: str = ""
     check: Callable[["Config"], None] | None = None
     part_of: str = ""

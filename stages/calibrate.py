@@ -183,4 +183,4 @@ def check(cfg: Config) -> None:
 
 
 STAGE = FrameStage(name="calibrate", upstream=(), config_keys=CONFIG_KEYS, outputs=outputs, process=process,
-                   version=VERSION, needs_reader=True, doc=__doc__, summarise=summarise, check=check)
+                   version=VERSION, doc=__doc__, summarise=summarise, check=check)

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from pipeline.baselines import mean_count
 from pipeline.cache import DONE, FAILED
 from pipeline.config import Config
 from pipeline.errors import CacheError, PipelineError, first_sentence
@@ -46,6 +47,7 @@ from pipeline.metrics import region_mask
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
 from stages.synthesize import (SPLITS, capacity, check_generation, check_split, generate, lidar_tree, models,
                                split_mask)
+from stages.train import MEAN_MAP_FILE
 
 MAX_FRAME_GAP_S = 1.0
 """The previous-frame baseline needs consecutive frames: a previous frame further back than this
@@ -105,10 +107,6 @@ def _train_counts(inputs) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(ok & (split == 0) & (counts > 0)), counts
 
 
-def _mean_count(train: np.ndarray, counts: np.ndarray) -> int:
-    return int(round(counts[train].mean())) if len(train) else 0
-
-
 def _train_stats(inputs, cfg: Config) -> dict:
     """Training-split statistics the baselines use: mean count, mean map, RSS values."""
     patches = inputs.store("patches")
@@ -117,12 +115,8 @@ def _train_stats(inputs, cfg: Config) -> dict:
     pc = np.asarray(patches.array("rss_count")[:])
     rss = np.asarray(patches.array("rss").oindex[train])
     rss_values = np.concatenate([rss[k, :pc[f]] for k, f in enumerate(train)]) if len(train) else np.zeros(0)
-    return {"n_bar": _mean_count(train, counts), "mean_map": mean_map,
+    return {"n_bar": mean_count(counts[train]), "mean_map": mean_map,
             "train_rss": rss_values, "rss_median": float(np.median(rss_values)) if len(rss_values) else 0.0}
-
-
-MEAN_MAP_FILE = "mean_heatmap.npy"
-"""The train stage's file of the mean training heatmap (H, W) float32, which the mean-map baseline uses."""
 
 
 def read_mean_map(inputs, cfg: Config) -> np.ndarray:
@@ -289,7 +283,7 @@ def frame_outputs(cfg: Config) -> tuple[ArraySpec, ...]:
 def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
     """Every method's metrics, points and the physics residuals of one frame (FRAMES' arrays)."""
     from pipeline.baselines import METHODS
-    from pipeline.metrics import FRAME_METRICS, frame_metrics, to_spherical
+    from pipeline.metrics import FRAME_METRICS, frame_metrics, rss_loss, to_spherical
     from pipeline.inference import rssnet_predict
     from stages.patches import point_inputs
 
@@ -297,7 +291,6 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
 
     stats, frame_ids = _shared(f, cfg)
     nets = models(f, cfg)
-    r = cfg.radar
     compared = comparison(cfg)
     real = _real(f)
     target = f.get("heatmaps", "heatmap")
@@ -307,7 +300,7 @@ def evaluate_frame(f: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
                                        f.get("calibrate", "T_radar_cam"), f.get("calibrate", "lidar"), real[:, :3], cfg,
                                        lidar_tree(f, cfg))  # the frame's tree, which the model's placement uses too
         pred = rssnet_predict(nets.rssnet, patches, ranges, real[:, :4].astype(np.float32))
-        rss_err = float(np.mean(((real[:, 4] - pred) / (r.rss_max - r.rss_min)) ** 2))
+        rss_err = rss_loss(real[:, 4], pred, cfg.radar.rss_min, cfg.radar.rss_max)
     methods = _methods_for_frame(f, cfg, stats, nets, _previous(f, frame_ids), target)
     table = np.full((len(METHODS), len(FRAME_METRICS)), np.nan)
     present, count = np.zeros(len(METHODS), bool), np.full(len(METHODS), np.nan)
@@ -425,8 +418,9 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     figs = root / "figures"
     _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, summary.model_sph, summary.real_sph, fig8, bev,
              histograms)
+    train, counts = _train_counts(inputs)
     meta = {"frames": int(len(frames)), "split": cfg.eval.split, "range_estimator": cfg.synth.range_estimator,
-            "placement": cfg.synth.placement, "train_mean_count": _mean_count(*_train_counts(inputs)),
+            "placement": cfg.synth.placement, "train_mean_count": mean_count(counts[train]),
             "synthesize_counts": _synth_counts(syn_store, frames)}
     parts = count_parts(np.asarray(syn_store.array("n_parts").oindex[frames]),
                         np.asarray(syn_store.array("n_hat").oindex[frames]),

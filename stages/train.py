@@ -43,6 +43,8 @@ CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING
                                   + ("train.nets", "disnet.prior_mix", *EPOCHS_KEYS.values())))
 COPIED = tuple(f"{net}/best.safetensors" for net in NETS)
 """What train.nets_from takes from the other dataset's train output (those of them it has)."""
+MEAN_MAP_FILE = "mean_heatmap.npy"
+"""The file of the mean training heatmap (H, W) float32, which evaluate's mean-map baseline samples."""
 
 
 def frame_table(inputs) -> dict[str, np.ndarray]:
@@ -135,7 +137,7 @@ def _baselines(inputs, table, idx, cfg: Config, root: Path) -> dict[str, float]:
         r = rssnet_baseline(rss, np.arange(len(train_rss)), np.arange(len(train_rss), len(rss)),
                             cfg.radar.rss_min, cfg.radar.rss_max)
         out.update(median_rss_L_a=r["a"], train_rss_median=r["median"])
-    np.save(root / "mean_heatmap.npy", mean_map.astype(np.float32), allow_pickle=False)
+    np.save(root / MEAN_MAP_FILE, mean_map.astype(np.float32), allow_pickle=False)
     return out
 
 
@@ -251,7 +253,7 @@ def _save_mean_map(inputs, root: Path) -> None:
     train = np.flatnonzero(table["ok"] & (table["count"] > 0) & (table["split"] == 0))
     if len(train):
         mean_map = mean_map_baseline(inputs.store("heatmaps").array("heatmap"), train).astype(np.float32)
-        np.save(root / "mean_heatmap.npy", mean_map, allow_pickle=False)
+        np.save(root / MEAN_MAP_FILE, mean_map, allow_pickle=False)
 
 
 def nets_from_fingerprint(cfg: Config, env) -> str:

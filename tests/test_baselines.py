@@ -77,18 +77,6 @@ def test_choose_count_map_rss():
     assert B.choose_rss(B.method_by_name("model"), 4, rng, 2.5) is None
 
 
-def test_mean_count_and_mean_heatmap():
-    assert B.mean_count([10, 20, 31]) == 20
-    a = np.zeros((2, 3))
-    a[0, 0] = 4.0
-    b = np.zeros((2, 3))
-    b[1, 2] = 1.0
-    m = B.mean_heatmap([a, b, np.zeros((2, 3))])  # the empty map is skipped
-    assert m[0, 0] == pytest.approx(0.5) and m[1, 2] == pytest.approx(0.5) and m.sum() == pytest.approx(1.0)
-    with pytest.raises(ValueError):
-        B.mean_heatmap([np.zeros((2, 2))])
-
-
 def test_uniform_map_sampling_covers_image():
     prob = B.choose_map(B.method_by_name("uniform"), (200, 100))
     uv = sample_pixels(prob, 5000, np.random.default_rng(1))
@@ -172,6 +160,8 @@ def test_previous_frame_moves_points_keeps_columns():
 
 def test_mean_count_rounds_to_the_nearest_count():
     """n_bar is the training mean rounded (not truncated), and at least 1."""
+    assert B.mean_count([10, 20, 31]) == 20          # mean 20.33
     assert B.mean_count([10, 20, 32]) == 21          # mean 20.67
     assert B.mean_count([3, 4, 4]) == 4              # mean 3.67
     assert B.mean_count([0, 0, 0, 1]) == 1           # mean 0.25, but never 0 points
+    assert B.mean_count([]) == 0                     # no training frame: nothing to draw

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.baselines import mean_count
 from pipeline.cache import DONE, FAILED, PENDING
 from pipeline.config import load_config
 from pipeline.executor import Executor, RunEnv
@@ -315,7 +316,7 @@ def test_baseline_statistics_come_from_the_train_split_only():
     heat = _FakeStore([DONE] * 6, count=[10, 50, 70, 0, 30, 90])
     train, counts = evaluate._train_counts(_FakeEnv(calibrate=calib, heatmaps=heat))
     assert list(train) == [0] and list(counts) == [10, 50, 70, 0, 30, 90]
-    assert evaluate._mean_count(train, counts) == 10
+    assert mean_count(counts[train]) == 10
 
 
 def test_evaluate_frames_selects_eval_split_not_synth_split():

@@ -14,7 +14,7 @@ from pipeline.errors import ReaderError
 from pipeline.export import (
     DONT_CARE_LINE, add_uniform_noise, detector_label_text, kitti_calib_text, label_classes, parse_class_map, preview_png,
     read_pcd, read_vod_bin, rename_classes, vod_points, write_image, write_image_sets, write_kitti_layout, write_pcd,
-    write_vod_bin,
+    write_vod_rows,
 )
 from pipeline.geometry import cartesian_to_spherical, invert_transform, project_to_image
 from pipeline.synthesis import doppler_for_points
@@ -29,7 +29,7 @@ def random_points(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.nda
 def test_vod_bin_round_trip(tmp_path: Path):
     points, rss, v_r = random_points(50)
     ego = np.array([4.0, 0.5, -0.1])
-    path = write_vod_bin(tmp_path / "radar" / "00001.bin", points, rss, v_r, ego)
+    path = write_vod_rows(tmp_path / "radar" / "00001.bin", vod_points(points, rss, v_r, ego))
     assert path.stat().st_size == 50 * 28
     rows = read_vod_bin(path)
     assert rows.shape == (50, 7) and rows.dtype == np.float32
@@ -52,7 +52,7 @@ def test_static_world_compensates_to_zero():
 
 
 def test_vod_bin_empty_and_bad_files(tmp_path: Path):
-    path = write_vod_bin(tmp_path / "e.bin", np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(3))
+    path = write_vod_rows(tmp_path / "e.bin", vod_points(np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(3)))
     assert read_vod_bin(path).shape == (0, 7)
     bad = tmp_path / "bad.bin"
     bad.write_bytes(b"\0" * 30)
@@ -61,7 +61,9 @@ def test_vod_bin_empty_and_bad_files(tmp_path: Path):
     with pytest.raises(ReaderError):
         read_vod_bin(tmp_path / "missing.bin")
     with pytest.raises(ValueError):
-        write_vod_bin(tmp_path / "x.bin", np.zeros((3, 3)), np.zeros(2), np.zeros(3), np.zeros(3))
+        vod_points(np.zeros((3, 3)), np.zeros(2), np.zeros(3), np.zeros(3))
+    with pytest.raises(ValueError):
+        write_vod_rows(tmp_path / "x.bin", np.zeros((3, 6)))
 
 
 def test_v_r_compensated_of_an_aliasing_radar_is_wrapped_into_its_span():

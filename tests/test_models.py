@@ -15,7 +15,8 @@ from pipeline.errors import ConfigError
 from pipeline.models.disnet import DisNet, build_disnet
 from pipeline.models.losses import count_loss, kl_loss, rss_loss
 from pipeline.models.resnet import ResNet18Backbone, load_state_dict_file, resnet18_backbone
-from pipeline.models.rssnet import RANGE_IMAGE_EMPTY, RSSNet, normalise_range_image
+from pipeline.models.rssnet import RSSNet, normalise_range_image
+from pipeline.rangeimage import EMPTY
 
 torch.set_num_threads(1)
 
@@ -278,7 +279,7 @@ def test_rssnet_switches(cam, li, rp):
     model = RSSNet(cam, li, rp, patch_size=16, range_image_size=(128, 32), rss_min=-30, rss_max=40).eval()
     b = 5
     patch = torch.rand(b, 3, 16, 16) if cam else None
-    rimg = torch.full((b, 32, 128), RANGE_IMAGE_EMPTY) if li else None
+    rimg = torch.full((b, 32, 128), EMPTY) if li else None
     point = torch.randn(b, 4) * 10 if rp else None
     out = model(patch, rimg, point)
     assert out.shape == (b,) and bool(torch.isfinite(out).all())
@@ -307,7 +308,7 @@ def test_rssnet_units_round_trip():
 
 
 def test_range_image_normalisation():
-    raw = torch.tensor([[[0.0, 255.0, 127.5, RANGE_IMAGE_EMPTY, float("nan"), 300.0]]])
+    raw = torch.tensor([[[0.0, 255.0, 127.5, EMPTY, float("nan"), 300.0]]])
     out = normalise_range_image(raw)
     assert out.shape == (1, 2, 1, 6)
     assert torch.allclose(out[0, 0, 0], torch.tensor([-1.0, 1.0, 0.0, 0.0, 0.0, 0.0]))

@@ -16,7 +16,7 @@ The output is the normalised RSS ``(a - rss_min) / (rss_max - rss_min)``; :meth:
 converts it to dataset units.
 
 Range image values: 0..255 are lidar pixels (127 = same distance as the radar point); any other
-value (negative, > 255, NaN) is an empty pixel, e.g. :data:`RANGE_IMAGE_EMPTY`.
+value (negative, > 255, NaN) is an empty pixel, e.g. :data:`pipeline.rangeimage.EMPTY`.
 
 The 0.5 and 99.5 percentiles of a few summaries of the training inputs (:data:`pipeline.patches.INPUT_SUMMARIES`,
 :func:`pipeline.patches.input_summaries`) are saved with the weights (``input_low``, ``input_high``):
@@ -35,8 +35,6 @@ from pipeline.models.disnet import IMAGENET_MEAN, IMAGENET_STD
 from pipeline.input_range import outside, training_range
 from pipeline.patches import INPUT_SUMMARIES
 
-RANGE_IMAGE_EMPTY = -1.0
-"""A value the range image may use for empty pixels (anything outside 0..255 counts as empty)."""
 POINT_XYZ_SCALE_M = 50.0
 """Point coordinates enter the network divided by this, metres."""
 POINT_DOPPLER_SCALE_MPS = 10.0

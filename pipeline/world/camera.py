@@ -1,12 +1,9 @@
 """Camera rendering: per-pixel ray casting, procedural textures, shading, sky, fog and sensor noise.
 
-Output images are (H, W, 3) uint8 RGB. The per-pixel depth (camera z, m), primitive index and
-material id are returned alongside for tests and figures.
+Output images are (H, W, 3) uint8 RGB.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,17 +14,6 @@ from pipeline.world.scene import CYLINDER, PLANE, Primitives, Scene
 
 MAX_DEPTH_M = 160.0
 """Primitives farther than this are not drawn (fog hides them)."""
-
-
-@dataclass
-class CameraFrame:
-    """image (H, W, 3) uint8 RGB; depth_m (H, W) float32 camera z (inf = sky); prim (H, W) int32
-    primitive index (-1 = sky); material (H, W) int32 (-1 = sky)."""
-
-    image: np.ndarray
-    depth_m: np.ndarray
-    prim: np.ndarray
-    material: np.ndarray
 
 
 def hash01(ix: np.ndarray, iy: np.ndarray, seed: int) -> np.ndarray:
@@ -94,8 +80,9 @@ def sky_colour(dirs_W: np.ndarray, sun_W: np.ndarray) -> np.ndarray:
 
 
 def render_camera(scene: Scene, prims: Primitives, T_world_cam: np.ndarray, K: np.ndarray,
-                  dirs_C: np.ndarray, rng: np.random.Generator | None) -> CameraFrame:
-    """Render one image. dirs_C (H, W, 3) are pixel rays in {C} with z = 1; ``rng`` None = no noise."""
+                  dirs_C: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+    """Render one image (H, W, 3) uint8 RGB. dirs_C (H, W, 3) are pixel rays in {C} with z = 1;
+    ``rng`` None = no noise."""
     h, w, _ = dirs_C.shape
     R = T_world_cam[:3, :3].astype(np.float32)
     origin = T_world_cam[:3, 3]
@@ -107,16 +94,13 @@ def render_camera(scene: Scene, prims: Primitives, T_world_cam: np.ndarray, K: n
     d = dirs_W.reshape(-1, 3)
     hit = np.flatnonzero(flat_p >= 0)
     colour = sky_colour(d, scene.sun_W)
-    material = np.full(h * w, -1, np.int32)
     if len(hit):
         dist = flat_t[hit, None] * d[hit]
         pts = (origin + dist).astype(np.float32)
-        mat, rgb = _shade(scene, prims, pts, flat_p[hit], d[hit])
+        rgb = _shade(scene, prims, pts, flat_p[hit], d[hit])
         fog = (1.0 - np.exp(-np.linalg.norm(dist, axis=1) / 450.0))[:, None]
         colour[hit] = rgb * (1 - fog) + colour[hit] * fog
-        material[hit] = mat
-    image = _sensor(colour.reshape(h, w, 3), rng)
-    return CameraFrame(image, t.astype(np.float32), pid, material.reshape(h, w))
+    return _sensor(colour.reshape(h, w, 3), rng)
 
 
 def _texture_coords(local: np.ndarray, normals: np.ndarray, kind: np.ndarray,
@@ -136,8 +120,8 @@ def _texture_coords(local: np.ndarray, normals: np.ndarray, kind: np.ndarray,
 
 
 def _shade(scene: Scene, prims: Primitives, pts: np.ndarray, pid: np.ndarray,
-           dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Material ids (N,) and linear RGB (N, 3) float32 of hit points (N, 3) on primitives ``pid`` (N,)."""
+           dirs: np.ndarray) -> np.ndarray:
+    """Linear RGB (N, 3) float32 of hit points (N, 3) on primitives ``pid`` (N,)."""
     props = material_arrays()
     normals, local = surface_geometry(pts, pid, prims)
     kind = prims.kind[pid]
@@ -169,7 +153,7 @@ def _shade(scene: Scene, prims: Primitives, pts: np.ndarray, pid: np.ndarray,
         cos_v = np.sum(v * n, 1, keepdims=True)
         fresnel = 0.25 + 0.6 * (1 - np.abs(cos_v)) ** 3
         rgb[glass] = rgb[glass] * (1 - fresnel) + 0.8 * sky_colour(2 * cos_v * n - v, sun) * fresnel
-    return mat, rgb.astype(np.float32)
+    return rgb.astype(np.float32)
 
 
 def _sensor(colour: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:

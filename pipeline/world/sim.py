@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.world.builders import FRAME_DT_S, build_scene
-from pipeline.world.camera import CameraFrame, render_camera
+from pipeline.world.camera import render_camera
 from pipeline.world.lidar import LidarScan, scan_lidar
 from pipeline.world.radar import RadarModel, RadarScan, radar_velocity, simulate_radar
 from pipeline.world.rig import Rig, camera_directions, lidar_directions
@@ -44,7 +44,8 @@ class FrameData:
     ego_speed_mps: float
     states: ActorStates
     prims: Primitives
-    camera: CameraFrame | None = None
+    camera: np.ndarray | None = None
+    """The camera image (H, W, 3) uint8 RGB."""
     lidar: LidarScan | None = None
     radar: RadarScan | None = None
     labels: list[Label] = field(default_factory=list)

@@ -108,7 +108,7 @@ def write_frame(root: Path, frame_id: str, data: FrameData, rig: Rig, T_map_worl
                 T_utm_map: np.ndarray) -> None:
     """Write every file of one frame (all sensors must have been simulated)."""
     lid, rad = root / "lidar" / "training", root / "radar" / "training"
-    write_png(lid / "image_2" / f"{frame_id}.png", data.camera.image)
+    write_png(lid / "image_2" / f"{frame_id}.png", data.camera)
     _link_or_copy(lid / "image_2" / f"{frame_id}.png", rad / "image_2" / f"{frame_id}.png")
     lidar = np.concatenate([data.lidar.points_L, data.lidar.reflectance[:, None]], axis=1).astype(np.float32)
     (lid / "velodyne" / f"{frame_id}.bin").write_bytes(lidar.tobytes())
