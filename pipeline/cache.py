@@ -50,7 +50,7 @@ from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
 from zarr.core.sync import sync
 from zarr.storage import LocalStore
 
-from pipeline.errors import CacheError, ChunkError, MetadataError
+from pipeline.errors import CacheError, ChunkError, MetadataError, exception_line
 from pipeline.fileio import sync_filesystem
 from pipeline.stage import ArraySpec
 
@@ -375,7 +375,7 @@ class FrameStore:
             if isinstance(result, DECODE_ERRORS):
                 g = self._group("r")
                 problem = f"cannot be decoded ({_one_line(result)})"
-                return self._chunk_error(g, self._member(g, name), int(index), problem)
+                return self._chunk_error(self._member(g, name), int(index), problem)
         return exc
 
     def _array_folders(self) -> dict[str, bool]:
@@ -419,7 +419,7 @@ class FrameStore:
         try:
             return np.asarray(arr[index])
         except DECODE_ERRORS as exc:
-            raise self._chunk_error(g, arr, index, f"cannot be decoded ({_one_line(exc)})") from None
+            raise self._chunk_error(arr, index, f"cannot be decoded ({_one_line(exc)})") from None
 
     def _checked(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
         """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
@@ -430,12 +430,12 @@ class FrameStore:
         if value.size and g.attrs.get(EVERY_CHUNK) and _all_fill(value, arr.fill_value) \
                 and not sync(arr.store.exists(f"{arr.path}/{_chunk_key(arr, index)}")) \
                 and int(self._decode(g, self._member(g, "status"), index)) == DONE:
-            raise self._chunk_error(g, arr, index, "is missing although the frame is done (zarr would read the fill "
+            raise self._chunk_error(arr, index, "is missing although the frame is done (zarr would read the fill "
                                                    "value in its place)")
         return value
 
-    def _chunk_error(self, g: zarr.Group, arr: zarr.Array, index: int, problem: str) -> ChunkError:
-        """ChunkError for frame ``index`` of ``arr`` (of group ``g``), with the command that
+    def _chunk_error(self, arr: zarr.Array, index: int, problem: str) -> ChunkError:
+        """ChunkError for frame ``index`` of ``arr``, with the command that
         recomputes the frame."""
         chunk = join(self.url, arr.path, _chunk_key(arr, index))
         try:
@@ -513,7 +513,7 @@ class FrameStore:
             present = set(sync(_keys(arr.store, f"{arr.path}/c/")))
             for i in np.flatnonzero(wanted):
                 if i not in errors and f"{arr.path}/{_chunk_key(arr, int(i))}" not in present:
-                    errors[int(i)] = self._chunk_error(g, arr, int(i), f"is missing although the frame {state}")
+                    errors[int(i)] = self._chunk_error(arr, int(i), f"is missing although the frame {state}")
         return values
 
     def attrs(self) -> dict[str, Any]:
@@ -636,9 +636,8 @@ def _all_fill(value: np.ndarray, fill: Any) -> bool:
 
 
 def _one_line(exc: BaseException) -> str:
-    """'Type: first line of the message' (at most 200 characters)."""
-    text = str(exc).splitlines()[0] if str(exc) else ""
-    return f"{type(exc).__name__}: {text}"[:200]
+    """:func:`pipeline.errors.exception_line`, at most 200 characters."""
+    return exception_line(exc)[:200]
 
 
 def done_digest(status: np.ndarray) -> str:

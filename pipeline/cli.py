@@ -709,8 +709,10 @@ def check_physics(dataset, data_root, cache_root, sets, workers):
 @dataset_options
 @click.option("--check-frames", type=click.IntRange(min=1), default=3, show_default=True,
               help="Frames recomputed from the new place and compared with the cache first.")
+@click.option("--wait", "wait_s", type=click.FloatRange(min=0), default=0.0, metavar="SECONDS",
+              help="If a run holds a stage's lock, wait up to this long instead of stopping.")
 @_handle_errors
-def relocate(dataset, data_root, cache_root, sets, check_frames):
+def relocate(dataset, data_root, cache_root, sets, check_frames, wait_s):
     """Point the cache at the new place of its data (--data-root), keeping every output.
 
     Some frames are computed from the new place first and must equal the cached ones; then the
@@ -719,7 +721,7 @@ def relocate(dataset, data_root, cache_root, sets, check_frames):
     if not data_root:
         raise ConfigError("relocate needs --data-root PATH: the new place of the dataset's raw files")
     env = _context(dataset, data_root, cache_root, sets)
-    result = _pipeline(env, 1, None, progress=False).relocate(check_frames)
+    result = _pipeline(env, 1, None, progress=False).relocate(check_frames, wait_s)
     click.echo(f"relocated dataset {dataset} from {result['from']} to {result['to']}: frames "
                f"{', '.join(result['checked_frames'])} identical; {len(result['stages'])} output(s) kept "
                f"({', '.join(result['stages'])})")

@@ -482,7 +482,7 @@ class Config:
         it names is left out (outputs made before the key existed stay current), a key of
         READER_KEYS under another reader taken at its default."""
         values = {k: self._fingerprinted(k) for k in sorted(keys)}
-        payload = json.dumps({k: _jsonable(v) for k, v in values.items()
+        payload = json.dumps({k: jsonable(v) for k, v in values.items()
                               if k not in ADDED_KEYS or v != ADDED_KEYS[k]}, sort_keys=True)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
@@ -506,7 +506,7 @@ class Config:
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """Plain nested dict (JSON-able)."""
-        return {s: {k: _jsonable(v) for k, v in dataclasses.asdict(getattr(self, s)).items()} for s in SECTIONS}
+        return {s: {k: jsonable(v) for k, v in dataclasses.asdict(getattr(self, s)).items()} for s in SECTIONS}
 
 
 LIMITS: dict[str, str] = {
@@ -611,7 +611,8 @@ def _split_key(key: str) -> tuple[str, str]:
     raise ConfigError(f"unknown configuration key '{key}'{hint}")
 
 
-def _jsonable(value: Any) -> Any:
+def jsonable(value: Any) -> Any:
+    """A configuration value as JSON holds it (tuples as lists)."""
     return list(value) if isinstance(value, tuple) else value
 
 

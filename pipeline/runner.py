@@ -30,6 +30,7 @@ import numpy as np
 
 from pipeline.cache import (DONE, EXCLUDED, FAILED, PENDING, RUN_TOKEN, STATUS_NAMES, cache_error, done_digest, is_local,
                             join)
+from pipeline.config import jsonable
 from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
                              MetadataError, PipelineError, StageInterrupted, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv
@@ -228,7 +229,7 @@ class Pipeline:
         data root and frames; a dataset stage's other inputs (``extra``, e.g. the nets it takes)."""
         stage, cfg = self.stages[name], self.env.cfg
         rec: dict[str, Any] = {"version": stage.version,
-                               "config": {k: _jsonable(cfg.get(k)) for k in stage.config_keys},
+                               "config": {k: jsonable(cfg.get(k)) for k in stage.config_keys},
                                "upstream": {u: self.fingerprint(u) for u in stage.upstream}}
         if name == FIRST_STAGE:
             rec.update(data_root=self.env.data_root, frames_digest=self._frames_digest())
@@ -1077,10 +1078,6 @@ def _refuse_ids_as_indices(spec: str, frame_ids: list[str]) -> None:
 def _root(data_root: str) -> str:
     """A data root as fingerprints hold it: local paths absolute, URLs as they are."""
     return data_root if "://" in data_root else os.path.abspath(data_root)
-
-
-def _jsonable(value: Any) -> Any:
-    return list(value) if isinstance(value, tuple) else value
 
 
 def default_data_root(cfg, cache_root: str, dataset: str) -> str:

@@ -974,3 +974,37 @@ def test_cli_status_says_unfinished_for_a_current_stage_with_frames_left(tmp_pat
     assert re.search(r"^heatmaps +current, unfinished +done +4 .* pending +4 ", status, re.M), status
     assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
     assert re.search(r"^heatmaps +current +done +8 ", fake_cli(tmp_path, "status").stdout, re.M)
+
+
+def test_relocate_waits_with_wait_as_its_lock_refusal_says(tmp_path, fake_cli):
+    """relocate's refusal of a held lock says 'pass --wait SECONDS', as every command's does, but
+    relocate had no --wait (until 2026-12-07: click's 'no such option'). Now it waits for the lock."""
+    import threading
+
+    from pipeline.cache import join
+    from pipeline.lock import stage_lock
+
+    assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0
+    moved = tmp_path.parent / f"{tmp_path.name}-moved"
+    moved.mkdir()  # the fake stages' frames are their ids: the same data at another place
+    lock = join(str(tmp_path / "cache"), "synthetic", "locks", "heatmaps.lock")
+    args = ["relocate", "--dataset", "synthetic", "--cache", str(tmp_path / "cache"), "--data-root", str(moved)]
+    held, release = threading.Event(), threading.Event()
+
+    def hold():
+        with stage_lock(lock, "a test run"):
+            held.set()
+            release.wait(10)
+
+    holder = threading.Thread(target=hold)
+    holder.start()
+    held.wait(10)
+    try:
+        refused = CliRunner().invoke(cli.main, args)
+        assert refused.exit_code == 2 and "pass --wait SECONDS" in refused.stderr, refused.output
+        threading.Timer(0.5, release.set).start()
+        waited = CliRunner().invoke(cli.main, [*args, "--wait", "30"])
+    finally:
+        release.set()
+        holder.join()
+    assert waited.exit_code == 0 and "relocated dataset synthetic" in waited.stdout, waited.output

@@ -1141,7 +1141,7 @@ def test_a_key_of_another_reader_leaves_a_dataset_s_fingerprints_alone():
     import hashlib
     import json
 
-    from pipeline.config import READER_KEYS, _jsonable
+    from pipeline.config import READER_KEYS, jsonable
     from stages.calibrate import CONFIG_KEYS
 
     world = {"dataset.world_frames": "40", "dataset.world_seed": "3", "dataset.world_resolution": "320,192",
@@ -1154,7 +1154,7 @@ def test_a_key_of_another_reader_leaves_a_dataset_s_fingerprints_alone():
             changed = cfg.with_overrides(overrides).fingerprint(CONFIG_KEYS) != cfg.fingerprint(CONFIG_KEYS)
             assert changed == (READER_KEYS[next(iter(overrides))] == cfg.dataset.reader), (profile, overrides)
         # the profiles as they are keep the fingerprint of before the rule: every key at its value
-        before = json.dumps({k: _jsonable(cfg.get(k)) for k in sorted(CONFIG_KEYS)}, sort_keys=True)
+        before = json.dumps({k: jsonable(cfg.get(k)) for k in sorted(CONFIG_KEYS)}, sort_keys=True)
         assert cfg.fingerprint(CONFIG_KEYS) == hashlib.sha256(before.encode()).hexdigest()[:16]
 
 
