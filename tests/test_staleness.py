@@ -151,3 +151,13 @@ def test_status_and_verify_say_why_and_what_to_add(tmp_path, monkeypatch):
     chunk.write_bytes(b"garbage")
     verify = cli(tmp_path, "verify")
     assert "add `--set heatmap.sigma_px=50.0,50.0` to both" in verify.stdout, verify.stdout
+
+
+def test_a_dataset_stage_whose_inputs_finished_more_frames_says_so(tmp_path):
+    make_pipeline(tmp_path).run("train", frames=[0, 1, 2])
+    pipe = make_pipeline(tmp_path)
+    assert pipe.why_stale("train") is None
+    pipe.run("heatmaps")
+    pipe = make_pipeline(tmp_path)
+    assert pipe.why_stale("train").text == "its per-frame inputs finished other frames since it ran"
+    assert {r["stage"]: r for r in pipe.status()}["train"]["why"] == pipe.why_stale("train").text
