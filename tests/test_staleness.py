@@ -161,3 +161,19 @@ def test_a_dataset_stage_whose_inputs_finished_more_frames_says_so(tmp_path):
     pipe = make_pipeline(tmp_path)
     assert pipe.why_stale("train").text == "its per-frame inputs finished other frames since it ran"
     assert {r["stage"]: r for r in pipe.status()}["train"]["why"] == pipe.why_stale("train").text
+
+
+def test_forgotten_sets_leave_out_the_radar_settings_that_come_with_other_nets(tmp_path, monkeypatch):
+    """A transferred cache (train.nets_from=astyx) read without the option: calibrate's radar
+    settings differ too, but they follow from the nets; the option alone is what to add."""
+    from pipeline.staleness import Staleness
+
+    whys = {"calibrate": Staleness(("a",), ("radar.fov_az_deg=110.0", "split.seed=3"), True),
+            "train": Staleness(("b",), ("train.nets_from=astyx",), True)}
+    pipe = make_pipeline(tmp_path)
+    monkeypatch.setattr(pipe, "why_stale", lambda name: whys.get(name))
+    assert pipe.forgotten_sets(pipe.order) == (["split.seed=3", "train.nets_from=astyx"], True)
+    del whys["train"]
+    assert pipe.forgotten_sets(pipe.order) == (["radar.fov_az_deg=110.0", "split.seed=3"], True)
+    whys["heatmaps"] = Staleness(("c",))  # something no option brings back
+    assert pipe.forgotten_sets(pipe.order) == (["radar.fov_az_deg=110.0", "split.seed=3"], False)
