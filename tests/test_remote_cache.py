@@ -205,6 +205,9 @@ def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_p
     assert kept == {"train": ["copies", "staging"], "export": [], "evaluate": []}, kept
     summary = far.env.dir("train").summary()  # the remote folder, not the staging one, is named
     assert summary["checkpoints"] == f"{remote}/synthetic/train"
+    assert json.loads(fs.cat_file(f"{there}/train/metrics.json"))["checkpoints"] == f"{remote}/synthetic/train"
+    assert not [f for f in fs.find(there) if f.endswith((".json", ".md", ".csv"))  # nor in a file (metrics.json
+                and str(tmp_path / "machine-a").encode() in fs.cat_file(f)]   # did until 2026-12-07)
     assert str(tmp_path / "machine-a") not in json.dumps(far.env.dir("export").summary())
 
     # another machine: more epochs resume from the uploaded checkpoints, and the others read them anew
