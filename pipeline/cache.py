@@ -670,10 +670,15 @@ class DirStore:
         MetadataError when the file is there but is not a JSON object: :meth:`finish` writes it
         whole (a temporary file renamed into place), so a kill cannot leave part of it, and such a
         file is damaged; taken for absent, the output would pass as unfinished and be recomputed
-        without a word (until 2026-12-06)."""
+        without a word (until 2026-12-06).
+
+        Read in one request (``cat_file``), as are the run token and the files' manifest: opening
+        the file takes its size and ETag from the filesystem's listing cache (s3fs, gcsfs) where a
+        listing of the folder (a download's ``find``) put them, and in a process that outlives runs
+        (a worker of a dask cluster) a record rewritten since by another run could not be read
+        (s3fs: ``[Errno 16] The remote file ... no longer exists``) until 2026-12-07."""
         try:
-            with self.fs.open(self.file("_stage.json"), "r") as fh:
-                meta = json.load(fh)
+            meta = json.loads(self.fs.cat_file(self.file("_stage.json")))
         except FileNotFoundError:
             return None
         except ValueError as exc:  # json.JSONDecodeError, UnicodeDecodeError
@@ -814,8 +819,7 @@ class DirStore:
         """The token of the last run begun in this folder (:data:`RUN_TOKEN`; a staged stage writes
         one into its staging folder and the remote one when it begins), None if none was."""
         try:
-            with self.fs.open(self.file(RUN_TOKEN), "r") as fh:
-                return fh.read().strip() or None
+            return self.fs.cat_file(self.file(RUN_TOKEN)).decode().strip() or None  # in one request, as meta
         except FileNotFoundError:
             return None
         except OSError as exc:
@@ -872,8 +876,7 @@ class DirStore:
         if self.is_local:
             return Path(self.path)
         try:
-            with self.fs.open(self.file("_stage.json"), "rb") as fh:
-                stamp = fh.read()
+            stamp = self.fs.cat_file(self.file("_stage.json"))  # in one request, as meta
         except FileNotFoundError:
             raise CacheError(f"{self.url}: the stage has not finished (no _stage.json)") from None
         except OSError as exc:
@@ -913,8 +916,7 @@ class DirStore:
         from :data:`FILES_MANIFEST`'s record); (None, []) for an output finished without one (before
         2026-12-06). Files added since are not problems. ``progress(n, total)`` per file."""
         try:
-            with self.fs.open(self.file(FILES_MANIFEST), "r") as fh:
-                recorded = json.load(fh)
+            recorded = json.loads(self.fs.cat_file(self.file(FILES_MANIFEST)))  # in one request, as meta
         except FileNotFoundError:
             return None, []
         except (OSError, ValueError) as exc:

@@ -154,6 +154,13 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
                               f"NEW_PLACE`{hint}")
     if not data_root:
         data_root = default_data_root(cfg, cache_root, dataset)
+    if not data_root and need_root and cfg.dataset.reader == "synthetic":  # a remote cache: no world in it
+        ds = cfg.dataset
+        raise ConfigError(f"dataset '{dataset}': the synthetic world is generated into the cache only when the "
+                          f"cache is a local folder, not {cache_root}; generate it into a local one, `pipeline "
+                          f"generate-world --out W --frames {ds.world_frames} --seed {ds.world_seed} --resolution "
+                          f"{ds.world_resolution[0]}x{ds.world_resolution[1]} --sequence-len {ds.world_sequence_len}`, "
+                          f"and give --data-root W")
     if not data_root and need_root:
         raise ConfigError(f"dataset '{dataset}' needs --data-root PATH (the folder holding the raw files)")
     return RunEnv(cfg=cfg, cache_root=cache_root, dataset=dataset, data_root=data_root)

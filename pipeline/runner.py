@@ -1081,9 +1081,10 @@ def _root(data_root: str) -> str:
 
 
 def default_data_root(cfg, cache_root: str, dataset: str) -> str:
-    """Data root when none is given: the profile's, or (synthetic world) a folder in the cache."""
+    """Data root when none is given: the profile's, or (synthetic world) a folder in the cache; ''
+    for the synthetic world of a remote (fsspec URL) cache, since the readers read local files."""
     if cfg.dataset.data_root:
         return cfg.dataset.data_root
-    if cfg.dataset.reader == "synthetic":
+    if cfg.dataset.reader == "synthetic" and "://" not in cache_root:
         return str(Path(cache_root) / dataset / "world")
     return ""

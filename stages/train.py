@@ -174,7 +174,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     root = Path(out.path)
     summary: dict = {"frames": {k: int(len(v)) for k, v in idx.items()},
                      "frames_without_radar_points": int((table["ok"] & (table["count"] == 0)).sum()),
-                     "checkpoints": str(root), "settings": transfer.settings(cfg)}
+                     "checkpoints": _final_place(inputs, out), "settings": transfer.settings(cfg)}
     summary["baselines_test"] = _baselines(inputs, table, idx, cfg, root)
     if "disnet" in nets:
         res = train_disnet(cfg, d_data, root / "disnet", progress=inputs.progress,
@@ -201,6 +201,14 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     (root / "metrics.json").write_text(json.dumps(summary, indent=2, default=float))
     summary["message"] = _headline(summary)
     return summary
+
+
+def _final_place(inputs, out) -> str:
+    """Where the checkpoints are kept: the output folder ``out``, or on a remote cache the remote
+    folder that ``out`` (a local staging folder) is uploaded to; metrics.json named the staging
+    folder on the machine that trained until 2026-12-07."""
+    final = inputs.dir("train")
+    return str(Path(out.path)) if final.is_local else final.url
 
 
 def _take_nets(inputs, cfg: Config, out) -> dict:
@@ -239,7 +247,7 @@ def _take_nets(inputs, cfg: Config, out) -> dict:
     (root / "metrics.json").write_text(json.dumps(record, indent=2, default=float))
     nets = [n for n in NETS if f"{n}/best.safetensors" in taken]
     when = time.strftime("%Y-%m-%d %H:%M", time.gmtime(meta["finished"])) if meta.get("finished") else "?"
-    return {"checkpoints": str(root), "nets_from": source, "settings": trained, "source_camera": camera,
+    return {"checkpoints": _final_place(inputs, out), "nets_from": source, "settings": trained, "source_camera": camera,
             "message": f"the nets of dataset {source}{via} ({', '.join(nets)}; trained {when} UTC): "
                        f"radar {trained.get('radar.name', '?')}{unmoved}"}
 

@@ -118,6 +118,29 @@ def test_dry_run_checks_the_frames_of_the_synthetic_world_it_would_generate(tmp_
         "error: --frames 7:9: selects no frame (this dataset has 5, indices 0 to 4)"
 
 
+def test_the_synthetic_world_of_a_remote_cache_is_asked_for_not_made_in_a_folder_named_after_the_url(tmp_path,
+                                                                                                      monkeypatch):
+    """With a remote --cache (s3://; here memory://) and no --data-root, the synthetic world's place
+    was Path(URL) / 'synthetic' / 'world': the run generated it into './s3:/bucket/cache/synthetic/world'
+    under the current folder and recorded that as the cache's data root (found with moto's S3
+    server, 2026-12-07). The readers read local files: the command now stops, naming the
+    generate-world command that makes the world these settings would, and status still answers."""
+    import uuid
+
+    monkeypatch.chdir(tmp_path)
+    cache = f"memory://world-{uuid.uuid4().hex[:8]}"
+    for args in (("run", "heatmaps"), ("run", "heatmaps", "--dry-run")):
+        out = _real_cli(cache, 3, *args)
+        assert out.exit_code == 2, out.output
+        assert out.stderr == (f"error: dataset 'synthetic': the synthetic world is generated into the cache only when "
+                              f"the cache is a local folder, not {cache}; generate it into a local one, `pipeline "
+                              f"generate-world --out W --frames 3 --seed 0 --resolution 64x48 --sequence-len 2`, "
+                              f"and give --data-root W\n")
+    assert list(tmp_path.iterdir()) == []
+    status = _real_cli(cache, 3, "status")
+    assert status.exit_code == 0 and "no data root given" in status.stdout, status.output
+
+
 def _physics(monkeypatch) -> list:
     """stages.evaluate.physics_checks replaced: the frames it was given, one row of their count."""
     import stages.evaluate

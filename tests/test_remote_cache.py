@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import time
 import uuid
 from pathlib import Path
 
@@ -14,7 +15,7 @@ import fsspec
 import numpy as np
 import pytest
 
-from pipeline.cache import DONE, PENDING, DirStore
+from pipeline.cache import DONE, PENDING, RUN_TOKEN, DirStore
 from pipeline.config import load_config
 from pipeline.errors import CacheError, ChunkError
 from pipeline.executor import Executor, RunEnv
@@ -204,6 +205,9 @@ def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_p
     assert kept == {"train": ["copies", "staging"], "export": [], "evaluate": []}, kept
     summary = far.env.dir("train").summary()  # the remote folder, not the staging one, is named
     assert summary["checkpoints"] == f"{remote}/synthetic/train"
+    assert json.loads(fs.cat_file(f"{there}/train/metrics.json"))["checkpoints"] == f"{remote}/synthetic/train"
+    assert not [f for f in fs.find(there) if f.endswith((".json", ".md", ".csv"))  # nor in a file (metrics.json
+                and str(tmp_path / "machine-a").encode() in fs.cat_file(f)]   # did until 2026-12-07)
     assert str(tmp_path / "machine-a") not in json.dumps(far.env.dir("export").summary())
 
     # another machine: more epochs resume from the uploaded checkpoints, and the others read them anew
@@ -708,3 +712,188 @@ def test_an_upload_cut_off_midway_leaves_no_part_of_a_file_on_a_filesystem_that_
     finally:
         type(memory.fs).mv = mv
     assert moved == [] and _remote_files(memory.url) == ["disnet/last.safetensors"]
+
+
+def _listing_filesystem():
+    """A filesystem (the local one under protocol listed://) that caches its listings as s3fs and
+    gcsfs do: ``ls``, ``find`` and ``glob`` keep what they list, ``info`` (hence ``open``) answers
+    from a cached listing, and opening a file that another process rewrote since it was listed
+    fails as s3fs's does (``[Errno 16] ... no longer exists``: its ETag changed). ``find`` lists
+    afresh but keeps the folders it had listed before; ``cat_file`` is one request, as s3fs's GET;
+    this process's own writes drop its listings."""
+    import errno
+
+    from fsspec.implementations.local import LocalFileSystem
+
+    class Listed(LocalFileSystem):
+        protocol = ("listed",)
+
+        @classmethod
+        def _strip_protocol(cls, path):
+            return super()._strip_protocol(str(path).removeprefix("listed://"))
+
+        def ls(self, path, detail=True, **kwargs):
+            path = self._strip_protocol(path)
+            if path not in self.dircache:
+                self.dircache[path] = LocalFileSystem().ls(path, detail=True, **kwargs)
+            return self.dircache[path] if detail else [e["name"] for e in self.dircache[path]]
+
+        def find(self, path, maxdepth=None, withdirs=False, detail=False, **kwargs):
+            found = LocalFileSystem().find(self._strip_protocol(path), maxdepth, withdirs, detail=True, **kwargs)
+            for folder in {self._parent(name) for name in found}:
+                if folder not in self.dircache:
+                    self.dircache[folder] = LocalFileSystem().ls(folder, detail=True)
+            return found if detail else sorted(found)
+
+        def info(self, path, **kwargs):
+            path = self._strip_protocol(path)
+            listed = self._ls_from_cache(path)  # FileNotFoundError when a listing of its folder lacks it
+            if listed:
+                named = [e for e in listed if e["name"] == path]
+                return named[0] if named else {"name": path, "size": 0, "type": "directory"}
+            return LocalFileSystem().info(path, **kwargs)
+
+        def _open(self, path, mode="rb", **kwargs):
+            path = self._strip_protocol(path)
+            if "r" in mode:
+                listed, now = self.info(path), LocalFileSystem().info(path)
+                if (listed["size"], listed.get("mtime")) != (now["size"], now.get("mtime")):
+                    raise OSError(errno.EBUSY, f"The remote file corresponding to filename {path} and Etag "
+                                               f"\"{listed.get('mtime')}\" no longer exists.")
+            else:
+                self.invalidate_cache()
+            return super()._open(path, mode, **kwargs)
+
+        def cat_file(self, path, start=None, end=None, **kwargs):
+            return Path(self._strip_protocol(path)).read_bytes()[start:end]
+
+        def invalidate_cache(self, path=None):
+            self.dircache.clear()
+
+        def mv(self, *args, **kwargs):
+            self.invalidate_cache()
+            return super().mv(*args, **kwargs)
+
+        def rm(self, *args, **kwargs):
+            self.invalidate_cache()
+            return super().rm(*args, **kwargs)
+
+        def put_file(self, *args, **kwargs):
+            self.invalidate_cache()
+            return super().put_file(*args, **kwargs)
+
+    fsspec.register_implementation("listed", Listed, clobber=True)
+    return Listed
+
+
+def _rewritten_by_another_run(root: Path, token: str, weights: str, message: str) -> None:
+    """The files a run of another process (a train on another machine) leaves in ``root``."""
+    (root / "disnet").mkdir(parents=True, exist_ok=True)
+    (root / "disnet" / "best.safetensors").write_text(weights)
+    (root / RUN_TOKEN).write_text(token)
+    (root / "_files.json").write_text(json.dumps({"disnet/best.safetensors": [len(weights), "x"]}))
+    (root / "_stage.json").write_text(json.dumps({"fingerprint": token, "finished": 1.0, "summary": {"message": message}}))
+
+
+def test_a_process_that_outlives_runs_reads_the_records_another_run_rewrote(tmp_path):
+    """A worker of a dask cluster outlives runs: one that made a local copy of train's remote
+    output (listing the folder) read the stage's record afresh when train ran again elsewhere
+    only on a filesystem without a listing cache. On s3fs it stopped every frame of the next
+    synthesize with `[Errno 16] The remote file corresponding to filename .../train/_stage.json and
+    Etag ... no longer exists` (checked with moto's S3 server, 2026-12-07) until the worker was
+    restarted. The record, the run token and the files' manifest are now read in one request."""
+    _listing_filesystem()
+    root = tmp_path / "remote" / "train"
+    _rewritten_by_another_run(root, "run-1", "weights 1", "first")
+    out = DirStore(f"listed://{root}")
+    first = out.local_copy(str(tmp_path / "staging"))  # the download lists the folder
+    assert (first / "disnet" / "best.safetensors").read_text() == "weights 1"
+    assert out.run_token() == "run-1" and out.check_files()[0] == 1
+    time.sleep(0.01)  # another mtime, as another ETag
+    _rewritten_by_another_run(root, "run-two", "weights 2", "the second run, a longer record")
+    assert out.meta()["fingerprint"] == "run-two"
+    assert out.run_token() == "run-two"
+    again = out.local_copy(str(tmp_path / "staging"))
+    assert again != first and (again / "disnet" / "best.safetensors").read_text() == "weights 2"
+    assert json.loads((again / "_stage.json").read_text())["summary"]["message"] == "the second run, a longer record"
+    assert out.check_files()[0] == 1
+
+
+def test_the_listing_filesystem_of_the_tests_fails_as_s3fs_does(tmp_path):
+    """The test above's filesystem reproduces the failure: opening the record rewritten since the
+    listing fails (errno 16), a one-request read does not."""
+    import errno
+
+    fs = _listing_filesystem()()
+    root = tmp_path / "remote"
+    _rewritten_by_another_run(root, "run-1", "weights 1", "first")
+    fs.find(str(root))
+    time.sleep(0.01)
+    _rewritten_by_another_run(root, "run-two", "weights 2", "a longer record")
+    with pytest.raises(OSError) as exc:
+        fs.open(str(root / "_stage.json"), "rb").read()
+    assert exc.value.errno == errno.EBUSY
+    assert b"a longer record" in fs.cat_file(str(root / "_stage.json"))
+
+
+@pytest.fixture
+def s3(monkeypatch):
+    """An s3:// bucket on moto's S3 server (a thread, a free port) through s3fs, the protocol of a
+    real bucket; skipped where they are not installed (neither is a dependency of the package:
+    `pip install s3fs "moto[server]"`)."""
+    pytest.importorskip("s3fs")
+    moto_server = pytest.importorskip("moto.server")
+    from s3fs import S3FileSystem
+
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    monkeypatch.setenv("AWS_DEFAULT_REGION", "us-east-1")
+    monkeypatch.setitem(fsspec.config.conf, "s3", {"endpoint_url": f"http://{host}:{port}", "key": "testing",
+                                                   "secret": "testing"})
+    S3FileSystem.clear_instance_cache()
+    bucket = f"test-{uuid.uuid4().hex[:8]}"
+    S3FileSystem().mkdir(bucket)
+    yield f"s3://{bucket}"
+    S3FileSystem.clear_instance_cache()
+    server.stop()
+
+
+def test_an_s3_cache_gives_what_a_local_one_gives_and_names_a_damaged_chunk(tmp_path, s3):
+    """The first tests of this file on the S3 protocol (moto's server, s3fs) instead of memory://."""
+    local, far = _pipe(str(tmp_path / "cache"), tmp_path), _pipe(f"{s3}/cache", tmp_path)
+    local.run("train")
+    far.run("train")
+    for stage, names in (("calibrate", ("points", "value")), ("heatmaps", ("total",))):
+        a, b = local.env.store(stage), far.env.store(stage)
+        assert (b.status() == DONE).all()
+        for name in names:
+            for i in range(len(IDS)):
+                np.testing.assert_array_equal(a.read(name, i), b.read(name, i), err_msg=f"{stage}/{name} {i}")
+    again = far.run("train")
+    assert [(r.action, r.processed) for r in again[:2]] == [("resumed", 0), ("resumed", 0)]
+    far.env.dir("train").fs.pipe_file(f"{s3.removeprefix('s3://')}/cache/fake/calibrate.zarr/value/c/3", b"garbage")
+    errors = far.env.store("calibrate").verify()[1]
+    assert list(errors) == [3] and "calibrate.zarr/value" in str(errors[3])
+
+
+def test_on_s3_a_process_that_outlives_runs_reads_the_records_another_run_rewrote(tmp_path, s3):
+    """test_a_process_that_outlives_runs_reads_the_records_another_run_rewrote on s3fs itself: the
+    other run writes through another s3fs instance (another process's)."""
+    from s3fs import S3FileSystem
+
+    other = S3FileSystem(skip_instance_cache=True)
+    root = f"{s3.removeprefix('s3://')}/cache/synthetic/train"
+
+    def rewritten(token: str, weights: str, message: str) -> None:
+        other.pipe({f"{root}/disnet/best.safetensors": weights.encode(), f"{root}/{RUN_TOKEN}": token.encode(),
+                    f"{root}/_stage.json": json.dumps({"fingerprint": token, "summary": {"message": message}}).encode()})
+
+    rewritten("run-1", "weights 1", "first")
+    out = DirStore(f"{s3}/cache/synthetic/train")
+    first = out.local_copy(str(tmp_path / "staging"))
+    assert (first / "disnet" / "best.safetensors").read_text() == "weights 1" and out.run_token() == "run-1"
+    rewritten("run-two", "weights 2", "the second run, a longer record")
+    assert out.meta()["fingerprint"] == "run-two" and out.run_token() == "run-two"
+    again = out.local_copy(str(tmp_path / "staging"))
+    assert (again / "disnet" / "best.safetensors").read_text() == "weights 2"
