@@ -897,3 +897,38 @@ def test_on_s3_a_process_that_outlives_runs_reads_the_records_another_run_rewrot
     assert out.meta()["fingerprint"] == "run-two" and out.run_token() == "run-two"
     again = out.local_copy(str(tmp_path / "staging"))
     assert (again / "disnet" / "best.safetensors").read_text() == "weights 2"
+
+
+def test_a_remote_cache_never_asks_for_zarr_format_2_metadata(tmp_path):
+    """Every output is zarr format 3; opened without saying so, zarr also asks for .zgroup, .zarray
+    and .zattrs at each open, a request each on an object store (246 of 1,043 requests of the fake
+    pipeline's run on moto's S3 server, 2026-12-07; none with the format named: 737 in all)."""
+    from fsspec.implementations.local import LocalFileSystem
+
+    asked: list[str] = []
+
+    class Asked(LocalFileSystem):
+        protocol = ("asked",)
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**kwargs, "auto_mkdir": True})  # as an object store: no folders to make
+
+        @classmethod
+        def _strip_protocol(cls, path):
+            return super()._strip_protocol(str(path).removeprefix("asked://"))
+
+        def cat_file(self, path, *args, **kwargs):
+            asked.append(str(path))
+            return super().cat_file(path, *args, **kwargs)
+
+        def info(self, path, *args, **kwargs):
+            asked.append(str(path))
+            return super().info(path, *args, **kwargs)
+
+    fsspec.register_implementation("asked", Asked, clobber=True)
+    pipe = _pipe(f"asked://{tmp_path / 'cache'}", tmp_path)
+    pipe.run("train")
+    _pipe(f"asked://{tmp_path / 'cache'}", tmp_path).status()
+    assert any(p.endswith("zarr.json") for p in asked)  # the store was read through this filesystem
+    probes = [p for p in asked if p.endswith((".zgroup", ".zarray", ".zattrs", ".zmetadata"))]
+    assert not probes, probes[:5]
