@@ -47,8 +47,10 @@ import zarr
 import zarr.api.asynchronous as zarr_async
 from zarr.codecs import BytesCodec, VLenUTF8Codec, ZstdCodec
 from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
+from zarr.core.group import get_node
 from zarr.core.sync import sync
 from zarr.storage import LocalStore
+from zarr.storage._common import make_store_path
 
 from pipeline.errors import CacheError, ChunkError, MetadataError, exception_line
 from pipeline.fileio import sync_filesystem
@@ -105,15 +107,20 @@ class FrameStore:
         """True when the group has been created (its fingerprint is written last). MetadataError
         when the group's ``zarr.json`` cannot be read, or is gone while its arrays are there: the
         output would otherwise count as absent and be recomputed, its finished frames lost."""
+        return self._created_attrs() is not None
+
+    def _created_attrs(self) -> dict[str, Any] | None:
+        """The group's attributes when it has been created (they hold its fingerprint), else None;
+        MetadataError as :meth:`exists` says."""
         try:
-            attrs = self._group("r").attrs
+            attrs = dict(self._group("r").attrs)
         except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError):
             if self._has_status_array():
                 raise self._damaged_group("is missing") from None
-            return False
+            return None
         except (ValueError, TypeError) as exc:  # json.JSONDecodeError, UnicodeDecodeError, a JSON list
             raise self._damaged_group(f"cannot be read ({_one_line(exc)})") from None
-        return "fingerprint" in attrs
+        return attrs if "fingerprint" in attrs else None
 
     @property
     def stage(self) -> str:
@@ -121,9 +128,12 @@ class FrameStore:
         return self.url.rstrip("/").rsplit("/", 1)[-1].removesuffix(".zarr")
 
     def _has_status_array(self) -> bool:
-        fs, path = fsspec.core.url_to_fs(self.url)
+        """Whether the status array's ``zarr.json`` is there (readable or not): one read of it, as
+        zarr reads it (on an object store an existence check asked twice for a missing one)."""
         try:
-            return fs.exists(join(path, "status", "zarr.json"))
+            return sync(_member_async(self.url, "status", "r")) is not None
+        except (ValueError, TypeError):  # there, but damaged
+            return True
         except OSError:
             return False
 
@@ -131,7 +141,7 @@ class FrameStore:
         """MetadataError for the group's ``zarr.json``, with how many frames its status array
         says are finished (what recomputing would lose) when that array can be read."""
         try:
-            status = np.asarray(zarr.open_array(join(self.url, "status"), mode="r", zarr_format=ZARR_FORMAT)[:])
+            status = np.asarray(self._array("status")[:])
             finished = f" (its status array records {int((status == DONE).sum())} of {len(status)} frames finished)"
         except Exception:  # noqa: BLE001 - only words: the status array may be damaged too
             finished = ""
@@ -145,15 +155,16 @@ class FrameStore:
         return _open_group(self.url, mode)
 
     def fingerprint(self) -> str | None:
-        """Fingerprint the output was created with (None if absent)."""
-        return self._group("r").attrs.get("fingerprint") if self.exists() else None
+        """Fingerprint the output was created with (None if absent); the group's metadata read once."""
+        attrs = self._created_attrs()
+        return None if attrs is None else attrs["fingerprint"]
 
     def create(self, fingerprint: str, frame_ids: list[str], specs: tuple[ArraySpec, ...],
                shapes: dict[str, tuple[int, ...]], attrs: dict[str, Any]) -> None:
         """(Re)create every output array up front; any previous content is erased."""
         n = len(frame_ids)
         try:
-            g = zarr.open_group(self.url, mode="w", zarr_format=ZARR_FORMAT)
+            g = zarr.open_group(self.url, mode="w", zarr_format=ZARR_FORMAT, **_zarr_options(self.url))
             for spec in specs:
                 shape = shapes[spec.name]
                 g.create_array(spec.name, shape=(n, *shape), chunks=(1, *shape), dtype=spec.dtype,
@@ -165,7 +176,7 @@ class FrameStore:
                            compressors=COMPRESSOR, attributes={"codes": STATUS_NAMES})
             g.create_array("reason", shape=(n,), chunks=(1,), dtype=str, fill_value="", compressors=COMPRESSOR)
             # an array of one chunk, not the group's attributes: every open of the group (several
-            # per frame read or written) parses its zarr.json, 0.8 MB of ids at 50,000 frames
+            # per frame read or written until 2026-12-07) parses its zarr.json, 0.8 MB of ids at 50,000 frames
             ids = g.create_array(FRAME_IDS, shape=(n,), chunks=(max(n, 1),), dtype=str, fill_value="",
                                  compressors=COMPRESSOR)
             ids[:] = np.asarray(list(frame_ids), dtype=str)
@@ -190,29 +201,28 @@ class FrameStore:
 
     def frame_ids(self) -> list[str]:
         """Frame ids, in frame-index order. MetadataError naming the array when it cannot be read."""
-        g = self._group("r")
         try:
-            present = FRAME_IDS in g
-            if not present:  # outputs created before 2026-12-04 hold them in the group's attributes
-                if "frame_ids" in g.attrs:
-                    return list(g.attrs["frame_ids"])
-                problem = "is missing"
-            else:
-                ids = [str(i) for i in np.asarray(self._member(g, FRAME_IDS)[:])]
-                if all(ids):
-                    return ids
-                problem = "has empty ids (its chunk is missing)"  # zarr reads a missing chunk as the fill, ''
-        except MetadataError:
-            raise
+            arr = sync(_member_async(self.url, FRAME_IDS, "r"))  # not the group's zarr.json too
+            ids = None if arr is None else [str(i) for i in np.asarray(zarr.Array(arr)[:])]
         except (*DECODE_ERRORS, TypeError) as exc:  # a damaged chunk, or zarr.json (json.JSONDecodeError)
             _settle_io()
             problem = f"cannot be read ({_one_line(exc)})"
+        else:
+            if ids is None:  # outputs created before 2026-12-04 hold them in the group's attributes
+                attrs = self._group("r").attrs
+                if "frame_ids" in attrs:
+                    return list(attrs["frame_ids"])
+                problem = "is missing"
+            elif all(ids):
+                return ids
+            else:
+                problem = "has empty ids (its chunk is missing)"  # zarr reads a missing chunk as the fill, ''
         raise MetadataError(f"{join(self.url, FRAME_IDS)}: the frame ids of stage output {self.stage} {problem}; "
                             f"recompute the stage: delete {self.url} or run it with --force")
 
     def status(self) -> np.ndarray:
         """(F,) uint8 status codes; ChunkError naming the lowest damaged chunk when one is."""
-        arr = self._member(self._group("r"), "status")
+        arr = self._array("status")
         status = _frames_from_chunk_files(arr)
         if status is not None:
             return status
@@ -235,12 +245,11 @@ class FrameStore:
         failed = (self.status() if status is None else status) == FAILED
         if frames is not None:
             failed &= np.isin(np.arange(len(failed)), frames)
-        g = self._group("r")
-        arr = self._member(g, "reason")
+        arr = self._array("reason")
         out = {}
         for i in np.flatnonzero(failed)[:limit]:
             try:
-                out[int(i)] = str(self._decode(g, arr, int(i)))
+                out[int(i)] = str(self._decode(arr, int(i)))
             except ChunkError as exc:  # only words: a retry rewrites them
                 out[int(i)] = (f"(the frame failed; its reason cannot be read: chunk {exc.chunk} {exc.problem}; "
                                f"--retry-failed runs the frame again)")
@@ -318,14 +327,13 @@ class FrameStore:
         try:
             if self._write_chunk_files(indices, [("reason", reason)], {}, code):
                 return
-            g = self._group("r+")
+            reasons, status = self._array("reason", "r+"), self._array("status", "r+")
             if len(indices) == 1:
-                g["reason"][int(indices[0])] = reason
-                g["status"][int(indices[0])] = code
+                reasons[int(indices[0])] = reason
+                status[int(indices[0])] = code
                 return
-            reasons = g["reason"]
             reasons.oindex[indices] = np.full(len(indices), reason, dtype=reasons.dtype)
-            g["status"].oindex[indices] = np.full(len(indices), code, np.uint8)
+            status.oindex[indices] = np.full(len(indices), code, np.uint8)
         except OSError as exc:
             what = f"frame {indices[0]}" if len(indices) == 1 else f"{len(indices)} frames"
             raise cache_error(exc, f"recording {what} of {self.url}") from None
@@ -338,10 +346,10 @@ class FrameStore:
         direct = self._read_chunk_files(name, index)
         if direct is not None:
             return direct
-        g = self._group("r")
-        value = self._checked(g, self._member(g, name), index)
-        if f"{name}_count" in g:
-            value = value[: int(self._checked(g, self._member(g, f"{name}_count"), index))]
+        value = self._checked(self._array(name), index)
+        counts = self._array(f"{name}_count", missing_ok=True)  # ragged arrays have one
+        if counts is not None:
+            value = value[: int(self._checked(counts, index))]
         return value
 
     def _read_chunk_files(self, name: str, index: int) -> np.ndarray | None:
@@ -363,49 +371,45 @@ class FrameStore:
     def array(self, name: str) -> "CheckedArray":
         """The whole array (lazy; index it like a zarr array); a read that meets a damaged chunk
         raises ChunkError naming it."""
-        return CheckedArray(self, self._member(self._group("r"), name))
+        return CheckedArray(self, self._array(name))
 
     def damaged(self, name: str, frames: np.ndarray, exc: BaseException) -> BaseException:
         """After a read of frame indices ``frames`` (F',) of array ``name`` raised ``exc``: the
         ChunkError of the lowest of them whose chunk cannot be decoded, or ``exc`` itself when each
         decodes alone (it was then no damaged chunk). Reads the frames concurrently."""
         frames = np.unique(np.asarray(frames, dtype=np.int64))
+        arr = self._array(name)
 
         async def results() -> list[Any]:
-            arr = await (await zarr_async.open_group(self.url, mode="r", zarr_format=ZARR_FORMAT)).getitem(name)
-            return await asyncio.gather(*(arr.getitem(int(i)) for i in frames), return_exceptions=True)
+            return await asyncio.gather(*(arr.async_array.getitem(int(i)) for i in frames), return_exceptions=True)
 
         for index, result in zip(frames, sync(results())):
             if isinstance(result, DECODE_ERRORS):
-                g = self._group("r")
-                problem = f"cannot be decoded ({_one_line(result)})"
-                return self._chunk_error(self._member(g, name), int(index), problem)
+                return self._chunk_error(arr, int(index), f"cannot be decoded ({_one_line(result)})")
         return exc
 
-    def _array_folders(self) -> dict[str, bool]:
-        """{name: whether its ``zarr.json`` is there} of the output's array folders (every folder
-        of the group is an array's), from the file system: zarr's own listing stops on an array
-        whose metadata cannot be read, and leaves out one whose metadata is gone."""
+    def _array_folders(self) -> list[str]:
+        """The names of the output's array folders (every folder of the group is an array's), from
+        the file system: zarr's own listing stops on an array whose metadata cannot be read, and
+        leaves out one whose metadata is gone."""
         fs, path = fsspec.core.url_to_fs(self.url)
         try:
             entries = fs.ls(path, detail=True)
         except OSError as exc:
             raise cache_error(exc, f"listing {self.url}") from None
-        names = [e["name"].rstrip("/").rsplit("/", 1)[-1] for e in entries if e.get("type") == "directory"]
-        return {n: fs.exists(join(path, n, "zarr.json")) for n in sorted(names)}
+        return sorted(e["name"].rstrip("/").rsplit("/", 1)[-1] for e in entries if e.get("type") == "directory")
 
     def check_metadata(self) -> list[str]:
         """The output's array names; MetadataError naming the first array whose ``zarr.json`` is
         gone or cannot be read (every frame of it would be unreadable): a run that resumes the
-        output, ``status`` and ``verify`` ask first."""
-        g = self._group("r")
+        output, ``status`` and ``verify`` ask first. Each ``zarr.json`` is read once (no existence
+        check before: its read says it is gone)."""
         folders = self._array_folders()
-        for name, has_meta in folders.items():
-            if not has_meta:
+        for name in folders:
+            if self._array(name, missing_ok=True) is None:
                 raise MetadataError(f"{join(self.url, name, 'zarr.json')}: the metadata of array {name} is missing; "
                                     f"recompute the stage: delete {self.url} or run it with --force")
-            self._member(g, name)
-        return list(folders)
+        return folders
 
     def _member(self, g: zarr.Group, name: str) -> zarr.Array:
         """Array ``name`` of group ``g``; CacheError naming its metadata file when that is damaged
@@ -413,27 +417,46 @@ class FrameStore:
         try:
             return g[name]
         except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
-            meta = join(self.url, name, "zarr.json")
-            raise MetadataError(f"{meta}: the metadata of array {name} cannot be read ({_one_line(exc)}); recompute "
-                             f"the stage: delete {self.url} or run it with --force") from None
+            raise self._damaged_array(name, exc) from None
 
-    def _decode(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
-        """Frame ``index`` of ``arr`` (an array of group ``g``); ChunkError when its chunk cannot
-        be decoded."""
+    def _damaged_array(self, name: str, exc: BaseException) -> MetadataError:
+        meta = join(self.url, name, "zarr.json")
+        return MetadataError(f"{meta}: the metadata of array {name} cannot be read ({_one_line(exc)}); recompute "
+                             f"the stage: delete {self.url} or run it with --force")
+
+    def _array(self, name: str, mode: str = "r", missing_ok: bool = False) -> Any:
+        """Array ``name`` as ``group[name]`` gives it, its ``zarr.json`` read alone: not the group's
+        too (a request of its own on an object store, made several times per frame until
+        2026-12-07; the local path reads none either). Not there: None when ``missing_ok``, else
+        KeyError, or the group's own error when the group is gone too. MetadataError naming the
+        file when it cannot be read (:meth:`_member`)."""
+        try:
+            node = sync(_member_async(self.url, name, mode))
+        except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
+            raise self._damaged_array(name, exc) from None
+        if node is None:
+            if missing_ok:
+                return None
+            self._group("r")  # GroupNotFoundError when the group is gone too, as opening it first raised
+            raise KeyError(name)
+        return zarr.Array(node) if isinstance(node, zarr.AsyncArray) else zarr.Group(node)
+
+    def _decode(self, arr: zarr.Array, index: int) -> np.ndarray:
+        """Frame ``index`` of ``arr``; ChunkError when its chunk cannot be decoded."""
         try:
             return np.asarray(arr[index])
         except DECODE_ERRORS as exc:
             raise self._chunk_error(arr, index, f"cannot be decoded ({_one_line(exc)})") from None
 
-    def _checked(self, g: zarr.Group, arr: zarr.Array, index: int) -> np.ndarray:
+    def _checked(self, arr: zarr.Array, index: int) -> np.ndarray:
         """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
         although the frame is done and the group has every chunk written (:data:`EVERY_CHUNK`;
-        zarr writes no chunk for a frame of no elements, which is never missing). The file system
-        is asked only for a value that is all fill."""
-        value = self._decode(g, arr, index)
-        if value.size and g.attrs.get(EVERY_CHUNK) and _all_fill(value, arr.fill_value) \
+        zarr writes no chunk for a frame of no elements, which is never missing). The group's
+        metadata and the file system are asked only for a value that is all fill."""
+        value = self._decode(arr, index)
+        if value.size and _all_fill(value, arr.fill_value) and self._group("r").attrs.get(EVERY_CHUNK) \
                 and not sync(arr.store.exists(f"{arr.path}/{_chunk_key(arr, index)}")) \
-                and int(self._decode(g, self._member(g, "status"), index)) == DONE:
+                and int(self._decode(self._array("status"), index)) == DONE:
             raise self._chunk_error(arr, index, "is missing although the frame is done (zarr would read the fill "
                                                    "value in its place)")
         return value
@@ -504,7 +527,7 @@ class FrameStore:
                 block = None
                 for i in range(start, stop):
                     try:
-                        value = self._decode(g, arr, i)
+                        value = self._decode(arr, i)
                         if values is not None:
                             values[i] = value
                     except ChunkError as exc:
@@ -1041,16 +1064,20 @@ store; keyed as _OPENED): opening the group and its arrays for every frame cost 
 
 async def _write_targets(url: str, names: list[str]) -> dict[str, Any]:
     """The async arrays ``names`` of the store at ``url``, set to write every chunk (a fill-valued
-    one too, EVERY_CHUNK: a missing chunk is then damage); a local store's are opened once per
-    process while their zarr.json files hold the same bytes."""
+    one too, EVERY_CHUNK: a missing chunk is then damage), each opened by its own zarr.json (not
+    the group's too: a request more per frame on an object store); a local store's are opened once
+    per process while their zarr.json files hold the same bytes, others for each frame (another
+    process may re-create the output between two frames)."""
     root = _local_path(url)
     key = None if root is None else tuple(_metadata_bytes(root, name) for name in names)
     hit = _WRITABLE.get(url)
     if key is not None and None not in key and hit is not None and hit[0] == key:
         return hit[1]
-    group = await zarr_async.open_group(url, mode="r+", zarr_format=ZARR_FORMAT)
-    targets = {name: arr.with_config({"write_empty_chunks": True})
-               for name, arr in zip(names, await _gather_all(group.getitem(name) for name in names))}
+    arrays = await _gather_all(_member_async(url, name, "r+") for name in names)  # not the group's zarr.json
+    if None in arrays:  # the group's own error when it is gone, else the array's, as group[name] raises
+        await zarr_async.open_group(url, mode="r+", zarr_format=ZARR_FORMAT, **_zarr_options(url))
+        raise KeyError(names[arrays.index(None)])
+    targets = {name: arr.with_config({"write_empty_chunks": True}) for name, arr in zip(names, arrays)}
     if key is not None and None not in key:
         if len(_WRITABLE) >= OPENED_MAX:
             _WRITABLE.clear()
@@ -1225,11 +1252,40 @@ def _opened_array(url: str, name: str) -> tuple[bool, zarr.Array | None]:
 
 def _open_group(url: str, mode: str) -> zarr.Group:
     try:
-        return zarr.open_group(url, mode=mode, zarr_format=ZARR_FORMAT)
+        return zarr.open_group(url, mode=mode, zarr_format=ZARR_FORMAT, **_zarr_options(url))
     except FileNotFoundError:
         raise
     except OSError as exc:
         raise cache_error(exc, f"opening {url}") from None
+
+
+async def _member_async(url: str, name: str, mode: str) -> Any:
+    """Member ``name`` of the group at ``url`` (an AsyncArray) as ``group.getitem(name)`` reads it,
+    with the same errors, without reading the group's own ``zarr.json``; None when it is not there."""
+    node_path = await make_store_path(url, mode=mode, **_zarr_options(url)) / name
+    try:
+        return await get_node(node_path.store, node_path.path, ZARR_FORMAT)
+    except FileNotFoundError:  # zarr's NodeNotFoundError, or a local store's missing folder
+        return None
+
+
+def _zarr_options(url: str) -> dict[str, Any]:
+    """Keyword arguments for zarr's functions opening the store at ``url``: on s3fs one GET per
+    read. s3fs (2026.9.0) asks an object's size (a HEAD) before reading it whole, to read a large
+    one in concurrent parts (``max_concurrency`` above 1, its default 10): a request more for each
+    zarr.json and chunk read, a frame's chunks being far smaller than the 50 MiB s3fs splits at
+    (a missing chunk: a HEAD and a listing instead of one GET)."""
+    return {"storage_options": {"max_concurrency": 1}} if _sizes_before_reads(url) else {}
+
+
+@functools.lru_cache(maxsize=1024)
+def _sizes_before_reads(url: str) -> bool:
+    """Whether ``url`` is on s3fs reading each whole object after a HEAD (:func:`_zarr_options`)."""
+    if _local_path(url) is not None:
+        return False
+    fs = fsspec.core.url_to_fs(url)[0]
+    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
+    return "s3" in protocol and getattr(fs, "max_concurrency", 1) > 1
 
 
 def frame_store(root: str, dataset: str, stage: str) -> FrameStore:

@@ -932,3 +932,88 @@ def test_a_remote_cache_never_asks_for_zarr_format_2_metadata(tmp_path):
     assert any(p.endswith("zarr.json") for p in asked)  # the store was read through this filesystem
     probes = [p for p in asked if p.endswith((".zgroup", ".zarray", ".zattrs", ".zmetadata"))]
     assert not probes, probes[:5]
+
+
+def _counting_filesystem(asked: list[tuple[str, str]]):
+    """The local filesystem under protocol counted://, as an object store (no folders to make),
+    recording each request zarr or the cache makes (cat_file, info, exists, ls) in ``asked``."""
+    from fsspec.implementations.local import LocalFileSystem
+
+    class Counted(LocalFileSystem):
+        protocol = ("counted",)
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**kwargs, "auto_mkdir": True})
+
+        @classmethod
+        def _strip_protocol(cls, path):
+            return super()._strip_protocol(str(path).removeprefix("counted://"))
+
+    for name in ("cat_file", "info", "exists", "ls"):
+        def asking(self, path, *args, _name=name, **kwargs):
+            asked.append((_name, str(path)))
+            return getattr(LocalFileSystem, _name)(self, path, *args, **kwargs)
+        setattr(Counted, name, asking)
+    fsspec.register_implementation("counted", Counted, clobber=True)
+
+
+def test_a_frame_s_read_and_write_on_a_remote_cache_read_each_array_s_metadata_once(tmp_path):
+    """On an object store each read of a zarr.json is a request: a frame's read or write opened
+    the group (its zarr.json) and then each array, and a read asked whether the ragged array's
+    ``_count`` array was there before reading it (`name in group`), so that a frame of the fake
+    pipeline's heatmaps read 11 zarr.json files, against 7 now (2026-12-07). Nothing read is kept
+    beyond the call (another process may re-create the output in between)."""
+    from pipeline.cache import FrameStore
+    from pipeline.stage import ArraySpec
+
+    asked: list[tuple[str, str]] = []
+    _counting_filesystem(asked)
+    root = tmp_path / "out.zarr"
+    store = FrameStore(f"counted://{root}")
+    specs = (ArraySpec("points", (4, 3), "float32", "m", fill=np.nan, ragged=True),
+             ArraySpec("value", (), "float64", "-"))
+    store.create("fp", ["a", "b"], specs, {"points": (4, 3), "value": ()}, {})
+
+    def metadata_read(operation) -> list[str]:
+        asked.clear()
+        operation()
+        assert all(what == "cat_file" for what, _ in asked), asked  # no existence check, no listing
+        names = [path.removeprefix(f"{root}").strip("/") for _, path in asked]
+        return sorted(name.removesuffix("zarr.json").strip("/") for name in names if name.endswith("zarr.json"))
+
+    points = np.arange(6, dtype=np.float32).reshape(2, 3)
+    for _ in range(2):  # the same again: nothing kept from the call before
+        assert metadata_read(lambda: store.write_frame(1, {"points": points, "value": np.float64(5)}, specs)) \
+            == ["points", "points_count", "reason", "status", "value"]
+        assert metadata_read(lambda: np.testing.assert_array_equal(store.read("points", 1), points)) \
+            == ["points", "points_count"]
+        assert metadata_read(lambda: store.read("value", 1) == 5) == ["value", "value_count"]  # not there: one read
+        assert metadata_read(lambda: store.status().tolist() == [PENDING, DONE]) == ["status"]
+        assert metadata_read(lambda: store.fingerprint() == "fp") == [""]
+    assert metadata_read(lambda: store.mark(0, 2, "bad")) == ["reason", "status"]
+    assert store.reasons() == {0: "bad"}
+
+
+def test_on_s3_a_frame_s_read_is_one_get_per_object(tmp_path, s3, monkeypatch):
+    """s3fs (2026.9.0) reads a whole object with a HEAD (its size, to read a large one in parts)
+    and then a GET; a missing one with a HEAD and a listing. The cache's zarr store reads each
+    zarr.json and chunk with one GET: a frame of points (a ragged array: its rows and their count),
+    its value (and the one request saying it has no count) and the status of the output are
+    4, 3 and 1 + 8 GETs (40 requests before 2026-12-07, the group's zarr.json read by each)."""
+    import s3fs.core
+
+    calls: list[str] = []
+    original = s3fs.core.S3FileSystem._call_s3
+
+    async def counting(self, method, *args, **kwargs):
+        calls.append(method)
+        return await original(self, method, *args, **kwargs)
+
+    pipe = _pipe(f"{s3}/cache", tmp_path)
+    pipe.run("calibrate")
+    store = pipe.env.store("calibrate")
+    monkeypatch.setattr(s3fs.core.S3FileSystem, "_call_s3", counting)
+    store.read("points", 3)
+    store.read("value", 3)
+    assert (store.status() == DONE).all()
+    assert calls == ["get_object"] * (4 + 3 + 1 + len(IDS)), calls
