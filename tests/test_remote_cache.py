@@ -24,6 +24,16 @@ from tests import fake_stages
 from tests.test_damaged_cache import IDS
 
 
+def _assert_same_frames(local: Pipeline, far: Pipeline) -> None:
+    """Every frame of ``far``'s fake stages is done and equal to ``local``'s."""
+    for stage, names in (("calibrate", ("points", "value")), ("heatmaps", ("total",))):
+        a, b = local.env.store(stage), far.env.store(stage)
+        assert (b.status() == DONE).all()
+        for name in names:
+            for i in range(len(IDS)):
+                np.testing.assert_array_equal(a.read(name, i), b.read(name, i), err_msg=f"{stage}/{name} {i}")
+
+
 def _pipe(cache_root: str, data_root: Path) -> Pipeline:
     env = RunEnv(cfg=load_config("synthetic", {}, environ={}), cache_root=cache_root, dataset="fake",
                  data_root=str(data_root))
@@ -45,12 +55,7 @@ def test_a_remote_cache_gives_what_a_local_one_gives_and_resumes(tmp_path, remot
     local.run("train")
     reports = far.run("train")
     assert [r.processed for r in reports if r.stage in ("calibrate", "heatmaps")] == [len(IDS), len(IDS)]
-    for stage, names in (("calibrate", ("points", "value")), ("heatmaps", ("total",))):
-        a, b = local.env.store(stage), far.env.store(stage)
-        assert (b.status() == DONE).all()
-        for name in names:
-            for i in range(len(IDS)):
-                np.testing.assert_array_equal(a.read(name, i), b.read(name, i), err_msg=f"{stage}/{name} {i}")
+    _assert_same_frames(local, far)
     texts = [d.fs.cat_file(d.file("total.txt")) for d in (far.env.dir("train"), local.env.dir("train"))]
     assert texts[0] == texts[1] and float(texts[0]) > 0
     again = far.run("train")  # resumed: nothing recomputed
@@ -864,12 +869,7 @@ def test_an_s3_cache_gives_what_a_local_one_gives_and_names_a_damaged_chunk(tmp_
     local, far = _pipe(str(tmp_path / "cache"), tmp_path), _pipe(f"{s3}/cache", tmp_path)
     local.run("train")
     far.run("train")
-    for stage, names in (("calibrate", ("points", "value")), ("heatmaps", ("total",))):
-        a, b = local.env.store(stage), far.env.store(stage)
-        assert (b.status() == DONE).all()
-        for name in names:
-            for i in range(len(IDS)):
-                np.testing.assert_array_equal(a.read(name, i), b.read(name, i), err_msg=f"{stage}/{name} {i}")
+    _assert_same_frames(local, far)
     again = far.run("train")
     assert [(r.action, r.processed) for r in again[:2]] == [("resumed", 0), ("resumed", 0)]
     far.env.dir("train").fs.pipe_file(f"{s3.removeprefix('s3://')}/cache/fake/calibrate.zarr/value/c/3", b"garbage")
