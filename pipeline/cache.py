@@ -411,14 +411,6 @@ class FrameStore:
                                     f"recompute the stage: delete {self.url} or run it with --force")
         return folders
 
-    def _member(self, g: zarr.Group, name: str) -> zarr.Array:
-        """Array ``name`` of group ``g``; CacheError naming its metadata file when that is damaged
-        (every frame of the array is then unreadable)."""
-        try:
-            return g[name]
-        except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
-            raise self._damaged_array(name, exc) from None
-
     def _damaged_array(self, name: str, exc: BaseException) -> MetadataError:
         meta = join(self.url, name, "zarr.json")
         return MetadataError(f"{meta}: the metadata of array {name} cannot be read ({_one_line(exc)}); recompute "
@@ -429,7 +421,7 @@ class FrameStore:
         too (a request of its own on an object store, made several times per frame until
         2026-12-07; the local path reads none either). Not there: None when ``missing_ok``, else
         KeyError, or the group's own error when the group is gone too. MetadataError naming the
-        file when it cannot be read (:meth:`_member`)."""
+        file when it cannot be read (every frame of the array is then unreadable)."""
         try:
             node = sync(_member_async(self.url, name, mode))
         except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
@@ -490,25 +482,25 @@ class FrameStore:
         if not self.exists():
             raise CacheError(f"{self.url}: no output to verify")
         names = sorted(set(self.check_metadata()) - {"status", "reason", FRAME_IDS})
-        g = self._group("r")
-        total = self._member(g, "status").shape[0] * (2 + len(names))
+        every_chunk = bool(self._group("r").attrs.get(EVERY_CHUNK))
+        total = self._array("status").shape[0] * (2 + len(names))
         progress = (lambda n: None) if progress is None else (lambda n, _p=progress: _p(n, total))
         errors: dict[int, ChunkError] = {}
-        status = self._scan(g, "status", None, errors, progress, block_bytes)
+        status = self._scan(every_chunk, "status", None, errors, progress, block_bytes)
         status = np.where(np.isin(np.arange(len(status)), list(errors)), PENDING, status).astype(np.uint8)
-        self._scan(g, "reason", status == FAILED, errors, progress, block_bytes, "failed")
+        self._scan(every_chunk, "reason", status == FAILED, errors, progress, block_bytes, "failed")
         done = status == DONE
         for name in names:
-            self._scan(g, name, done, errors, progress, block_bytes, "is done")
+            self._scan(every_chunk, name, done, errors, progress, block_bytes, "is done")
         return status, dict(sorted(errors.items()))
 
-    def _scan(self, g: zarr.Group, name: str, frames: np.ndarray | None, errors: dict[int, ChunkError],
+    def _scan(self, every_chunk: bool, name: str, frames: np.ndarray | None, errors: dict[int, ChunkError],
               progress: Callable[[int], None], block_bytes: int, state: str = "") -> np.ndarray | None:
         """Decode array ``name`` in blocks, recording in ``errors`` a ChunkError for each frame of
-        mask ``frames`` (every frame: None) whose chunk cannot be decoded or, the group having every
-        chunk written, is missing (the frames being in ``state``); the values when ``frames`` is None
+        mask ``frames`` (every frame: None) whose chunk cannot be decoded or, where the group has every
+        chunk written (``every_chunk``), is missing (the frames being in ``state``); the values when ``frames`` is None
         (the status array)."""
-        arr = self._member(g, name)
+        arr = self._array(name)
         n = arr.shape[0]
         wanted = np.ones(n, bool) if frames is None else frames
         per_frame_size = int(np.prod(arr.shape[1:], dtype=np.int64))
@@ -536,7 +528,7 @@ class FrameStore:
             if block is not None and values is not None:
                 values[start:stop] = block
             progress(stop - start)
-        if g.attrs.get(EVERY_CHUNK) and frames is not None and per_frame_size:  # zarr writes no chunk holding nothing
+        if every_chunk and frames is not None and per_frame_size:  # zarr writes no chunk holding nothing
             present = set(sync(_keys(arr.store, f"{arr.path}/c/")))
             for i in np.flatnonzero(wanted):
                 if i not in errors and f"{arr.path}/{_chunk_key(arr, int(i))}" not in present:
