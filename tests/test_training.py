@@ -79,8 +79,10 @@ def _to_zarr(a: np.ndarray, chunk: int):
 
 
 def test_disnet_learns_and_beats_mean_map(tmp_path):
+    """Dis-Net learns the squares; the best checkpoint reproduces the validation metrics recorded
+    for its epoch (with a prior share chosen after training: test_prior_mix_is_the_val_minimum_...)."""
     data = make_disnet_data()
-    cfg = tiny_cfg(**{"train.epochs": "8", "disnet.prior_mix": "val"})
+    cfg = tiny_cfg(**{"train.epochs": "8"})
     res = T.train_disnet(cfg, data, tmp_path, progress=False)
     base = B.disnet_baseline(data.heatmaps, data.counts, data.train_idx, data.val_idx)
     best = res.curves[res.best_epoch - 1]
@@ -89,18 +91,10 @@ def test_disnet_learns_and_beats_mean_map(tmp_path):
     for name in ("last.safetensors", "best.safetensors", "last.json", "best.json",
                  "curves.csv", "curves.json", "curves.png"):
         assert (tmp_path / name).is_file(), name
-    # the best checkpoint reproduces the validation metrics recorded for its epoch, without the
-    # prior share chosen afterwards on the same frames, and that share's val L_KL with it
     model = Inf.load_disnet(cfg, res.best_path)
-    mix = ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY]
-    assert mix["setting"] == "val" and 0 < mix["w"] < 1 and float(model.prior_mix) == pytest.approx(mix["w"])
+    assert ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY] == {"w": 0.0, "setting": "off"}
     m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
-    assert m["kl"] == pytest.approx(mix["val_kl"], rel=1e-5) and mix["val_kl"] < mix["val_kl_unmixed"]
-    model.set_prior_mix(0.0)
-    m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
-    assert m["kl"] == pytest.approx(best["val_kl"], rel=1e-4) == pytest.approx(mix["val_kl_unmixed"], rel=1e-4)
-    assert m["n"] == pytest.approx(best["val_n"], rel=1e-4)
-    model.set_prior_mix(mix["w"])
+    assert m["kl"] == pytest.approx(best["val_kl"], rel=1e-4) and m["n"] == pytest.approx(best["val_n"], rel=1e-4)
     maps, n_hat = Inf.disnet_predict(model, data.images[:5], data.speeds[:5], batch=2)
     assert maps.shape == (5, 32, 64) and maps.dtype == np.float32 and n_hat.shape == (5,)
     np.testing.assert_allclose(maps.sum(axis=(1, 2)), 1.0, atol=1e-4)
@@ -1214,26 +1208,39 @@ def test_residuals_are_drawn_from_their_quantiles_and_bad_ones_refused():
 
 def test_prior_mix_is_the_val_minimum_of_a_numpy_mixture(tmp_path):
     """disnet.prior_mix = 'val': the share is the grid value with the lowest mean val L_KL of
-    (1 - w) map + w prior, computed here in numpy from the unmixed maps; 'off' (the default)
-    leaves the map alone; a checkpoint without the buffer (before 2026-12-06) loads unmixed."""
+    (1 - w) map + w prior, computed here in numpy from the unmixed maps; the checkpoint records
+    the val L_KL with and without it, which the loaded net reproduces (without it: the best epoch's);
+    'off' (the default) leaves the map alone; a checkpoint without the buffer (before 2026-12-06)
+    loads unmixed. Where the minimum lies depends on how well the net trained, which differs
+    between machines (on 2026-12-07's VM at w = 0, elsewhere above it): the mixing is checked at
+    the chosen share and at 0.5 too."""
     from pipeline.models.disnet import mix_with_prior
 
     data = make_disnet_data()
-    cfg = tiny_cfg(**{"train.epochs": "8", "disnet.prior_mix": "val"})  # learnt enough that some prior helps
+    cfg = tiny_cfg(**{"train.epochs": "8", "disnet.prior_mix": "val"})
     res = T.train_disnet(cfg, data, tmp_path / "val", progress=False)
     model = Inf.load_disnet(cfg, res.best_path)
     w = float(model.prior_mix)
+    record = ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY]
+    assert record["setting"] == "val" and record["w"] == pytest.approx(w) and 0 <= w < 1
+    m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
+    assert m["kl"] == pytest.approx(record["val_kl"], rel=1e-5) and record["val_kl"] <= record["val_kl_unmixed"]
     model.set_prior_mix(0.0)
+    m = T.disnet_metrics(model, data, data.val_idx, alpha=cfg.train.alpha)
+    best = res.curves[res.best_epoch - 1]
+    assert m["kl"] == pytest.approx(best["val_kl"], rel=1e-4) == pytest.approx(record["val_kl_unmixed"], rel=1e-4)
     maps, _ = Inf.disnet_predict(model, data.images[data.val_idx], data.speeds[data.val_idx])
     prior = torch.softmax(model.prior_logits.reshape(-1).double(), 0).reshape(model.out_hw).numpy()
     target = np.asarray(data.heatmaps[data.val_idx], np.float64)
     kl = [np.mean([rel_entr(t, (1 - g) * m + g * prior).sum() for t, m in zip(target, maps.astype(np.float64))])
           for g in T.PRIOR_MIX_GRID]
     np.testing.assert_allclose(T.prior_mix_kl(model, data, data.val_idx), kl, rtol=2e-4)
-    assert w == pytest.approx(T.PRIOR_MIX_GRID[int(np.argmin(kl))]) and min(kl) < kl[0]
-    model.set_prior_mix(w)
-    mixed, _ = Inf.disnet_predict(model, data.images[data.val_idx], data.speeds[data.val_idx])
-    np.testing.assert_allclose(mixed, (1 - w) * maps + w * prior, atol=1e-6)
+    assert w == pytest.approx(T.PRIOR_MIX_GRID[int(np.argmin(kl))])
+    assert record["val_kl"] == pytest.approx(min(kl), rel=2e-4) and record["val_kl_unmixed"] == pytest.approx(kl[0], rel=2e-4)
+    for share in sorted({w, 0.5}):
+        model.set_prior_mix(share)
+        mixed, _ = Inf.disnet_predict(model, data.images[data.val_idx], data.speeds[data.val_idx])
+        np.testing.assert_allclose(mixed, (1 - share) * maps + share * prior, atol=1e-6)
     edge = torch.log(torch.from_numpy(maps[:2]))
     assert torch.allclose(mix_with_prior(edge, model.prior_logits, 1.0).exp().double(), torch.from_numpy(prior)[None]
                           .expand(2, -1, -1), atol=1e-6)
@@ -1244,6 +1251,9 @@ def test_prior_mix_is_the_val_minimum_of_a_numpy_mixture(tmp_path):
     assert ckpt.read_meta(off.best_path)[T.PRIOR_MIX_KEY] == {"w": 0.0, "setting": "off"}
     assert float(Inf.load_disnet(cfg, off.best_path).prior_mix) == 0.0
     tensors, meta = ckpt.load_checkpoint(res.best_path)
+    tensors["model.prior_mix"] = torch.tensor(0.5, dtype=tensors["model.prior_mix"].dtype)
+    ckpt.save_checkpoint(tmp_path / "half.safetensors", tensors, meta)
+    assert float(Inf.load_disnet(cfg, tmp_path / "half.safetensors").prior_mix) == 0.5  # the share saved is the one used
     del tensors["model.prior_mix"]
     ckpt.save_checkpoint(tmp_path / "old.safetensors", tensors, meta)
     old = Inf.load_disnet(cfg, tmp_path / "old.safetensors")
@@ -1304,16 +1314,21 @@ def test_prior_mix_reaches_both_ends_of_its_grid_and_leaves_the_model_as_it_was(
         T.choose_prior_mix(model, data, idx, "auto")
 
 
-def test_a_finished_train_takes_a_changed_prior_mix_setting(tmp_path):
+def test_a_finished_train_takes_a_changed_prior_mix_setting(tmp_path, monkeypatch):
     """disnet.prior_mix is no training key: a finished run resumed with another setting keeps its
     trained weights and rechooses only the share ('val', then 'off', then 'val' again). The share
     saved in the best checkpoint follows the record each time (0 after 'off', not the share the
-    weights were loaded with), and a rerun with an unchanged setting leaves the file untouched."""
+    weights were loaded with), and a rerun with an unchanged setting leaves the file untouched.
+    The val L_KL over the grid is a stand-in with its minimum at w = 0.3, so that the share 'val'
+    chooses is not 0 however well the net trained (on 2026-12-07's VM its own minimum was at 0;
+    test_prior_mix_is_the_val_minimum_of_a_numpy_mixture checks the real measurement)."""
+    stand_in = np.abs(T.PRIOR_MIX_GRID - 0.3) + 1.0
+    monkeypatch.setattr(T, "prior_mix_kl", lambda model, data, idx: stand_in)
     data = make_disnet_data()
     val, off = (tiny_cfg(**{"train.epochs": "8", "disnet.prior_mix": s}) for s in ("val", "off"))
     res = T.train_disnet(val, data, tmp_path, progress=False)
     chosen = ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY]
-    assert chosen["w"] > 0 and chosen["val_frames"] == len(data.val_idx)
+    assert chosen["w"] == pytest.approx(0.3) and chosen["val_frames"] == len(data.val_idx)
     trained = _all_tensors(res.best_path)
     assert T.train_disnet(off, data, tmp_path, progress=False).best_path == res.best_path
     assert ckpt.read_meta(res.best_path)[T.PRIOR_MIX_KEY] == {"w": 0.0, "setting": "off"}
