@@ -577,7 +577,7 @@ def generate_world(frames, seed, out, scene_mix, resolution, sequence_len, lidar
     if not replace:
         _refuse_another_world(Path(out), wanted)
     summary = generate(out, frames=frames, seed=seed, resolution_wh=(w, h), scene_mix=mix,
-                       lidar_lines=int(lidar_lines), sequence_len=sequence_len, progress=sys.stderr.isatty())
+                       lidar_lines=int(lidar_lines), sequence_len=sequence_len, progress=True)
     click.echo(json.dumps(summary, indent=2, default=str))
 
 
@@ -602,14 +602,13 @@ def _refuse_another_world(out: Path, wanted: dict) -> None:
 @_handle_errors
 def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     """Estimate the heatmap Sigma (full-resolution pixels) from radar points on annotated objects."""
-    from tqdm import tqdm
-
     from pipeline.heatmap import sigma_from_frames
+    from pipeline.progress import bar
     from pipeline.readers import get_reader
     from pipeline.runner import parse_frames
 
     env = _context(dataset, data_root, cache_root, sets)
-    _ensure_world(env, sys.stderr.isatty())  # as run, ablate and check-physics do (else: 0 frames)
+    _ensure_world(env, True)  # as run, ablate and check-physics do (else: 0 frames)
     reader = get_reader(env.cfg, env.data_root)
     ids = reader.frame_ids()
     if not ids:  # said as `run` says it, not as "0 readable frame(s): give more frames"
@@ -618,8 +617,8 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     skipped: list[tuple[str, str]] = []
 
     def readable():  # one frame in memory at a time; an unreadable one is skipped and named, as `run` does
-        for i in tqdm(chosen, desc="estimate-sigma", unit="frame", leave=False, file=sys.stderr,
-                      disable=not sys.stderr.isatty()):
+        for i in bar(chosen, total=len(chosen), desc="estimate-sigma", unit="frame",
+                     every_s=env.cfg.run.progress_every_s):
             try:
                 frame = reader.read(ids[i])
             except (PipelineError, ValueError, OSError, KeyError) as exc:
@@ -746,7 +745,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     file a dataset stage recorded when it finished (size and SHA-256): the damaged frames and
     files, by stage, with the command that recomputes them (e.g. after copying a cache). Exit code
     2 when anything is damaged."""
-    from tqdm import tqdm
+    from pipeline.progress import bar
 
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
     if not _cache_exists(env):  # a mistyped path: not 'nothing damaged', nor lock folders made there
@@ -756,17 +755,16 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     unknown = [s for s in stages if s not in pipe.stages]
     if unknown:
         raise ConfigError(f"--stage {unknown[0]}: no such stage (one of {', '.join(pipe.order)})")
-    bars: dict[str, tqdm] = {}
+    bars: dict = {}
 
     def progress(stage: str, n: int, total: int) -> None:
         if stage not in bars:
-            bars[stage] = tqdm(total=total, desc=stage, unit="chunk", leave=False, file=sys.stderr,
-                               disable=not sys.stderr.isatty())
+            bars[stage] = bar(total=total, desc=f"verify {stage}", unit="chunk", every_s=env.cfg.run.progress_every_s)
         bars[stage].update(n)
 
     rows = pipe.verify(list(stages) or None, progress, wait_s)
-    for bar in bars.values():
-        bar.close()
+    for stage_bar in bars.values():
+        stage_bar.close()
     click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")
     again = "".join(f" --set {shlex.quote(s)}" for s in sets)  # the repair runs with this command's settings
 

@@ -417,6 +417,11 @@ class RunSection:
     trains: at the end of an epoch at least this long after the last upload, the net's best and last
     checkpoints are uploaded, so that a train killed on one machine resumes from that epoch on any
     other (0: after every epoch). Outputs do not depend on it."""
+    progress_every_s: float = 60.0
+    """Where stderr is not a terminal (a log file, a batch job's output), seconds between progress
+    lines of long work (a stage's frames, a training epoch, the world's generation): each says how
+    far it is and about how long is left, and an epoch's line its losses; work shorter than this
+    writes none (0: no progress lines). On a terminal the progress bars are drawn instead."""
 
 
 SECTIONS: dict[str, type] = {
@@ -533,7 +538,7 @@ LIMITS: dict[str, str] = {
     "eval.figure_frames": ">=0", "eval.pooled_rows_max": ">0", "eval.gate_m": ">0 or inf", "eval.gate_rss": ">0 or inf",
     "eval.gate_doppler_mps": ">0 or inf",
     "run.workers": ">0",
-    "run.checkpoint_upload_s": ">=0",
+    "run.checkpoint_upload_s": ">=0", "run.progress_every_s": ">=0",
     "dataset.world_seed": ">=0", "split.seed": ">=0", "patches.seed": ">=0", "train.seed": ">=0", "synth.seed": ">=0",
     "dataset.radar_mount_T_radar_lidar": "finite", "radar.rss_min": "finite", "radar.rss_max": "finite",
 }

@@ -12,7 +12,6 @@ import functools
 import logging
 import queue
 import signal
-import sys
 import threading
 import time
 import traceback
@@ -23,12 +22,12 @@ from typing import Any, Callable, Iterator
 import dask
 import numpy as np
 from threadpoolctl import threadpool_limits
-from tqdm import tqdm
 
 from pipeline.cache import DONE, FAILED, FrameStore, dir_store, frame_store
 from pipeline.config import Config
 from pipeline.errors import (CacheError, ClusterFailed, FrameError, PipelineError, exception_line,
                              sigint_deferred)
+from pipeline.progress import bar as progress_bar
 from pipeline.stage import FrameStage
 
 # glibc heap settings for local dask workers: arrays under 64 MiB come from a reused heap.
@@ -250,7 +249,7 @@ class Executor:
                  no_worker_timeout_s: float = NO_WORKER_TIMEOUT_S) -> None:
         self.workers = max(1, int(workers))
         self.scheduler = scheduler
-        self.progress = sys.stderr.isatty() if progress is None else progress
+        self.progress = True if progress is None else progress  # a bar on a terminal, else lines (pipeline.progress)
         self.no_worker_timeout_s = float(no_worker_timeout_s)
         self._client = None
         self._cluster = None
@@ -354,7 +353,8 @@ class Executor:
     def map(self, stage: FrameStage, env: RunEnv, todo: list[tuple[int, str]],
             strict: bool = False) -> Iterator[tuple[int, int, str]]:
         """Yield (index, status, reason) as frames finish; with ``strict`` stop at the first failure."""
-        bar = tqdm(total=len(todo), desc=stage.name, unit="frame", disable=not self.progress, file=sys.stderr)
+        bar = progress_bar(total=len(todo), desc=stage.name, unit="frame", enabled=self.progress,
+                           every_s=env.cfg.run.progress_every_s)
         try:
             for result in self._results(stage, env, todo, strict):
                 bar.update(1)

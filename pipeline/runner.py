@@ -141,7 +141,7 @@ class Pipeline:
         self.order = [s.name for s in stages]
         self.env = env
         self.executor = executor or Executor(1)
-        self.progress = sys.stderr.isatty() if progress is None else progress
+        self.progress = True if progress is None else progress  # a bar on a terminal, else lines (pipeline.progress)
         self.log = log or (lambda msg: print(msg, file=sys.stderr))
         self._fp: dict[str, str] = {}
         self._done: dict[str, str] = {}

@@ -23,7 +23,6 @@ import csv
 import functools
 import logging
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,6 +46,7 @@ from pipeline.models.losses import count_loss, kl_loss, poisson_loss, rss_loss
 from pipeline.models.placenet import PlaceNet, build_placenet, placenet_kwargs
 from pipeline.models.rssnet import RSSNet, build_rssnet, rssnet_kwargs
 from pipeline.patches import input_summaries
+from pipeline.progress import EVERY_S, Heartbeat, bar as progress_bar
 from pipeline.rows import (WINDOW_BATCHES, Batch, Rows, as_rows, chunk_len, epoch_windows, evenly_spaced,
                            iter_batches, n_rows, take_rows)
 
@@ -127,10 +127,8 @@ class TrainResult:
     curves: list[dict[str, float]] = field(default_factory=list)
 
 
-def _progress(iterable: Iterable, total: int, desc: str, enabled: bool):
-    from tqdm.auto import tqdm
-    return tqdm(iterable, total=total, desc=desc, leave=False,
-                disable=not (enabled and sys.stderr.isatty()))
+def _progress(iterable: Iterable, total: int, desc: str, enabled: bool, every_s: float = EVERY_S):
+    return progress_bar(iterable, total=total, desc=desc, unit="batch", enabled=enabled, every_s=every_s)
 
 
 # ------------------------------------------------------------------------------- loop
@@ -143,7 +141,7 @@ def _weighted_total(terms: dict[str, Tensor], weights: dict[str, float]) -> Tens
 def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches: Iterable[Batch],
                     terms_fn: TermsFn, weights: dict[str, float], device: torch.device,
                     n_batches: int = 0, desc: str = "train", progress: bool = True,
-                    ema: AveragedModel | None = None) -> dict[str, float]:
+                    ema: AveragedModel | None = None, every_s: float = EVERY_S) -> dict[str, float]:
     """One pass over ``batches``; loss = mean over the batch of sum_k weights[k] * term_k; ``ema``
     (when given) is updated after every optimiser step.
 
@@ -153,7 +151,7 @@ def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches:
     model.train()
     sums: dict[str, float] = {}
     count = 0
-    bar = _progress(batches, n_batches, desc, progress)
+    bar = _progress(batches, n_batches, desc, progress, every_s)
     for step, batch in enumerate(bar):
         terms = terms_fn(model, batch, device)
         total = _weighted_total(terms, weights)                    # (B,)
@@ -174,13 +172,13 @@ def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches:
 @torch.no_grad()
 def evaluate(model: nn.Module, batches: Iterable[Batch], terms_fn: TermsFn, weights: dict[str, float],
              device: torch.device, n_batches: int = 0, desc: str = "val",
-             progress: bool = True) -> dict[str, float]:
+             progress: bool = True, every_s: float = EVERY_S) -> dict[str, float]:
     """Per-sample (per-frame / per-point) means of every term and of the weighted loss, eval mode.
     Empty input gives NaN for every key."""
     model.eval()
     sums: dict[str, float] = {}
     count = 0
-    for batch in _progress(batches, n_batches, desc, progress):
+    for batch in _progress(batches, n_batches, desc, progress, every_s):
         terms = terms_fn(model, batch, device)
         count += _accumulate(sums, {**terms, "loss": _weighted_total(terms, weights)})
     keys = list(weights) + ["loss"]
@@ -247,6 +245,8 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     n_train_batches = math.ceil(len(spec.train_idx) / spec.batch_size)
     n_val_batches = math.ceil(len(spec.val_idx) / spec.batch_size)
     uploaded_at, uploaded_best = time.monotonic(), None
+    every_s = cfg.run.progress_every_s
+    heartbeat = Heartbeat(progress, every_s)
     for epoch in range(start + 1, n_epochs + 1):
         t0 = time.perf_counter()
         for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
@@ -254,9 +254,9 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         order = epoch_windows(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
         tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
                              spec.terms_fn, spec.weights, device, n_train_batches,
-                             f"{spec.name} epoch {epoch}/{n_epochs}", progress, ema)
+                             f"{spec.name} epoch {epoch}/{n_epochs}", progress, ema, every_s)
         va = evaluate(scored, iter_batches(spec.arrays, spec.val_idx, spec.batch_size), spec.terms_fn,
-                      spec.weights, device, n_val_batches, f"{spec.name} val", progress)
+                      spec.weights, device, n_val_batches, f"{spec.name} val", progress, every_s)
         metric = va[select_key] if len(spec.val_idx) else tr[select_key]
         state["curves"].append({"epoch": epoch, **{f"train_{k}": v for k, v in tr.items()},
                                 **{f"val_{k}": v for k, v in va.items()},
@@ -266,6 +266,8 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
             state["best_epoch"], state["best_metric"] = epoch, metric
             ckpt.save_checkpoint(best, ckpt.model_tensors(scored), _meta(spec, fingerprint, state))
         _save_last(last, spec, optimizer, rng, fingerprint, state, ema)  # the commit point of the epoch
+        heartbeat.maybe(epoch_line(spec.name, epoch, n_epochs, tr, va if len(spec.val_idx) else None, select_key,
+                                   state["best_epoch"], state["curves"][-1]["seconds"]))
         write_curves(out_dir, spec.name, state["curves"], plot=False)
         if publish is not None and time.monotonic() - uploaded_at >= cfg.run.checkpoint_upload_s:
             if publish_checkpoints(publish, best, last, with_best=state["best_epoch"] != uploaded_best):
@@ -274,6 +276,16 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     write_curves(out_dir, spec.name, state["curves"], plot=True)
     return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
                        state["best_metric"], state["curves"])
+
+
+def epoch_line(net: str, epoch: int, n_epochs: int, train: dict[str, float], val: dict[str, float] | None,
+               select_key: str, best_epoch: int, seconds: float) -> str:
+    """One line on a finished epoch for a log: 'disnet epoch 3/12: train loss 0.4123, val loss
+    0.3987 kl 0.2510 (best so far), 52 s' (no val part without a validation split)."""
+    where = f"val loss {val['loss']:.4g}" + (f" {select_key} {val[select_key]:.4g}" if select_key != "loss" else "") \
+        if val is not None else "no val split"
+    best = " (best so far)" if best_epoch == epoch else f" (best: epoch {best_epoch})"
+    return f"{net} epoch {epoch}/{n_epochs}: train loss {train['loss']:.4g}, {where}{best}, {seconds:.0f} s"
 
 
 def publish_checkpoints(publish: Publish, best: Path, last: Path, with_best: bool = True) -> bool:

@@ -35,7 +35,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from pipeline.baselines import mean_count
 from pipeline.cache import DONE, FAILED
@@ -44,6 +43,7 @@ from pipeline.errors import CacheError, PipelineError, first_sentence
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import invert_transform, project_to_image
 from pipeline.metrics import region_mask
+from pipeline.progress import EVERY_S, bar as progress_bar
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
 from stages.synthesize import (SPLITS, capacity, check_generation, check_split, generate, lidar_tree, models,
                                split_mask)
@@ -413,7 +413,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                             f"(synth.split = '{cfg.synth.split}'{why})")
     compared = comparison(cfg)
     summary = summarise(part, frames, compared.doppler_span_mps, compared.rss, cfg.eval.pooled_rows_max,
-                        inputs.progress)
+                        inputs.progress, cfg.run.progress_every_s)
     root = Path(out.path)
     figs = root / "figures"
     _figures(inputs, cfg, frames[:cfg.eval.figure_frames], figs, summary.model_sph, summary.real_sph, fig8, bev,
@@ -504,7 +504,7 @@ class Summary:
 
 
 def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool, rows_max: int,
-              progress: bool) -> Summary:
+              progress: bool, every_s: float = EVERY_S) -> Summary:
     """The report's numbers over ``frames`` (F,) finished in evaluate-frames' store ``part``:
     metrics aggregated per method, the distribution distances of the pooled points (Doppler on the
     circle of ``doppler_span_mps`` when > 0; RSS left out unless ``with_rss``), the physics checks
@@ -523,7 +523,8 @@ def summarise(part, frames: np.ndarray, doppler_span_mps: float, with_rss: bool,
                            for k, key in enumerate(FRAME_METRICS)}
                for row, spec in enumerate(METHODS) if present[:, row].any()}
     real_counts = np.asarray(part.array("abs_dr_count").oindex[frames], np.float64)  # one row per real point
-    bar = tqdm(total=3 * len(frames), desc="evaluate (report)", unit="frame", disable=not progress)
+    bar = progress_bar(total=3 * len(frames), desc="evaluate (report)", unit="frame", enabled=progress,
+                       every_s=every_s)
     with bar:
         (points, n_points, point_frame), (abs_dr, n_dr, _), (abs_dv, n_dv, _) = (
             _pooled(part, name, frames, rows_max, bar) for name in ("points", "abs_dr", "abs_dv"))

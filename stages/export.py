@@ -35,12 +35,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from pipeline.cache import DONE
 from pipeline.config import Config
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.geometry import invert_transform, project_to_image
+from pipeline.progress import bar as progress_bar
 from pipeline.stage import DatasetStage
 
 CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export.images", "export.image_format",
@@ -91,7 +91,8 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     root = Path(out.path)
     class_map = parse_class_map(cfg.export.class_names)  # checked by check()
     tally = _Tally(unused=set(class_map))
-    for i in tqdm(done, desc="export", unit="frame", disable=not inputs.progress):
+    for i in progress_bar(done, total=len(done), desc="export", unit="frame", enabled=inputs.progress,
+                          every_s=cfg.run.progress_every_s):
         i = int(i)
         export_frame(inputs.frame(i), inputs.frame_ids[i], syn.read("points", i),
                      SPLIT_NAMES.get(int(split[i]), "test"), cfg, root, class_map, tally)

@@ -109,13 +109,12 @@ def placenet_data(inputs, table, part: int, val_part: int = 1, cfg: Config | Non
 def candidate_counts(inputs, cfg: Config, frames: np.ndarray) -> np.ndarray:
     """(F,) the lidar candidates of each of ``frames`` (their PlaceNet rows are a sample of them),
     from calibrate's lidar and camera (stages.patches.candidates: a projection, no features)."""
-    from tqdm import tqdm
-
+    from pipeline.progress import bar
     from stages.patches import candidates
 
     return np.array([len(candidates(inputs.frame(int(i)), cfg)[0])
-                     for i in tqdm(frames, desc="train (PlaceNet's candidates)", unit="frame",
-                                   disable=not inputs.progress)], np.int64)
+                     for i in bar(frames, total=len(frames), desc="train (PlaceNet's candidates)", unit="frame",
+                                  enabled=inputs.progress, every_s=cfg.run.progress_every_s)], np.int64)
 
 
 def _baselines(inputs, table, idx, cfg: Config, root: Path) -> dict[str, float]:

@@ -198,6 +198,7 @@ def test_real_stage_declarations_invalidate_as_declared():
 NOT_IN_FINGERPRINTS = {
     "run.workers": "how many processes run it", "train.threads": "how many threads run it",
     "run.staging_dir": "where a remote cache's output is staged and copied on this machine",
+    "run.progress_every_s": "how often a log is told how far the work is",
     "synth.device": "where the nets run (pipeline.config: no fingerprint holds it)",
     "train.nets_from": "in the train stage's extra fingerprint, which every stage after it inherits",
     "radar.name": "words of a message", "radar.rss_unit": "words of a message or a figure's label"}

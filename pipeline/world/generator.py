@@ -152,9 +152,9 @@ def _run_jobs(jobs: list[tuple], frames: int, progress: bool, done_frames: int =
     """Run the sequence jobs (in 2 processes when there are several); results in sequence order.
     Each finished sequence's entry is recorded under ``partial/`` as it comes in (what a later run
     resumes from); ``done_frames`` of the ``frames`` were made by an earlier run."""
-    from tqdm import tqdm
+    from pipeline.progress import bar as progress_bar
 
-    bar = tqdm(total=frames, initial=done_frames, unit="frame", disable=not progress, desc="generate-world")
+    bar = progress_bar(total=frames, initial=done_frames, unit="frame", enabled=progress, desc="generate-world")
     workers = min(MAX_WORKERS, len(jobs), os.cpu_count() or 1)
     results = []
 

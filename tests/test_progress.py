@@ -1,0 +1,134 @@
+"""Progress of long work where stderr is a log file (pipeline.progress): plain lines, at most one
+every run.progress_every_s seconds; until 2026-12-07 a run whose stderr was not a terminal showed
+no progress at all (a training of an hour wrote nothing to its log until it ended)."""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import pytest
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError
+from pipeline.executor import Executor, RunEnv
+from pipeline.progress import Heartbeat, bar
+from pipeline.runner import Pipeline
+from pipeline.training import epoch_line
+from pipeline.world import generate
+from stages import all_stages
+
+
+class Clock:
+    """time.monotonic for tqdm and Heartbeat, moved by hand."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+@pytest.fixture
+def clock(monkeypatch) -> Clock:
+    import tqdm.std
+
+    import pipeline.progress
+
+    c = Clock()
+    monkeypatch.setattr(tqdm.std, "time", c)  # tqdm's timer (tqdm.std imports time.time as time)
+    monkeypatch.setattr(pipeline.progress.time, "monotonic", c)
+    return c
+
+
+def test_a_log_gets_a_line_per_interval_with_the_count_and_what_is_left(clock):
+    log = io.StringIO()
+    b = bar(total=100, desc="synthesize", unit="frame", every_s=60.0, stream=log)
+    for _ in range(10):           # 10 frames in 50 s: within the first interval, nothing yet
+        clock.now += 5.0
+        b.update(1)
+    assert log.getvalue() == ""
+    clock.now += 15.0             # 65 s in: the first line
+    b.update(1)
+    for _ in range(40):           # 40 more frames over 40 s: no second line before 60 s have passed
+        clock.now += 1.0
+        b.update(1)
+    clock.now += 30.0
+    b.update(1)                   # 135 s in, 70 s after the first line: the second
+    b.close()
+    lines = log.getvalue().splitlines()
+    assert len(lines) == 2 and "\r" not in log.getvalue()
+    assert lines[0] == "synthesize: 11/100 (11%), 01:05 elapsed, about 08:45 left, 5.91s/frame"  # 65 s / 11
+    assert lines[1].startswith("synthesize: 52/100 (52%), 02:15 elapsed")
+
+
+def test_short_work_and_switched_off_progress_write_nothing(clock):
+    for every_s, enabled in ((60.0, True), (0.0, True), (1.0, False)):
+        log = io.StringIO()
+        for _ in bar(range(5), total=5, desc="x", enabled=enabled, every_s=every_s, stream=log):
+            clock.now += 0.5 if every_s else 1000.0
+        assert log.getvalue() == "", (every_s, enabled)
+
+
+def test_a_terminal_gets_the_redrawn_bar(clock):
+    term = Terminal()
+    for _ in bar(range(3), total=3, desc="heatmaps", every_s=60.0, stream=term):
+        clock.now += 1.0
+    assert "\r" in term.getvalue() and "heatmaps" in term.getvalue()
+
+
+def test_heartbeat_writes_at_most_once_an_interval_and_only_to_a_log(clock):
+    log = io.StringIO()
+    beat = Heartbeat(True, 60.0, log)
+    clock.now += 59.0
+    assert not beat.maybe("a")
+    clock.now += 2.0
+    assert beat.maybe("b")
+    clock.now += 30.0
+    assert not beat.maybe("c")
+    clock.now += 31.0
+    assert beat.maybe("d")
+    assert log.getvalue() == "b\nd\n"
+    clock.now += 1000.0
+    assert not Heartbeat(True, 60.0, Terminal()).maybe("e") and not Heartbeat(False, 60.0, log).maybe("e")
+    assert not Heartbeat(True, 0.0, log).maybe("e")
+
+
+def test_epoch_line_names_the_losses_and_the_best_epoch():
+    line = epoch_line("disnet", 3, 12, {"loss": 0.41234, "kl": 0.3}, {"loss": 0.39871, "kl": 0.25101}, "kl", 3, 52.4)
+    assert line == "disnet epoch 3/12: train loss 0.4123, val loss 0.3987 kl 0.251 (best so far), 52 s"
+    line = epoch_line("rssnet", 4, 12, {"loss": 0.02}, {"loss": 0.03}, "loss", 2, 7.0)
+    assert line == "rssnet epoch 4/12: train loss 0.02, val loss 0.03 (best: epoch 2), 7 s"
+    assert "no val split" in epoch_line("placenet", 1, 1, {"loss": 1.0}, None, "loss", 1, 1.0)
+
+
+def test_the_interval_is_a_checked_setting():
+    assert load_config("synthetic", {}, environ={}).run.progress_every_s == 60.0
+    with pytest.raises(ConfigError, match="run.progress_every_s"):
+        load_config("synthetic", {"run.progress_every_s": "-1"}, environ={})
+
+
+def test_a_run_logged_to_a_file_shows_each_stage_and_epoch(tmp_path, capsys):
+    """The whole path: a run whose stderr is not a terminal (pytest's capture, as a log file) writes
+    progress lines of the frame stages and an epoch line per net, with the interval set short."""
+    world = tmp_path / "world"
+    generate(world, frames=4, seed=3, resolution_wh=(640, 384), sequence_len=4)
+    tiny = {"train.epochs": "2", "placement.epochs": "1", "disnet.width": "8", "patches.points_per_frame": "16",
+            "split.rule": "random", "train.threads": "1", "train.device": "cpu", "train.nets": "disnet"}
+    for every_s, expect in (("0.000001", True), ("60", False)):
+        cfg = load_config("synthetic", {**tiny, "run.progress_every_s": every_s}, environ={})
+        cache = tmp_path / f"cache{every_s}"
+        with Executor(1) as ex:  # progress left to the default: lines, as stderr is no terminal
+            Pipeline(all_stages(), RunEnv(cfg, str(cache), "synthetic", str(world)), ex, log=lambda m: None).run("train")
+        err = capsys.readouterr().err
+        lines = err.splitlines()
+        for stage in ("calibrate", "heatmaps", "patches"):
+            assert any(re.match(rf"{stage}: \d/4 \(\d+%\)", line) for line in lines) == expect, (stage, err)
+        assert any(re.match(r"disnet epoch 2/2: train loss [\d.e-]+, val loss", line) for line in lines) == expect, err
+        assert "\r" not in err
