@@ -6,6 +6,7 @@ documented (see pipeline/readers/msc.py), not against the real dataset.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import cv2
@@ -292,3 +293,57 @@ def test_lidar_beams_without_a_return_are_left_out(tmp_path):
     np.testing.assert_allclose(rec.lidar_D @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3], lidar_cam, atol=1e-4)
     np.testing.assert_array_equal(rec.lidar_intensity, pts[kept, 3])
     assert reader.report()["lidar_points_without_return"] == len(pts) - kept.sum()
+
+
+def test_a_radar_calibration_in_the_lidars_axes_is_read_as_such(tmp_path):
+    """CALIBRATION_CAMERA_RADAR may give the attitude of the radar's native right-down-forward frame
+    or of the forward-left-up one MSC-Rad4R's published points use (a devkit projects those points
+    through it directly); the reader tells which from the attitude (the camera looks along the
+    radar's forward axis). The same mounting written either way gives the same record, whichever
+    order the points are in; an attitude whose camera view lies along neither forward axis is
+    refused naming the file. Until 2026-12-07 every attitude was taken as right-down-forward."""
+    from pipeline.readers.msc import R_NATIVE_D
+
+    truth = make_folder(tmp_path)
+    R_native = _rot([0.2, 1.0, 0.1], 0.15)
+    calib = tmp_path / "5_CALIBRATION_URBAN" / "CALIBRATION_CAMERA_RADAR.txt"
+    rows = lambda R: "\n".join(" ".join(f"{v:.12g}" for v in r) for r in R)  # noqa: E731
+    translation = "translation of RADAR in camera coordinate\n" + " ".join(map(str, T_CAM_NATIVE_T)) + "\n"
+    calib.write_text(f"attitude of RADAR in camera coordinate\n{rows(R_native)}\n{translation}")
+    reader = get_reader(_cfg(), tmp_path)
+    native = reader.read("000002")
+    assert reader.report()["radar_calibration_in_lidar_axes"] == 0
+    calib.write_text(f"attitude of RADAR in camera coordinate\n{rows(R_native @ R_NATIVE_D)}\n{translation}")
+    native_rows = truth["radar"][2]
+    flu = native_rows.copy()
+    flu[:, :3] = np.stack([native_rows[:, 2], -native_rows[:, 0], -native_rows[:, 1]], 1)
+    for points in ("native", "flu"):
+        if points == "flu":
+            PointCloud.from_points(flu, RADAR_FIELDS, [np.float32] * 10).save(tmp_path / "3_RADAR/PCD/000002.pcd")
+        reader = get_reader(_cfg(), tmp_path)
+        rec = reader.read("000002")
+        assert reader.report()["radar_calibration_in_lidar_axes"] == 1
+        np.testing.assert_allclose(rec.T_radar_cam, native.T_radar_cam, atol=1e-9)
+        np.testing.assert_allclose(rec.radar_D, native.radar_D, atol=1e-5)
+        np.testing.assert_allclose(rec.lidar_D, native.lidar_D, atol=1e-4)
+    sideways = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # the camera looking along the radar's y
+    calib.write_text(f"attitude of RADAR in camera coordinate\n{rows(sideways)}\n{translation}")
+    with pytest.raises(ReaderError, match="CALIBRATION_CAMERA_RADAR.txt.*neither right-down-forward"):
+        get_reader(_cfg(), tmp_path).read("000002")
+
+
+def test_the_calibration_folder_of_any_set_is_found_and_a_missing_or_second_one_named(tmp_path):
+    """Each set of sequences (URBAN, RURAL, ...) has its own 5_CALIBRATION_<SET>/; until
+    2026-12-07 the reader looked for 5_CALIBRATION_URBAN/ alone and refused every other sequence."""
+    make_folder(tmp_path)
+    urban = get_reader(_cfg(), tmp_path).read("000002")
+    (tmp_path / "5_CALIBRATION_URBAN").rename(tmp_path / "5_CALIBRATION_RURAL")
+    rural = get_reader(_cfg(), tmp_path).read("000002")
+    np.testing.assert_array_equal(rural.T_radar_cam, urban.T_radar_cam)
+    (tmp_path / "5_CALIBRATION_SMOKE").mkdir()
+    with pytest.raises(ReaderError, match="2 calibration folders .5_CALIBRATION_RURAL, 5_CALIBRATION_SMOKE."):
+        get_reader(_cfg(), tmp_path).read("000002")
+    for folder in ("5_CALIBRATION_RURAL", "5_CALIBRATION_SMOKE"):
+        shutil.rmtree(tmp_path / folder)
+    with pytest.raises(ReaderError, match="no calibration folder: an MSC-Rad4R sequence holds one 5_CALIBRATION_<SET>/"):
+        get_reader(_cfg(), tmp_path).read("000002")

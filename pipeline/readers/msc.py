@@ -10,7 +10,8 @@ linear_velocity angular_velocity``, the bag topic names and message types, the r
 (MSC-Rad4R's data page says x, y, z were changed from the Oculii's right-down-forward frame to the
 lidar's forward-left-up axes; each frame's order is told from its points, :func:`radar_axes`, and
 counted, and points whose distance is not their own ``range`` field are refused), which radar frame
-``CALIBRATION_CAMERA_RADAR`` refers to (taken as the native right-down-forward one), the sign of
+``CALIBRATION_CAMERA_RADAR`` refers to (told from its attitude, :func:`calibration_axes`: the native
+right-down-forward one or the published forward-left-up one), the sign of
 ``doppler`` (taken as range rate, ``radar.doppler_sign`` = +1) and
 that the radar boresight is the vehicle's forward axis (ego velocity = (speed, 0, 0) in {D}, speed
 from the wheels or /vel, yaw-rate lever arm ignored).
@@ -19,12 +20,17 @@ Folder layout (one sequence per root, e.g. URBAN_D0/):
 ``1_IMAGE/LEFT/NNNNNN.png`` + ``1_IMAGE/timestamp_image_left.txt``; ``2_LIDAR/PCD/NNNNNN.pcd`` +
 ``2_LIDAR/timestamp_lidar.txt``; ``3_RADAR/PCD/NNNNNN.pcd`` (fields x y z beta alpha power doppler
 range recoveredSpeed denoiseFlag, read with pypcd4) + ``3_RADAR/timestamp_radar.txt``;
-``4_NAVIGATION/WHEEL_LEFT.txt``, ``WHEEL_RIGHT.txt``; ``5_CALIBRATION_URBAN/CALIBRATION_CAMERA.txt``,
-``CALIBRATION_CAMERA_RADAR.txt``, ``CALIBRATION_CAMERA_LIDAR.txt``.
+``4_NAVIGATION/WHEEL_LEFT.txt``, ``WHEEL_RIGHT.txt``; ``5_CALIBRATION_<SET>/`` (SET: URBAN, RURAL, ...)
+with ``CALIBRATION_CAMERA.txt``, ``CALIBRATION_CAMERA_RADAR.txt``, ``CALIBRATION_CAMERA_LIDAR.txt``.
 Bag layout: ``*.bag`` in the root (one sequence each; rosbags, no ROS needed) with the radar and
 lidar as sensor_msgs/PointCloud2 (numpy dtypes built from each message's ``fields``), the image as
 sensor_msgs/Image and /vel as geometry_msgs/TwistStamped; calibration text files as above in
-``5_CALIBRATION_URBAN/``. Bag record times are used for pairing.
+``5_CALIBRATION_<SET>/``. Bag record times are used for pairing. A third-party devkit written for the
+dataset (github.com/shubhendu-ranadive/mscrad4r-devkit, read 2026-12-07) agrees with these folder,
+file and column names, the six-digit file numbers from 0, a calibration folder per set
+(``5_CALIBRATION_{type}``) and the extrinsics' headings ("attitude of RADAR in camera coordinate",
+"location of RADAR in camera coordinate": p_cam = R p + t); it projects the published radar points
+through CALIBRATION_CAMERA_RADAR as they are.
 
 Frames are the radar scans; each is paired with the nearest image and lidar scan within
 ``pair_tolerance_s`` (default 0.05 s); radar scans without both partners are dropped and counted
@@ -60,6 +66,16 @@ VEL_TOPIC = "/vel"
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
 
+def _forward_order(ahead: np.ndarray) -> str | None:
+    """'rdf' or 'flu': the axis order in which the vector (3,) ``ahead``, a direction in front of
+    the radar, has its forward axis: positive and FORWARD_DOMINANCE times the other two; None for
+    neither order."""
+    for axes, fwd, others in (("rdf", 2, [0, 1]), ("flu", 0, [1, 2])):
+        if ahead[fwd] > 0 and ahead[fwd] >= FORWARD_DOMINANCE * np.max(np.abs(ahead[others])):
+            return axes
+    return None
+
+
 def radar_axes(xyz: np.ndarray, path: Path, frame: str | None) -> str:
     """'rdf' or 'flu': the axis order of an Oculii point cloud (M, 3). The sensor's native frame is
     right-down-forward; MSC-Rad4R's data page says its x, y, z were changed to the lidar's axes
@@ -67,12 +83,28 @@ def radar_axes(xyz: np.ndarray, path: Path, frame: str | None) -> str:
     axis is the one whose median is positive and dominates the other two (lateral and vertical);
     ReaderError when no axis does (the points are in neither order)."""
     med = np.median(xyz, axis=0)
-    for axes, fwd, others in (("rdf", 2, [0, 1]), ("flu", 0, [1, 2])):
-        if med[fwd] > 0 and med[fwd] >= FORWARD_DOMINANCE * np.max(np.abs(med[others])):
-            return axes
-    raise ReaderError(path, f"radar points have no clear forward axis (median x, y, z = {med[0]:.2f}, {med[1]:.2f}, "
-                            f"{med[2]:.2f} m): neither right-down-forward (z ahead) nor forward-left-up (x ahead)",
-                      frame=frame)
+    axes = _forward_order(med)
+    if axes is None:
+        raise ReaderError(path, f"radar points have no clear forward axis (median x, y, z = {med[0]:.2f}, "
+                                f"{med[1]:.2f}, {med[2]:.2f} m): neither right-down-forward (z ahead) nor "
+                                f"forward-left-up (x ahead)", frame=frame)
+    return axes
+
+
+def calibration_axes(R_cam_radar: np.ndarray, path: Path) -> str:
+    """'rdf' or 'flu': the axis order of the radar frame whose attitude in the camera a
+    ``CALIBRATION_CAMERA_RADAR`` file gives (``R_cam_radar`` (3, 3), p_cam = R p_radar + t): the
+    native right-down-forward one, or the forward-left-up one MSC-Rad4R's published points use (its
+    page does not say which, and a devkit projects the published points through it directly).
+    Camera and radar both look ahead, so the camera's optical axis in the radar frame, R's third
+    row, lies along that frame's forward axis; ReaderError when it lies along neither."""
+    ahead = np.asarray(R_cam_radar, np.float64)[2]
+    axes = _forward_order(ahead)
+    if axes is None:
+        raise ReaderError(path, f"the radar's attitude in the camera frame puts the camera's view along "
+                                f"({ahead[0]:.2f}, {ahead[1]:.2f}, {ahead[2]:.2f}) in the radar's axes: neither "
+                                f"right-down-forward (z ahead) nor forward-left-up (x ahead)")
+    return axes
 
 
 # -- text formats ----------------------------------------------------------------------------------
@@ -161,16 +193,32 @@ class MscReader(Reader):
     """Common calibration, conversion and record building; use ``MscReader.open`` to get a reader."""
 
     name = "msc"
-    version = 2
+    version = 3
     """2 (2026-12-06): K's principal point in OpenCV's pixel convention (MATLAB_PIXEL_ORIGIN); lidar
     beams without a return (NaN or the origin in an organized scan) left out, counted in the report's
-    lidar_points_without_return."""
+    lidar_points_without_return. 3 (2026-12-07): a radar calibration in the forward-left-up axes is
+    read as such (:func:`calibration_axes`; before, every one was taken as right-down-forward)."""
 
     def __init__(self, cfg: Config, data_root: str | Path, pair_tolerance_s: float = 0.05,
                  calib_dir: str | Path | None = None) -> None:
         super().__init__(cfg, data_root)
         self.tolerance_s = float(pair_tolerance_s)
-        self.calib_dir = Path(calib_dir) if calib_dir else self.root / "5_CALIBRATION_URBAN"
+        self._calib_dir = Path(calib_dir) if calib_dir else None
+
+    @cached_property
+    def calib_dir(self) -> Path:
+        """The sequence's calibration folder: the one given, else its one ``5_CALIBRATION_<SET>/``
+        (URBAN, RURAL, ...: each set of sequences has its own calibration)."""
+        if self._calib_dir is not None:
+            return self._calib_dir
+        found = sorted(p for p in self.root.glob("5_CALIBRATION_*") if p.is_dir())
+        if len(found) != 1:
+            what = "no calibration folder" if not found else f"{len(found)} calibration folders " \
+                f"({', '.join(p.name for p in found)})"
+            raise ReaderError(self.root, f"{what}: an MSC-Rad4R sequence holds one 5_CALIBRATION_<SET>/ "
+                                         f"(e.g. 5_CALIBRATION_URBAN/ with CALIBRATION_CAMERA.txt, "
+                                         f"CALIBRATION_CAMERA_RADAR.txt and CALIBRATION_CAMERA_LIDAR.txt)")
+        return found[0]
 
     @classmethod
     def open(cls, cfg: Config, data_root: str | Path, **options: object) -> "MscReader":
@@ -184,14 +232,19 @@ class MscReader(Reader):
 
     @cached_property
     def calibration(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(K, distortion, T_radar_cam, T_radar_lidar) with {D} built from the radar's native frame."""
+        """(K, distortion, T_radar_cam, T_radar_lidar), {D} being the radar frame of the radar
+        calibration (:func:`calibration_axes`) in forward-left-up order."""
         K, dist = read_camera_calibration(self.calib_dir / "CALIBRATION_CAMERA.txt")
-        T_cam_native, mm_r = read_extrinsics(self.calib_dir / "CALIBRATION_CAMERA_RADAR.txt")
+        radar_file = self.calib_dir / "CALIBRATION_CAMERA_RADAR.txt"
+        T_cam_calib, mm_r = read_extrinsics(radar_file)
         T_cam_lidar, mm_l = read_extrinsics(self.calib_dir / "CALIBRATION_CAMERA_LIDAR.txt")
         self._counts["extrinsics_in_millimetres"] = int(mm_r) + int(mm_l)
-        T_native_D = np.eye(4)
-        T_native_D[:3, :3] = R_NATIVE_D
-        T_radar_cam = invert_transform(T_cam_native @ T_native_D)
+        axes = calibration_axes(T_cam_calib[:3, :3], radar_file)
+        self._counts["radar_calibration_in_lidar_axes"] = int(axes == "flu")
+        T_calib_D = np.eye(4)
+        if axes == "rdf":
+            T_calib_D[:3, :3] = R_NATIVE_D
+        T_radar_cam = invert_transform(T_cam_calib @ T_calib_D)
         return K, dist, T_radar_cam, T_radar_cam @ T_cam_lidar
 
     def _radar_D(self, fields: dict[str, np.ndarray], path: Path, fid: str) -> np.ndarray:
