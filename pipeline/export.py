@@ -355,7 +355,7 @@ def label_truncation(fields: Sequence[str], P2: np.ndarray, image_wh: tuple[int,
     c, s = np.cos(ry), np.sin(ry)
     corners_cam = np.stack([c * dx.ravel() + s * dz.ravel() + x, dy.ravel() + y,
                             -s * dx.ravel() + c * dz.ravel() + z], axis=1)
-    if np.any(corners_cam[:, 2] <= 0.1):
+    if np.any(corners_cam[:, 2] <= NEAR_PLANE_M):
         return 1.0
     uvw = corners_cam @ P2[:, :3].T + P2[:, 3]
     box = _clipped_box(uvw[:, :2] / uvw[:, 2:3], image_wh)
@@ -372,6 +372,25 @@ def _clipped_box(uv: np.ndarray, image_wh: tuple[int, int]) -> tuple[tuple[float
     return (cu0, cv0, cu1, cv1), 1.0 - (cu1 - cu0) * (cv1 - cv0) / max((u1 - u0) * (v1 - v0), 1e-9)
 
 
+NEAR_PLANE_M = 0.1
+"""Camera depth (m) at or below which a box corner counts as at or behind the camera."""
+
+_BOX_EDGES = np.array([(a, a ^ bit) for a in range(8) for bit in (1, 2, 4) if a < a ^ bit])
+"""The 12 edges (12, 2) of a box's 8 corners in meshgrid 'ij' order: the pairs differing in one coordinate."""
+
+
+def in_front_of_camera(corners_cam: np.ndarray) -> np.ndarray:
+    """The vertices (N, 3) of the part of a box in front of the camera plane z = NEAR_PLANE_M: its
+    corners there and the points where its edges cross the plane. ``corners_cam`` (8, 3) m in the
+    camera frame, in meshgrid 'ij' order of the box axes' signs. (0, 3) for a box wholly behind."""
+    corners = check_shape("corners_cam", np.asarray(corners_cam, np.float64), (8, 3))
+    front = corners[:, 2] > NEAR_PLANE_M
+    a, b = corners[_BOX_EDGES[:, 0]], corners[_BOX_EDGES[:, 1]]
+    cross = front[_BOX_EDGES[:, 0]] != front[_BOX_EDGES[:, 1]]
+    t = (NEAR_PLANE_M - a[cross, 2]) / (b[cross, 2] - a[cross, 2])
+    return np.concatenate([corners[front], a[cross] + t[:, None] * (b[cross] - a[cross])])
+
+
 def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np.ndarray,
                      image_wh: tuple[int, int]) -> str:
     """KITTI label lines of boxes in {D} for a calib whose rectified camera is the camera of
@@ -385,9 +404,11 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
     against the radar, that differs by 0.9-1.2 deg and OpenPCDet would read every box turned by
     it). alpha = rotation_y - atan2(x, z); the 2D box is the projection of the 8 corners of the box
     with its full rotation (``Object3D.rotation``) clipped to the image ``image_wh`` (W, H),
-    truncation the share of it outside the image; occlusion 0 (not known). Boxes with a corner at or behind the camera plane
-    or wholly outside the image are left out (KITTI labels what the camera sees); spaces in class
-    names become '_'. A frame without boxes gets :data:`DONT_CARE_LINE`."""
+    truncation the share of it outside the image; occlusion 0 (not known). A box reaching behind the
+    camera plane (an object beside the car) gets the 2D box of its part in front
+    (:func:`in_front_of_camera`) and truncation 1, as :func:`label_truncation` gives such a box;
+    boxes wholly behind it or wholly outside the image are left out (KITTI labels what the camera
+    sees); spaces in class names become '_'. A frame without boxes gets :data:`DONT_CARE_LINE`."""
     T = check_shape("T_cam_radar", np.asarray(T_cam_radar, np.float64), (4, 4))
     K = check_shape("K", np.asarray(K, np.float64), (3, 3))
     lines = []
@@ -397,12 +418,12 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
                                                          [-height / 2, height / 2], indexing="ij")], axis=1)
         corners_D = np.asarray(obj.center_D, np.float64) + from_box_frame(local, obj.rotation)
         corners_cam = corners_D @ T[:3, :3].T + T[:3, 3]
-        if np.any(corners_cam[:, 2] <= 0.1):
-            continue
-        box = _clipped_box((corners_cam @ K.T)[:, :2] / corners_cam[:, 2:3], image_wh)
+        reaches_behind = bool(np.any(corners_cam[:, 2] <= NEAR_PLANE_M))
+        seen = in_front_of_camera(corners_cam) if reaches_behind else corners_cam
+        box = _clipped_box((seen @ K.T)[:, :2] / seen[:, 2:3], image_wh) if len(seen) else None
         if box is None:
             continue
-        (cu0, cv0, cu1, cv1), truncation = box
+        (cu0, cv0, cu1, cv1), truncation = box[0], 1.0 if reaches_behind else box[1]
         bottom_cam = T[:3, :3] @ (np.asarray(obj.center_D, np.float64) - [0.0, 0.0, height / 2]) + T[:3, 3]
         ry = float(np.angle(np.exp(-1j * (obj.yaw_rad + np.pi / 2))))
         alpha = float(np.angle(np.exp(1j * (ry - np.arctan2(bottom_cam[0], bottom_cam[2])))))

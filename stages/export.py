@@ -49,7 +49,7 @@ CONFIG_KEYS = ("export.noise_fraction", "export.pcd", "export.previews", "export
                "radar.fov_el_deg", "radar.max_range_m", "radar.rss_min", "radar.rss_max", "radar.doppler_sign",
                "radar.doppler_span_mps",
                "camera.full_size", "camera.crop_rows", "camera.working_size")
-VERSION = 8
+VERSION = 9
 """2: test-split frames under testing/, image_2, full-resolution generated calib, truncation column.
 3: KITTI's own calib (the radar in the Velodyne's place), labels and images carried over; track ids
 out of the truncation column wherever the reader knows them; DontCare for a frame without labels;
@@ -61,7 +61,9 @@ the image edge were rated 'Easy' by OpenPCDet).
 6: object_velocity_unknown.txt and the summary's count of points on objects of unknown velocity.
 7: label_missing.txt and the summary's count of training/ frames without a label file.
 8: Astyx's labels: the 2D box and truncation from the projected corners of the tilted box (the
-reader keeps its pitch and roll); location and rotation_y as before."""
+reader keeps its pitch and roll); location and rotation_y as before.
+9: labels written from {D} (Astyx): a box reaching behind the camera plane (an object beside the car)
+is written with the 2D box of its part in front and truncation 1, not left out."""
 SPLIT_NAMES = {0: "train", 1: "val", 2: "test"}
 
 

@@ -252,6 +252,42 @@ def test_kitti_label_text_round_trips_through_openpcdets_reading(tmp_path: Path)
     assert kitti_label_text([objects[3]], T_cam_radar, K, (640, 400)) == DONT_CARE_LINE + "\n"
 
 
+def test_a_box_reaching_behind_the_camera_is_labelled_by_its_part_in_front(tmp_path: Path):
+    """An object beside the car whose box reaches behind the camera plane (on Astyx a truck holding
+    104 radar points) is written with truncation 1, as label_truncation rates such a box, and the 2D
+    box of its part in front of the plane: here checked against points filling the box, kept in
+    front, projected and clipped. OpenPCDet's reading gives the 3D box back. Until 2026-12-07 such a
+    box was left out, so a detector trained on the export learnt the truck as background. A box
+    wholly behind the camera is still left out."""
+    from pipeline.export import NEAR_PLANE_M, in_front_of_camera, kitti_label_text
+    from pipeline.frame import Object3D
+    from pipeline.readers.kitti_format import lidar_box_label_to_object, parse_label_file
+    from pipeline.readers.testing import R_CAM_D, rigid
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 200], [0, 0, 1]])
+    T_cam_radar = rigid(R_CAM_D, np.array([0.05, 0.8, -0.4]))
+    beside = Object3D("Truck", np.array([1.5, 2.4, 0.8]), np.array([8.0, 2.5, 3.0]), 0.1)
+    text = kitti_label_text([beside], T_cam_radar, K, (640, 400))
+    fields = text.split()
+    assert fields[0] == "Truck" and float(fields[1]) == 1.0
+    u = np.linspace(-0.5, 0.5, 41)
+    fill = np.stack(np.meshgrid(u, u, u, indexing="ij"), -1).reshape(-1, 3) * beside.size_lwh_m
+    cam = (beside.center_D + fill @ beside.rotation.T) @ T_cam_radar[:3, :3].T + T_cam_radar[:3, 3]
+    assert (cam[:, 2] <= NEAR_PLANE_M).any() and (cam[:, 2] > 1.0).any()
+    cam = cam[cam[:, 2] > NEAR_PLANE_M]
+    uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
+    brute = [max(uv[:, 0].min(), 0), max(uv[:, 1].min(), 0), min(uv[:, 0].max(), 639), min(uv[:, 1].max(), 399)]
+    np.testing.assert_allclose([float(v) for v in fields[4:8]], brute, atol=2.0)
+    (tmp_path / "label.txt").write_text(text)
+    label = parse_label_file(tmp_path / "label.txt", "x")[0]
+    back = lidar_box_label_to_object(label, invert_transform(T_cam_radar), np.eye(4), -1)
+    np.testing.assert_allclose(back.center_D, beside.center_D, atol=1e-4)
+    np.testing.assert_allclose(back.size_lwh_m, beside.size_lwh_m, atol=1e-5)
+    behind = Object3D("Car", np.array([-3.0, 2.4, 0.3]), np.array([4.0, 1.8, 1.5]), 0.0)
+    assert kitti_label_text([behind], T_cam_radar, K, (640, 400)) == DONT_CARE_LINE + "\n"
+    assert len(in_front_of_camera(np.tile([0.0, 0.0, -1.0], (8, 1)))) == 0
+
+
 def test_track_id_labels_get_the_truncation_of_their_box():
     """With the camera's P2 and image size, a track id's column gets the box's truncation, the value
     kitti_label_text writes for the same box from {D} (the synthetic world's and View-of-Delft's
