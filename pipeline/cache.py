@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import errno
 import functools
 import hashlib
 import json
@@ -52,7 +51,8 @@ from zarr.core.sync import sync
 from zarr.storage import LocalStore
 from zarr.storage._common import make_store_path
 
-from pipeline.errors import CacheError, ChunkError, MetadataError, exception_line
+from pipeline.cachefs import is_local, join, local_path, writes_whole_objects
+from pipeline.errors import CacheError, ChunkError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
 from pipeline.stage import ArraySpec
 
@@ -83,20 +83,6 @@ for bytes that decompress to the wrong size or text, and MemoryError from the st
 wrong length prefix."""
 
 
-def join(root: str, *parts: str) -> str:
-    """Join URL or path parts with '/'."""
-    return "/".join([root.rstrip("/"), *[p.strip("/") for p in parts]])
-
-
-def cache_error(exc: OSError, what: str) -> CacheError:
-    """A CacheError explaining an OSError in words (read-only cache, disk full, ...)."""
-    if exc.errno == errno.ENOSPC:
-        return CacheError(f"{what}: the disk holding the cache is full ({exc})")
-    if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
-        return CacheError(f"{what}: the cache is not writable ({exc}); choose another with --cache")
-    return CacheError(f"{what}: {exc}")
-
-
 @dataclass(frozen=True)
 class FrameStore:
     """The zarr output of one frame stage of one dataset."""
@@ -119,7 +105,7 @@ class FrameStore:
                 raise self._damaged_group("is missing") from None
             return None
         except (ValueError, TypeError) as exc:  # json.JSONDecodeError, UnicodeDecodeError, a JSON list
-            raise self._damaged_group(f"cannot be read ({_one_line(exc)})") from None
+            raise self._damaged_group(f"cannot be read ({one_line(exc)})") from None
         return attrs if "fingerprint" in attrs else None
 
     @property
@@ -206,7 +192,7 @@ class FrameStore:
             ids = None if arr is None else [str(i) for i in np.asarray(zarr.Array(arr)[:])]
         except (*DECODE_ERRORS, TypeError) as exc:  # a damaged chunk, or zarr.json (json.JSONDecodeError)
             _settle_io()
-            problem = f"cannot be read ({_one_line(exc)})"
+            problem = f"cannot be read ({one_line(exc)})"
         else:
             if ids is None:  # outputs created before 2026-12-04 hold them in the group's attributes
                 attrs = self._group("r").attrs
@@ -302,7 +288,7 @@ class FrameStore:
         """Make every chunk written so far reach the disk (a local store: fileio.sync_filesystem;
         an object store's writes are durable when they return). The runner calls it when a run of
         the stage ends: its frames are not flushed one by one (an fsync per chunk cost 0.6 ms)."""
-        path = _local_path(self.url)
+        path = local_path(self.url)
         if path is None or not os.path.isdir(path):
             return
         try:
@@ -385,7 +371,7 @@ class FrameStore:
 
         for index, result in zip(frames, sync(results())):
             if isinstance(result, DECODE_ERRORS):
-                return self._chunk_error(arr, int(index), f"cannot be decoded ({_one_line(result)})")
+                return self._chunk_error(arr, int(index), f"cannot be decoded ({one_line(result)})")
         return exc
 
     def _array_folders(self) -> list[str]:
@@ -413,7 +399,7 @@ class FrameStore:
 
     def _damaged_array(self, name: str, exc: BaseException) -> MetadataError:
         meta = join(self.url, name, "zarr.json")
-        return MetadataError(f"{meta}: the metadata of array {name} cannot be read ({_one_line(exc)}); recompute "
+        return MetadataError(f"{meta}: the metadata of array {name} cannot be read ({one_line(exc)}); recompute "
                              f"the stage: delete {self.url} or run it with --force")
 
     def _array(self, name: str, mode: str = "r", missing_ok: bool = False) -> Any:
@@ -438,7 +424,7 @@ class FrameStore:
         try:
             return np.asarray(arr[index])
         except DECODE_ERRORS as exc:
-            raise self._chunk_error(arr, index, f"cannot be decoded ({_one_line(exc)})") from None
+            raise self._chunk_error(arr, index, f"cannot be decoded ({one_line(exc)})") from None
 
     def _checked(self, arr: zarr.Array, index: int) -> np.ndarray:
         """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
@@ -654,11 +640,6 @@ def _all_fill(value: np.ndarray, fill: Any) -> bool:
     return value.size == 0 or (bool(same(value[:1]).all()) and bool(same(value).all()))
 
 
-def _one_line(exc: BaseException) -> str:
-    """:func:`pipeline.errors.exception_line`, at most 200 characters."""
-    return exception_line(exc)[:200]
-
-
 def done_digest(status: np.ndarray) -> str:
     """Short digest of the indices of the frames whose status (F,) is DONE."""
     done = np.flatnonzero(np.asarray(status) == DONE).astype(np.int64)
@@ -701,7 +682,7 @@ class DirStore:
         except FileNotFoundError:
             return None
         except ValueError as exc:  # json.JSONDecodeError, UnicodeDecodeError
-            raise self._damaged_meta(f"cannot be read ({_one_line(exc)})") from None
+            raise self._damaged_meta(f"cannot be read ({one_line(exc)})") from None
         except OSError as exc:  # e.g. the cache path is a file
             raise cache_error(exc, f"reading {self.file('_stage.json')}") from None
         if not isinstance(meta, dict):
@@ -939,7 +920,7 @@ class DirStore:
         except FileNotFoundError:
             return None, []
         except (OSError, ValueError) as exc:
-            return 0, [f"{self.file(FILES_MANIFEST)}: unreadable ({_one_line(exc)})"]
+            return 0, [f"{self.file(FILES_MANIFEST)}: unreadable ({one_line(exc)})"]
         problems = []
         try:
             sizes = self.sizes()
@@ -956,7 +937,7 @@ class DirStore:
                     if self._digest(name) != digest:
                         problems.append(f"{shown}: its content changed since the stage finished (SHA-256)")
                 except OSError as exc:
-                    problems.append(f"{shown}: unreadable ({_one_line(exc)})")
+                    problems.append(f"{shown}: unreadable ({one_line(exc)})")
             if progress:
                 progress(1, len(recorded))
         return len(recorded), problems
@@ -1060,7 +1041,7 @@ async def _write_targets(url: str, names: list[str]) -> dict[str, Any]:
     the group's too: a request more per frame on an object store); a local store's are opened once
     per process while their zarr.json files hold the same bytes, others for each frame (another
     process may re-create the output between two frames)."""
-    root = _local_path(url)
+    root = local_path(url)
     key = None if root is None else tuple(_metadata_bytes(root, name) for name in names)
     hit = _WRITABLE.get(url)
     if key is not None and None not in key and hit is not None and hit[0] == key:
@@ -1085,25 +1066,6 @@ async def _gather_all(awaitables: Iterable[Awaitable[Any]]) -> list[Any]:
         if isinstance(result, BaseException):
             raise result
     return results
-
-
-def is_local(fs: fsspec.AbstractFileSystem) -> bool:
-    """Whether ``fs`` is the local file system."""
-    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
-    return "file" in protocol or "local" in protocol
-
-
-WHOLE_OBJECT_PROTOCOLS = frozenset({"s3", "s3a", "gs", "gcs", "abfs", "abfss", "az", "adl", "memory"})
-"""Filesystems on which a file appears whole or not at all (object stores: an object is written by
-one request, or a multipart upload completed at its end)."""
-
-
-def writes_whole_objects(fs: fsspec.AbstractFileSystem) -> bool:
-    """Whether a file ``put`` on ``fs`` appears whole or not at all (:data:`WHOLE_OBJECT_PROTOCOLS`).
-    Other filesystems (sftp, smb, ftp, hdfs, webdav) write a file as its bytes arrive, so an upload
-    cut off midway leaves a damaged file under its name."""
-    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
-    return any(p in WHOLE_OBJECT_PROTOCOLS for p in protocol)
 
 
 @dataclass(frozen=True)
@@ -1192,13 +1154,6 @@ def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None,
     return out
 
 
-@functools.lru_cache(maxsize=1024)
-def _local_path(url: str) -> str | None:
-    """The local folder of cache URL ``url``; None when it is not on the local file system."""
-    fs, path = fsspec.core.url_to_fs(url)
-    return path if is_local(fs) else None
-
-
 _OPENED: dict[str, tuple[bytes, zarr.Array | None]] = {}
 """Arrays opened for reading, by the path of their zarr.json, with that file's bytes: a frame's read
 opened its group and arrays each time, about 2 ms of zarr's IO-thread hand-offs per array read
@@ -1221,7 +1176,7 @@ def _opened_array(url: str, name: str) -> tuple[bool, zarr.Array | None]:
     opened once per process while its ``zarr.json`` holds the same bytes; (False, None) when that
     file cannot be read or the store is not local, (True, None) when zarr cannot open the array
     (zarr's own path then names the problem)."""
-    root = _local_path(url)
+    root = local_path(url)
     meta = None if root is None else _metadata_bytes(root, name)
     if meta is None:
         return False, None
@@ -1273,7 +1228,7 @@ def _zarr_options(url: str) -> dict[str, Any]:
 @functools.lru_cache(maxsize=1024)
 def _sizes_before_reads(url: str) -> bool:
     """Whether ``url`` is on s3fs reading each whole object after a HEAD (:func:`_zarr_options`)."""
-    if _local_path(url) is not None:
+    if local_path(url) is not None:
         return False
     fs = fsspec.core.url_to_fs(url)[0]
     protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)

@@ -23,8 +23,7 @@ from safetensors import SafetensorError, safe_open
 from safetensors.torch import save_file
 from torch import Tensor, nn
 
-from pipeline.cache import cache_error
-from pipeline.errors import CacheError, sigint_deferred
+from pipeline.errors import CacheError, cache_error, sigint_deferred
 from pipeline.fileio import FILE_MODE, atomic_path, write_atomic
 
 FORMAT = "pipeline-checkpoint/1"

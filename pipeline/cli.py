@@ -16,7 +16,8 @@ from pathlib import Path
 
 import click
 
-from pipeline.cache import frame_store, join
+from pipeline.cache import frame_store
+from pipeline.cachefs import join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
 from pipeline.errors import ClusterFailed, ConfigError, MetadataError, PipelineError, StageInterrupted, from_dask
 from pipeline.runner import NAME_WIDTH, check_stage_name, failed_frames_line

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import signal
 import threading
 from typing import Any, Iterator, Literal, get_args
@@ -183,3 +184,17 @@ def first_sentence(exc: BaseException, limit: int = 120) -> str:
     for an empty message): a library's reason without the advice it appends."""
     text = " ".join(str(exc).split())
     return text.split(". ")[0][:limit] if text else type(exc).__name__
+
+
+def one_line(exc: BaseException) -> str:
+    """:func:`exception_line`, at most 200 characters."""
+    return exception_line(exc)[:200]
+
+
+def cache_error(exc: OSError, what: str) -> CacheError:
+    """A CacheError explaining an OSError in words (read-only cache, disk full, ...)."""
+    if exc.errno == errno.ENOSPC:
+        return CacheError(f"{what}: the disk holding the cache is full ({exc})")
+    if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        return CacheError(f"{what}: the cache is not writable ({exc}); choose another with --cache")
+    return CacheError(f"{what}: {exc}")

@@ -25,7 +25,7 @@ from threadpoolctl import threadpool_limits
 
 from pipeline.cache import DONE, FAILED, FrameStore, dir_store, frame_store
 from pipeline.config import Config
-from pipeline.errors import (CacheError, ClusterFailed, FrameError, PipelineError, exception_line,
+from pipeline.errors import (CacheError, ClusterFailed, FrameError, PipelineError, cache_error, exception_line,
                              sigint_deferred)
 from pipeline.progress import bar as progress_bar
 from pipeline.stage import FrameStage
@@ -296,8 +296,6 @@ class Executor:
         import uuid
 
         import fsspec
-
-        from pipeline.cache import cache_error
 
         # an empty folder is no object on an object store: a file the worker must see
         fs, path = fsspec.core.url_to_fs(cache_root)

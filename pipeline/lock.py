@@ -26,8 +26,8 @@ from typing import Iterator
 
 import fsspec
 
-from pipeline.cache import cache_error, is_local
-from pipeline.errors import LockError
+from pipeline.cachefs import is_local
+from pipeline.errors import LockError, cache_error
 
 _RETRY = -1
 

@@ -28,11 +28,11 @@ from typing import Any, Callable
 import fsspec
 import numpy as np
 
-from pipeline.cache import (DONE, EXCLUDED, FAILED, PENDING, RUN_TOKEN, STATUS_NAMES, cache_error, done_digest, is_local,
-                            join)
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, RUN_TOKEN, STATUS_NAMES, done_digest
+from pipeline.cachefs import is_local, join
 from pipeline.config import jsonable
 from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
-                             MetadataError, PipelineError, StageInterrupted, from_dask)
+                             MetadataError, PipelineError, StageInterrupted, cache_error, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.stage import DatasetStage, FrameStage, Stage

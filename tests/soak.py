@@ -610,7 +610,7 @@ REMOTE_PROTOCOL, REMOTE_TMP_ENV = "soakremote", "SOAK_REMOTE_TMP"
 
 
 def remote_filesystem() -> type:
-    """``soakremote://PATH``: the local PATH as a remote cache. pipeline.cache.is_local does not take
+    """``soakremote://PATH``: the local PATH as a remote cache. pipeline.cachefs.is_local does not take
     it for the local file system (so stages stage their output and upload it, and frames go through
     zarr's fsspec store), and every file written to it appears whole, as an object of S3 or GCS
     does: written under ``SOAK_REMOTE_TMP`` (on the same disk) and renamed into place."""

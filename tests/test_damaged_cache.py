@@ -981,7 +981,7 @@ def test_relocate_waits_with_wait_as_its_lock_refusal_says(tmp_path, fake_cli):
     relocate had no --wait (until 2026-12-07: click's 'no such option'). Now it waits for the lock."""
     import threading
 
-    from pipeline.cache import join
+    from pipeline.cachefs import join
     from pipeline.lock import stage_lock
 
     assert fake_cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0

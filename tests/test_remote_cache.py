@@ -670,7 +670,7 @@ def test_an_upload_cut_off_midway_leaves_no_part_of_a_file_on_a_filesystem_that_
     is written in place, without renames."""
     from fsspec.implementations.local import LocalFileSystem
 
-    from pipeline.cache import writes_whole_objects
+    from pipeline.cachefs import writes_whole_objects
 
     class InPlace(LocalFileSystem):
         protocol = ("inplace",)
