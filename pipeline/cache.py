@@ -1,4 +1,5 @@
-"""The on-disk cache: one zarr group per frame stage, one folder per dataset stage.
+"""The on-disk cache: one zarr group per frame stage, one folder per dataset stage. The zarr I/O
+beneath the frame stages' outputs (FrameStore) is pipeline.zarr_io's.
 
 Layout under the cache root (a local folder or any fsspec URL)::
 
@@ -24,8 +25,6 @@ rename, such a file is damaged); a missing one means the stage has not finished.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import functools
 import hashlib
 import json
 import os
@@ -34,27 +33,24 @@ import shlex
 import shutil
 import time
 import uuid
-from collections.abc import Awaitable, Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import fsspec
-import numcodecs
 import numpy as np
 import zarr
-import zarr.api.asynchronous as zarr_async
-from zarr.codecs import BytesCodec, VLenUTF8Codec, ZstdCodec
-from zarr.core.chunk_key_encodings import DefaultChunkKeyEncoding
-from zarr.core.group import get_node
+from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
-from zarr.storage import LocalStore
-from zarr.storage._common import make_store_path
 
 from pipeline.cachefs import is_local, join, local_path, writes_whole_objects
 from pipeline.errors import CacheError, ChunkError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
 from pipeline.stage import ArraySpec
+from pipeline.zarr_io import (DECODE_ERRORS, ZARR_FORMAT, chunk_key, chunk_path, direct_layout, frames_from_chunk_files,
+                              gather_all, member_async, open_group, opened_array, put_chunk, write_targets,
+                              zarr_options)
 
 PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
 STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed", EXCLUDED: "excluded"}
@@ -68,19 +64,9 @@ EVERY_CHUNK = "every_chunk_written"
 (which zarr skips by default), so a missing chunk of a done frame is damage, not a fill value.
 Outputs created before 2026-12-03 lack it: there a missing chunk still reads as the fill value."""
 
-ZARR_FORMAT = 3
-"""The zarr format outputs are written in (every output this project has made) and opened as:
-named, so that zarr does not also look for format 2 metadata at each open (.zgroup, .zarray,
-.zattrs: a quarter of the requests of a run on an S3 cache, 2026-12-07)."""
 COMPRESSOR = ZstdCodec(level=0, checksum=True)
 """zarr's default compressor plus zstd's content checksum: a flipped bit in a chunk is then an
 error when read instead of a silently wrong value (outputs created before 2026-12-03 have none)."""
-
-DECODE_ERRORS = (RuntimeError, ValueError, MemoryError)
-"""What zarr 3.1.6 raises reading a damaged chunk: RuntimeError from zstd for truncated, empty or
-random bytes, or a checksum mismatch; without the checksum also ValueError (UnicodeDecodeError)
-for bytes that decompress to the wrong size or text, and MemoryError from the string codec for a
-wrong length prefix."""
 
 
 @dataclass(frozen=True)
@@ -117,7 +103,7 @@ class FrameStore:
         """Whether the status array's ``zarr.json`` is there (readable or not): one read of it, as
         zarr reads it (on an object store an existence check asked twice for a missing one)."""
         try:
-            return sync(_member_async(self.url, "status", "r")) is not None
+            return sync(member_async(self.url, "status", "r")) is not None
         except (ValueError, TypeError):  # there, but damaged
             return True
         except OSError:
@@ -138,7 +124,7 @@ class FrameStore:
             f"--force`")
 
     def _group(self, mode: str) -> zarr.Group:
-        return _open_group(self.url, mode)
+        return open_group(self.url, mode)
 
     def fingerprint(self) -> str | None:
         """Fingerprint the output was created with (None if absent); the group's metadata read once."""
@@ -150,7 +136,7 @@ class FrameStore:
         """(Re)create every output array up front; any previous content is erased."""
         n = len(frame_ids)
         try:
-            g = zarr.open_group(self.url, mode="w", zarr_format=ZARR_FORMAT, **_zarr_options(self.url))
+            g = zarr.open_group(self.url, mode="w", zarr_format=ZARR_FORMAT, **zarr_options(self.url))
             for spec in specs:
                 shape = shapes[spec.name]
                 g.create_array(spec.name, shape=(n, *shape), chunks=(1, *shape), dtype=spec.dtype,
@@ -188,7 +174,7 @@ class FrameStore:
     def frame_ids(self) -> list[str]:
         """Frame ids, in frame-index order. MetadataError naming the array when it cannot be read."""
         try:
-            arr = sync(_member_async(self.url, FRAME_IDS, "r"))  # not the group's zarr.json too
+            arr = sync(member_async(self.url, FRAME_IDS, "r"))  # not the group's zarr.json too
             ids = None if arr is None else [str(i) for i in np.asarray(zarr.Array(arr)[:])]
         except (*DECODE_ERRORS, TypeError) as exc:  # a damaged chunk, or zarr.json (json.JSONDecodeError)
             _settle_io()
@@ -209,7 +195,7 @@ class FrameStore:
     def status(self) -> np.ndarray:
         """(F,) uint8 status codes; ChunkError naming the lowest damaged chunk when one is."""
         arr = self._array("status")
-        status = _frames_from_chunk_files(arr)
+        status = frames_from_chunk_files(arr)
         if status is not None:
             return status
         try:
@@ -271,8 +257,8 @@ class FrameStore:
         indices = np.asarray(indices, np.int64).reshape(-1)
         chunks = []
         for name, value in (*values, ("status", np.uint8(code))):
-            arr = _opened_array(self.url, name)[1]
-            layout = None if arr is None else _direct_layout(arr)
+            arr = opened_array(self.url, name)[1]
+            layout = None if arr is None else direct_layout(arr)
             if layout is None or (indices.size and not (indices.min() >= 0 and indices.max() < arr.shape[0])):
                 return False
             row = _frame_row(value, arr.dtype, arr.shape[1:], name in fills, fills.get(name))
@@ -281,7 +267,7 @@ class FrameStore:
             chunks.append((arr, layout.encode(row)))
         for index in indices:
             for arr, data in chunks:  # the status last: the frame is done only once the rest is written
-                _put_chunk(_chunk_path(arr, int(index)), data)
+                put_chunk(chunk_path(arr, int(index)), data)
         return True
 
     def flush(self) -> None:
@@ -342,16 +328,16 @@ class FrameStore:
         """:meth:`read` from the frame's chunk files (a local cache, the arrays opened once per
         process); None, for zarr's path, when that cannot be done or a chunk is missing or damaged
         (zarr's path then raises the ChunkError)."""
-        arr = _opened_array(self.url, name)[1]
+        arr = opened_array(self.url, name)[1]
         if arr is None:
             return None
-        value = _frames_from_chunk_files(arr, [index], missing_is_fill=False)
+        value = frames_from_chunk_files(arr, [index], missing_is_fill=False)
         if value is None:
             return None
-        ragged, counts = _opened_array(self.url, f"{name}_count")
+        ragged, counts = opened_array(self.url, f"{name}_count")
         if not ragged:
             return value[0, ...]
-        rows = None if counts is None else _frames_from_chunk_files(counts, [index], missing_is_fill=False)
+        rows = None if counts is None else frames_from_chunk_files(counts, [index], missing_is_fill=False)
         return None if rows is None else value[0, :int(rows[0])]
 
     def array(self, name: str) -> "CheckedArray":
@@ -409,7 +395,7 @@ class FrameStore:
         KeyError, or the group's own error when the group is gone too. MetadataError naming the
         file when it cannot be read (every frame of the array is then unreadable)."""
         try:
-            node = sync(_member_async(self.url, name, mode))
+            node = sync(member_async(self.url, name, mode))
         except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
             raise self._damaged_array(name, exc) from None
         if node is None:
@@ -433,7 +419,7 @@ class FrameStore:
         metadata and the file system are asked only for a value that is all fill."""
         value = self._decode(arr, index)
         if value.size and _all_fill(value, arr.fill_value) and self._group("r").attrs.get(EVERY_CHUNK) \
-                and not sync(arr.store.exists(f"{arr.path}/{_chunk_key(arr, index)}")) \
+                and not sync(arr.store.exists(f"{arr.path}/{chunk_key(arr, index)}")) \
                 and int(self._decode(self._array("status"), index)) == DONE:
             raise self._chunk_error(arr, index, "is missing although the frame is done (zarr would read the fill "
                                                    "value in its place)")
@@ -442,7 +428,7 @@ class FrameStore:
     def _chunk_error(self, arr: zarr.Array, index: int, problem: str) -> ChunkError:
         """ChunkError for frame ``index`` of ``arr``, with the command that
         recomputes the frame."""
-        chunk = join(self.url, arr.path, _chunk_key(arr, index))
+        chunk = join(self.url, arr.path, chunk_key(arr, index))
         try:
             ids = self.frame_ids()
         except Exception:  # noqa: BLE001 - only words: the chunk's own error must not be lost
@@ -517,7 +503,7 @@ class FrameStore:
         if every_chunk and frames is not None and per_frame_size:  # zarr writes no chunk holding nothing
             present = set(sync(_keys(arr.store, f"{arr.path}/c/")))
             for i in np.flatnonzero(wanted):
-                if i not in errors and f"{arr.path}/{_chunk_key(arr, int(i))}" not in present:
+                if i not in errors and f"{arr.path}/{chunk_key(arr, int(i))}" not in present:
                     errors[int(i)] = self._chunk_error(arr, int(i), f"is missing although the frame {state}")
         return values
 
@@ -538,7 +524,7 @@ class CheckedArray:
     def __getitem__(self, selection: Any) -> Any:
         if selection is Ellipsis or (isinstance(selection, slice) and selection == slice(None)):
             # the whole array, from its chunk files
-            value = _frames_from_chunk_files(self._array)
+            value = frames_from_chunk_files(self._array)
             if value is not None:
                 return value
         return self._read(lambda: self._array[selection], selection)
@@ -583,7 +569,7 @@ class _CheckedOIndex:
     def __getitem__(self, selection: Any) -> Any:
         frames = _frame_indices(selection, self._checked._array.shape[0])
         if frames is not None:  # some whole frames, from their chunk files
-            value = _frames_from_chunk_files(self._checked._array, frames)
+            value = frames_from_chunk_files(self._checked._array, frames)
             if value is not None:
                 return value
         return self._checked._read(lambda: self._checked._array.oindex[selection], selection)
@@ -621,11 +607,6 @@ def _settle_io(timeout_s: float = 60.0) -> None:
 
 async def _keys(store: Any, prefix: str) -> list[str]:
     return [key async for key in store.list_prefix(prefix)]
-
-
-def _chunk_key(arr: zarr.Array, index: int) -> str:
-    """Key, under the array's path, of frame ``index``'s chunk (one chunk per frame)."""
-    return arr.metadata.encode_chunk_key((index,) + (0,) * (arr.ndim - 1))
 
 
 def _all_fill(value: np.ndarray, fill: Any) -> bool:
@@ -972,13 +953,13 @@ async def _write_frame_async(url: str, index: int, fills: dict[str, Any], values
     """Write ``values`` into row ``index`` of the group's arrays concurrently, then the status;
     ``fills``: the ragged arrays' padding values, by name."""
     names = [name for name, _ in values] + ["reason", "status"]
-    targets = await _write_targets(url, names)
+    targets = await write_targets(url, names)
 
     def row(name: str, value: Any) -> Any:
         target = targets[name]
         return _frame_row(value, target.dtype, target.shape[1:], name in fills, fills.get(name))
 
-    await _gather_all([*(targets[name].setitem(index, row(name, v)) for name, v in values),
+    await gather_all([*(targets[name].setitem(index, row(name, v)) for name, v in values),
                        targets["reason"].setitem(index, "")])
     await targets["status"].setitem(index, DONE)
 
@@ -1004,235 +985,6 @@ def _stale(path: Path) -> bool:
         return time.time() - path.stat().st_mtime > STALE_COPY_S
     except OSError:
         return False
-
-
-def _chunk_path(arr: zarr.Array, index: int) -> str:
-    """The file of frame ``index``'s chunk of ``arr``, an array of a local store."""
-    return os.path.join(str(arr.store.root), arr.path, _chunk_key(arr, index))
-
-
-def _put_chunk(path: str, data: bytes) -> None:
-    """Write one chunk file as zarr's local store does: to a temporary file beside it, renamed over
-    it, so that a reader sees the old chunk or the new one, never part of one."""
-    tmp = f"{path}.{uuid.uuid4().hex}.partial"
-    try:
-        try:
-            fh = open(tmp, "wb")
-        except FileNotFoundError:  # the chunk's folder is not there yet (a mkdir per chunk cost 0.25 ms)
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            fh = open(tmp, "wb")
-        with fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
-_WRITABLE: dict[str, tuple[tuple[bytes | None, ...], dict[str, Any]]] = {}
-"""Arrays opened for writing frames, by store URL, with the bytes of each one's zarr.json (a local
-store; keyed as _OPENED): opening the group and its arrays for every frame cost about 1.5 ms."""
-
-
-async def _write_targets(url: str, names: list[str]) -> dict[str, Any]:
-    """The async arrays ``names`` of the store at ``url``, set to write every chunk (a fill-valued
-    one too, EVERY_CHUNK: a missing chunk is then damage), each opened by its own zarr.json (not
-    the group's too: a request more per frame on an object store); a local store's are opened once
-    per process while their zarr.json files hold the same bytes, others for each frame (another
-    process may re-create the output between two frames)."""
-    root = local_path(url)
-    key = None if root is None else tuple(_metadata_bytes(root, name) for name in names)
-    hit = _WRITABLE.get(url)
-    if key is not None and None not in key and hit is not None and hit[0] == key:
-        return hit[1]
-    arrays = await _gather_all(_member_async(url, name, "r+") for name in names)  # not the group's zarr.json
-    if None in arrays:  # the group's own error when it is gone, else the array's, as group[name] raises
-        await zarr_async.open_group(url, mode="r+", zarr_format=ZARR_FORMAT, **_zarr_options(url))
-        raise KeyError(names[arrays.index(None)])
-    targets = {name: arr.with_config({"write_empty_chunks": True}) for name, arr in zip(names, arrays)}
-    if key is not None and None not in key:
-        if len(_WRITABLE) >= OPENED_MAX:
-            _WRITABLE.clear()
-        _WRITABLE[url] = (key, targets)
-    return targets
-
-
-async def _gather_all(awaitables: Iterable[Awaitable[Any]]) -> list[Any]:
-    """Await every one to its end, then raise the first failure: a failed write must not leave the
-    others pending when the event loop closes (asyncio would print them after the error line)."""
-    results = await asyncio.gather(*awaitables, return_exceptions=True)
-    for result in results:
-        if isinstance(result, BaseException):
-            raise result
-    return results
-
-
-@dataclass(frozen=True)
-class _ChunkCodec:
-    """How the chunk files of a FrameStore array (one frame per chunk) are encoded, as zarr's
-    codecs do it: bytes (``stored``: the dtype with its byte order) or vlen-utf8 strings
-    (``stored`` None), then zstd."""
-
-    dtype: Any
-    shape: tuple[int, ...]
-    stored: np.dtype | None
-    zstd: numcodecs.Zstd
-
-    def encode(self, row: Any) -> bytes:
-        """One frame's chunk file for ``row`` (a value of the per-frame shape)."""
-        if self.stored is None:
-            return self.zstd.encode(_VLEN_UTF8.encode(np.asarray(row, dtype=object).reshape(-1)))
-        return self.zstd.encode(np.ascontiguousarray(row, dtype=self.stored).tobytes())
-
-    def decode(self, data: bytes) -> np.ndarray | None:
-        """The frame of chunk file bytes ``data``; None when they do not decode to one frame."""
-        raw = self.zstd.decode(data)
-        size = int(np.prod(self.shape, dtype=np.int64))
-        if self.stored is None:
-            items = _VLEN_UTF8.decode(raw)
-            return items.reshape(self.shape).astype(self.dtype) if items.size == size else None
-        if len(raw) != size * self.stored.itemsize:
-            return None
-        return np.frombuffer(raw, self.stored).reshape(self.shape)
-
-
-_VLEN_UTF8 = numcodecs.VLenUTF8()
-"""zarr 3's vlen-utf8 codec encodes with numcodecs' VLenUTF8 (zarr.codecs.vlen_utf8)."""
-
-
-def _direct_layout(arr: zarr.Array) -> _ChunkCodec | None:
-    """The codec of the chunk files of an array of a local store laid out as ``FrameStore.create``
-    makes it (one chunk per frame, zarr's default chunk keys, zarr format 3, bytes of a fixed-size
-    dtype or vlen-utf8 strings, then zstd); None for any other."""
-    meta = arr.metadata
-    codecs = getattr(meta, "codecs", None)  # None: zarr format 2
-    if codecs is None or not isinstance(arr.store, LocalStore) or \
-            meta.chunk_grid.chunk_shape != (1, *arr.shape[1:]) or \
-            meta.chunk_key_encoding != DefaultChunkKeyEncoding(separator="/"):
-        return None
-    kinds = [type(c) for c in codecs]
-    zstd = numcodecs.Zstd(level=codecs[-1].level, checksum=codecs[-1].checksum) if kinds[-1:] == [ZstdCodec] else None
-    if kinds == [BytesCodec, ZstdCodec] and arr.dtype.kind in "biuf":
-        stored = np.dtype(arr.dtype).newbyteorder(">" if getattr(codecs[0].endian, "value", "") == "big" else "<")
-        return _ChunkCodec(arr.dtype, tuple(arr.shape[1:]), stored, zstd)
-    if kinds == [VLenUTF8Codec, ZstdCodec] and arr.dtype.kind in "TU":
-        return _ChunkCodec(arr.dtype, tuple(arr.shape[1:]), None, zstd)
-    return None
-
-
-def _frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None,
-                             missing_is_fill: bool = True) -> np.ndarray | None:
-    """Frames ``frames`` (indices; default all) of array ``arr`` of a FrameStore, read straight from
-    their chunk files (zarr's default chunk keys; a missing one is the fill value, as zarr reads
-    it, unless not ``missing_is_fill``): zarr spends about 0.3 ms per chunk, 6 s on the status of
-    20,000 frames, against 0.4 s here. None, for zarr to read them (and name a damaged chunk), when
-    the cache is not local, the array is not laid out as ``FrameStore.create`` makes it (a
-    ``_direct_layout``), a chunk file does not decode to one frame, or one
-    is missing and not ``missing_is_fill``."""
-    layout = _direct_layout(arr)
-    if layout is None:
-        return None
-    frames = np.arange(arr.shape[0]) if frames is None else np.asarray(frames, np.int64).reshape(-1)
-    if frames.size and not (0 <= frames.min() and frames.max() < arr.shape[0]):
-        return None
-    out = np.full((len(frames), *arr.shape[1:]), arr.metadata.fill_value, arr.dtype)
-    try:
-        for row, index in enumerate(frames):
-            try:
-                with open(_chunk_path(arr, int(index)), "rb") as fh:
-                    value = layout.decode(fh.read())
-            except FileNotFoundError:
-                if missing_is_fill:
-                    continue
-                return None
-            if value is None:
-                return None
-            out[row] = value
-    except (OSError, *DECODE_ERRORS):  # unreadable, not zstd, checksum mismatch, a huge claimed size
-        return None
-    return out
-
-
-_OPENED: dict[str, tuple[bytes, zarr.Array | None]] = {}
-"""Arrays opened for reading, by the path of their zarr.json, with that file's bytes: a frame's read
-opened its group and arrays each time, about 2 ms of zarr's IO-thread hand-offs per array read
-(FrameStore.read). Keyed by the metadata itself, not the file's inode and time: zarr replaces the
-file by a rename, inode numbers are reused and a file time may not change within a clock tick."""
-OPENED_MAX = 512
-
-
-def _metadata_bytes(root: str, name: str) -> bytes | None:
-    """The bytes of array ``name``'s zarr.json under local folder ``root``; None when unreadable."""
-    try:
-        with open(os.path.join(root, name, "zarr.json"), "rb") as fh:
-            return fh.read()
-    except OSError:
-        return None
-
-
-def _opened_array(url: str, name: str) -> tuple[bool, zarr.Array | None]:
-    """(whether it exists, the array or None) for array ``name`` of the local store at ``url``,
-    opened once per process while its ``zarr.json`` holds the same bytes; (False, None) when that
-    file cannot be read or the store is not local, (True, None) when zarr cannot open the array
-    (zarr's own path then names the problem)."""
-    root = local_path(url)
-    meta = None if root is None else _metadata_bytes(root, name)
-    if meta is None:
-        return False, None
-    path = os.path.join(root, name)
-    hit = _OPENED.get(path)
-    if hit is not None and hit[0] == meta:
-        return True, hit[1]
-    try:
-        arr: zarr.Array | None = zarr.open_array(join(url, name), mode="r", zarr_format=ZARR_FORMAT)
-        if json.dumps(arr.metadata.to_dict(), sort_keys=True, default=str) != \
-                json.dumps(json.loads(meta), sort_keys=True, default=str):
-            arr = None  # the file was replaced between the two reads: zarr's path this time
-    except Exception:  # noqa: BLE001 - damaged or racing metadata: left to zarr's path, which names it
-        arr = None
-    if len(_OPENED) >= OPENED_MAX:
-        _OPENED.clear()
-    _OPENED[path] = (meta, arr)
-    return True, arr
-
-
-def _open_group(url: str, mode: str) -> zarr.Group:
-    try:
-        return zarr.open_group(url, mode=mode, zarr_format=ZARR_FORMAT, **_zarr_options(url))
-    except FileNotFoundError:
-        raise
-    except OSError as exc:
-        raise cache_error(exc, f"opening {url}") from None
-
-
-async def _member_async(url: str, name: str, mode: str) -> Any:
-    """Member ``name`` of the group at ``url`` (an AsyncArray) as ``group.getitem(name)`` reads it,
-    with the same errors, without reading the group's own ``zarr.json``; None when it is not there."""
-    node_path = await make_store_path(url, mode=mode, **_zarr_options(url)) / name
-    try:
-        return await get_node(node_path.store, node_path.path, ZARR_FORMAT)
-    except FileNotFoundError:  # zarr's NodeNotFoundError, or a local store's missing folder
-        return None
-
-
-def _zarr_options(url: str) -> dict[str, Any]:
-    """Keyword arguments for zarr's functions opening the store at ``url``: on s3fs one GET per
-    read. s3fs (2026.9.0) asks an object's size (a HEAD) before reading it whole, to read a large
-    one in concurrent parts (``max_concurrency`` above 1, its default 10): a request more for each
-    zarr.json and chunk read, a frame's chunks being far smaller than the 50 MiB s3fs splits at
-    (a missing chunk: a HEAD and a listing instead of one GET)."""
-    return {"storage_options": {"max_concurrency": 1}} if _sizes_before_reads(url) else {}
-
-
-@functools.lru_cache(maxsize=1024)
-def _sizes_before_reads(url: str) -> bool:
-    """Whether ``url`` is on s3fs reading each whole object after a HEAD (:func:`_zarr_options`)."""
-    if local_path(url) is not None:
-        return False
-    fs = fsspec.core.url_to_fs(url)[0]
-    protocol = fs.protocol if isinstance(fs.protocol, (tuple, list)) else (fs.protocol,)
-    return "s3" in protocol and getattr(fs, "max_concurrency", 1) > 1
 
 
 def frame_store(root: str, dataset: str, stage: str) -> FrameStore:

@@ -131,10 +131,10 @@ _WRITING: list = []  # [stage, index, arrays written so far] while FrameStore.wr
 
 
 def install_hooks() -> None:
-    """Wrap FrameStore.write_frame, zarr.AsyncArray.setitem and pipeline.cache._put_chunk (a chunk
-    file written directly) in this process (once): log completed frame writes and inject the
-    ``SOAK_FAULT`` fault after a frame's first array write completes (the frame's other arrays are
-    being written, concurrently through zarr; its status is not yet)."""
+    """Wrap FrameStore.write_frame, zarr.AsyncArray.setitem and put_chunk as pipeline.cache calls it
+    (pipeline.zarr_io's: a chunk file written directly) in this process (once): log completed frame
+    writes and inject the ``SOAK_FAULT`` fault after a frame's first array write completes (the
+    frame's other arrays are being written, concurrently through zarr; its status is not yet)."""
     if _HOOKED:
         return
     _HOOKED.append(True)
@@ -143,7 +143,7 @@ def install_hooks() -> None:
     from pipeline import cache
     from pipeline.cache import FrameStore
 
-    original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache._put_chunk
+    original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache.put_chunk
 
     def write_frame(self, index, arrays, specs):
         stage = self.url.rstrip("/").rsplit("/", 1)[-1].removesuffix(".zarr")
@@ -170,7 +170,7 @@ def install_hooks() -> None:
 
     FrameStore.write_frame = write_frame
     zarr.AsyncArray.setitem = setitem
-    cache._put_chunk = put_chunk
+    cache.put_chunk = put_chunk
 
 
 def _inject_fault(stage: str, index: int) -> None:

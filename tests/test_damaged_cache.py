@@ -140,7 +140,7 @@ def test_missing_chunk_reads_as_fill_value_in_an_output_without_the_marker(tmp_p
 def test_an_array_of_no_elements_per_frame_has_no_chunk_to_miss(tmp_path, monkeypatch, writer):
     """zarr writes no chunk for a frame of an array with a zero-length dimension (a remote cache,
     or an output zarr wrote): reading and verifying such a frame is no damage."""
-    from pipeline.cache import ArraySpec
+    from pipeline.stage import ArraySpec
     if writer == "zarr":
         monkeypatch.setattr(FrameStore, "_write_chunk_files", lambda self, *args: False)
     specs = (ArraySpec("empty", (0, 3), "float32", "m", fill=np.nan, ragged=True),
@@ -182,7 +182,7 @@ def test_whole_frame_reads_come_from_the_chunk_files_and_equal_zarrs(tmp_path):
     was never written."""
     import zarr
 
-    from pipeline.cache import _frames_from_chunk_files
+    from pipeline.zarr_io import frames_from_chunk_files
 
     pipe = _pipe(tmp_path)
     pipe.run("calibrate", frames=[0, 2, 3, 5, 6, 7])
@@ -190,7 +190,7 @@ def test_whole_frame_reads_come_from_the_chunk_files_and_equal_zarrs(tmp_path):
     mask = np.array([True, False, True, True, False, False, True, False])
     for name in ("points", "points_count", "value", "status"):
         raw = zarr.open_group(calib.url, mode="r")[name]
-        assert _frames_from_chunk_files(raw) is not None  # the files were read, not zarr
+        assert frames_from_chunk_files(raw) is not None  # the files were read, not zarr
         checked = calib.array(name)
         for got, want in ((checked[:], raw[:]), (checked[...], raw[...]), (np.asarray(checked), raw[:]),
                           (checked.oindex[[7, 1, 3]], raw.oindex[[7, 1, 3]]), (checked.oindex[mask], raw.oindex[mask]),
@@ -243,8 +243,8 @@ def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, m
     from pipeline import cache
     from pipeline.stage import ArraySpec
 
-    put, original_put = [], cache._put_chunk
-    monkeypatch.setattr(cache, "_put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
+    put, original_put = [], cache.put_chunk
+    monkeypatch.setattr(cache, "put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
     specs = (ArraySpec("points", (4, 2), "float32", "m", fill=np.nan, ragged=True),
              ArraySpec("value", (), "int64", "-"), ArraySpec("name", (), "str", "-", fill=""))
     store = FrameStore(str(tmp_path / "s.zarr"))
@@ -278,7 +278,7 @@ def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, m
     store.mark(1, FAILED, "lidar truncated")
     assert _chunk_files(store) == failed
     put.clear()
-    monkeypatch.setattr(cache, "_put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
+    monkeypatch.setattr(cache, "put_chunk", lambda path, data: (put.append(Path(path)), original_put(path, data)))
     with pytest.raises(ValueError, match="broadcast"):
         store.write_frame(2, {**frame, "points": np.zeros((5, 2))}, specs)  # 5 rows, capacity 4
     with pytest.raises(IndexError):
@@ -289,7 +289,7 @@ def test_frames_are_written_to_their_chunk_files_as_zarr_writes_them(tmp_path, m
         put.append(Path(path))
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(cache, "_put_chunk", disk_full)
+    monkeypatch.setattr(cache, "put_chunk", disk_full)
     with pytest.raises(CacheError, match="writing frame 2"):
         store.write_frame(2, frame, specs)
     assert len(put) == 1 and store.status()[2] == PENDING  # the first chunk failed; not marked done
@@ -381,7 +381,8 @@ def test_status_read_from_its_chunk_files_is_zarrs_and_a_damaged_chunk_is_left_t
     pending; a damaged chunk is read by zarr, which names it."""
     import zarr
 
-    from pipeline.cache import EXCLUDED, _frames_from_chunk_files
+    from pipeline.cache import EXCLUDED
+    from pipeline.zarr_io import frames_from_chunk_files
 
     pipe = _pipe(tmp_path)
     pipe.run("calibrate", frames=[0, 1, 2, 3, 4, 5])
@@ -391,19 +392,19 @@ def test_status_read_from_its_chunk_files_is_zarrs_and_a_damaged_chunk_is_left_t
     store.mark(5, EXCLUDED, "another")
     _chunk(pipe, "calibrate", "status/c/2").unlink()
     arr = zarr.open_array(f"{store.url}/status", mode="r")
-    direct = _frames_from_chunk_files(arr)
+    direct = frames_from_chunk_files(arr)
     assert direct is not None and direct.dtype == np.uint8
     assert list(direct) == [DONE, PENDING, PENDING, DONE, FAILED, EXCLUDED, PENDING, PENDING]
     np.testing.assert_array_equal(direct, arr[:])
     np.testing.assert_array_equal(store.status(), direct)
     _damage(_chunk(pipe, "calibrate", "status/c/3"), how)
-    assert _frames_from_chunk_files(arr) is None
+    assert frames_from_chunk_files(arr) is None
     with pytest.raises(ChunkError, match=r"calibrate.zarr/status, frame 3 \(f003\): chunk .* cannot be decoded"):
         store.status()
     # a zstd header claiming 64 TiB: numcodecs raises MemoryError, which must not escape either
     huge = struct.pack("<I", 0xFD2FB528) + bytes([0xE0]) + struct.pack("<Q", 2 ** 46) + bytes([1, 0, 0])
     _chunk(pipe, "calibrate", "status/c/3").write_bytes(huge)
-    assert _frames_from_chunk_files(arr) is None
+    assert frames_from_chunk_files(arr) is None
     with pytest.raises(ChunkError, match=r"calibrate.zarr/status, frame 3 \(f003\): chunk .* cannot be decoded"):
         store.status()
 
@@ -426,7 +427,7 @@ def test_a_damaged_chunk_read_through_zarr_leaves_no_reads_running_at_exit(tmp_p
     import subprocess
     import sys
 
-    from pipeline.cache import ArraySpec
+    from pipeline.stage import ArraySpec
     specs = (ArraySpec("value", (2,), "float32", "m"),)
     store = FrameStore(str(tmp_path / "out.zarr"))
     store.create("fp", [f"f{i}" for i in range(2000)], specs, {"value": (2,)}, {})

@@ -23,11 +23,12 @@ from pathlib import Path
 import pytest
 import zarr
 
-from pipeline.cache import DONE, FAILED, PENDING, FrameStore, _gather_all, frame_store
+from pipeline.cache import DONE, FAILED, PENDING, FrameStore, frame_store
 from pipeline.config import load_config
 from pipeline.errors import CacheError
 from pipeline.executor import Executor, RunEnv
 from pipeline.runner import Pipeline
+from pipeline.zarr_io import gather_all
 from tests import fake_stages, soak
 
 IDS = [f"f{i:03d}" for i in range(8)]
@@ -156,7 +157,7 @@ def _fault_after_first_array(monkeypatch, stage: str, index: int, code: int) -> 
     fail with OSError(code) after one array."""
     from pipeline import cache
 
-    original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache._put_chunk
+    original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache.put_chunk
     state: list = []
 
     def write_frame(self, i, arrays, specs):
@@ -186,7 +187,7 @@ def _fault_after_first_array(monkeypatch, stage: str, index: int, code: int) -> 
 
     monkeypatch.setattr(FrameStore, "write_frame", write_frame)
     monkeypatch.setattr(zarr.AsyncArray, "setitem", setitem)
-    monkeypatch.setattr(cache, "_put_chunk", put_chunk)
+    monkeypatch.setattr(cache, "put_chunk", put_chunk)
 
 
 @pytest.mark.parametrize("code, words", [(errno.ENOSPC, "disk holding the cache is full"),
@@ -238,7 +239,7 @@ def test_failed_array_write_waits_for_the_other_writes_of_the_frame():
         finished.append(name)
 
     with pytest.raises(OSError, match="Read-only"):
-        asyncio.run(_gather_all([fails(), slow("points"), slow("reason")]))
+        asyncio.run(gather_all([fails(), slow("points"), slow("reason")]))
     assert sorted(finished) == ["points", "reason"]
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from pipeline import cache  # noqa: E402
+from pipeline import zarr_io  # noqa: E402
 from pipeline.cache import FrameStore  # noqa: E402
 from pipeline.stage import ArraySpec  # noqa: E402
 
@@ -56,7 +56,7 @@ def writes(store: FrameStore, frames: range, direct: bool) -> float:
         t0 = time.perf_counter()
         for i, arrays in zip(frames, data):
             if not direct:
-                cache._WRITABLE.clear()
+                zarr_io._WRITABLE.clear()
             store.write_frame(i, arrays, SPECS)
         return time.perf_counter() - t0
     finally:
