@@ -411,7 +411,7 @@ class RunSection:
     staging_dir: str = "~/.cache/radarsim-pipeline"
     """Local folder for the stages that write with local file APIs (train, export, evaluate; and
     `pipeline ablate`) on a remote (fsspec) cache: each writes into a local staging folder here and uploads it when it
-    finishes; readers of their output keep a local copy here (pipeline.cache.DirStore.local_copy)."""
+    finishes; readers of their output keep a local copy here (pipeline.dirstore.DirStore.local_copy)."""
     checkpoint_upload_s: float = 60.0
     """On a remote (fsspec) cache, seconds between train's uploads of its checkpoints while it
     trains: at the end of an epoch at least this long after the last upload, the net's best and last

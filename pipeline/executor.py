@@ -23,8 +23,9 @@ import dask
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from pipeline.cache import DONE, FAILED, FrameStore, dir_store, frame_store
+from pipeline.cache import DONE, FAILED, FrameStore, frame_store
 from pipeline.config import Config
+from pipeline.dirstore import dir_store
 from pipeline.errors import (CacheError, ClusterFailed, FrameError, PipelineError, cache_error, exception_line,
                              sigint_deferred)
 from pipeline.progress import bar as progress_bar

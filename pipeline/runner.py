@@ -28,9 +28,10 @@ from typing import Any, Callable
 import fsspec
 import numpy as np
 
-from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, RUN_TOKEN, STATUS_NAMES, done_digest
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest
 from pipeline.cachefs import is_local, join
 from pipeline.config import jsonable
+from pipeline.dirstore import RUN_TOKEN
 from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
                              MetadataError, PipelineError, StageInterrupted, cache_error, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv

@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.cache import DirStore, dir_store, frame_store
+from pipeline.cache import frame_store
 from pipeline.config import Config, check_profile, load_config, own_radar
+from pipeline.dirstore import DirStore, dir_store
 from pipeline.errors import ConfigError, MetadataError, PipelineError
 
 RADAR_SETTINGS = ("radar.name", "radar.az_res_deg", "radar.el_res_deg", "radar.fov_az_deg", "radar.fov_el_deg",

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, DirStore, frame_store
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, frame_store
 from pipeline.config import load_config
+from pipeline.dirstore import DirStore
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import stage_lock
@@ -106,10 +107,10 @@ def test_a_local_dataset_stage_output_reaches_the_disk_before_it_is_marked_compl
     local disk to flush."""
     out = DirStore(str(tmp_path / "train"))
     out.write_text("metrics.json", "{}")
-    import pipeline.cache
+    import pipeline.dirstore
 
     synced: list[bool] = []
-    monkeypatch.setattr(pipeline.cache, "sync_filesystem",
+    monkeypatch.setattr(pipeline.dirstore, "sync_filesystem",
                         lambda path: synced.append(path == out.path and os.path.exists(out.file("_stage.json"))))
     out.finish("fp", {})
     assert synced == [False] and out.fingerprint() == "fp"
@@ -127,7 +128,7 @@ def test_a_dataset_stage_folder_records_its_files_and_each_changed_one_is_named(
     unreadable record a problem, not an output finished before files were recorded."""
     import json
 
-    from pipeline.cache import FILES_MANIFEST, RUN_TOKEN
+    from pipeline.dirstore import FILES_MANIFEST, RUN_TOKEN
 
     out = DirStore(str(tmp_path / "train"))
     out.write_text("metrics.json", "{}")

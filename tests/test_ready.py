@@ -9,7 +9,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from pipeline.cache import DONE, dir_store
+from pipeline.cache import DONE
+from pipeline.dirstore import dir_store
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.executor import Executor, RunEnv

@@ -15,7 +15,8 @@ import fsspec
 import numpy as np
 import pytest
 
-from pipeline.cache import DONE, PENDING, RUN_TOKEN, DirStore
+from pipeline.cache import DONE, PENDING
+from pipeline.dirstore import RUN_TOKEN, DirStore
 from pipeline.config import load_config
 from pipeline.errors import CacheError, ChunkError
 from pipeline.executor import Executor, RunEnv

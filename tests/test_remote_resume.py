@@ -7,7 +7,7 @@ import uuid
 import fsspec
 import pytest
 
-from pipeline.cache import DirStore
+from pipeline.dirstore import DirStore
 from tests.test_remote_cache import _killed_in_the_second_epoch, _real_pipe
 
 
@@ -61,7 +61,7 @@ def test_a_run_going_on_in_its_own_staging_folder_keeps_the_run_token(tmp_path, 
     it used to write a new one into the remote folder and then the staging folder, and a kill
     between the two writes left them different, so the next run threw away the staging folder's
     newer epochs for the remote's last upload (here none: training from scratch)."""
-    from pipeline.cache import RUN_TOKEN
+    from pipeline.dirstore import RUN_TOKEN
     from pipeline.errors import StageInterrupted
     from pipeline.world import generate
 
@@ -104,7 +104,7 @@ def test_a_partial_local_copy_a_killed_process_left_is_removed_after_a_day(tmp_p
     import os
     import time
 
-    from pipeline.cache import STALE_COPY_S
+    from pipeline.dirstore import STALE_COPY_S
 
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     remote = f"memory://copies-{uuid.uuid4().hex[:8]}"
