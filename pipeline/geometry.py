@@ -118,7 +118,7 @@ def radial_velocity(directions_D: np.ndarray, ego_velocity_D: np.ndarray,
     rel = -np.asarray(ego_velocity_D, dtype=np.float64)[None, :]
     if object_velocity_D is not None:
         rel = rel + check_shape("object_velocity_D", np.asarray(object_velocity_D, np.float64), (d.shape[0], 3))
-    norm = np.linalg.norm(d, axis=1)
+    norm = norms_m(d)
     norm = np.where(norm > 0, norm, 1.0)
     return np.einsum("ij,ij->i", rel, d) / norm
 

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.frame import LABEL_COLUMNS, Object3D, box_rotations, check_shape, label_rows, to_box_frame
-from pipeline.geometry import cartesian_to_spherical, pixel_rays_D, radial_velocity, wrap_doppler
+from pipeline.geometry import cartesian_to_spherical, norms_m, pixel_rays_D, radial_velocity, wrap_doppler
 
 ESTIMATORS = ("mean", "nearest", "median", "min")
 """Range estimators over the angular window: 'mean' is the paper's rule (eqs. 13-15)."""
@@ -441,8 +441,10 @@ def object_velocities_for_points(
     vel = np.where(np.isnan(boxes[:, _VX:_VX + 3]), unknown, boxes[:, _VX:_VX + 3])
     # A point inside box l lies within its x extent |dx| <= sum_k |R[0, k]| half_k (and its y extent
     # likewise): each box tests only the points of that slice of the points sorted by x whose y is
-    # near, all boxes' (box, point) pairs at once, in box order and x order within a box
-    order = np.argsort(points[:, 0], kind="stable")
+    # near, all boxes' (box, point) pairs at once. Each pair is tested alone and the winners are
+    # sorted by (point, distance, box) below, so the pairs' order, and the sort's among equal x,
+    # changes nothing (an unstable sort: 0.25 against 0.6 ms for a demo frame's 8,400 candidates)
+    order = np.argsort(points[:, 0])
     xs = points[order, 0]
     reach = np.einsum("lik,lk->li", np.abs(rot[:, :2, :]), half) * (1 + 1e-9) + 1e-9    # (L, 2): slack for rounding
     lo = np.searchsorted(xs, centres[:, 0] - reach[:, 0], side="left")
@@ -453,10 +455,11 @@ def object_velocities_for_points(
     near = np.abs(points[point_of, 1] - centres[box_of, 1]) <= reach[box_of, 1]
     box_of, point_of = box_of[near], point_of[near]
     rel = points[point_of] - centres[box_of]                                             # (P, 3)
-    inside = np.all(np.abs(to_box_frame(rel, rot[box_of])) <= half[box_of], axis=1)
+    local, h = np.abs(to_box_frame(rel, rot[box_of])), half[box_of]                      # (P, 3) each
+    inside = (local[:, 0] <= h[:, 0]) & (local[:, 1] <= h[:, 1]) & (local[:, 2] <= h[:, 2])
     if not inside.any():  # no point inside any box
         return out
-    box_of, point_of, dist_of = box_of[inside], point_of[inside], np.linalg.norm(rel[inside], axis=1)
+    box_of, point_of, dist_of = box_of[inside], point_of[inside], norms_m(rel[inside])
     # where boxes overlap the nearest centre wins (the lower box index on a tie)
     pick = np.lexsort((box_of, dist_of, point_of))
     first = np.r_[True, point_of[pick][1:] != point_of[pick][:-1]]

@@ -4,8 +4,8 @@ pixel area [-0.5, W - 0.5), depths, transforms and Doppler wrapping."""
 import numpy as np
 import pytest
 
-from pipeline.geometry import (cartesian_to_spherical, invert_transform, project_to_image, spherical_to_cartesian,
-                               wrap_doppler)
+from pipeline.geometry import (cartesian_to_spherical, invert_transform, norms_m, project_to_image, radial_velocity,
+                               spherical_to_cartesian, wrap_doppler)
 
 
 def test_spherical_angles_follow_the_radar_frame_and_round_trip():
@@ -45,3 +45,21 @@ def test_invert_transform_refuses_a_mirror():
 def test_wrap_doppler_into_a_given_interval():
     np.testing.assert_allclose(wrap_doppler(np.array([-1.0, 5.0, 0.0, 3.9]), 4.0, low_mps=0.0), [3.0, 1.0, 0.0, 3.9])
     np.testing.assert_allclose(wrap_doppler(np.array([-1.0, 5.0, 2.0]), 4.0), [-1.0, 1.0, -2.0])
+
+
+def test_norms_and_range_rates_keep_the_bits_of_numpys_row_reductions():
+    """norms_m, and radial_velocity through it, give np.linalg.norm(axis=1)'s values to the bit
+    (its sum order over the three columns), signed zeros, infinities, NaN and subnormals included."""
+    import itertools
+
+    special = [0.0, -0.0, 1.0, -3.5, 1e-320, 1e154, 1e308, np.inf, -np.inf, np.nan]
+    rows = np.array(list(itertools.product(special, repeat=3)))
+    rng = np.random.default_rng(0)
+    rows = np.vstack([rows, rng.normal(size=(5000, 3)) * 10.0 ** rng.integers(-150, 150, (5000, 3))])
+    with np.errstate(all="ignore"):
+        assert norms_m(rows).tobytes() == np.linalg.norm(rows, axis=1).tobytes()
+        finite = rows[np.isfinite(rows).all(axis=1)]
+        ego, obj = np.array([3.0, -0.5, 0.1]), rng.normal(size=finite.shape)
+        norm = np.linalg.norm(finite, axis=1)
+        want = np.einsum("ij,ij->i", obj - ego, finite) / np.where(norm > 0, norm, 1.0)
+        assert radial_velocity(finite, ego, obj).tobytes() == want.tobytes()

@@ -8,6 +8,8 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from pipeline import inference as Inf
@@ -342,6 +344,45 @@ def test_map_weight_scales_the_maps_say_from_full_to_none():
             P.placement_weights(m, uv, lam, (w, h), sigma, map_weight=bad)
 
 
+def _placement_weights_as_before(m, uv, lam, image_wh, sigma_px, map_weight):
+    """placement_weights' blurs as computed until 2026-12-07 (float64 arrays converted to and from
+    float32 around each blur), for maps with mass and candidates with intensity."""
+    m, uv, lam = np.asarray(m, np.float64), np.asarray(uv, np.float64), np.asarray(lam, np.float64)
+    (mh, mw), (w, h) = m.shape, image_wh
+    px = np.clip(np.floor((uv + 0.5) * [mw / w, mh / h]).astype(np.int64), 0, [mw - 1, mh - 1])
+    sx, sy = sigma_px[0] * mw / w, sigma_px[1] * mh / h
+
+    def blur(a):
+        return cv2.GaussianBlur(a.astype(np.float32), (0, 0), sigmaX=sx, sigmaY=sy,
+                                borderType=cv2.BORDER_CONSTANT).astype(np.float64)
+
+    z = blur(np.bincount(px[:, 1] * mw + px[:, 0], lam, minlength=mh * mw).reshape(mh, mw))
+    ratio = np.zeros_like(z)
+    reached = z > 1e-12 * z.max()
+    ratio[reached] = m[reached] / z[reached]
+    q = lam * np.maximum(blur(ratio)[px[:, 1], px[:, 0]], 0.0) ** map_weight
+    return q / q.sum() if q.sum() > 0 else np.zeros(len(lam))
+
+
+def test_placement_weights_keep_the_bits_of_the_float64_steps():
+    """The blurs' float32 in and out without float64 copies (the ratio divided in float64 and stored
+    in float32, as the copy gave it): the same weights to the bit, maps of other sizes, sparse
+    intensities spanning 30 decades and partial map weights included."""
+    rng = np.random.default_rng(4)
+    for trial in range(60):
+        w, h = rng.integers(8, 170, 2)
+        mh, mw = (h, w) if trial % 3 else rng.integers(5, 170, 2)
+        m = (rng.random((mh, mw)) * (rng.random((mh, mw)) < rng.random())).astype(np.float32)
+        m[0, 0] = 1.0
+        c = int(rng.integers(1, 3000))
+        uv = rng.uniform(-0.5, [w - 0.51, h - 0.51], (c, 2))
+        lam = rng.random(c) * (rng.random(c) < 0.8) * 10.0 ** rng.integers(-30, 5)
+        lam[0] = 1.0
+        sigma, beta = tuple(rng.uniform(0.5, 20, 2)), [1.0, 0.5, rng.random()][trial % 3]
+        np.testing.assert_array_equal(P.placement_weights(m, uv, lam, (w, h), sigma, beta),
+                                      _placement_weights_as_before(m, uv, lam, (w, h), sigma, beta))
+
+
 # --------------------------------------------------------------------------- the draw
 
 
@@ -369,6 +410,32 @@ def test_choose_candidates_fill_every_voxel_before_doubling_up():
         P.choose_candidates(q, points, -1, rng, 1.0)
     with pytest.raises(ValueError, match="points_D"):
         P.choose_candidates(q, points[:3], 1, rng, 1.0)
+
+
+@settings(max_examples=300, deadline=None)
+@given(values=st.lists(st.sampled_from([0.0, -0.0, 1.0, -1.0, 2.5, np.inf, -np.inf, np.nan, 1e-300, 7.0]) |
+                       st.floats(allow_nan=True, allow_infinity=True), max_size=60),
+       n=st.integers(0, 70))
+def test_smallest_first_is_the_head_of_the_stable_argsort(values, n):
+    """The partition and the sort of the n kept give what sorting all gives: ties (-0.0 and 0.0
+    among them) in index order, NaNs last."""
+    values = np.array(values, np.float64)
+    np.testing.assert_array_equal(P.smallest_first(values, n), np.argsort(values, kind="stable")[:n])
+
+
+def test_choose_candidates_without_voxels_draw_as_the_lexsort_did():
+    """voxel_m = 0: the n best Gumbel keys, as the lexsort over (-key, rank 0) took them until
+    2026-12-07 (the same generator draws; the keys tied by rounding q, and zeros in q)."""
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        q = np.round(rng.random(3000), 1) * (rng.random(3000) < 0.9)
+        points = rng.normal(size=(3000, 3))
+        n = int(rng.integers(0, 3100))
+        live = np.flatnonzero(q > 0)
+        draw = np.random.default_rng([seed, 1])
+        keys = np.log(q[live]) + draw.gumbel(size=live.size)
+        want = live[np.lexsort((-keys, np.zeros(live.size, np.int64)))[:n]] if n else np.zeros(0, np.int64)
+        np.testing.assert_array_equal(P.choose_candidates(q, points, n, np.random.default_rng([seed, 1]), 0.0), want)
 
 
 def test_choose_candidates_voxel_grid_has_a_random_offset():
