@@ -42,10 +42,10 @@ def bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str
     ``every_s`` seconds have passed, then at most one every ``every_s`` seconds (nothing for work
     shorter than ``every_s``; nothing at all when ``every_s`` is 0; the caller says when it is done)."""
     stream = sys.stderr if stream is None else stream
-    if not enabled or (not _is_terminal(stream) and every_s <= 0):
-        return tqdm(iterable, total=total, disable=True)
-    if _is_terminal(stream):
+    if enabled and _is_terminal(stream):
         return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, leave=False, file=stream)
+    if not _writes_lines(enabled, every_s, stream):
+        return tqdm(iterable, total=total, disable=True)
     return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, file=_Lines(stream), leave=False,
                 mininterval=every_s, maxinterval=max(every_s, 10.0), delay=every_s, bar_format=LINE_FORMAT,
                 ascii=True, dynamic_ncols=False)
@@ -58,7 +58,7 @@ class Heartbeat:
 
     def __init__(self, enabled: bool = True, every_s: float = EVERY_S, stream: TextIO | None = None) -> None:
         self.stream = sys.stderr if stream is None else stream
-        self.active = enabled and every_s > 0 and not _is_terminal(self.stream)
+        self.active = _writes_lines(enabled, every_s, self.stream)
         self.every_s = every_s
         self.last = time.monotonic()
 
@@ -70,6 +70,11 @@ class Heartbeat:
         self.stream.flush()
         self.last = time.monotonic()
         return True
+
+
+def _writes_lines(enabled: bool, every_s: float, stream: Any) -> bool:
+    """Whether progress goes to ``stream`` as lines: enabled, an interval, and no terminal."""
+    return enabled and every_s > 0 and not _is_terminal(stream)
 
 
 def _is_terminal(stream: Any) -> bool:
