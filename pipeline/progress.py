@@ -14,9 +14,11 @@ from tqdm import tqdm
 EVERY_S = 60.0
 """Default seconds between progress lines when stderr is not a terminal (run.progress_every_s)."""
 
-LINE_FORMAT = "{desc}: {n_fmt}/{total_fmt} ({percentage:.0f}%), {elapsed} elapsed, about {remaining} left, {rate_fmt}"
+LINE_FORMAT = "{desc}: {n_fmt}/{total_fmt} ({percentage:.0f}%), {elapsed} elapsed, about {remaining} left, {rate_fmt}{postfix}"
 """A progress line: 'synthesize: 1200/50000 (2%), 02:01 elapsed, about 1:22:03 left, 9.92frame/s' (or
-'5.91s/frame' where a frame takes longer than a second)."""
+'5.91s/frame' where a frame takes longer than a second), then what the caller last gave
+``set_postfix`` (', loss=0.4123'). Callers pass ``refresh=False`` to it: a refresh writes a line at
+once, whatever the interval."""
 
 
 class _Lines:

@@ -165,7 +165,7 @@ def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches:
             ema.update_parameters(model)
         count += _accumulate(sums, {**terms, "loss": total})
         if step % 10 == 0 and hasattr(bar, "set_postfix"):
-            bar.set_postfix(loss=f"{loss.item():.4g}")
+            bar.set_postfix(loss=f"{loss.item():.4g}", refresh=False)  # a refresh would write a log line now
     return {k: v / max(count, 1) for k, v in sums.items()}
 
 

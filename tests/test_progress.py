@@ -67,6 +67,21 @@ def test_a_log_gets_a_line_per_interval_with_the_count_and_what_is_left(clock):
     assert lines[1].startswith("synthesize: 52/100 (52%), 02:15 elapsed")
 
 
+def test_a_postfix_waits_for_the_interval_and_rides_on_the_next_line(clock):
+    """Training sets the batch loss as a postfix every 10 batches; until 2026-12-07 that redrew the
+    bar at once, so a log got three lines an epoch, each saying '0/21 (0%)' (tqdm's count is not
+    synced before its first redraw), whatever run.progress_every_s said."""
+    log = io.StringIO()
+    b = bar(total=21, desc="disnet epoch 1/12", unit="batch", every_s=60.0, stream=log)
+    for step in range(21):
+        clock.now += 4.0
+        if step % 10 == 0:
+            b.set_postfix(loss="0.4123", refresh=False)
+        b.update(1)
+    b.close()
+    assert log.getvalue() == "disnet epoch 1/12: 15/21 (71%), 01:00 elapsed, about 00:24 left, 4.00s/batch, loss=0.4123\n"
+
+
 def test_short_work_and_switched_off_progress_write_nothing(clock):
     for every_s, enabled in ((60.0, True), (0.0, True), (1.0, False)):
         log = io.StringIO()
@@ -130,4 +145,6 @@ def test_a_run_logged_to_a_file_shows_each_stage_and_epoch(tmp_path, capsys):
         for stage in ("calibrate", "heatmaps", "patches"):
             assert any(re.match(rf"{stage}: \d/4 \(\d+%\)", line) for line in lines) == expect, (stage, err)
         assert any(re.match(r"disnet epoch 2/2: train loss [\d.e-]+, val loss", line) for line in lines) == expect, err
+        if not expect:  # nothing at all from a run shorter than the interval (training's loss postfix included)
+            assert not [line for line in lines if re.search(r": \d+/\d+ \(\d+%\)|epoch", line)], err
         assert "\r" not in err
