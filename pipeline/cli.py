@@ -20,7 +20,8 @@ from pipeline.cache import frame_store
 from pipeline.cachefs import join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
 from pipeline.errors import ClusterFailed, ConfigError, MetadataError, PipelineError, StageInterrupted, from_dask
-from pipeline.runner import NAME_WIDTH, check_stage_name, failed_frames_line
+from pipeline.run_report import NAME_WIDTH, failed_frames_line
+from pipeline.runner import check_stage_name
 from pipeline.stage import FrameStage
 from pipeline.staleness import options_text
 

@@ -6,6 +6,8 @@ fingerprints of its upstream stages and, for the first stage, the dataset listin
 stored fingerprint differs is recomputed from scratch; one that matches only processes the frames
 still pending. A stage rebuilt under an unchanged fingerprint (forced, or its output deleted)
 marks the downstream outputs made from its old output stale.
+
+Beside it: what a run reports (pipeline.run_report).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import sys
 import tempfile
 import time
 import uuid
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -36,6 +38,7 @@ from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError,
                              MetadataError, PipelineError, StageInterrupted, cache_error, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
+from pipeline.run_report import NAME_WIDTH, StageReport
 from pipeline.stage import DatasetStage, FrameStage, Stage
 from pipeline.staleness import Staleness, explain, options_text
 
@@ -43,8 +46,6 @@ FIRST_STAGE = "calibrate"
 FAILURES_LOGGED = 20
 """Failed frames of a stage logged one by one in a run; the rest are counted (a failure common to
 every frame of a large dataset would print one line per frame)."""
-NAME_WIDTH = 15
-"""Width of the stage-name column of progress lines (the longest name, evaluate-frames)."""
 
 
 @dataclass
@@ -81,55 +82,6 @@ def check_stage_name(name: str, names: list[str]) -> None:
         near = difflib.get_close_matches(name, names, n=1)
         hint = f"; did you mean '{near[0]}'?" if near else ""
         raise ConfigError(f"unknown stage '{name}' (stages: {', '.join(names)}){hint}")
-
-
-@dataclass
-class StageReport:
-    """What one stage did in a run."""
-
-    stage: str
-    action: str
-    done: int = 0
-    failed: int = 0
-    pending: int = 0
-    excluded: int = 0
-    processed: int = 0
-    seconds: float = 0.0
-    failures: list[tuple[int, str]] = field(default_factory=list)
-    """(frame index, reason) of the frames that failed in this run."""
-    failed_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    """Indices of the frames failed in the output after the run (``failed`` of them), this run's or
-    earlier, their own failures or an upstream stage's (a frame stage)."""
-    summary: dict[str, Any] = field(default_factory=dict)
-    notes: list[str] = field(default_factory=list)
-    """Lines printed under the stage's line (FrameStage.summarise)."""
-
-    def set_counts(self, status: np.ndarray) -> "StageReport":
-        """Take the frame counts (and the failed frames) from the output's (F,) status after the run."""
-        self.done, self.pending, self.excluded = (int((status == code).sum()) for code in (DONE, PENDING, EXCLUDED))
-        self.failed_frames = np.flatnonzero(status == FAILED)
-        self.failed = len(self.failed_frames)
-        return self
-
-    def line(self) -> str:
-        if self.action == "dataset":
-            return f"{self.stage:<{NAME_WIDTH}} {self.summary.get('message', 'done')} ({self.seconds:.1f} s)"
-        return (f"{self.stage:<{NAME_WIDTH}} processed {self.processed} frame(s) in {self.seconds:.1f} s; "
-                f"done {self.done}, failed {self.failed}, pending {self.pending}, excluded {self.excluded}")
-
-
-def failed_frames_line(reports: list[StageReport]) -> str:
-    """'N frame(s) failed (first in calibrate: 3, synthesize: 1)': each failed frame counted once,
-    under the first stage of ``reports`` (in run order) where it failed; the stages after that one
-    mark it failed too (blocked), which summing their counts would count again. '' if none failed."""
-    seen = np.zeros(0, np.int64)
-    parts = []
-    for r in reports:
-        new = np.setdiff1d(r.failed_frames, seen)
-        if len(new):
-            parts.append(f"{r.stage}: {len(new)}")
-            seen = np.union1d(seen, new)
-    return f"{len(seen)} frame(s) failed (first in {', '.join(parts)})" if len(seen) else ""
 
 
 class Pipeline:
