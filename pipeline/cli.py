@@ -271,7 +271,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
 
     STAGE is one of calibrate, heatmaps, patches, train, synthesize, export, evaluate.
     """
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     env = _context(dataset, data_root, cache_root, sets)
     workers = env.cfg.run.workers if workers is None else workers
@@ -346,7 +346,7 @@ def _check_frames(pipe, frames_spec: str | None, makes_world: bool) -> str:
     ...)' for the --frames line; '' when checked. The frames of a synthetic world the run would
     generate into the cache first (``makes_world``: none there yet, or one of other settings) are
     those its settings give, without generating it."""
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
     from pipeline.world.generator import frame_ids
 
     if not frames_spec:
@@ -607,7 +607,7 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     from pipeline.heatmap import sigma_from_frames
     from pipeline.progress import bar
     from pipeline.readers import get_reader
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     env = _context(dataset, data_root, cache_root, sets)
     _ensure_world(env, True)  # as run, ablate and check-physics do (else: 0 frames)

@@ -78,7 +78,7 @@ def test_damaged_upstream_chunk_fails_only_its_frame_naming_array_frame_and_file
 
 def _follow(pipe: Pipeline, message: str) -> None:
     """Run the `pipeline run STAGE --force --frames ID` that a ChunkError's message gives."""
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     stage, frame = re.search(r"`pipeline run (\S+) --dataset fake --cache \S+ --force --frames (\S+)`", message).groups()
     pipe.run(stage, frames=parse_frames(frame, pipe.frame_ids()), force=True)

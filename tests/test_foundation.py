@@ -18,8 +18,9 @@ from pipeline.config import load_config
 from pipeline.dirstore import DirStore
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
+from pipeline.frame_selection import parse_frames
 from pipeline.lock import stage_lock
-from pipeline.runner import Pipeline, parse_frames
+from pipeline.runner import Pipeline
 from tests import fake_stages
 
 IDS = [f"f{i:03d}" for i in range(12)]
