@@ -127,9 +127,8 @@ def _check_not_empty(dataset: str, cache_root: str) -> None:
 
 
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
+    from pipeline.dataroot import default_data_root
     from pipeline.executor import RunEnv
-    from pipeline.runner import default_data_root
-
     from pipeline.transfer import with_nets_from
 
     _check_not_empty(dataset, cache_root)
@@ -728,8 +727,10 @@ def relocate(dataset, data_root, cache_root, sets, check_frames, wait_s):
     """
     if not data_root:
         raise ConfigError("relocate needs --data-root PATH: the new place of the dataset's raw files")
+    from pipeline.dataroot import relocate_cache
+
     env = _context(dataset, data_root, cache_root, sets)
-    result = _pipeline(env, 1, None, progress=False).relocate(check_frames, wait_s)
+    result = relocate_cache(_pipeline(env, 1, None, progress=False), check_frames, wait_s)
     click.echo(f"relocated dataset {dataset} from {result['from']} to {result['to']}: frames "
                f"{', '.join(result['checked_frames'])} identical; {len(result['stages'])} output(s) kept "
                f"({', '.join(result['stages'])})")

@@ -8,7 +8,8 @@ still pending. A stage rebuilt under an unchanged fingerprint (forced, or its ou
 marks the downstream outputs made from its old output stale.
 
 Beside it: what a run reports (pipeline.run_report); the --frames option's parsing
-(pipeline.frame_selection).
+(pipeline.frame_selection); the data root a cache was made from, and relocating it
+(pipeline.dataroot, which also holds FIRST_STAGE).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numpy as np
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest
 from pipeline.cachefs import is_local, join
 from pipeline.config import jsonable
+from pipeline.dataroot import FIRST_STAGE, absolute_root, made_from, other_root_message
 from pipeline.dirstore import RUN_TOKEN
 from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
                              MetadataError, PipelineError, StageInterrupted, cache_error, from_dask)
@@ -43,7 +45,6 @@ from pipeline.run_report import NAME_WIDTH, StageReport
 from pipeline.stage import DatasetStage, FrameStage, Stage
 from pipeline.staleness import Staleness, explain, options_text
 
-FIRST_STAGE = "calibrate"
 FAILURES_LOGGED = 20
 """Failed frames of a stage logged one by one in a run; the rest are counted (a failure common to
 every frame of a large dataset would print one line per frame)."""
@@ -131,7 +132,8 @@ class Pipeline:
                 if not root:
                     raise PipelineError(f"dataset '{self.env.dataset}': no data root given (--data-root)")
                 if "://" not in root and not os.path.isdir(root):
-                    raise PipelineError(f"dataset '{self.env.dataset}': the data root {_root(root)} is not a folder")
+                    raise PipelineError(f"dataset '{self.env.dataset}': the data root {absolute_root(root)} is not "
+                                        f"a folder")
                 reader = get_reader(self.env.cfg, root)
                 ids = reader.frame_ids()
                 skipped = {k: v for k, v in reader.report().items() if v}
@@ -157,7 +159,7 @@ class Pipeline:
                 "upstream": [self.fingerprint(u) for u in stage.upstream],
             }
             if name == FIRST_STAGE:
-                parts["data_root"] = _root(self.env.data_root)
+                parts["data_root"] = absolute_root(self.env.data_root)
                 parts["frames"] = self._frames_digest()
                 from pipeline.readers import reader_class
 
@@ -271,9 +273,9 @@ class Pipeline:
         self._done.clear()
         for name in targets:
             self.check_config(name)
-        old = self.made_from()
+        old = made_from(self)
         if old and not (force and FIRST_STAGE in targets):  # every output would be recomputed: only when asked
-            raise PipelineError(self._other_root_message(old))
+            raise PipelineError(other_root_message(self, old))
         if force and frames is not None:
             self.check_forced_frames(targets)
         needed = {name for t in targets for name in self.upstream_closure(t)}
@@ -336,115 +338,10 @@ class Pipeline:
                     f"the run would not recompute just those frames but make {name} anew with only them. {give}, "
                     f"or leave out --frames to recompute it whole; nothing was run")
 
-    def made_from(self) -> str | None:
-        """The data root the first stage's output was made from, when this run's is another (which
-        would make every stage recompute); else None, also when there is no output or it records none."""
-        store = self.env.store(FIRST_STAGE)
-        try:
-            if not store.exists():
-                return None
-        except MetadataError:  # nothing recorded to compare: the run stops on it, or rebuilds it when forced
-            return None
-        old = store.attrs().get("data_root") or ""
-        return old if old and _root(old) != _root(self.env.data_root) else None
-
-    def moved_from(self) -> str | None:
-        """:meth:`made_from`, when nothing else keeps that output from being current (the same
-        frames, the same settings): the data moved, or this run names other data at another place
-        that lists the same frames. Else None."""
-        old = self.made_from()
-        if old is None:
-            return None
-        return old if self.env.store(FIRST_STAGE).fingerprint() == self._at(old).fingerprint(FIRST_STAGE) else None
-
-    def _other_root_message(self, old: str) -> str:
-        """Why a run at this data root, not the cache's ``old`` one (:meth:`made_from`), stops, and the ways on."""
-        new, dataset = _root(self.env.data_root), self.env.dataset
-        start = f"dataset '{dataset}': its cache was made from the data at {old}; the data root {new} "
-        force = f"`pipeline run {FIRST_STAGE} --force --data-root {new}` recomputes everything from it"
-        if self.moved_from() == old:
-            return (f"{start}lists the same frames, and would make every stage recompute, training included. The "
-                    f"same data moved: `pipeline relocate --dataset {dataset} --data-root {new}` checks some of its "
-                    f"frames and keeps every output. Other data: {force} (or use another --cache)")
-        return (f"{start}{self._frames_here()}. Running on it would recompute every stage, training included, "
-                f"and replace what the cache holds. To do so: {force}; to keep this cache, use another --cache for "
-                f"the new data; to run on the cache's own data, omit --data-root")
-
-    def _frames_here(self, shown: int = 3) -> str:
-        """How the frames at this data root compare with the cache's: 'lists 1 frame(s), 1 of them
-        among the cache's 2 (not listed here: 01047)', or that they are the same but the first
-        stage's settings or code differ."""
-        try:
-            cached = self.env.store(FIRST_STAGE).frame_ids()
-        except MetadataError:
-            cached = None
-        here = self.frame_ids()
-        if cached is None:
-            return f"lists {len(here)} frame(s)"
-        if cached == here:
-            return (f"lists the same {len(here)} frame(s), but {FIRST_STAGE}'s settings or code differ from those "
-                    f"of the cache's output (so `pipeline relocate` cannot keep it)")
-        listed = set(here)
-        absent = [f for f in cached if f not in listed]
-        more = f" and {len(absent) - shown} more" if len(absent) > shown else ""
-        lacking = f" (not listed here: {', '.join(absent[:shown])}{more})" if absent else ""
-        return f"lists {len(here)} frame(s), {len(cached) - len(absent)} of them among the cache's {len(cached)}{lacking}"
-
-    def _at(self, data_root: str) -> "Pipeline":
+    def at(self, data_root: str) -> "Pipeline":
         """This pipeline reading its frames (as listed here) at ``data_root``."""
         return Pipeline(list(self.stages.values()), replace(self.env, data_root=data_root), self.executor,
                         progress=False, log=self.log, frame_lister=self.frame_ids)
-
-    def relocate(self, check_frames: int = 3, wait_s: float = 0.0) -> dict[str, Any]:
-        """Make the outputs made from the data at its old place (:meth:`moved_from`) current for this
-        data root: first ``check_frames`` finished frames of the first stage, spread over the
-        dataset, are computed from it and must equal the cached ones (PipelineError naming the frame
-        and array otherwise); then every output current for the old place gets the fingerprint it
-        has here, the first stage last, so that a relocation stopped half-way can be run again."""
-        old = self.moved_from()
-        if old is None and (made := self.made_from()) is not None:
-            raise PipelineError(f"dataset '{self.env.dataset}': cannot relocate the cache, made from the data at "
-                                f"{made}, to {_root(self.env.data_root)}: it {self._frames_here()}; "
-                                f"nothing was changed")
-        if old is None:
-            raise PipelineError(f"dataset '{self.env.dataset}': nothing to relocate (no output made from data at "
-                                f"another place with the same frames; `pipeline status` shows what is current)")
-        checked = self._same_data(check_frames)
-        before = self._at(old)
-        moved = []
-        with contextlib.ExitStack() as locks:
-            for name in self.order:
-                what = f"stage '{name}' of dataset '{self.env.dataset}'"
-                locks.enter_context(stage_lock(self._lock_url(name), what, wait_s))
-                locks.enter_context(rewriting(self._lock_url(name), what, wait_s))
-            for name in [*self.order[1:][::-1], FIRST_STAGE]:
-                out = self.env.store(name) if isinstance(self.stages[name], FrameStage) else self.env.dir(name)
-                if out.fingerprint() == before.fingerprint(name):
-                    out.set_fingerprint(self.fingerprint(name), data_root=self.env.data_root)
-                    moved.append(name)
-        return {"from": old, "to": _root(self.env.data_root), "checked_frames": checked, "stages": moved[::-1]}
-
-    def _same_data(self, n: int) -> list[str]:
-        """The ids of up to ``n`` finished frames of the first stage (spread over the dataset) that
-        the data here gives exactly as cached; PipelineError naming the frame and array otherwise."""
-        from pipeline.executor import one_blas_thread
-
-        stage, store, ids = self.stages[FIRST_STAGE], self.env.store(FIRST_STAGE), self.frame_ids()
-        done = np.flatnonzero(store.status() == DONE)
-        picks = done[np.unique(np.linspace(0, len(done) - 1, min(n, len(done))).round().astype(int))] if len(done) else []
-        for i in picks:
-            with one_blas_thread():  # as the executor computed them
-                out = stage.process(FrameInputs(self.env, int(i), ids[i]), self.env.cfg)
-            for spec in stage.outputs(self.env.cfg):
-                cached = store.read(spec.name, int(i))
-                new = np.asarray(out[spec.name]).astype(cached.dtype, copy=False)
-                same = new.shape == cached.shape and (np.array_equal(new, cached, equal_nan=True)
-                                                      if cached.dtype.kind in "fc" else np.array_equal(new, cached))
-                if not same:
-                    raise PipelineError(f"dataset '{self.env.dataset}': the data at {_root(self.env.data_root)} is not "
-                                        f"the data the cache was made from: frame {ids[i]} gives another "
-                                        f"'{spec.name}' than cached; nothing was changed")
-        return [ids[int(i)] for i in picks]
 
     def _strict_error(self, name: str, report: StageReport) -> FrameError:
         """The error --strict stops with: the first frame that failed in this run (or, when every
@@ -458,7 +355,7 @@ class Pipeline:
         problem = reason[len(prefix):] if reason.startswith(prefix) else reason
         return FrameError(name, frame, f"{problem} (--strict: stopped; {report.failed} frame(s) of the stage failed)")
 
-    def _lock_url(self, name: str) -> str:
+    def lock_url(self, name: str) -> str:
         return join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
 
     def check_config(self, target: str) -> None:
@@ -525,11 +422,11 @@ class Pipeline:
         checking them may also hold) rather than its exclusive one; None when there is work, or
         anything is in the way (another run writing it, damage, a remote cache, whose locks are
         files only): run() then takes the exclusive lock, whose path reports it."""
-        url = self._lock_url(stage.name)
+        url = self.lock_url(stage.name)
         if not is_local(fsspec.core.url_to_fs(url)[0]) or held(url):
             return None
         try:
-            with reading([url, *(self._lock_url(u) for u in stage.upstream)], what):
+            with reading([url, *(self.lock_url(u) for u in stage.upstream)], what):
                 if not self.is_current(stage.name):
                     return None
                 if isinstance(stage, DatasetStage):
@@ -657,8 +554,8 @@ class Pipeline:
         failed dask cluster ClusterFailed (each saying whether to drop --force on the rerun)."""
         begun = False  # a forced recomputation has begun: a repeated --force would start it again
         try:
-            with stage_lock(self._lock_url(stage.name), what, wait_s), \
-                    reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
+            with stage_lock(self.lock_url(stage.name), what, wait_s), \
+                    reading([self.lock_url(u) for u in stage.upstream], what, wait_s):
                 try:
                     current = self.is_current(stage.name)
                 except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
@@ -669,7 +566,7 @@ class Pipeline:
                 rebuild = (forced and not redo) or not current
                 if (rebuild or redo) and getattr(stage, "ready", None) is not None:
                     stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
-                with rewriting(self._lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
+                with rewriting(self.lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
                     begun = forced
                     if redo:
                         self.redo_frames(stage.name, frames)
@@ -802,7 +699,7 @@ class Pipeline:
         rows = []
         for name in names or self.order:
             stage, row = self.stages[name], {"stage": name}
-            with reading([self._lock_url(name)], f"verify of stage '{name}'", wait_s):
+            with reading([self.lock_url(name)], f"verify of stage '{name}'", wait_s):
                 if isinstance(stage, FrameStage):
                     store = self.env.store(name)
                     try:
@@ -878,8 +775,8 @@ class Pipeline:
                         row["resumes_from"] = self._resume_point(stage, folder)
             if current is False:
                 own_stale.add(name)
-            if name == FIRST_STAGE and row.get("exists") and (old := self.made_from()):
-                row["note"] = self._other_root_message(old)
+            if name == FIRST_STAGE and row.get("exists") and (old := made_from(self)):
+                row["note"] = other_root_message(self, old)
             elif current is False and row.get("exists"):
                 try:
                     why = self.why_stale(name, own_stale)
@@ -959,18 +856,3 @@ def _checkpoints_read(folder) -> tuple[int, list[str]]:
 def _all_of(values: list[bool | None]) -> bool | None:
     """Three-valued AND: False if any is False, else None if any is unknown, else True."""
     return False if any(v is False for v in values) else None if any(v is None for v in values) else True
-
-
-def _root(data_root: str) -> str:
-    """A data root as fingerprints hold it: local paths absolute, URLs as they are."""
-    return data_root if "://" in data_root else os.path.abspath(data_root)
-
-
-def default_data_root(cfg, cache_root: str, dataset: str) -> str:
-    """Data root when none is given: the profile's, or (synthetic world) a folder in the cache; ''
-    for the synthetic world of a remote (fsspec URL) cache, since the readers read local files."""
-    if cfg.dataset.data_root:
-        return cfg.dataset.data_root
-    if cfg.dataset.reader == "synthetic" and "://" not in cache_root:
-        return str(Path(cache_root) / dataset / "world")
-    return ""

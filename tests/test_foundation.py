@@ -15,6 +15,7 @@ from click.testing import CliRunner
 
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, frame_store
 from pipeline.config import load_config
+from pipeline.dataroot import relocate_cache
 from pipeline.dirstore import DirStore
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
@@ -667,16 +668,16 @@ def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, mon
 
     other = [dataclasses.replace(fake_stages.STAGES[0], process=other_data), *fake_stages.STAGES[1:]]
     with pytest.raises(PipelineError, match=r"not the data the cache was made from: frame f000 gives another 'value'"):
-        at(moved, other).relocate()
+        relocate_cache(at(moved, other))
     assert make_pipeline(tmp_path).is_current("train")  # nothing changed
-    result = at(moved).relocate()
+    result = relocate_cache(at(moved))
     assert result["stages"] == ["calibrate", "heatmaps", "train"] and result["checked_frames"] == [IDS[0], IDS[6], IDS[-1]]
     log.unlink()
     reports = {r.stage: r for r in at(moved).run("train")}
     assert reports["heatmaps"].processed == 0 and reports["train"].summary["message"] == "up to date"
     assert not log.exists()  # no frame computed again
     with pytest.raises(PipelineError, match="nothing to relocate"):
-        at(moved).relocate()
+        relocate_cache(at(moved))
     # going back is a move too; forcing the first stage instead recomputes from the named place
     with pytest.raises(PipelineError, match="pipeline relocate"):
         make_pipeline(tmp_path).run("train")
@@ -715,10 +716,10 @@ def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced
         # cache were made from this root already)
         with pytest.raises(PipelineError, match=re.escape(f"cannot relocate the cache, made from the data at "
                                                           f"{tmp_path}, to {other}: it {frames[frames.index('lists'):]}")):
-            at(other, ids, overrides).relocate()
+            relocate_cache(at(other, ids, overrides))
     with pytest.raises(PipelineError, match=re.escape(f"lists {len(IDS) - 1} frame(s), {len(IDS) - 1} of them among "
                                                       f"the cache's {len(IDS)} (not listed here: {IDS[3]})")):
-        at(other, IDS[:3] + IDS[4:]).relocate()
+        relocate_cache(at(other, IDS[:3] + IDS[4:]))
     assert not log.exists()  # nothing computed, nothing replaced
     assert (tmp_path / "cache" / "fake" / "train" / "_stage.json").read_bytes() == trained
     assert at(tmp_path, IDS).is_current("train")
