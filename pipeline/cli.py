@@ -315,6 +315,8 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
     --frames would do; exit 2 when an output it would read is damaged (as the run would stop), and
     --frames refused as the run refuses it."""
+    from pipeline.inspection import cache_status
+
     makes_world = _world_to_make(pipe.env) and _is_cache_world(pipe.env)
     unchecked = _check_frames(pipe, frames_spec, makes_world)
     if makes_world:
@@ -323,7 +325,7 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
                    f"into {pipe.env.data_root}")
     if force and frames_spec and not makes_world:
         pipe.check_forced_frames((stage,))  # refused as the run refuses it
-    rows = {r["stage"]: r for r in pipe.status(reasons=0)}
+    rows = {r["stage"]: r for r in cache_status(pipe, reasons=0)}
     for name in closure:
         _print_status_row(rows[name])
     if force and frames_spec and isinstance(pipe.stages[stage], FrameStage):
@@ -426,10 +428,12 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
     """Per stage: frames done / failed / pending / excluded, and whether its fingerprint is current
     ('current, unfinished': current with frames pending, as after an interrupted run). Exit code 2
     when a stage's output is damaged (every stage is still listed)."""
+    from pipeline.inspection import cache_status
+
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
     missing = not _cache_exists(env)
     pipe = _pipeline(env, 1, None, progress=False)
-    rows = pipe.status(reasons=None if as_json else reasons)
+    rows = cache_status(pipe, reasons=None if as_json else reasons)
     if as_json:
         click.echo(json.dumps(rows, indent=2, default=str))
     else:
@@ -748,6 +752,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     file a dataset stage recorded when it finished (size and SHA-256): the damaged frames and
     files, by stage, with the command that recomputes them (e.g. after copying a cache). Exit code
     2 when anything is damaged."""
+    from pipeline.inspection import verify_cache
     from pipeline.progress import bar
 
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
@@ -765,7 +770,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
             bars[stage] = bar(total=total, desc=f"verify {stage}", unit="chunk", every_s=env.cfg.run.progress_every_s)
         bars[stage].update(n)
 
-    rows = pipe.verify(list(stages) or None, progress, wait_s)
+    rows = verify_cache(pipe, list(stages) or None, progress, wait_s)
     for stage_bar in bars.values():
         stage_bar.close()
     click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")

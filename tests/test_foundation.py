@@ -20,6 +20,7 @@ from pipeline.dirstore import DirStore
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.frame_selection import parse_frames
+from pipeline.inspection import cache_status
 from pipeline.lock import stage_lock
 from pipeline.runner import Pipeline
 from tests import fake_stages
@@ -459,7 +460,7 @@ def test_many_failed_frames_are_marked_in_one_write_logged_up_to_a_limit_and_the
     loose.mark(4, EXCLUDED, "not selected")
     assert list(loose.status()[[0, 2, 4]]) == [EXCLUDED] * 3
     assert [loose.read("reason", i) for i in (0, 2, 4)] == ["not selected"] * 3
-    rows = {r["stage"]: r for r in pipe.status(reasons=3)}
+    rows = {r["stage"]: r for r in cache_status(pipe, reasons=3)}
     assert list(rows["heatmaps"]["reasons"]) == bad[:3]
 
 
@@ -661,7 +662,7 @@ def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, mon
     moved = tmp_path / "moved"
     with pytest.raises(PipelineError, match=f"pipeline relocate --dataset fake --data-root {moved}`"):
         at(moved).run("train")
-    assert "pipeline relocate" in {r["stage"]: r for r in at(moved).status()}["calibrate"]["note"]
+    assert "pipeline relocate" in {r["stage"]: r for r in cache_status(at(moved))}["calibrate"]["note"]
 
     def other_data(inputs, cfg):
         return {**fake_stages.first(inputs, cfg), "value": np.float64(-1.0)}
@@ -711,7 +712,7 @@ def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced
             assert "to keep this cache, use another --cache" in str(exc.value)
             with pytest.raises(PipelineError):
                 at(other, ids, overrides).run(target, force=True)  # forcing another stage is no answer
-        assert frames in {r["stage"]: r for r in at(other, ids, overrides).status()}["calibrate"]["note"]
+        assert frames in {r["stage"]: r for r in cache_status(at(other, ids, overrides))}["calibrate"]["note"]
         # relocate names why it cannot keep the outputs (it said 'nothing to relocate', as if the
         # cache were made from this root already)
         with pytest.raises(PipelineError, match=re.escape(f"cannot relocate the cache, made from the data at "
@@ -877,7 +878,7 @@ def test_force_on_a_dataset_stage_starts_from_scratch_and_status_follows_upstrea
     assert not leftover.exists() and (leftover.parent / "total.txt").exists()
     # status: a stage whose upstream would be rebuilt is not current, whatever its own record says
     changed = make_pipeline(tmp_path, **{"heatmap.sigma_px": "12,12"})
-    rows = {r["stage"]: r for r in changed.status()}
+    rows = {r["stage"]: r for r in cache_status(changed)}
     assert rows["calibrate"]["current"] and not rows["heatmaps"]["current"] and not rows["train"]["current"]
 
 
