@@ -20,7 +20,8 @@ from pipeline.cache import frame_store
 from pipeline.cachefs import join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
 from pipeline.errors import ClusterFailed, ConfigError, MetadataError, PipelineError, StageInterrupted, from_dask
-from pipeline.runner import NAME_WIDTH, check_stage_name, failed_frames_line
+from pipeline.run_report import NAME_WIDTH, failed_frames_line
+from pipeline.runner import check_stage_name
 from pipeline.stage import FrameStage
 from pipeline.staleness import options_text
 
@@ -126,9 +127,8 @@ def _check_not_empty(dataset: str, cache_root: str) -> None:
 
 
 def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...], need_root: bool = True):
+    from pipeline.dataroot import default_data_root
     from pipeline.executor import RunEnv
-    from pipeline.runner import default_data_root
-
     from pipeline.transfer import with_nets_from
 
     _check_not_empty(dataset, cache_root)
@@ -270,7 +270,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
 
     STAGE is one of calibrate, heatmaps, patches, train, synthesize, export, evaluate.
     """
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     env = _context(dataset, data_root, cache_root, sets)
     workers = env.cfg.run.workers if workers is None else workers
@@ -315,6 +315,8 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
     --frames would do; exit 2 when an output it would read is damaged (as the run would stop), and
     --frames refused as the run refuses it."""
+    from pipeline.inspection import cache_status
+
     makes_world = _world_to_make(pipe.env) and _is_cache_world(pipe.env)
     unchecked = _check_frames(pipe, frames_spec, makes_world)
     if makes_world:
@@ -323,7 +325,7 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
                    f"into {pipe.env.data_root}")
     if force and frames_spec and not makes_world:
         pipe.check_forced_frames((stage,))  # refused as the run refuses it
-    rows = {r["stage"]: r for r in pipe.status(reasons=0)}
+    rows = {r["stage"]: r for r in cache_status(pipe, reasons=0)}
     for name in closure:
         _print_status_row(rows[name])
     if force and frames_spec and isinstance(pipe.stages[stage], FrameStage):
@@ -345,7 +347,7 @@ def _check_frames(pipe, frames_spec: str | None, makes_world: bool) -> str:
     ...)' for the --frames line; '' when checked. The frames of a synthetic world the run would
     generate into the cache first (``makes_world``: none there yet, or one of other settings) are
     those its settings give, without generating it."""
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
     from pipeline.world.generator import frame_ids
 
     if not frames_spec:
@@ -426,10 +428,12 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
     """Per stage: frames done / failed / pending / excluded, and whether its fingerprint is current
     ('current, unfinished': current with frames pending, as after an interrupted run). Exit code 2
     when a stage's output is damaged (every stage is still listed)."""
+    from pipeline.inspection import cache_status
+
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
     missing = not _cache_exists(env)
     pipe = _pipeline(env, 1, None, progress=False)
-    rows = pipe.status(reasons=None if as_json else reasons)
+    rows = cache_status(pipe, reasons=None if as_json else reasons)
     if as_json:
         click.echo(json.dumps(rows, indent=2, default=str))
     else:
@@ -606,7 +610,7 @@ def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     from pipeline.heatmap import sigma_from_frames
     from pipeline.progress import bar
     from pipeline.readers import get_reader
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     env = _context(dataset, data_root, cache_root, sets)
     _ensure_world(env, True)  # as run, ablate and check-physics do (else: 0 frames)
@@ -727,8 +731,10 @@ def relocate(dataset, data_root, cache_root, sets, check_frames, wait_s):
     """
     if not data_root:
         raise ConfigError("relocate needs --data-root PATH: the new place of the dataset's raw files")
+    from pipeline.dataroot import relocate_cache
+
     env = _context(dataset, data_root, cache_root, sets)
-    result = _pipeline(env, 1, None, progress=False).relocate(check_frames, wait_s)
+    result = relocate_cache(_pipeline(env, 1, None, progress=False), check_frames, wait_s)
     click.echo(f"relocated dataset {dataset} from {result['from']} to {result['to']}: frames "
                f"{', '.join(result['checked_frames'])} identical; {len(result['stages'])} output(s) kept "
                f"({', '.join(result['stages'])})")
@@ -746,6 +752,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     file a dataset stage recorded when it finished (size and SHA-256): the damaged frames and
     files, by stage, with the command that recomputes them (e.g. after copying a cache). Exit code
     2 when anything is damaged."""
+    from pipeline.inspection import verify_cache
     from pipeline.progress import bar
 
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
@@ -763,7 +770,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
             bars[stage] = bar(total=total, desc=f"verify {stage}", unit="chunk", every_s=env.cfg.run.progress_every_s)
         bars[stage].update(n)
 
-    rows = pipe.verify(list(stages) or None, progress, wait_s)
+    rows = verify_cache(pipe, list(stages) or None, progress, wait_s)
     for stage_bar in bars.values():
         stage_bar.close()
     click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")

@@ -6,6 +6,11 @@ fingerprints of its upstream stages and, for the first stage, the dataset listin
 stored fingerprint differs is recomputed from scratch; one that matches only processes the frames
 still pending. A stage rebuilt under an unchanged fingerprint (forced, or its output deleted)
 marks the downstream outputs made from its old output stale.
+
+Beside it: what a run reports (pipeline.run_report); the --frames option's parsing
+(pipeline.frame_selection); the data root a cache was made from, and relocating it
+(pipeline.dataroot, which also holds FIRST_STAGE); ``pipeline status`` and ``pipeline verify``,
+which read a cache and change nothing (pipeline.inspection).
 """
 
 from __future__ import annotations
@@ -18,33 +23,31 @@ import hashlib
 import json
 import os
 import sys
-import tempfile
 import time
 import uuid
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import fsspec
 import numpy as np
 
-from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, STATUS_NAMES, done_digest
+from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, done_digest
 from pipeline.cachefs import is_local, join
 from pipeline.config import jsonable
+from pipeline.dataroot import FIRST_STAGE, absolute_root, made_from, other_root_message
 from pipeline.dirstore import RUN_TOKEN
 from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
                              MetadataError, PipelineError, StageInterrupted, cache_error, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
+from pipeline.run_report import NAME_WIDTH, StageReport
 from pipeline.stage import DatasetStage, FrameStage, Stage
 from pipeline.staleness import Staleness, explain, options_text
 
-FIRST_STAGE = "calibrate"
 FAILURES_LOGGED = 20
 """Failed frames of a stage logged one by one in a run; the rest are counted (a failure common to
 every frame of a large dataset would print one line per frame)."""
-NAME_WIDTH = 15
-"""Width of the stage-name column of progress lines (the longest name, evaluate-frames)."""
 
 
 @dataclass
@@ -81,55 +84,6 @@ def check_stage_name(name: str, names: list[str]) -> None:
         near = difflib.get_close_matches(name, names, n=1)
         hint = f"; did you mean '{near[0]}'?" if near else ""
         raise ConfigError(f"unknown stage '{name}' (stages: {', '.join(names)}){hint}")
-
-
-@dataclass
-class StageReport:
-    """What one stage did in a run."""
-
-    stage: str
-    action: str
-    done: int = 0
-    failed: int = 0
-    pending: int = 0
-    excluded: int = 0
-    processed: int = 0
-    seconds: float = 0.0
-    failures: list[tuple[int, str]] = field(default_factory=list)
-    """(frame index, reason) of the frames that failed in this run."""
-    failed_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    """Indices of the frames failed in the output after the run (``failed`` of them), this run's or
-    earlier, their own failures or an upstream stage's (a frame stage)."""
-    summary: dict[str, Any] = field(default_factory=dict)
-    notes: list[str] = field(default_factory=list)
-    """Lines printed under the stage's line (FrameStage.summarise)."""
-
-    def set_counts(self, status: np.ndarray) -> "StageReport":
-        """Take the frame counts (and the failed frames) from the output's (F,) status after the run."""
-        self.done, self.pending, self.excluded = (int((status == code).sum()) for code in (DONE, PENDING, EXCLUDED))
-        self.failed_frames = np.flatnonzero(status == FAILED)
-        self.failed = len(self.failed_frames)
-        return self
-
-    def line(self) -> str:
-        if self.action == "dataset":
-            return f"{self.stage:<{NAME_WIDTH}} {self.summary.get('message', 'done')} ({self.seconds:.1f} s)"
-        return (f"{self.stage:<{NAME_WIDTH}} processed {self.processed} frame(s) in {self.seconds:.1f} s; "
-                f"done {self.done}, failed {self.failed}, pending {self.pending}, excluded {self.excluded}")
-
-
-def failed_frames_line(reports: list[StageReport]) -> str:
-    """'N frame(s) failed (first in calibrate: 3, synthesize: 1)': each failed frame counted once,
-    under the first stage of ``reports`` (in run order) where it failed; the stages after that one
-    mark it failed too (blocked), which summing their counts would count again. '' if none failed."""
-    seen = np.zeros(0, np.int64)
-    parts = []
-    for r in reports:
-        new = np.setdiff1d(r.failed_frames, seen)
-        if len(new):
-            parts.append(f"{r.stage}: {len(new)}")
-            seen = np.union1d(seen, new)
-    return f"{len(seen)} frame(s) failed (first in {', '.join(parts)})" if len(seen) else ""
 
 
 class Pipeline:
@@ -178,7 +132,8 @@ class Pipeline:
                 if not root:
                     raise PipelineError(f"dataset '{self.env.dataset}': no data root given (--data-root)")
                 if "://" not in root and not os.path.isdir(root):
-                    raise PipelineError(f"dataset '{self.env.dataset}': the data root {_root(root)} is not a folder")
+                    raise PipelineError(f"dataset '{self.env.dataset}': the data root {absolute_root(root)} is not "
+                                        f"a folder")
                 reader = get_reader(self.env.cfg, root)
                 ids = reader.frame_ids()
                 skipped = {k: v for k, v in reader.report().items() if v}
@@ -204,7 +159,7 @@ class Pipeline:
                 "upstream": [self.fingerprint(u) for u in stage.upstream],
             }
             if name == FIRST_STAGE:
-                parts["data_root"] = _root(self.env.data_root)
+                parts["data_root"] = absolute_root(self.env.data_root)
                 parts["frames"] = self._frames_digest()
                 from pipeline.readers import reader_class
 
@@ -318,9 +273,9 @@ class Pipeline:
         self._done.clear()
         for name in targets:
             self.check_config(name)
-        old = self.made_from()
+        old = made_from(self)
         if old and not (force and FIRST_STAGE in targets):  # every output would be recomputed: only when asked
-            raise PipelineError(self._other_root_message(old))
+            raise PipelineError(other_root_message(self, old))
         if force and frames is not None:
             self.check_forced_frames(targets)
         needed = {name for t in targets for name in self.upstream_closure(t)}
@@ -383,115 +338,10 @@ class Pipeline:
                     f"the run would not recompute just those frames but make {name} anew with only them. {give}, "
                     f"or leave out --frames to recompute it whole; nothing was run")
 
-    def made_from(self) -> str | None:
-        """The data root the first stage's output was made from, when this run's is another (which
-        would make every stage recompute); else None, also when there is no output or it records none."""
-        store = self.env.store(FIRST_STAGE)
-        try:
-            if not store.exists():
-                return None
-        except MetadataError:  # nothing recorded to compare: the run stops on it, or rebuilds it when forced
-            return None
-        old = store.attrs().get("data_root") or ""
-        return old if old and _root(old) != _root(self.env.data_root) else None
-
-    def moved_from(self) -> str | None:
-        """:meth:`made_from`, when nothing else keeps that output from being current (the same
-        frames, the same settings): the data moved, or this run names other data at another place
-        that lists the same frames. Else None."""
-        old = self.made_from()
-        if old is None:
-            return None
-        return old if self.env.store(FIRST_STAGE).fingerprint() == self._at(old).fingerprint(FIRST_STAGE) else None
-
-    def _other_root_message(self, old: str) -> str:
-        """Why a run at this data root, not the cache's ``old`` one (:meth:`made_from`), stops, and the ways on."""
-        new, dataset = _root(self.env.data_root), self.env.dataset
-        start = f"dataset '{dataset}': its cache was made from the data at {old}; the data root {new} "
-        force = f"`pipeline run {FIRST_STAGE} --force --data-root {new}` recomputes everything from it"
-        if self.moved_from() == old:
-            return (f"{start}lists the same frames, and would make every stage recompute, training included. The "
-                    f"same data moved: `pipeline relocate --dataset {dataset} --data-root {new}` checks some of its "
-                    f"frames and keeps every output. Other data: {force} (or use another --cache)")
-        return (f"{start}{self._frames_here()}. Running on it would recompute every stage, training included, "
-                f"and replace what the cache holds. To do so: {force}; to keep this cache, use another --cache for "
-                f"the new data; to run on the cache's own data, omit --data-root")
-
-    def _frames_here(self, shown: int = 3) -> str:
-        """How the frames at this data root compare with the cache's: 'lists 1 frame(s), 1 of them
-        among the cache's 2 (not listed here: 01047)', or that they are the same but the first
-        stage's settings or code differ."""
-        try:
-            cached = self.env.store(FIRST_STAGE).frame_ids()
-        except MetadataError:
-            cached = None
-        here = self.frame_ids()
-        if cached is None:
-            return f"lists {len(here)} frame(s)"
-        if cached == here:
-            return (f"lists the same {len(here)} frame(s), but {FIRST_STAGE}'s settings or code differ from those "
-                    f"of the cache's output (so `pipeline relocate` cannot keep it)")
-        listed = set(here)
-        absent = [f for f in cached if f not in listed]
-        more = f" and {len(absent) - shown} more" if len(absent) > shown else ""
-        lacking = f" (not listed here: {', '.join(absent[:shown])}{more})" if absent else ""
-        return f"lists {len(here)} frame(s), {len(cached) - len(absent)} of them among the cache's {len(cached)}{lacking}"
-
-    def _at(self, data_root: str) -> "Pipeline":
+    def at(self, data_root: str) -> "Pipeline":
         """This pipeline reading its frames (as listed here) at ``data_root``."""
         return Pipeline(list(self.stages.values()), replace(self.env, data_root=data_root), self.executor,
                         progress=False, log=self.log, frame_lister=self.frame_ids)
-
-    def relocate(self, check_frames: int = 3, wait_s: float = 0.0) -> dict[str, Any]:
-        """Make the outputs made from the data at its old place (:meth:`moved_from`) current for this
-        data root: first ``check_frames`` finished frames of the first stage, spread over the
-        dataset, are computed from it and must equal the cached ones (PipelineError naming the frame
-        and array otherwise); then every output current for the old place gets the fingerprint it
-        has here, the first stage last, so that a relocation stopped half-way can be run again."""
-        old = self.moved_from()
-        if old is None and (made := self.made_from()) is not None:
-            raise PipelineError(f"dataset '{self.env.dataset}': cannot relocate the cache, made from the data at "
-                                f"{made}, to {_root(self.env.data_root)}: it {self._frames_here()}; "
-                                f"nothing was changed")
-        if old is None:
-            raise PipelineError(f"dataset '{self.env.dataset}': nothing to relocate (no output made from data at "
-                                f"another place with the same frames; `pipeline status` shows what is current)")
-        checked = self._same_data(check_frames)
-        before = self._at(old)
-        moved = []
-        with contextlib.ExitStack() as locks:
-            for name in self.order:
-                what = f"stage '{name}' of dataset '{self.env.dataset}'"
-                locks.enter_context(stage_lock(self._lock_url(name), what, wait_s))
-                locks.enter_context(rewriting(self._lock_url(name), what, wait_s))
-            for name in [*self.order[1:][::-1], FIRST_STAGE]:
-                out = self.env.store(name) if isinstance(self.stages[name], FrameStage) else self.env.dir(name)
-                if out.fingerprint() == before.fingerprint(name):
-                    out.set_fingerprint(self.fingerprint(name), data_root=self.env.data_root)
-                    moved.append(name)
-        return {"from": old, "to": _root(self.env.data_root), "checked_frames": checked, "stages": moved[::-1]}
-
-    def _same_data(self, n: int) -> list[str]:
-        """The ids of up to ``n`` finished frames of the first stage (spread over the dataset) that
-        the data here gives exactly as cached; PipelineError naming the frame and array otherwise."""
-        from pipeline.executor import one_blas_thread
-
-        stage, store, ids = self.stages[FIRST_STAGE], self.env.store(FIRST_STAGE), self.frame_ids()
-        done = np.flatnonzero(store.status() == DONE)
-        picks = done[np.unique(np.linspace(0, len(done) - 1, min(n, len(done))).round().astype(int))] if len(done) else []
-        for i in picks:
-            with one_blas_thread():  # as the executor computed them
-                out = stage.process(FrameInputs(self.env, int(i), ids[i]), self.env.cfg)
-            for spec in stage.outputs(self.env.cfg):
-                cached = store.read(spec.name, int(i))
-                new = np.asarray(out[spec.name]).astype(cached.dtype, copy=False)
-                same = new.shape == cached.shape and (np.array_equal(new, cached, equal_nan=True)
-                                                      if cached.dtype.kind in "fc" else np.array_equal(new, cached))
-                if not same:
-                    raise PipelineError(f"dataset '{self.env.dataset}': the data at {_root(self.env.data_root)} is not "
-                                        f"the data the cache was made from: frame {ids[i]} gives another "
-                                        f"'{spec.name}' than cached; nothing was changed")
-        return [ids[int(i)] for i in picks]
 
     def _strict_error(self, name: str, report: StageReport) -> FrameError:
         """The error --strict stops with: the first frame that failed in this run (or, when every
@@ -505,7 +355,7 @@ class Pipeline:
         problem = reason[len(prefix):] if reason.startswith(prefix) else reason
         return FrameError(name, frame, f"{problem} (--strict: stopped; {report.failed} frame(s) of the stage failed)")
 
-    def _lock_url(self, name: str) -> str:
+    def lock_url(self, name: str) -> str:
         return join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
 
     def check_config(self, target: str) -> None:
@@ -572,11 +422,11 @@ class Pipeline:
         checking them may also hold) rather than its exclusive one; None when there is work, or
         anything is in the way (another run writing it, damage, a remote cache, whose locks are
         files only): run() then takes the exclusive lock, whose path reports it."""
-        url = self._lock_url(stage.name)
+        url = self.lock_url(stage.name)
         if not is_local(fsspec.core.url_to_fs(url)[0]) or held(url):
             return None
         try:
-            with reading([url, *(self._lock_url(u) for u in stage.upstream)], what):
+            with reading([url, *(self.lock_url(u) for u in stage.upstream)], what):
                 if not self.is_current(stage.name):
                     return None
                 if isinstance(stage, DatasetStage):
@@ -704,8 +554,8 @@ class Pipeline:
         failed dask cluster ClusterFailed (each saying whether to drop --force on the rerun)."""
         begun = False  # a forced recomputation has begun: a repeated --force would start it again
         try:
-            with stage_lock(self._lock_url(stage.name), what, wait_s), \
-                    reading([self._lock_url(u) for u in stage.upstream], what, wait_s):
+            with stage_lock(self.lock_url(stage.name), what, wait_s), \
+                    reading([self.lock_url(u) for u in stage.upstream], what, wait_s):
                 try:
                     current = self.is_current(stage.name)
                 except MetadataError:  # damaged output metadata: only a forced rebuild replaces it
@@ -716,7 +566,7 @@ class Pipeline:
                 rebuild = (forced and not redo) or not current
                 if (rebuild or redo) and getattr(stage, "ready", None) is not None:
                     stage.ready(DatasetInputs(self.env, self.frame_ids()), self.env.cfg)  # before any loss
-                with rewriting(self._lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
+                with rewriting(self.lock_url(stage.name), what, wait_s) if rebuild or redo else contextlib.nullcontext():
                     begun = forced
                     if redo:
                         self.redo_frames(stage.name, frames)
@@ -773,18 +623,6 @@ class Pipeline:
         report.summary = summary
         return report
 
-    def _resume_point(self, stage: DatasetStage, out) -> str | None:
-        """What a run of the unfinished dataset stage ``stage`` would go on from (stage.resume_point),
-        in the folder it would resume: ``out``, or on a remote cache this machine's staging folder
-        when it holds the last run's files (the same run token); None when nothing or unknown."""
-        folder = out.work_folder(self.env.cfg.run.staging_dir) if stage.local_files else out
-        if folder is not out and not folder.holds_run_of(out):
-            folder = out
-        try:
-            return stage.resume_point(DatasetInputs(self.env, self.frame_ids()), self.env.cfg, folder)
-        except (PipelineError, ChunkError):  # an unreadable upstream output: status says so on its own row
-            return None
-
     def _publish(self, name: str, out, work, paths: list[Path]) -> bool:
         """Upload ``paths`` of the staging folder ``work`` into the remote output ``out`` while the
         stage runs (DatasetInputs.publish); whether it did. A failure is logged: the run goes on,
@@ -835,110 +673,6 @@ class Pipeline:
             for folder in (out, work):
                 folder.write_text(RUN_TOKEN, token)
 
-    # ---- verify ---------------------------------------------------------------------------
-
-    def verify(self, names: list[str] | None = None, progress: Callable[[str, int, int], None] | None = None,
-               wait_s: float = 0.0) -> list[dict[str, Any]]:
-        """Read every chunk of the frame stage outputs (and every checkpoint and recorded file of
-        the dataset stage folders: DirStore.check_files) of ``names`` (default: every stage with an
-        output), holding them against rewriting meanwhile. Per stage: ``frames`` (frame ids by
-        index), ``checked`` (done frames read), ``damaged`` ({frame index: message}),
-        ``frame_ids_damaged``, ``problem`` (the output cannot be read at all, or a dataset stage's
-        file is damaged), ``checkpoints`` (read), ``files`` (checked; None: none recorded).
-        ``progress(stage, n, total)``."""
-        rows = []
-        for name in names or self.order:
-            stage, row = self.stages[name], {"stage": name}
-            with reading([self._lock_url(name)], f"verify of stage '{name}'", wait_s):
-                if isinstance(stage, FrameStage):
-                    store = self.env.store(name)
-                    try:
-                        if not store.exists():
-                            continue
-                        ids = store.frame_ids()
-                        status, errors = store.verify(progress and (lambda n, total, _name=name: progress(_name, n, total)))
-                    except (CacheError, ChunkError) as exc:  # metadata: nothing of it can be read
-                        rows.append({**row, "problem": str(exc)})
-                        continue
-                    row.update(checked=int((status == DONE).sum()), damaged={i: str(e) for i, e in errors.items()},
-                               frame_ids_damaged=[ids[i] for i in errors])
-                else:
-                    folder = self.env.dir(name)
-                    try:
-                        if folder.meta() is None:
-                            continue
-                    except MetadataError as exc:  # its record is damaged: made again as a whole
-                        rows.append({**row, "problem": str(exc), "checkpoints": 0})
-                        continue
-                    row["checkpoints"], problems = _checkpoints_read(folder)
-                    row["files"], damaged = folder.check_files(progress and (lambda n, total, _name=name: progress(_name, n, total)))
-                    problems += damaged[:5] + [f"... and {len(damaged) - 5} more file(s)"] * (len(damaged) > 5)
-                    if problems:
-                        row["problem"] = "; ".join(problems)
-            rows.append(row)
-        return rows
-
-    # ---- status ---------------------------------------------------------------------------
-
-    def status(self, reasons: int | None = None) -> list[dict[str, Any]]:
-        """Per stage: done / failed / pending / excluded counts and whether it is current (which
-        needs its upstream stages current too: a run would rebuild it after them; None: unknown),
-        and the reasons of its first ``reasons`` failed frames (default all). A frame stage whose
-        output cannot be read (damaged metadata or status chunk), or a dataset stage whose record
-        (_stage.json) is damaged, gets ``damaged``, the error's message, and the other stages are
-        still listed."""
-        rows = []
-        current_of: dict[str, bool | None] = {}
-        own_stale: set[str] = set()  # outputs that are not current by themselves (not only their upstream)
-        for name in self.order:
-            stage = self.stages[name]
-            row: dict[str, Any] = {"stage": name}
-            try:
-                current = self.is_current(name)
-            except PipelineError as exc:
-                current = None
-                row["note"] = str(exc)
-            if isinstance(stage, FrameStage):
-                store = self.env.store(name)
-                try:
-                    row["exists"] = store.exists()
-                    if row["exists"]:
-                        store.check_metadata()
-                        st = store.status()
-                        row.update({STATUS_NAMES[c]: int((st == c).sum()) for c in STATUS_NAMES})
-                        row["reasons"] = store.reasons(limit=reasons, status=st)
-                except (CacheError, ChunkError) as exc:
-                    row.update(exists=True, damaged=str(exc))
-                    row.pop("note", None)  # the same error, from is_current
-                    current = None
-            else:
-                folder = self.env.dir(name)
-                try:
-                    row["exists"] = folder.meta() is not None
-                except MetadataError as exc:  # a damaged _stage.json
-                    row.update(exists=True, damaged=str(exc))
-                    row.pop("note", None)  # the same error, from is_current
-                    current = None
-                else:
-                    row["summary"] = folder.summary()
-                    if not row["exists"] and stage.resume_point is not None:
-                        row["resumes_from"] = self._resume_point(stage, folder)
-            if current is False:
-                own_stale.add(name)
-            if name == FIRST_STAGE and row.get("exists") and (old := self.made_from()):
-                row["note"] = self._other_root_message(old)
-            elif current is False and row.get("exists"):
-                try:
-                    why = self.why_stale(name, own_stale)
-                except PipelineError:  # said by the row already
-                    why = None
-                if why is not None:
-                    row["why"] = why.text
-            row["current"] = _all_of([current, *(current_of.get(u) for u in stage.upstream)]) if row["exists"] else False
-            current_of[name] = row["current"]
-            rows.append(row)
-        return rows
-
 
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)
 """Errors only a write raises: one without a file name, from a dataset stage, is its output's
@@ -967,125 +701,3 @@ def _interrupted_kind(stage: Stage) -> InterruptedKind:
     if isinstance(stage, FrameStage):
         return "frame"
     return "resumes" if stage.resumes else "dataset"
-
-
-def _checkpoints_read(folder) -> tuple[int, list[str]]:
-    """(checkpoints read, the problem of each that cannot be) under a dataset stage's folder; on a
-    remote cache each is downloaded (one at a time, into a temporary folder) and read, and its
-    problem names its remote URL."""
-    from pipeline.checkpoint import load_checkpoint
-
-    def problem(path: Path, shown: str) -> str | None:
-        try:
-            load_checkpoint(path)
-        except CacheError as exc:
-            return str(exc).replace(str(path), shown)
-        return None
-
-    if folder.is_local:
-        paths = sorted(Path(folder.path).rglob("*.safetensors"))
-        return len(paths), [p for p in (problem(path, str(path)) for path in paths) if p]
-    try:
-        names = sorted(f for f in folder.fs.find(folder.path) if f.endswith(".safetensors"))
-    except OSError as exc:
-        return 0, [str(cache_error(exc, f"listing {folder.url}"))]
-    problems = []
-    with tempfile.TemporaryDirectory(prefix="verify-") as tmp:
-        local = Path(tmp) / "checkpoint.safetensors"
-        for name in names:
-            shown = join(folder.url, os.path.relpath(name, folder.path))
-            try:
-                folder.fs.get(name, str(local))
-            except OSError as exc:
-                problems.append(str(cache_error(exc, f"downloading {shown}")))
-                continue
-            problems.append(problem(local, shown))
-    return len(names), [p for p in problems if p]
-
-
-def _all_of(values: list[bool | None]) -> bool | None:
-    """Three-valued AND: False if any is False, else None if any is unknown, else True."""
-    return False if any(v is False for v in values) else None if any(v is None for v in values) else True
-
-
-def parse_frames(spec: str | None, frame_ids: list[str]) -> list[int] | None:
-    """Frame selection: 'START:STOP[:STEP]' over indices, or a comma list of frame ids/indices."""
-    if not spec:
-        return None
-    spec = spec.strip()
-    if ":" in spec:
-        try:
-            parts = [int(p) if p else None for p in spec.split(":")]
-            if len(parts) > 3 or (len(parts) == 3 and parts[2] == 0):
-                raise ValueError
-        except ValueError:
-            raise ConfigError(f"--frames: cannot parse '{spec}' (use START:STOP[:STEP] with a non-zero STEP, "
-                              f"or a comma list)") from None
-        _refuse_ids_as_indices(spec, frame_ids)
-        chosen = list(range(len(frame_ids)))[slice(*parts)]
-        if not chosen:
-            raise ConfigError(f"--frames {spec}: selects no frame (this dataset has {len(frame_ids)}, "
-                              f"indices 0 to {len(frame_ids) - 1})")
-        return chosen
-    lookup = {f: i for i, f in enumerate(frame_ids)}
-    like = next((f for f in frame_ids if f.isdigit()), None)  # ids that are numbers: '60' is ambiguous
-    out = []
-    for item in spec.split(","):
-        item = item.strip()
-        if item in lookup:
-            out.append(lookup[item])
-        elif item.isdigit() and like is not None:
-            # '60' where the ids are numbers ('000060'): an id written without its zeros, or index 60?
-            raise ConfigError(f"--frames: '{item}' is no frame id here (ids are numbers like '{like}') and would "
-                              f"be taken as an index: give the id as the dataset writes it, or indices as "
-                              f"START:STOP ('{item}:{int(item) + 1}')")
-        elif item.isdigit() and int(item) < len(frame_ids):
-            out.append(int(item))
-        else:
-            raise ConfigError(f"--frames: no frame '{item}' in this dataset ({len(frame_ids)} frames)")
-    return out
-
-
-def _refuse_ids_as_indices(spec: str, frame_ids: list[str]) -> None:
-    """ConfigError for a START:STOP whose START or STOP is written as a frame id where the ids are
-    numbers ('000100:000110' on Astyx, whose index 100 is frame 000370), when the ids would select
-    other frames than the indices do. The message gives the indices of the frames the ids name."""
-    if not any(f.isdigit() for f in frame_ids):
-        return
-    lookup = {f: i for i, f in enumerate(frame_ids)}
-    start, stop = (spec.split(":") + [""])[:2]
-    as_id = [p for p in (start, stop)
-             if p.isdigit() and ((len(p) > 1 and p.startswith("0")) or lookup.get(p, int(p)) != int(p))]
-    if not as_id:
-        return
-    low, high = int(start) if start else -1, int(stop) if stop else None
-    named = [i for i, f in enumerate(frame_ids) if f.isdigit() and low <= int(f) and (high is None or int(f) < high)]
-    if named and named == list(range(len(frame_ids)))[slice(int(start) if start else None, high)]:
-        return  # the ids are the indices there ('00000:00010' on the synthetic world)
-    part = next((p for p in as_id if lookup.get(p) != int(p)), as_id[0])
-    index = int(part)
-    shown = f"index {index} is frame {frame_ids[index]}" if index < len(frame_ids) else f"there is no index {index}"
-    ids = f"ids from {start or 'the first'} up to {stop + ' (not included)' if stop else 'the last'}"
-    if named and named == list(range(named[0], named[-1] + 1)):
-        way = (f"the frames with {ids} are `--frames {named[0] if start else ''}:"
-               f"{named[-1] + 1 if stop else ''}`")
-    elif named:
-        way = f"the {len(named)} frames with {ids} are not one run of indices: list their ids, comma-separated"
-    else:
-        way = f"no frame here has one of the {ids}"
-    raise ConfigError(f"--frames {spec}: START:STOP are indices, but '{part}' is written as a frame id ({shown}): {way}")
-
-
-def _root(data_root: str) -> str:
-    """A data root as fingerprints hold it: local paths absolute, URLs as they are."""
-    return data_root if "://" in data_root else os.path.abspath(data_root)
-
-
-def default_data_root(cfg, cache_root: str, dataset: str) -> str:
-    """Data root when none is given: the profile's, or (synthetic world) a folder in the cache; ''
-    for the synthetic world of a remote (fsspec URL) cache, since the readers read local files."""
-    if cfg.dataset.data_root:
-        return cfg.dataset.data_root
-    if cfg.dataset.reader == "synthetic" and "://" not in cache_root:
-        return str(Path(cache_root) / dataset / "world")
-    return ""

@@ -172,7 +172,7 @@ def test_estimate_sigma_skips_and_names_unreadable_frames(world, tmp_path):
 def test_a_number_that_is_no_id_is_refused_where_ids_are_numbers():
     """'60' on Astyx (ids '000060') was taken as index 60, another frame, and --force recomputed it."""
     from pipeline.errors import ConfigError
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     ids = [f"{i:06d}" for i in range(0, 400, 4)]  # Astyx-like: numbered, not every number
     assert parse_frames("000060,000064", ids) == [15, 16] and parse_frames("60:62", ids) == [60, 61]
@@ -259,7 +259,7 @@ def test_start_stop_written_as_frame_ids_is_refused_where_the_ids_are_not_the_in
     """'--frames 000100:000110' on Astyx (141 frames, ids 000000-000545 with gaps) selected the
     frames at indices 100-109 (ids 000370-000374 and 000420-000424), and --force recomputed them without a word."""
     from pipeline.errors import ConfigError
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     ids = [f"{i:06d}" for i in [*range(0, 11), *range(60, 80), *range(300, 315)]]
     with pytest.raises(ConfigError, match=r"'000060' is written as a frame id \(there is no index 60\): the "

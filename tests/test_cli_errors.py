@@ -70,7 +70,8 @@ def test_dry_run_says_when_it_cannot_check_the_frames_yet(tmp_path, fake_cli, mo
         raise PipelineError("dataset 'synthetic': the data root /x/world is not a folder")
 
     monkeypatch.setattr(Pipeline, "frame_ids", lambda self: unlisted())
-    monkeypatch.setattr(Pipeline, "status", lambda self, reasons=0: [{"stage": s.name} for s in fake_stages.STAGES])
+    monkeypatch.setattr("pipeline.inspection.cache_status",
+                        lambda pipe, reasons=0: [{"stage": s.name} for s in fake_stages.STAGES])
     dry = fake_cli(tmp_path, "run", "heatmaps", "--dry-run", "--frames", "abc")
     assert dry.exit_code == 0, dry.output
     assert ("--frames abc: per-frame work would be limited to those frames (not checked against the dataset's "

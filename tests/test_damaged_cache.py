@@ -21,6 +21,7 @@ from pipeline.cache import DONE, EVERY_CHUNK, EXCLUDED, FAILED, PENDING, FrameSt
 from pipeline.config import load_config
 from pipeline.errors import CacheError, ChunkError, MetadataError
 from pipeline.executor import Executor, RunEnv
+from pipeline.inspection import cache_status, verify_cache
 from pipeline.runner import Pipeline
 from tests import fake_stages
 
@@ -78,7 +79,7 @@ def test_damaged_upstream_chunk_fails_only_its_frame_naming_array_frame_and_file
 
 def _follow(pipe: Pipeline, message: str) -> None:
     """Run the `pipeline run STAGE --force --frames ID` that a ChunkError's message gives."""
-    from pipeline.runner import parse_frames
+    from pipeline.frame_selection import parse_frames
 
     stage, frame = re.search(r"`pipeline run (\S+) --dataset fake --cache \S+ --force --frames (\S+)`", message).groups()
     pipe.run(stage, frames=parse_frames(frame, pipe.frame_ids()), force=True)
@@ -317,7 +318,7 @@ def test_frame_ids_are_an_array_not_the_group_metadata_which_every_open_parses(t
     group = zarr.open_group(calib.url, mode="r+")
     assert list(group["frame_ids"][:]) == IDS and group["frame_ids"].nchunks == 1 and calib.frame_ids() == IDS
     assert "frame_ids" not in group.attrs and len((Path(calib.url) / "zarr.json").read_text()) < 2000
-    assert not pipe.verify(["calibrate"])[0]["damaged"]
+    assert not verify_cache(pipe, ["calibrate"])[0]["damaged"]
     chunk = _chunk(pipe, "calibrate", "frame_ids/c/0")
     saved = chunk.read_bytes()
     chunk.unlink()  # zarr would read the fill value, '', for every id
@@ -548,7 +549,7 @@ def test_status_lists_every_stage_around_a_damaged_one(tmp_path):
     pipe = _pipe(tmp_path)
     pipe.run("train")
     _damage(_chunk(pipe, "heatmaps", "zarr.json"), "truncated")
-    rows = {row["stage"]: row for row in pipe.status()}
+    rows = {row["stage"]: row for row in cache_status(pipe)}
     assert rows["calibrate"]["done"] == 8 and rows["calibrate"]["current"] is True
     assert rows["heatmaps"]["damaged"].startswith(f"{_chunk(pipe, 'heatmaps', 'zarr.json')}: the metadata")
     assert rows["heatmaps"]["exists"] and rows["heatmaps"]["current"] is None
@@ -563,13 +564,13 @@ def test_verify_names_every_damaged_frame_and_nothing_else(tmp_path):
     a deleted chunk of a done frame and a damaged status chunk), and no false alarm."""
     pipe = _pipe(tmp_path)
     pipe.run("train")
-    assert [(r["stage"], r.get("checked"), r.get("damaged")) for r in pipe.verify()] == \
+    assert [(r["stage"], r.get("checked"), r.get("damaged")) for r in verify_cache(pipe)] == \
         [("calibrate", 8, {}), ("heatmaps", 8, {}), ("train", None, None)]
     for i, how in enumerate(DAMAGES):
         _damage(_chunk(pipe, "calibrate", f"points/c/{i}/0/0"), how)
     _chunk(pipe, "calibrate", "value/c/5").unlink()
     _damage(_chunk(pipe, "heatmaps", "status/c/6"), "random bytes")
-    rows = {r["stage"]: r for r in pipe.verify() if "checked" in r}
+    rows = {r["stage"]: r for r in verify_cache(pipe) if "checked" in r}
     assert list(rows["calibrate"]["damaged"]) == [0, 1, 2, 3, 5]
     assert rows["calibrate"]["frame_ids_damaged"] == ["f000", "f001", "f002", "f003", "f005"]
     assert rows["calibrate"]["damaged"][5].startswith("calibrate.zarr/value, frame 5 (f005): chunk ")
@@ -581,7 +582,7 @@ def test_verify_names_every_damaged_frame_and_nothing_else(tmp_path):
     # the commands it gives repair everything
     pipe.run("calibrate", frames=[0, 1, 2, 3, 5], force=True)
     pipe.run("heatmaps", frames=[6], force=True)
-    assert all(not r.get("damaged") for r in pipe.verify())
+    assert all(not r.get("damaged") for r in verify_cache(pipe))
 
 
 def test_verify_reads_a_cache_this_user_may_not_write(tmp_path, monkeypatch):
@@ -605,7 +606,7 @@ def test_verify_reads_a_cache_this_user_may_not_write(tmp_path, monkeypatch):
 
     with monkeypatch.context() as patch:
         patch.setattr(os, "open", read_only)
-        rows = pipe.verify()
+        rows = verify_cache(pipe)
         assert [(r["stage"], r.get("checked"), r.get("damaged")) for r in rows] == \
             [("calibrate", 8, {}), ("heatmaps", 8, {}), ("train", None, None)]
         lock = str(tmp_path / "no-such-lock")
@@ -642,19 +643,19 @@ def test_verify_reports_unreadable_metadata_and_checkpoints(tmp_path):
     save_checkpoint(folder / "net" / "best.safetensors", {"w": torch.zeros(64)}, {"epoch": 1})
     save_checkpoint(folder / "net" / "last.safetensors", {"w": torch.zeros(64)}, {"epoch": 1})
     _damage(folder / "net" / "last.safetensors", "truncated")
-    rows = {r["stage"]: r for r in pipe.verify()}
+    rows = {r["stage"]: r for r in verify_cache(pipe)}
     assert rows["calibrate"]["damaged"] == {}
     assert rows["heatmaps"]["problem"].startswith(f"{_chunk(pipe, 'heatmaps', 'zarr.json')}: the metadata")
     assert rows["train"]["checkpoints"] == 2
     assert rows["train"]["problem"].startswith(f"{folder / 'net' / 'last.safetensors'}: unreadable checkpoint")
-    assert [r["stage"] for r in pipe.verify(["calibrate"])] == ["calibrate"]
+    assert [r["stage"] for r in verify_cache(pipe, ["calibrate"])] == ["calibrate"]
     # a readable file whose weights hold a NaN is damaged too; a NaN buffer that means 'not known' is not
     weights = {"model.fc.weight": torch.zeros(64), "model.feature_low": torch.full((4,), float("nan"))}
     save_checkpoint(folder / "net" / "last.safetensors", weights, {"epoch": 1})
-    assert "problem" not in {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+    assert "problem" not in {r["stage"]: r for r in verify_cache(pipe, ["train"])}["train"]
     weights["model.fc.weight"][3] = float("nan")
     save_checkpoint(folder / "net" / "last.safetensors", weights, {"epoch": 1})
-    assert {r["stage"]: r for r in pipe.verify(["train"])}["train"]["problem"] == (
+    assert {r["stage"]: r for r in verify_cache(pipe, ["train"])}["train"]["problem"] == (
         f"{folder / 'net' / 'last.safetensors'}: 1 of 64 values of fc.weight are not finite (NaN or inf): the "
         f"checkpoint is damaged; retrain it: `pipeline run train --force` (with the same --dataset and --cache)")
 
@@ -757,13 +758,13 @@ def test_verify_names_the_first_five_damaged_files_of_a_stage_and_counts_the_res
     pipe = Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(IDS))
     pipe.run("train")
     counted: list[tuple[str, int, int]] = []
-    row = pipe.verify(["train"], lambda stage, n, total: counted.append((stage, n, total)))[0]
+    row = verify_cache(pipe, ["train"], lambda stage, n, total: counted.append((stage, n, total)))[0]
     assert row["files"] == 7 and "problem" not in row, row
     assert sum(n for _, n, _ in counted) == 7 and {(stage, total) for stage, _, total in counted} == {("train", 7)}
     folder = Path(pipe.env.dir("train").path)
     for path in (folder / "frames").iterdir():
         path.unlink()
-    row = pipe.verify(["train"])[0]
+    row = verify_cache(pipe, ["train"])[0]
     assert row["problem"] == "; ".join([f"{folder / 'frames'}/{i}.txt: missing" for i in range(5)]
                                        + ["... and 2 more file(s)"]), row
 

@@ -15,11 +15,14 @@ from click.testing import CliRunner
 
 from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, frame_store
 from pipeline.config import load_config
+from pipeline.dataroot import relocate_cache
 from pipeline.dirstore import DirStore
 from pipeline.errors import ConfigError, FrameError, LockError, PipelineError
 from pipeline.executor import Executor, FrameInputs, RunEnv
+from pipeline.frame_selection import parse_frames
+from pipeline.inspection import cache_status
 from pipeline.lock import stage_lock
-from pipeline.runner import Pipeline, parse_frames
+from pipeline.runner import Pipeline
 from tests import fake_stages
 
 IDS = [f"f{i:03d}" for i in range(12)]
@@ -457,7 +460,7 @@ def test_many_failed_frames_are_marked_in_one_write_logged_up_to_a_limit_and_the
     loose.mark(4, EXCLUDED, "not selected")
     assert list(loose.status()[[0, 2, 4]]) == [EXCLUDED] * 3
     assert [loose.read("reason", i) for i in (0, 2, 4)] == ["not selected"] * 3
-    rows = {r["stage"]: r for r in pipe.status(reasons=3)}
+    rows = {r["stage"]: r for r in cache_status(pipe, reasons=3)}
     assert list(rows["heatmaps"]["reasons"]) == bad[:3]
 
 
@@ -659,23 +662,23 @@ def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, mon
     moved = tmp_path / "moved"
     with pytest.raises(PipelineError, match=f"pipeline relocate --dataset fake --data-root {moved}`"):
         at(moved).run("train")
-    assert "pipeline relocate" in {r["stage"]: r for r in at(moved).status()}["calibrate"]["note"]
+    assert "pipeline relocate" in {r["stage"]: r for r in cache_status(at(moved))}["calibrate"]["note"]
 
     def other_data(inputs, cfg):
         return {**fake_stages.first(inputs, cfg), "value": np.float64(-1.0)}
 
     other = [dataclasses.replace(fake_stages.STAGES[0], process=other_data), *fake_stages.STAGES[1:]]
     with pytest.raises(PipelineError, match=r"not the data the cache was made from: frame f000 gives another 'value'"):
-        at(moved, other).relocate()
+        relocate_cache(at(moved, other))
     assert make_pipeline(tmp_path).is_current("train")  # nothing changed
-    result = at(moved).relocate()
+    result = relocate_cache(at(moved))
     assert result["stages"] == ["calibrate", "heatmaps", "train"] and result["checked_frames"] == [IDS[0], IDS[6], IDS[-1]]
     log.unlink()
     reports = {r.stage: r for r in at(moved).run("train")}
     assert reports["heatmaps"].processed == 0 and reports["train"].summary["message"] == "up to date"
     assert not log.exists()  # no frame computed again
     with pytest.raises(PipelineError, match="nothing to relocate"):
-        at(moved).relocate()
+        relocate_cache(at(moved))
     # going back is a move too; forcing the first stage instead recomputes from the named place
     with pytest.raises(PipelineError, match="pipeline relocate"):
         make_pipeline(tmp_path).run("train")
@@ -709,15 +712,15 @@ def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced
             assert "to keep this cache, use another --cache" in str(exc.value)
             with pytest.raises(PipelineError):
                 at(other, ids, overrides).run(target, force=True)  # forcing another stage is no answer
-        assert frames in {r["stage"]: r for r in at(other, ids, overrides).status()}["calibrate"]["note"]
+        assert frames in {r["stage"]: r for r in cache_status(at(other, ids, overrides))}["calibrate"]["note"]
         # relocate names why it cannot keep the outputs (it said 'nothing to relocate', as if the
         # cache were made from this root already)
         with pytest.raises(PipelineError, match=re.escape(f"cannot relocate the cache, made from the data at "
                                                           f"{tmp_path}, to {other}: it {frames[frames.index('lists'):]}")):
-            at(other, ids, overrides).relocate()
+            relocate_cache(at(other, ids, overrides))
     with pytest.raises(PipelineError, match=re.escape(f"lists {len(IDS) - 1} frame(s), {len(IDS) - 1} of them among "
                                                       f"the cache's {len(IDS)} (not listed here: {IDS[3]})")):
-        at(other, IDS[:3] + IDS[4:]).relocate()
+        relocate_cache(at(other, IDS[:3] + IDS[4:]))
     assert not log.exists()  # nothing computed, nothing replaced
     assert (tmp_path / "cache" / "fake" / "train" / "_stage.json").read_bytes() == trained
     assert at(tmp_path, IDS).is_current("train")
@@ -875,7 +878,7 @@ def test_force_on_a_dataset_stage_starts_from_scratch_and_status_follows_upstrea
     assert not leftover.exists() and (leftover.parent / "total.txt").exists()
     # status: a stage whose upstream would be rebuilt is not current, whatever its own record says
     changed = make_pipeline(tmp_path, **{"heatmap.sigma_px": "12,12"})
-    rows = {r["stage"]: r for r in changed.status()}
+    rows = {r["stage"]: r for r in cache_status(changed)}
     assert rows["calibrate"]["current"] and not rows["heatmaps"]["current"] and not rows["train"]["current"]
 
 

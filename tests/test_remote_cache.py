@@ -20,6 +20,7 @@ from pipeline.dirstore import RUN_TOKEN, DirStore
 from pipeline.config import load_config
 from pipeline.errors import CacheError, ChunkError
 from pipeline.executor import Executor, RunEnv
+from pipeline.inspection import cache_status, verify_cache
 from pipeline.runner import Pipeline
 from tests import fake_stages
 from tests.test_damaged_cache import IDS
@@ -201,7 +202,7 @@ def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_p
     assert re.search(rf"^export +uploading {len(exported)} file\(s\), [0-9.]+ MB, to {remote}/synthetic/export$",
                      uploading[-1]), uploading
     # every file the dataset stages wrote is recorded, the same on both, and reads back intact
-    checked = [{r["stage"]: (r.get("files"), r.get("checkpoints"), r.get("problem")) for r in pipe.verify()
+    checked = [{r["stage"]: (r.get("files"), r.get("checkpoints"), r.get("problem")) for r in verify_cache(pipe)
                 if "checkpoints" in r} for pipe in (local, far)]
     assert checked[0] == checked[1] and checked[0]["export"][0] == len(exported), checked
     assert checked[0]["train"][1] >= 6 and not any(problem for *_, problem in checked[0].values())
@@ -628,11 +629,11 @@ def test_verify_reads_the_checkpoints_of_a_remote_cache(tmp_path, remote, monkey
     good = (tmp_path / "good.safetensors").read_bytes()
     out.write_bytes("net/best.safetensors", good)
     out.write_bytes("net/last.safetensors", good[: len(good) // 2])
-    row = {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+    row = {r["stage"]: r for r in verify_cache(pipe, ["train"])}["train"]
     assert row["checkpoints"] == 2
     assert row["problem"].startswith(f"{remote}/fake/train/net/last.safetensors: unreadable checkpoint"), row
     out.write_bytes("net/last.safetensors", good)
-    row = {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+    row = {r["stage"]: r for r in verify_cache(pipe, ["train"])}["train"]
     assert row["checkpoints"] == 2 and "problem" not in row
     get = type(out.fs).get
 
@@ -643,7 +644,7 @@ def test_verify_reads_the_checkpoints_of_a_remote_cache(tmp_path, remote, monkey
 
     with monkeypatch.context() as patch:
         patch.setattr(type(out.fs), "get", fails_for_last)
-        row = {r["stage"]: r for r in pipe.verify(["train"])}["train"]
+        row = {r["stage"]: r for r in verify_cache(pipe, ["train"])}["train"]
     assert row["problem"].startswith(f"downloading {remote}/fake/train/net/last.safetensors: "), row
     assert "Input/output error" in row["problem"] and ";" not in row["problem"], row
 
@@ -929,7 +930,7 @@ def test_a_remote_cache_never_asks_for_zarr_format_2_metadata(tmp_path):
     fsspec.register_implementation("asked", Asked, clobber=True)
     pipe = _pipe(f"asked://{tmp_path / 'cache'}", tmp_path)
     pipe.run("train")
-    _pipe(f"asked://{tmp_path / 'cache'}", tmp_path).status()
+    cache_status(_pipe(f"asked://{tmp_path / 'cache'}", tmp_path))
     assert any(p.endswith("zarr.json") for p in asked)  # the store was read through this filesystem
     probes = [p for p in asked if p.endswith((".zgroup", ".zarray", ".zattrs", ".zmetadata"))]
     assert not probes, probes[:5]

@@ -14,6 +14,7 @@ import tests.fake_stages as fake_stages
 from pipeline.config import load_config
 from pipeline.errors import ConfigError
 from pipeline.executor import Executor, RunEnv
+from pipeline.inspection import cache_status
 from pipeline.runner import Pipeline
 from pipeline.staleness import explain, set_text
 
@@ -160,7 +161,7 @@ def test_a_dataset_stage_whose_inputs_finished_more_frames_says_so(tmp_path):
     pipe.run("heatmaps")
     pipe = make_pipeline(tmp_path)
     assert pipe.why_stale("train").text == "its per-frame inputs finished other frames since it ran"
-    assert {r["stage"]: r for r in pipe.status()}["train"]["why"] == pipe.why_stale("train").text
+    assert {r["stage"]: r for r in cache_status(pipe)}["train"]["why"] == pipe.why_stale("train").text
 
 
 def test_forgotten_sets_leave_out_the_radar_settings_that_come_with_other_nets(tmp_path, monkeypatch):

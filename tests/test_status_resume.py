@@ -7,6 +7,7 @@ import pytest
 from pipeline.config import load_config
 from pipeline.errors import StageInterrupted
 from pipeline.executor import Executor, RunEnv
+from pipeline.inspection import cache_status
 from pipeline.runner import Pipeline
 from stages import all_stages
 from tests.test_pipeline_e2e import TINY
@@ -21,7 +22,7 @@ def _pipe(cache: str, world, staging, **overrides: str) -> Pipeline:
 
 
 def _train_row(pipe: Pipeline) -> dict:
-    return next(r for r in pipe.status() if r["stage"] == "train")
+    return next(r for r in cache_status(pipe) if r["stage"] == "train")
 
 
 @pytest.mark.parametrize("where", ["local", "remote"])

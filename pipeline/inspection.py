@@ -1,0 +1,175 @@
+"""Read-only inspection of a dataset's cache: ``pipeline status`` (cache_status: per stage, its
+frame counts, whether it is current and why not, its failed frames' reasons) and ``pipeline
+verify`` (verify_cache: every chunk of the frame stage outputs and every checkpoint and
+recorded file of the dataset stage folders read, under a read lock). Both take the Pipeline,
+whose fingerprints say what is current, and change no output.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+from pipeline.cache import DONE, STATUS_NAMES
+from pipeline.cachefs import join
+from pipeline.dataroot import FIRST_STAGE, made_from, other_root_message
+from pipeline.errors import CacheError, ChunkError, MetadataError, PipelineError, cache_error
+from pipeline.lock import reading
+from pipeline.runner import DatasetInputs, Pipeline
+from pipeline.stage import DatasetStage, FrameStage
+
+
+def cache_status(pipe: Pipeline, reasons: int | None = None) -> list[dict[str, Any]]:
+    """Per stage: done / failed / pending / excluded counts and whether it is current (which
+    needs its upstream stages current too: a run would rebuild it after them; None: unknown),
+    and the reasons of its first ``reasons`` failed frames (default all). A frame stage whose
+    output cannot be read (damaged metadata or status chunk), or a dataset stage whose record
+    (_stage.json) is damaged, gets ``damaged``, the error's message, and the other stages are
+    still listed."""
+    rows = []
+    current_of: dict[str, bool | None] = {}
+    own_stale: set[str] = set()  # outputs that are not current by themselves (not only their upstream)
+    for name in pipe.order:
+        stage = pipe.stages[name]
+        row: dict[str, Any] = {"stage": name}
+        try:
+            current = pipe.is_current(name)
+        except PipelineError as exc:
+            current = None
+            row["note"] = str(exc)
+        if isinstance(stage, FrameStage):
+            store = pipe.env.store(name)
+            try:
+                row["exists"] = store.exists()
+                if row["exists"]:
+                    store.check_metadata()
+                    st = store.status()
+                    row.update({STATUS_NAMES[c]: int((st == c).sum()) for c in STATUS_NAMES})
+                    row["reasons"] = store.reasons(limit=reasons, status=st)
+            except (CacheError, ChunkError) as exc:
+                row.update(exists=True, damaged=str(exc))
+                row.pop("note", None)  # the same error, from is_current
+                current = None
+        else:
+            folder = pipe.env.dir(name)
+            try:
+                row["exists"] = folder.meta() is not None
+            except MetadataError as exc:  # a damaged _stage.json
+                row.update(exists=True, damaged=str(exc))
+                row.pop("note", None)  # the same error, from is_current
+                current = None
+            else:
+                row["summary"] = folder.summary()
+                if not row["exists"] and stage.resume_point is not None:
+                    row["resumes_from"] = _resume_point(pipe, stage, folder)
+        if current is False:
+            own_stale.add(name)
+        if name == FIRST_STAGE and row.get("exists") and (old := made_from(pipe)):
+            row["note"] = other_root_message(pipe, old)
+        elif current is False and row.get("exists"):
+            try:
+                why = pipe.why_stale(name, own_stale)
+            except PipelineError:  # said by the row already
+                why = None
+            if why is not None:
+                row["why"] = why.text
+        row["current"] = _all_of([current, *(current_of.get(u) for u in stage.upstream)]) if row["exists"] else False
+        current_of[name] = row["current"]
+        rows.append(row)
+    return rows
+
+
+def _resume_point(pipe: Pipeline, stage: DatasetStage, out) -> str | None:
+    """What a run of the unfinished dataset stage ``stage`` would go on from (stage.resume_point),
+    in the folder it would resume: ``out``, or on a remote cache this machine's staging folder
+    when it holds the last run's files (the same run token); None when nothing or unknown."""
+    folder = out.work_folder(pipe.env.cfg.run.staging_dir) if stage.local_files else out
+    if folder is not out and not folder.holds_run_of(out):
+        folder = out
+    try:
+        return stage.resume_point(DatasetInputs(pipe.env, pipe.frame_ids()), pipe.env.cfg, folder)
+    except (PipelineError, ChunkError):  # an unreadable upstream output: status says so on its own row
+        return None
+
+
+def _all_of(values: list[bool | None]) -> bool | None:
+    """Three-valued AND: False if any is False, else None if any is unknown, else True."""
+    return False if any(v is False for v in values) else None if any(v is None for v in values) else True
+
+
+def verify_cache(pipe: Pipeline, names: list[str] | None = None,
+                 progress: Callable[[str, int, int], None] | None = None, wait_s: float = 0.0) -> list[dict[str, Any]]:
+    """Read every chunk of the frame stage outputs (and every checkpoint and recorded file of
+    the dataset stage folders: DirStore.check_files) of ``names`` (default: every stage with an
+    output), holding them against rewriting meanwhile. Per stage: ``frames`` (frame ids by
+    index), ``checked`` (done frames read), ``damaged`` ({frame index: message}),
+    ``frame_ids_damaged``, ``problem`` (the output cannot be read at all, or a dataset stage's
+    file is damaged), ``checkpoints`` (read), ``files`` (checked; None: none recorded).
+    ``progress(stage, n, total)``."""
+    rows = []
+    for name in names or pipe.order:
+        stage, row = pipe.stages[name], {"stage": name}
+        with reading([pipe.lock_url(name)], f"verify of stage '{name}'", wait_s):
+            if isinstance(stage, FrameStage):
+                store = pipe.env.store(name)
+                try:
+                    if not store.exists():
+                        continue
+                    ids = store.frame_ids()
+                    status, errors = store.verify(progress and (lambda n, total, _name=name: progress(_name, n, total)))
+                except (CacheError, ChunkError) as exc:  # metadata: nothing of it can be read
+                    rows.append({**row, "problem": str(exc)})
+                    continue
+                row.update(checked=int((status == DONE).sum()), damaged={i: str(e) for i, e in errors.items()},
+                           frame_ids_damaged=[ids[i] for i in errors])
+            else:
+                folder = pipe.env.dir(name)
+                try:
+                    if folder.meta() is None:
+                        continue
+                except MetadataError as exc:  # its record is damaged: made again as a whole
+                    rows.append({**row, "problem": str(exc), "checkpoints": 0})
+                    continue
+                row["checkpoints"], problems = _checkpoints_read(folder)
+                row["files"], damaged = folder.check_files(progress and (lambda n, total, _name=name: progress(_name, n, total)))
+                problems += damaged[:5] + [f"... and {len(damaged) - 5} more file(s)"] * (len(damaged) > 5)
+                if problems:
+                    row["problem"] = "; ".join(problems)
+        rows.append(row)
+    return rows
+
+
+def _checkpoints_read(folder) -> tuple[int, list[str]]:
+    """(checkpoints read, the problem of each that cannot be) under a dataset stage's folder; on a
+    remote cache each is downloaded (one at a time, into a temporary folder) and read, and its
+    problem names its remote URL."""
+    from pipeline.checkpoint import load_checkpoint
+
+    def problem(path: Path, shown: str) -> str | None:
+        try:
+            load_checkpoint(path)
+        except CacheError as exc:
+            return str(exc).replace(str(path), shown)
+        return None
+
+    if folder.is_local:
+        paths = sorted(Path(folder.path).rglob("*.safetensors"))
+        return len(paths), [p for p in (problem(path, str(path)) for path in paths) if p]
+    try:
+        names = sorted(f for f in folder.fs.find(folder.path) if f.endswith(".safetensors"))
+    except OSError as exc:
+        return 0, [str(cache_error(exc, f"listing {folder.url}"))]
+    problems = []
+    with tempfile.TemporaryDirectory(prefix="verify-") as tmp:
+        local = Path(tmp) / "checkpoint.safetensors"
+        for name in names:
+            shown = join(folder.url, os.path.relpath(name, folder.path))
+            try:
+                folder.fs.get(name, str(local))
+            except OSError as exc:
+                problems.append(str(cache_error(exc, f"downloading {shown}")))
+                continue
+            problems.append(problem(local, shown))
+    return len(names), [p for p in problems if p]
