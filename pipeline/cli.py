@@ -409,7 +409,8 @@ def _print_status_row(row: dict, notes: dict[str, int] | None = None) -> None:
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} damaged: {row['damaged']}")
     else:
         state = "finished" if row.get("exists") else \
-            f"not finished; resumes from {row['resumes_from']}" if row.get("resumes_from") else "not run"
+            f"not finished; resumes from {row['resumes_from']}" if row.get("resumes_from") else \
+            "files of an unfinished or stale run" if row.get("earlier_files") else "not run"
         click.echo(f"{row['stage']:<{NAME_WIDTH}} {current:<19} {state}")
     if row.get("why"):
         click.echo(f"{'':<{NAME_WIDTH}} not current: {row['why']}")

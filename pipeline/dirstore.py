@@ -103,6 +103,16 @@ class DirStore:
         except OSError:
             return False
 
+    def holds_files(self) -> bool:
+        """Whether the folder holds anything: where no run finished (no ``_stage.json``), the files
+        of a run cut off, or of a finished one marked stale since (:meth:`invalidate` keeps them)."""
+        try:
+            return bool(self.fs.ls(self.path, detail=False))
+        except (FileNotFoundError, NotADirectoryError):
+            return False
+        except OSError as exc:
+            raise cache_error(exc, f"listing {self.url}") from None
+
     def fingerprint(self) -> str | None:
         meta = self.meta()
         return meta.get("fingerprint") if meta else None

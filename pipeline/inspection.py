@@ -64,6 +64,8 @@ def cache_status(pipe: Pipeline, reasons: int | None = None) -> list[dict[str, A
                 row["summary"] = folder.summary()
                 if not row["exists"] and stage.resume_point is not None:
                     row["resumes_from"] = _resume_point(pipe, stage, folder)
+                if not row["exists"] and not row.get("resumes_from"):
+                    row["earlier_files"] = folder.holds_files()  # else 'not run' while a stale report is there
         if current is False:
             own_stale.add(name)
         if name == FIRST_STAGE and row.get("exists") and (old := made_from(pipe)):

@@ -76,9 +76,32 @@ def test_status_line_of_an_unfinished_train(capsys):
 
     _print_status_row({"stage": "train", "current": False, "exists": False, "resumes_from": "disnet epoch 1 of 3"})
     _print_status_row({"stage": "export", "current": False, "exists": False})
+    _print_status_row({"stage": "evaluate", "current": False, "exists": False, "earlier_files": True})
     lines = capsys.readouterr().out.splitlines()
     assert lines == ["train           stale or missing    not finished; resumes from disnet epoch 1 of 3",
-                     "export          stale or missing    not run"]
+                     "export          stale or missing    not run",
+                     "evaluate        stale or missing    files of an unfinished or stale run"]
+
+
+def test_status_of_a_report_made_stale_says_its_files_are_there(tmp_path):
+    """A dataset stage marked stale (its upstream recomputed) keeps its files but not its record,
+    and status called it 'not run' (until 2026-12-07) beside the report of its earlier run; a stage
+    never run still is."""
+    from pipeline.world import generate
+
+    world = tmp_path / "world"
+    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    pipe = _pipe(str(tmp_path / "cache"), world, tmp_path / "staging",
+                 **{"train.epochs": "1", "train.nets": "disnet,rssnet,placenet"})
+    pipe.run("evaluate")
+    rows = {r["stage"]: r for r in cache_status(pipe)}
+    assert rows["evaluate"]["exists"] and rows["evaluate"]["current"] and "earlier_files" not in rows["evaluate"]
+    assert not rows["export"]["exists"] and rows["export"]["earlier_files"] is False
+    pipe.run("synthesize", force=True)
+    rows = {r["stage"]: r for r in cache_status(pipe)}
+    assert (tmp_path / "cache" / "synthetic" / "evaluate" / "report.md").exists()
+    assert not rows["evaluate"]["exists"] and rows["evaluate"]["earlier_files"] is True, rows["evaluate"]
+    assert rows["export"]["earlier_files"] is False
 
 
 def test_a_damaged_train_record_names_the_way_that_keeps_the_training(tmp_path):
