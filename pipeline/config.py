@@ -53,6 +53,8 @@ class DatasetSection:
     refused, as one from an untrusted index could; entries that are absolute or climb out with '..'
     are refused either way. It changes which frames can be read, not what is read from them, so it
     is in no fingerprint: frames refused before need ``--retry-failed``."""
+    msc_doppler_field: str = "doppler"
+    """MSC-Rad4R only: the radar point field read as the Doppler, m/s: 'doppler' or 'power' (the other is the RSS)."""
 
 
 @dataclass(frozen=True)
@@ -443,14 +445,15 @@ SECTIONS: dict[str, type] = {
 }
 
 
-ADDED_KEYS: dict[str, Any] = {"synth.rss_sampling": "mean", "disnet.prior_mix": "off"}
+ADDED_KEYS: dict[str, Any] = {"synth.rss_sampling": "mean", "disnet.prior_mix": "off",
+                             "dataset.msc_doppler_field": "doppler"}
 """Keys added to stages' fingerprints after outputs were made, with the value those outputs were
 made with: at that value a key is left out of the fingerprint, so adding it recomputes nothing."""
 
 
 READER_KEYS: dict[str, str] = {"dataset.world_frames": "synthetic", "dataset.world_seed": "synthetic",
                                "dataset.world_resolution": "synthetic", "dataset.world_sequence_len": "synthetic",
-                               "dataset.radar_mount_T_radar_lidar": "kitti"}
+                               "dataset.radar_mount_T_radar_lidar": "kitti", "dataset.msc_doppler_field": "msc"}
 """Keys that only one reader (dataset.reader) uses: under another, a fingerprint takes them at their
 defaults, so that setting one (PIPELINE__DATASET__WORLD_FRAMES for `make demo-large`, say) leaves
 that dataset's outputs current (since 2026-12-06; before, it recomputed them from calibrate on)."""
@@ -580,8 +583,14 @@ def check_relations(cfg: "Config") -> None:
                           f"{cfg.radar.rss_max:g}")
 
 
+CHOICES: dict[str, tuple[str, ...]] = {"dataset.msc_doppler_field": ("doppler", "power")}
+"""The values each text key of this table may take, checked where :data:`LIMITS` are."""
+
+
 def check_limit(key: str, value: Any) -> None:
-    """ConfigError when ``value`` of ``key`` is outside its :data:`LIMITS` (no limit: accepted)."""
+    """ConfigError when ``value`` of ``key`` is outside its :data:`LIMITS` or :data:`CHOICES` (none: accepted)."""
+    if key in CHOICES and value not in CHOICES[key]:
+        raise ConfigError(f"'{key}' must be one of {', '.join(CHOICES[key])}, got '{value}'")
     limit = LIMITS.get(key)
     if limit is None:
         return

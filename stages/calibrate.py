@@ -41,7 +41,7 @@ gain the pitch and roll columns)."""
 
 CONFIG_KEYS = (
     "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution", "dataset.world_sequence_len",
-    "dataset.radar_mount_T_radar_lidar",
+    "dataset.radar_mount_T_radar_lidar", "dataset.msc_doppler_field",
     "camera.full_size", "camera.crop_rows", "camera.working_size",
     "radar.fov_az_deg", "radar.fov_el_deg", "radar.max_range_m", "radar.store_max_points",
     "radar.doppler_sign", "radar.doppler_span_mps",  # how the readers of Astyx and MSC-Rad4R read Doppler

@@ -167,7 +167,9 @@ def test_folder_non_monotonic_radar_timestamps(tmp_path):
     assert "timestamp_radar.txt" in str(info.value)
 
 
-def _write_bag(path: Path) -> list[np.ndarray]:
+def _write_bag(path: Path, radar_rows: np.ndarray | None = None, vel_xy: tuple[float, float] = (3.0, 4.0)) -> list[np.ndarray]:
+    """Two frames; ``radar_rows`` (RADAR_FIELDS columns): every frame's radar points (default:
+    _radar_native's); ``vel_xy``: the /vel twist's linear x and y, m/s."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -198,6 +200,7 @@ def _write_bag(path: Path) -> list[np.ndarray]:
         for k in range(2):
             t0 = 10**10 + k * 100_000_000
             rows = _radar_native(rng)
+            rows = rows if radar_rows is None else radar_rows
             radars.append(rows)
             msgs = [("/oculii_radar/point_cloud", t0, cloud(t0, RADAR_FIELDS, rows, 6)),
                     ("/ouster/points", t0 + 5_000_000, cloud(t0, ("x", "y", "z", "intensity"), _lidar(rng), 4)),
@@ -205,7 +208,7 @@ def _write_bag(path: Path) -> list[np.ndarray]:
                         header=header(t0), height=48, width=64, encoding="rgb8", is_bigendian=0, step=64 * 3,
                         data=_image(k).ravel())),
                     ("/vel", t0, T["geometry_msgs/msg/TwistStamped"](header=header(t0), twist=T["geometry_msgs/msg/Twist"](
-                        linear=T["geometry_msgs/msg/Vector3"](x=3.0, y=4.0, z=0.0),
+                        linear=T["geometry_msgs/msg/Vector3"](x=vel_xy[0], y=vel_xy[1], z=0.0),
                         angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0))))]
             for topic, stamp, msg in sorted(msgs, key=lambda m: m[1]):
                 writer.write(conns[topic], stamp, ts.serialize_ros1(msg, conns[topic].msgtype))
@@ -347,3 +350,135 @@ def test_the_calibration_folder_of_any_set_is_found_and_a_missing_or_second_one_
         shutil.rmtree(tmp_path / folder)
     with pytest.raises(ReaderError, match="no calibration folder: an MSC-Rad4R sequence holds one 5_CALIBRATION_<SET>/"):
         get_reader(_cfg(), tmp_path).read("000002")
+
+
+STREET_SPEED_MPS = 1.4
+"""MSC-Rad4R's platform drove at 5 km/h = 1.39 m/s."""
+
+
+def _street_native(seed: int = 7, n: int = 60, movers: int = 6) -> np.ndarray:
+    """(n, 10) radar rows (RADAR_FIELDS, native right-down-forward frame) of a street scene seen from
+    a radar moving ahead at STREET_SPEED_MPS: points at azimuths within +-50 deg, static but for the
+    first ``movers``; ``doppler`` the range rate (-speed * forward / distance for a static point),
+    ``power`` an RSS of 2..50 dB."""
+    rng = np.random.default_rng(seed)
+    azimuth, elevation = rng.uniform(-0.87, 0.87, n), rng.uniform(-0.1, 0.1, n)
+    range_m = rng.uniform(3.0, 40.0, n)
+    forward = range_m * np.cos(elevation) * np.cos(azimuth)
+    left, up = range_m * np.cos(elevation) * np.sin(azimuth), range_m * np.sin(elevation)
+    rows = np.zeros((n, 10), np.float32)
+    rows[:, :3] = np.stack([-left, -up, forward], 1)
+    rows[:, 6] = -STREET_SPEED_MPS * forward / range_m
+    rows[:movers, 6] += rng.choice([-1.0, 1.0], movers) * rng.uniform(3.0, 8.0, movers)
+    rows[:, 5] = rng.uniform(2.0, 50.0, n)
+    rows[:, 7] = range_m
+    return rows
+
+
+def _save_radar(root: Path, frame: int, rows: np.ndarray) -> None:
+    PointCloud.from_points(rows, RADAR_FIELDS, [np.float32] * 10).save(root / "3_RADAR/PCD" / f"{frame:06d}.pcd")
+
+
+def _set_wheels(root: Path, speed_mps: float) -> None:
+    for side in ("LEFT", "RIGHT"):
+        (root / "4_NAVIGATION" / f"WHEEL_{side}.txt").write_text(
+            "".join(f"{k} {100 + k // 10} {(k % 10) * 100_000_000} {speed_mps} 0.0\n" for k in range(5)))
+
+
+def _swapped(rows: np.ndarray) -> np.ndarray:
+    """``rows`` with the power and doppler columns swapped (as a third-party loader says the bags hold them)."""
+    out = rows.copy()
+    out[:, [5, 6]] = rows[:, [6, 5]]
+    return out
+
+
+def test_the_doppler_as_read_is_checked_against_the_ego_motion(tmp_path):
+    """A moving platform sees most points of a street scene at a static world's range rate
+    (-speed * x / |p| in {D}): a frame whose Doppler agrees is read and counted as checked; until
+    2026-12-07 nothing compared them."""
+    make_folder(tmp_path)
+    _set_wheels(tmp_path, STREET_SPEED_MPS)
+    street = _street_native()
+    _save_radar(tmp_path, 2, street)
+    reader = get_reader(_cfg(), tmp_path)
+    rec = reader.read("000002")
+    np.testing.assert_allclose(rec.radar_D[:, 3], street[:, 6])
+    np.testing.assert_allclose(rec.radar_D[:, 4], street[:, 5])
+    np.testing.assert_allclose(rec.ego_velocity_D, [STREET_SPEED_MPS, 0, 0])
+    assert reader.report()["doppler_checked"] == 1
+    assert "doppler_disagrees_with_every_reading" not in reader.report()
+
+
+def test_a_doppler_of_the_other_sign_is_refused_naming_radar_doppler_sign(tmp_path):
+    """The sign of MSC-Rad4R's ``doppler`` is not documented (taken as range rate): with the sign
+    flipped in the data, a moving frame is refused naming the file, the frame and the setting that
+    fixes it, which then reads it; a stopped ego (or one below 1 m/s) tells nothing and is not
+    checked. Until 2026-12-07 such frames were read with every Doppler of the wrong sign."""
+    make_folder(tmp_path)
+    flipped = _street_native()
+    flipped[:, 6] *= -1
+    _save_radar(tmp_path, 2, flipped)
+    for stopped in (0.0, 0.5):
+        _set_wheels(tmp_path, stopped)
+        reader = get_reader(_cfg(), tmp_path)
+        reader.read("000002")
+        assert "doppler_checked" not in reader.report()
+    _set_wheels(tmp_path, STREET_SPEED_MPS)
+    # 54 of the 60 points are static
+    with pytest.raises(ReaderError, match=r"frame 000002: .*/3_RADAR/PCD/000002.pcd: radar Doppler disagrees with the "
+                                          r"ego motion \(1.40 m/s ahead\).*90% with the opposite sign.*"
+                                          r"--set radar.doppler_sign=-1$"):
+        get_reader(_cfg(), tmp_path).read("000002")
+    reader = get_reader(_cfg().with_overrides({"radar.doppler_sign": "-1"}), tmp_path)
+    np.testing.assert_allclose(reader.read("000002").radar_D[:, 3], -flipped[:, 6])
+    assert reader.report()["doppler_checked"] == 1
+
+
+def test_swapped_power_and_doppler_fields_are_refused_and_read_with_dataset_msc_doppler_field(tmp_path):
+    """A third-party loader of MSC-Rad4R's bags (read, not run) says their ``power`` and ``doppler``
+    fields are swapped: such a frame is refused naming dataset.msc_doppler_field, and read with it
+    set, the Doppler from ``power`` and the RSS from ``doppler``; in both layouts. Until 2026-12-07
+    the RSS was read as the Doppler without a word."""
+    street = _street_native()
+    make_folder(tmp_path / "folder")
+    _set_wheels(tmp_path / "folder", STREET_SPEED_MPS)
+    _save_radar(tmp_path / "folder", 2, _swapped(street))
+    (tmp_path / "bag").mkdir()
+    _write_bag(tmp_path / "bag" / "URBAN_D0.bag", radar_rows=_swapped(street), vel_xy=(STREET_SPEED_MPS, 0.0))
+    _write_calibration(tmp_path / "bag" / "5_CALIBRATION_URBAN")
+    swapped_cfg = _cfg().with_overrides({"dataset.msc_doppler_field": "power"})
+    for root, fid, name in ((tmp_path / "folder", "000002", "000002.pcd"),
+                            (tmp_path / "bag", "URBAN_D0_000001", "URBAN_D0.bag")):
+        with pytest.raises(ReaderError, match=f"frame {fid}: .*/{name}: radar Doppler disagrees with the ego motion.*"
+                                              r"90% and \d+% from field 'power'.*--set dataset.msc_doppler_field=power$"):
+            get_reader(_cfg(), root).read(fid)
+        reader = get_reader(swapped_cfg, root)
+        rec = reader.read(fid)
+        np.testing.assert_allclose(rec.radar_D[:, 3], street[:, 6])
+        np.testing.assert_allclose(rec.radar_D[:, 4], street[:, 5])
+        assert reader.report()["doppler_checked"] == 1
+
+
+def test_a_bag_frame_whose_doppler_agrees_is_checked_and_one_of_either_sign_and_field_named(tmp_path):
+    """The bag layout checks as the folder one does (speed from /vel): agreeing -> read and
+    counted; the swapped fields with the sign flipped as well -> both settings named."""
+    street = _street_native()
+    _write_calibration(tmp_path / "5_CALIBRATION_URBAN")
+    _write_bag(tmp_path / "URBAN_D0.bag", radar_rows=street, vel_xy=(STREET_SPEED_MPS, 0.0))
+    reader = get_reader(_cfg(), tmp_path)
+    np.testing.assert_allclose(reader.read("URBAN_D0_000000").radar_D[:, 3], street[:, 6])
+    assert reader.report()["doppler_checked"] == 1
+    both = _swapped(street)
+    both[:, 5] *= -1
+    (tmp_path / "URBAN_D0.bag").unlink()
+    _write_bag(tmp_path / "URBAN_D0.bag", radar_rows=both, vel_xy=(STREET_SPEED_MPS, 0.0))
+    with pytest.raises(ReaderError, match=r"--set dataset.msc_doppler_field=power --set radar.doppler_sign=-1$"):
+        get_reader(_cfg(), tmp_path).read("URBAN_D0_000000")
+
+
+def test_dataset_msc_doppler_field_takes_doppler_or_power():
+    from pipeline.errors import ConfigError
+
+    assert _cfg().dataset.msc_doppler_field == "doppler"
+    with pytest.raises(ConfigError, match="'dataset.msc_doppler_field' must be one of doppler, power, got 'range'"):
+        _cfg().with_overrides({"dataset.msc_doppler_field": "range"})

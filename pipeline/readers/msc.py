@@ -11,10 +11,20 @@ linear_velocity angular_velocity``, the bag topic names and message types, the r
 lidar's forward-left-up axes; each frame's order is told from its points, :func:`radar_axes`, and
 counted, and points whose distance is not their own ``range`` field are refused), which radar frame
 ``CALIBRATION_CAMERA_RADAR`` refers to (told from its attitude, :func:`calibration_axes`: the native
-right-down-forward one or the published forward-left-up one), the sign of
-``doppler`` (taken as range rate, ``radar.doppler_sign`` = +1) and
-that the radar boresight is the vehicle's forward axis (ego velocity = (speed, 0, 0) in {D}, speed
-from the wheels or /vel, yaw-rate lever arm ignored).
+right-down-forward one or the published forward-left-up one), which field holds the Doppler
+(``doppler``; ``dataset.msc_doppler_field``) and its sign (taken as range rate,
+``radar.doppler_sign`` = +1), and that the radar boresight is the vehicle's forward axis (ego
+velocity = (speed, 0, 0) in {D}, speed from the wheels or /vel, yaw-rate lever arm ignored).
+
+Doppler checked against the ego motion: a third-party loader of MSC-Rad4R's bags (read, not run;
+its repository unknown) reads ``power`` and ``doppler`` from /oculii_radar/point_cloud and notes
+that the two are swapped. So each frame from DOPPLER_CHECK_MIN_SPEED_MPS ahead with
+DOPPLER_CHECK_MIN_POINTS points compares its Doppler with a static world's range rate, -speed x /
+|p| (:func:`static_doppler_shares`); read with a swapped field or a wrong sign it is refused,
+naming the ``--set`` that fixes it, where another reading agrees (:meth:`MscReader._check_doppler`;
+checked frames counted as ``doppler_checked``). The check only holds the reading that agrees with
+the ego speed and the boresight above: slower frames are not checked, and a frame where no reading
+agrees (ego-motion-compensated Doppler, say) is read as configured and counted.
 
 Folder layout (one sequence per root, e.g. URBAN_D0/):
 ``1_IMAGE/LEFT/NNNNNN.png`` + ``1_IMAGE/timestamp_image_left.txt``; ``2_LIDAR/PCD/NNNNNN.pcd`` +
@@ -59,6 +69,16 @@ RANGE_TOLERANCE_M = 0.5
 """Largest median difference between |x, y, z| and the radar's own range field, metres."""
 FORWARD_DOMINANCE = 2.0
 """The forward axis's median must be positive and this many times the other two medians' magnitudes."""
+DOPPLER_CHECK_MIN_SPEED_MPS = 1.0
+"""Ego speed from which each frame's Doppler is checked against the ego motion, m/s (MSC-Rad4R's
+platform drove at 5 km/h = 1.39 m/s)."""
+DOPPLER_CHECK_MIN_POINTS = 20
+"""Fewest radar points a frame needs for its Doppler to be checked."""
+DOPPLER_TOLERANCE_MPS = 0.5
+"""A point agrees with a static world when its Doppler is within this of a static point's range rate, m/s."""
+DOPPLER_LOW_SHARE, DOPPLER_HIGH_SHARE = 0.25, 0.5
+"""A frame is refused when the share of agreeing points is below LOW as read and at least HIGH (and
+twice the share as read) for another reading of the fields (:func:`static_doppler_shares`)."""
 RADAR_TOPIC = "/oculii_radar/point_cloud"
 LIDAR_TOPIC = "/ouster/points"
 IMAGE_TOPIC = "/camera_array/left/image_raw"
@@ -105,6 +125,20 @@ def calibration_axes(R_cam_radar: np.ndarray, path: Path) -> str:
                                 f"({ahead[0]:.2f}, {ahead[1]:.2f}, {ahead[2]:.2f}) in the radar's axes: neither "
                                 f"right-down-forward (z ahead) nor forward-left-up (x ahead)")
     return axes
+
+
+def static_doppler_shares(radar_D: np.ndarray, speed_mps: float) -> np.ndarray:
+    """(4,) shares of the points of ``radar_D`` (M, 5: x, y, z m in {D}, Doppler m/s, RSS; M > 0)
+    whose reading is within DOPPLER_TOLERANCE_MPS of the range rate of a static point seen from a
+    radar moving at (speed_mps, 0, 0) in {D}, -speed * x / |p|, for four readings of the last two
+    columns: the Doppler as read, its opposite, the RSS column, its opposite. Most points of a street
+    scene are static: the right reading has a large share."""
+    xyz = radar_D[:, :3].astype(np.float64)
+    distance_m = np.linalg.norm(xyz, axis=1)
+    seen = distance_m > 0
+    static_mps = -speed_mps * xyz[seen, 0] / distance_m[seen]
+    readings = radar_D[seen][:, [3, 3, 4, 4]].astype(np.float64) * np.array([1.0, -1.0, 1.0, -1.0])
+    return np.mean(np.abs(readings - static_mps[:, None]) <= DOPPLER_TOLERANCE_MPS, axis=0)
 
 
 # -- text formats ----------------------------------------------------------------------------------
@@ -193,11 +227,13 @@ class MscReader(Reader):
     """Common calibration, conversion and record building; use ``MscReader.open`` to get a reader."""
 
     name = "msc"
-    version = 3
+    version = 4
     """2 (2026-12-06): K's principal point in OpenCV's pixel convention (MATLAB_PIXEL_ORIGIN); lidar
     beams without a return (NaN or the origin in an organized scan) left out, counted in the report's
     lidar_points_without_return. 3 (2026-12-07): a radar calibration in the forward-left-up axes is
-    read as such (:func:`calibration_axes`; before, every one was taken as right-down-forward)."""
+    read as such (:func:`calibration_axes`; before, every one was taken as right-down-forward). 4
+    (2026-12-07): a frame whose Doppler disagrees with the ego motion where another reading of the
+    fields agrees is refused (:meth:`_check_doppler`); dataset.msc_doppler_field."""
 
     def __init__(self, cfg: Config, data_root: str | Path, pair_tolerance_s: float = 0.05,
                  calib_dir: str | Path | None = None) -> None:
@@ -247,14 +283,22 @@ class MscReader(Reader):
         T_radar_cam = invert_transform(T_cam_calib @ T_calib_D)
         return K, dist, T_radar_cam, T_radar_cam @ T_cam_lidar
 
+    @property
+    def _doppler_fields(self) -> tuple[str, str]:
+        """(the field read as the Doppler, the one read as the RSS): dataset.msc_doppler_field."""
+        field = self.cfg.dataset.msc_doppler_field
+        return field, "power" if field == "doppler" else "doppler"
+
     def _radar_D(self, fields: dict[str, np.ndarray], path: Path, fid: str) -> np.ndarray:
-        """(M, 5) float32 in {D} from the radar fields (xyz in either axis order, doppler, power)."""
+        """(M, 5) float32 in {D} from the radar fields: xyz (in either axis order), radar.doppler_sign
+        times the Doppler field, the RSS field (:attr:`_doppler_fields`)."""
         missing = [k for k in ("x", "y", "z", "doppler", "power") if k not in fields]
         if missing:
             raise ReaderError(path, f"radar point fields {missing} are missing", frame=fid)
+        doppler, rss = self._doppler_fields
         xyz = np.stack([fields["x"], fields["y"], fields["z"]], axis=1).astype(np.float64)
-        out = np.column_stack([xyz, np.asarray(fields["doppler"], np.float64) * self.radar.doppler_sign,
-                               fields["power"]]).astype(np.float32)
+        out = np.column_stack([xyz, np.asarray(fields[doppler], np.float64) * self.radar.doppler_sign,
+                               fields[rss]]).astype(np.float32)
         check_finite(out, path, fid, "radar")
         check_not_empty(out, path, fid, "radar")
         axes = radar_axes(xyz, path, fid)
@@ -268,6 +312,37 @@ class MscReader(Reader):
                                         f"the range field by {off:.2f} m (median); points in another sensor's frame "
                                         "are not supported", frame=fid)
         return out
+
+    def _check_doppler(self, radar_D: np.ndarray, speed_mps: float, path: Path, fid: str) -> None:
+        """ReaderError when the frame's Doppler as read disagrees with the ego motion and another
+        reading of the two fields agrees (:func:`static_doppler_shares`), naming the ``--set`` that
+        fixes it. Checked from DOPPLER_CHECK_MIN_SPEED_MPS and DOPPLER_CHECK_MIN_POINTS on (counted:
+        doppler_checked; doppler_disagrees_with_every_reading where none agrees)."""
+        off_origin = np.count_nonzero(radar_D[:, :3].any(axis=1))
+        if speed_mps < DOPPLER_CHECK_MIN_SPEED_MPS or off_origin < DOPPLER_CHECK_MIN_POINTS:
+            return
+        shares = static_doppler_shares(radar_D, speed_mps)
+        self._counts["doppler_checked"] += 1
+        best = 1 + int(np.argmax(shares[1:]))
+        if shares[0] >= DOPPLER_LOW_SHARE:
+            return
+        if shares[best] < DOPPLER_HIGH_SHARE or shares[best] < 2 * shares[0]:
+            self._counts["doppler_disagrees_with_every_reading"] += 1
+            return
+        field, other = self._doppler_fields
+        sign = self.radar.doppler_sign
+        if best == 1:
+            fix = f"--set radar.doppler_sign={-sign}"
+        else:
+            new_sign = 1 if best == 2 else -1
+            fix = f"--set dataset.msc_doppler_field={other}" + (f" --set radar.doppler_sign={new_sign}"
+                                                                 if new_sign != sign else "")
+        raise ReaderError(path, f"radar Doppler disagrees with the ego motion ({speed_mps:.2f} m/s ahead): "
+                                f"{shares[0]:.0%} of the points are within {DOPPLER_TOLERANCE_MPS} m/s of a static "
+                                f"world's range rate as read (field '{field}', radar.doppler_sign = {sign:+d}), "
+                                f"{shares[1]:.0%} with the opposite sign, {shares[2]:.0%} and {shares[3]:.0%} from "
+                                f"field '{other}' with sign +1 and -1: the fields or the sign are read wrongly; "
+                                f"run again with {fix}", frame=fid)
 
     def _record(self, fid: str, seq: str, t: float, image_bgr: np.ndarray, image_path: Path,
                 lidar_xyzi: np.ndarray, lidar_path: Path, radar_D: np.ndarray, speed: float,
@@ -286,6 +361,7 @@ class MscReader(Reader):
         check_finite(lidar_xyzi, lidar_path, fid, "lidar")
         check_not_empty(lidar_xyzi, lidar_path, fid, "lidar")
         lidar_D = lidar_xyzi[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
+        self._check_doppler(radar_D, speed, radar_path, fid)
         record = FrameRecord(
             frame_id=fid, sequence_id=seq, timestamp_s=t, image=np.ascontiguousarray(image), K=K,
             lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar_xyzi[:, 3].astype(np.float32),
