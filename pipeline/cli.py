@@ -188,7 +188,7 @@ def _ensure_world(env, progress: bool) -> None:
         try:
             summary = generate(env.data_root, frames=ds.world_frames, seed=ds.world_seed,
                                resolution_wh=tuple(ds.world_resolution), sequence_len=ds.world_sequence_len,
-                               progress=progress)
+                               progress=progress, every_s=env.cfg.run.progress_every_s)
         except KeyboardInterrupt:
             raise StageInterrupted("the synthetic world's generation", "frame", False) from None
         kept = summary.get("resumed_sequences", 0)
