@@ -118,6 +118,16 @@ def test_check_physics_reports_every_range_rule_and_the_static_doppler(world, tm
     assert float(values["doppler (static points)"]["median_abs_dv_mps"]) < 0.1
 
 
+def test_check_physics_logs_its_progress(world, tmp_path):
+    """check-physics read every calibrated frame without a word on stderr until 2026-12-07 (tens
+    of thousands of frames: minutes of silence in a log)."""
+    out = CliRunner().invoke(main, ["check-physics", "--dataset", "synthetic", "--data-root", str(world),
+                                    "--cache", str(tmp_path / "cache"), "--workers", "1",
+                                    "--set", "run.progress_every_s=0.000001"])
+    assert out.exit_code == 0, out.output
+    assert re.search(r"^check-physics: \d/4 \(\d+%\)", out.stderr, re.M), out.stderr
+
+
 def test_estimate_sigma_uses_the_frames_asked_for(world, tmp_path):
     from pipeline.config import load_config
     from pipeline.heatmap import sigma_from_frames
