@@ -188,7 +188,7 @@ def _ensure_world(env, progress: bool) -> None:
         try:
             summary = generate(env.data_root, frames=ds.world_frames, seed=ds.world_seed,
                                resolution_wh=tuple(ds.world_resolution), sequence_len=ds.world_sequence_len,
-                               progress=progress)
+                               progress=progress, every_s=env.cfg.run.progress_every_s)
         except KeyboardInterrupt:
             raise StageInterrupted("the synthetic world's generation", "frame", False) from None
         kept = summary.get("resumed_sequences", 0)
@@ -767,7 +767,9 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     bars: dict = {}
 
     def progress(stage: str, n: int, total: int) -> None:
-        if stage not in bars:
+        if stage not in bars:  # the stages are read one after the other: the last one's bar is done
+            for done in bars.values():  # (left open, each next bar was drawn below it, with escape codes)
+                done.close()
             bars[stage] = bar(total=total, desc=f"verify {stage}", unit="chunk", every_s=env.cfg.run.progress_every_s)
         bars[stage].update(n)
 

@@ -389,7 +389,7 @@ class Pipeline:
                 continue
             if recorded == self.fingerprint(other):  # would pass as current; others are stale already
                 store.invalidate()
-                self.log(f"{other:<{NAME_WIDTH}} marked stale (upstream {name} was recomputed)")
+                self.log(f"{other:<{NAME_WIDTH}} marked stale (upstream {name} is being recomputed)")
 
     def redo_frames(self, name: str, frames: list[int]) -> None:
         """Mark ``frames`` of frame stage ``name`` pending, to be recomputed in place (``--force

@@ -802,22 +802,27 @@ def placenet_count_scale(model: PlaceNet, features: Any, frame_rows: np.ndarray,
 
 
 def disnet_metrics(model: DisNet, data: DisNetData, idx: Sequence[int], alpha: float,
-                   batch: int = 8) -> dict[str, float]:
-    """Per-frame mean L_KL ('kl'), L_n ('n') and L_KL + alpha L_n ('loss') on frames ``idx``."""
+                   batch: int = 8, progress: bool = False, every_s: float = EVERY_S) -> dict[str, float]:
+    """Per-frame mean L_KL ('kl'), L_n ('n') and L_KL + alpha L_n ('loss') on frames ``idx``;
+    ``progress``: a 'disnet test' bar (pipeline.progress, a line every ``every_s`` in a log)."""
     arrays = {"images": data.images, "heatmaps": data.heatmaps, "counts": data.counts, "speeds": data.speeds}
     return evaluate(model, iter_batches(arrays, np.asarray(idx, np.int64), batch), disnet_terms,
-                    {"kl": 1.0, "n": alpha}, device_of(model), progress=False)
+                    {"kl": 1.0, "n": alpha}, device_of(model), math.ceil(len(idx) / batch), "disnet test",
+                    progress, every_s)
 
 
-def rssnet_metrics(model: RSSNet, data: RssNetData, idx: Sequence[int], batch: int = 256) -> dict[str, float]:
-    """Per-point mean L_a ('a', = 'loss') on points ``idx``."""
+def rssnet_metrics(model: RSSNet, data: RssNetData, idx: Sequence[int], batch: int = 256,
+                   progress: bool = False, every_s: float = EVERY_S) -> dict[str, float]:
+    """Per-point mean L_a ('a', = 'loss') on points ``idx``; ``progress`` as for disnet_metrics."""
     arrays = {**rss_arrays(model, data.patches, data.range_images, data.point_vectors), "rss": data.rss}
     return evaluate(model, iter_batches(arrays, as_rows(idx), batch), rssnet_terms,
-                    {"a": 1.0}, device_of(model), progress=False)
+                    {"a": 1.0}, device_of(model), math.ceil(len(idx) / batch), "rssnet test", progress, every_s)
 
 
-def placenet_metrics(model: PlaceNet, data: PlaceNetData, idx: Sequence[int], batch: int = 4096) -> dict[str, float]:
-    """Per-candidate mean Poisson NLL ('nll', = 'loss') on rows ``idx``."""
+def placenet_metrics(model: PlaceNet, data: PlaceNetData, idx: Sequence[int], batch: int = 4096,
+                     progress: bool = False, every_s: float = EVERY_S) -> dict[str, float]:
+    """Per-candidate mean Poisson NLL ('nll', = 'loss') on rows ``idx``; ``progress`` as for
+    disnet_metrics."""
     arrays = {"features": data.features, "counts": data.counts}
     return evaluate(model, iter_batches(arrays, as_rows(idx), batch), placenet_terms,
-                    {"nll": 1.0}, device_of(model), progress=False)
+                    {"nll": 1.0}, device_of(model), math.ceil(len(idx) / batch), "placenet test", progress, every_s)

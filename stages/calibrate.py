@@ -21,6 +21,8 @@ recorded radar with its own profile's: pipeline.config.own_radar), lidar.*, spli
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from pipeline.cache import DONE
@@ -29,7 +31,7 @@ from pipeline.errors import FrameError
 from pipeline.frame import LABEL_COLUMNS, label_rows
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import cartesian_to_spherical, invert_transform
-from pipeline.split import assign_split
+from pipeline.split import SplitFallbackWarning, assign_split
 from pipeline.stage import ArraySpec, FrameStage
 from pipeline.working import common_fov_mask, crop_resize
 
@@ -84,7 +86,9 @@ def _split_table(inputs: FrameInputs) -> dict[str, int]:
         ids = reader.frame_ids()
         seqs = [reader.sequence_of(f) for f in ids]
         s = cfg.split
-        parts = assign_split(ids, seqs, s.rule, tuple(s.fractions), s.block_len, s.seed)
+        with warnings.catch_warnings():  # said once, on the stage's summary (summarise), not per worker
+            warnings.simplefilter("ignore", SplitFallbackWarning)
+            parts = assign_split(ids, seqs, s.rule, tuple(s.fractions), s.block_len, s.seed)
         return dict(zip(ids, (int(p) for p in parts)))
 
     return process_memo(("split", inputs.env.data_root, cfg.split, cfg.dataset, inputs.env.session), build)
@@ -146,15 +150,15 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
 def summarise(store, cfg: Config) -> list[str]:
     """What the finished frames lost or lack, one line each (none when nothing): radar points
     dropped beyond radar.max_range_m, frames without a recorded ego motion, labelled objects of
-    unknown velocity."""
+    unknown velocity, a 'sequence' split that fell back to blocks."""
     done = store.status() == DONE
     n_done = int(done.sum())
     if not n_done:
         return []
+    lines = _split_fallback(store, cfg, done)
     beyond = np.asarray(store.array("radar_beyond_range")[:])[done].astype(np.int64)
     kept = np.asarray(store.array("radar_count")[:])[done].astype(np.int64)
     known = np.asarray(store.array("ego_velocity_known")[:], bool)[done]
-    lines = []
     if beyond.sum():
         share = beyond.sum() / (beyond.sum() + kept.sum())
         lines.append(f"radar points beyond radar.max_range_m = {cfg.radar.max_range_m:g} m dropped: {beyond.sum():,} of "
@@ -170,6 +174,25 @@ def summarise(store, cfg: Config) -> list[str]:
         lines.append(f"labelled objects of unknown velocity: {int(unknown.sum()):,} of {int(real.sum()):,}: their "
                      f"points get a static object's Doppler (the export lists their frames)")
     return lines
+
+
+def _split_fallback(store, cfg: Config, done: np.ndarray) -> list[str]:
+    """The line saying that split.rule 'sequence' fell back to blocks (too few sequences for the
+    parts: pipeline.split), where a sequence of the ``done`` frames lies in several parts (the rule
+    itself never splits one); until 2026-12-07 a Python warning with its source line, from every
+    worker process."""
+    if cfg.split.rule != "sequence":
+        return []
+    seqs = np.asarray(store.array("sequence")[:], dtype=object)[done].astype(str)
+    split = np.asarray(store.array("split")[:])[done]
+    pairs = np.unique(np.stack([seqs, split.astype(str)]), axis=1)  # (2, distinct sequence-part pairs)
+    names, parts_per_seq = np.unique(pairs[0], return_counts=True)
+    n_split = int((parts_per_seq > 1).sum())
+    if not n_split:
+        return []
+    return [f"split.rule = 'sequence': too few sequences for the {np.count_nonzero(cfg.split.fractions)} parts, so "
+            f"blocks of {cfg.split.block_len} frames inside sequences were assigned instead (sequences here that "
+            f"lie in several parts: {n_split} of {len(names)})"]
 
 
 def check(cfg: Config) -> None:

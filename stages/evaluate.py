@@ -349,8 +349,10 @@ def physics_frame(f: FrameInputs, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
 
 def physics_checks(inputs, cfg: Config, frames) -> dict:
     """The physics checks over ``frames`` (indices of calibrated frames): :func:`physics_frame`
-    pooled and summarised (``pipeline check-physics``)."""
-    rows = [physics_frame(inputs.frame(int(i)), cfg) for i in frames]
+    pooled and summarised (``pipeline check-physics``), with progress on stderr."""
+    rows = [physics_frame(inputs.frame(int(i)), cfg)
+            for i in progress_bar(frames, total=len(frames), desc="check-physics", unit="frame",
+                                  enabled=inputs.progress, every_s=cfg.run.progress_every_s)]
     width = len(RANGE_ESTIMATORS) + 1
     return _physics_summary(np.concatenate([a for a, _ in rows]) if rows else np.zeros((0, width)),
                             np.concatenate([b for _, b in rows]) if rows else np.zeros(0))

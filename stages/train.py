@@ -175,13 +175,14 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                      "frames_without_radar_points": int((table["ok"] & (table["count"] == 0)).sum()),
                      "checkpoints": _final_place(inputs, out), "settings": transfer.settings(cfg)}
     summary["baselines_test"] = _baselines(inputs, table, idx, cfg, root)
+    shown = {"progress": inputs.progress, "every_s": cfg.run.progress_every_s}  # the test passes' progress
     if "disnet" in nets:
         res = train_disnet(cfg, d_data, root / "disnet", progress=inputs.progress,
                            fingerprint=training_fingerprint(inputs, cfg, "disnet"), publish=inputs.publish)
         model = load_disnet(cfg, res.best_path, device="cpu")
         summary["disnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from,
                              "val": res.best_metric,
-                             "test": disnet_metrics(model, d_data, idx["test"], cfg.train.alpha) if len(idx["test"]) else {}}
+                             "test": disnet_metrics(model, d_data, idx["test"], cfg.train.alpha, **shown) if len(idx["test"]) else {}}
         best_meta = read_meta(res.best_path)
         refit = best_meta.get("count_refit")
         if refit:
@@ -194,7 +195,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         model = load_rssnet(cfg, res.best_path, device="cpu")
         test = rssnet_data(inputs, table, 2, 2)
         summary["rssnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
-                             "test": rssnet_metrics(model, test, test.train_idx) if len(test.rss) else {}}
+                             "test": rssnet_metrics(model, test, test.train_idx, **shown) if len(test.rss) else {}}
     if "placenet" in nets:
         summary["placenet"] = _train_placenet(inputs, cfg, table, root)
     (root / "metrics.json").write_text(json.dumps(summary, indent=2, default=float))
@@ -297,7 +298,8 @@ def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
            "rows": {"train": int(len(data.train_idx)), "val": int(len(data.val_idx)), "test": int(len(test.train_idx))},
            "test": {}}
     if len(test.train_idx):
-        out["test"] = placenet_metrics(model, test, test.train_idx)
+        out["test"] = placenet_metrics(model, test, test.train_idx, progress=inputs.progress,
+                                       every_s=cfg.run.progress_every_s)
         out["constant_intensity_test_nll"] = placenet_baseline(data.counts, data.train_idx, test.train_idx,
                                                                test.counts)["nll"]
     return out

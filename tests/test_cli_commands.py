@@ -118,6 +118,16 @@ def test_check_physics_reports_every_range_rule_and_the_static_doppler(world, tm
     assert float(values["doppler (static points)"]["median_abs_dv_mps"]) < 0.1
 
 
+def test_check_physics_logs_its_progress(world, tmp_path):
+    """check-physics read every calibrated frame without a word on stderr until 2026-12-07 (tens
+    of thousands of frames: minutes of silence in a log)."""
+    out = CliRunner().invoke(main, ["check-physics", "--dataset", "synthetic", "--data-root", str(world),
+                                    "--cache", str(tmp_path / "cache"), "--workers", "1",
+                                    "--set", "run.progress_every_s=0.000001"])
+    assert out.exit_code == 0, out.output
+    assert re.search(r"^check-physics: \d/4 \(\d+%\)", out.stderr, re.M), out.stderr
+
+
 def test_estimate_sigma_uses_the_frames_asked_for(world, tmp_path):
     from pipeline.config import load_config
     from pipeline.heatmap import sigma_from_frames
@@ -303,3 +313,16 @@ def test_estimate_sigma_says_no_frames_found_and_no_radar(tmp_path):
                                     "--set", "camera.crop_rows=0,48"])
     assert out.exit_code == 2 and "Traceback" not in out.output
     assert out.stderr.startswith("error: dataset kitti has no radar (frame 000007)"), out.stderr
+
+
+def test_verify_logs_each_stage_without_escape_codes(world, tmp_path):
+    """verify's bars were left open until every stage was read, so on a log each later one was drawn
+    below the first and closed with cursor-up escape codes (lines of '\\x1b[A' in the file; found
+    2026-12-07): each stage's bar is now closed when the next stage's reading begins."""
+    cache = ["--dataset", "synthetic", "--data-root", str(world), "--cache", str(tmp_path / "cache")]
+    assert CliRunner().invoke(main, ["run", "heatmaps", *cache, "--workers", "1"]).exit_code == 0
+    out = CliRunner().invoke(main, ["verify", *cache, "--set", "run.progress_every_s=0.000001"])
+    assert out.exit_code == 0, out.output
+    assert "\x1b" not in out.stderr and "\r" not in out.stderr, repr(out.stderr)
+    assert re.search(r"^verify calibrate: \d+/\d+ \(\d+%\)", out.stderr, re.M), out.stderr
+    assert re.search(r"^verify heatmaps: \d+/\d+ \(\d+%\)", out.stderr, re.M), out.stderr

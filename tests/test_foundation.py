@@ -869,6 +869,20 @@ def test_a_killed_forced_rebuild_leaves_downstream_stale(tmp_path, monkeypatch):
     assert not make_pipeline(tmp_path).is_current("train")
 
 
+def test_the_stale_marks_of_a_rebuild_say_it_is_under_way(tmp_path):
+    """The downstream stages are marked stale as the rebuild starts, above its progress and its own
+    line: until 2026-12-07 the log said 'upstream calibrate was recomputed' there, also where the
+    rebuild was then cut off."""
+    make_pipeline(tmp_path).run("train")
+    lines: list[str] = []
+    pipe = make_pipeline(tmp_path)
+    pipe.log = lines.append
+    pipe.run("calibrate", force=True)
+    marks = [line for line in lines if "marked stale" in line]
+    assert marks and all(line.endswith("marked stale (upstream calibrate is being recomputed)") for line in marks)
+    assert lines.index(marks[-1]) < next(i for i, line in enumerate(lines) if line.startswith("calibrate "))
+
+
 def test_force_on_a_dataset_stage_starts_from_scratch_and_status_follows_upstream(tmp_path):
     pipe = make_pipeline(tmp_path)
     pipe.run("train")

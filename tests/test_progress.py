@@ -148,3 +148,18 @@ def test_a_run_logged_to_a_file_shows_each_stage_and_epoch(tmp_path, capsys):
         if not expect:  # nothing at all from a run shorter than the interval (training's loss postfix included)
             assert not [line for line in lines if re.search(r": \d+/\d+ \(\d+%\)|epoch", line)], err
         assert "\r" not in err
+
+
+def test_the_world_a_run_generates_follows_the_interval(tmp_path):
+    """The synthetic world a run generates into its cache took its progress lines at the default
+    minute whatever run.progress_every_s said (0, for none, included) until 2026-12-07."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    sets = ["--set", "dataset.world_frames=4", "--set", "dataset.world_sequence_len=4"]
+    for every_s, expect in (("0.000001", True), ("0", False)):
+        out = CliRunner().invoke(main, ["run", "calibrate", "--workers", "1", "--cache", str(tmp_path / every_s),
+                                        *sets, "--set", f"run.progress_every_s={every_s}"])
+        assert out.exit_code == 0, out.output
+        assert bool(re.search(r"^generate-world: \d/4 \(\d+%\)", out.stderr, re.M)) == expect, out.stderr

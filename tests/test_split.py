@@ -117,3 +117,23 @@ def test_each_part_gets_a_unit_before_any_part_gets_a_second(lengths):
     for seed in range(5):
         parts = assign_split(fids, sids, "sequence", (0.6, 0.1, 0.3), seed=seed)
         assert set(parts.tolist()) == {TRAIN, VAL, TEST}, seed
+
+
+def test_a_run_says_the_fallback_once_on_calibrates_summary(tmp_path):
+    """A run on too few sequences printed the SplitFallbackWarning as Python shows warnings (the
+    source file and line of calibrate under it), from every worker process, until 2026-12-07; the
+    calibrate summary says it now, once."""
+    from click.testing import CliRunner
+
+    from pipeline.cli import main
+
+    sets = ["--set", "dataset.world_frames=4", "--set", "dataset.world_sequence_len=2", "--set", "split.block_len=1",
+            "--set", "split.rule=sequence"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = CliRunner().invoke(main, ["run", "calibrate", "--workers", "1", "--cache", str(tmp_path), *sets])
+    assert out.exit_code == 0, out.output
+    assert not [w for w in caught if issubclass(w.category, SplitFallbackWarning)]
+    notes = [line.strip() for line in out.stderr.splitlines() if "split.rule = 'sequence'" in line]
+    assert notes == ["split.rule = 'sequence': too few sequences for the 3 parts, so blocks of 1 frames inside "
+                     "sequences were assigned instead (sequences here that lie in several parts: 1 of 2)"], out.stderr

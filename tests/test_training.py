@@ -1341,3 +1341,17 @@ def test_a_finished_train_takes_a_changed_prior_mix_setting(tmp_path, monkeypatc
     mtime = res.best_path.stat().st_mtime_ns
     T.train_disnet(val, data, tmp_path, progress=False)
     assert res.best_path.stat().st_mtime_ns == mtime
+
+
+def test_test_metrics_log_their_progress(tmp_path, capsys):
+    """The train stage's passes over the test split (Dis-Net, RSS-Net, PlaceNet) drew no progress
+    until 2026-12-07: minutes of silence in a log after the last epoch on a large dataset."""
+    data = make_disnet_data(n=16)
+    cfg = tiny_cfg(**{"train.epochs": "1"})
+    model = Inf.load_disnet(cfg, T.train_disnet(cfg, data, tmp_path, progress=False).best_path)
+    capsys.readouterr()
+    quiet = T.disnet_metrics(model, data, data.val_idx, cfg.train.alpha)
+    assert capsys.readouterr().err == ""
+    shown = T.disnet_metrics(model, data, data.val_idx, cfg.train.alpha, progress=True, every_s=1e-6)
+    assert shown == quiet
+    assert re.search(r"^disnet test: \d/1 \(\d+%\)", capsys.readouterr().err, re.M)

@@ -37,9 +37,10 @@ MAX_WORKERS = 2
 
 def generate(out_dir: str | Path, frames: int, seed: int, resolution_wh: tuple[int, int] = (640, 384),
              scene_mix: tuple[str, ...] = ("residential", "urban", "highway"), lidar_lines: int = 64,
-             sequence_len: int = 40, progress: bool = False) -> dict:
+             sequence_len: int = 40, progress: bool = False, every_s: float = 60.0) -> dict:  # 60: pipeline.progress.EVERY_S
     """Generate ``frames`` frames into ``out_dir``; returns a summary
-    {frames, sequences, seconds, mean_radar_points, out_dir}.
+    {frames, sequences, seconds, mean_radar_points, out_dir}. ``progress``: on stderr
+    (pipeline.progress.bar; ``every_s``: seconds between its lines where stderr is no terminal).
 
     Raises ConfigError for invalid arguments. An existing world in ``out_dir`` is replaced.
     """
@@ -58,7 +59,7 @@ def generate(out_dir: str | Path, frames: int, seed: int, resolution_wh: tuple[i
              (int(resolution_wh[0]), int(resolution_wh[1])), int(lidar_lines))
             for i, first in enumerate(range(0, frames, sequence_len))]
     results = _run_jobs([j for j in jobs if j[1] not in finished], frames, progress,
-                        sum(j[3] for j in jobs if j[1] in finished))
+                        sum(j[3] for j in jobs if j[1] in finished), every_s)
     results = sorted([*finished.values(), *results], key=lambda r: r["first_frame"])
     _write_index(root, results)
     counts = [c for r in results for c in r["radar_points"]]
@@ -148,13 +149,15 @@ def _watch_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="watch-parent", daemon=True).start()
 
 
-def _run_jobs(jobs: list[tuple], frames: int, progress: bool, done_frames: int = 0) -> list[dict]:
+def _run_jobs(jobs: list[tuple], frames: int, progress: bool, done_frames: int = 0,
+              every_s: float = 60.0) -> list[dict]:
     """Run the sequence jobs (in 2 processes when there are several); results in sequence order.
     Each finished sequence's entry is recorded under ``partial/`` as it comes in (what a later run
     resumes from); ``done_frames`` of the ``frames`` were made by an earlier run."""
     from pipeline.progress import bar as progress_bar
 
-    bar = progress_bar(total=frames, initial=done_frames, unit="frame", enabled=progress, desc="generate-world")
+    bar = progress_bar(total=frames, initial=done_frames, unit="frame", enabled=progress, desc="generate-world",
+                       every_s=every_s)
     workers = min(MAX_WORKERS, len(jobs), os.cpu_count() or 1)
     results = []
 
