@@ -25,6 +25,7 @@ from pipeline.errors import MetadataError, PipelineError
 from pipeline.executor import FrameInputs
 from pipeline.lock import rewriting, stage_lock
 from pipeline.stage import FrameStage
+from pipeline.staleness import options_text
 
 if TYPE_CHECKING:
     from pipeline.runner import Pipeline
@@ -108,6 +109,7 @@ def relocate_cache(pipe: Pipeline, check_frames: int = 3, wait_s: float = 0.0) -
                             f"another place with the same frames; `pipeline status` shows what is current)")
     checked = _same_data(pipe, check_frames)
     before = pipe.at(old)
+    _refuse_leaving_behind(pipe, before, old)
     moved = []
     with contextlib.ExitStack() as locks:
         for name in pipe.order:
@@ -120,6 +122,30 @@ def relocate_cache(pipe: Pipeline, check_frames: int = 3, wait_s: float = 0.0) -
                 out.set_fingerprint(pipe.fingerprint(name), data_root=pipe.env.data_root)
                 moved.append(name)
     return {"from": old, "to": absolute_root(pipe.env.data_root), "checked_frames": checked, "stages": moved[::-1]}
+
+
+def _refuse_leaving_behind(pipe: Pipeline, before: Pipeline, old: str) -> None:
+    """PipelineError, before anything is changed, where outputs were made with other settings than
+    this command's (``before``: this command at the ``old`` data root): relocating now would keep
+    only the others, and leave those as made from ``old``, which no later relocate finds (its first
+    stage is moved), so that the next run would recompute them, training included (until
+    2026-12-07). Outputs that are stale for other reasons (marked stale, made from another output)
+    are left, as before."""
+    made_with_other = []
+    for name in pipe.order[1:]:
+        try:
+            why = before.why_stale(name)
+        except PipelineError:  # a damaged record: the run that reads it says so
+            continue
+        if why is not None and why.sets:
+            made_with_other.append(name)
+    if not made_with_other:
+        return
+    sets, _ = before.forgotten_sets(made_with_other)
+    raise PipelineError(f"dataset '{pipe.env.dataset}': the outputs of {', '.join(made_with_other)} were made with other settings "
+                        f"than this command's, so relocating with them would leave those outputs as made from "
+                        f"{old}, to be recomputed by the next run: run relocate with the options they were made "
+                        f"with, `{options_text(sets)}`; nothing was changed")
 
 
 def _same_data(pipe: Pipeline, n: int) -> list[str]:

@@ -686,6 +686,29 @@ def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, mon
     assert reports["calibrate"].processed == len(IDS) and not make_pipeline(tmp_path).is_current("heatmaps")
 
 
+def test_relocate_without_the_settings_an_output_was_made_with_is_refused(tmp_path, monkeypatch):
+    """A relocate given other settings than an output was made with (a --set left out) kept the
+    outputs current under its own and moved the first stage, so that no later relocate found the
+    others, and the next run recomputed them, the trained nets included (until 2026-12-07). It is
+    refused, naming the options, with nothing changed; with them it keeps every output."""
+    def at(root: Path, overrides: dict | None = None) -> Pipeline:
+        env = RunEnv(cfg=load_config("synthetic", overrides or {}, environ={}), cache_root=str(tmp_path / "cache"),
+                     dataset="fake", data_root=str(root))
+        return Pipeline(fake_stages.STAGES, env, Executor(1), progress=False, log=lambda m: None,
+                        frame_lister=lambda: list(IDS))
+
+    monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(tmp_path / "calls.txt"))
+    at(tmp_path, {"train.epochs": "3"}).run("train")
+    moved = tmp_path / "moved"
+    with pytest.raises(PipelineError, match=re.escape("the outputs of train were made with other settings than this command's") +
+                       ".*" + re.escape("`--set train.epochs=3`; nothing was changed")):
+        relocate_cache(at(moved))
+    assert at(tmp_path, {"train.epochs": "3"}).is_current("train")  # still current where it was made
+    result = relocate_cache(at(moved, {"train.epochs": "3"}))
+    assert result["stages"] == ["calibrate", "heatmaps", "train"]
+    assert at(moved, {"train.epochs": "3"}).is_current("train")
+
+
 def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced(tmp_path, monkeypatch):
     """Until 2026-12-05 a --data-root listing other frames (a mistyped path, a subset of the data) made
     every stage stale and recomputed it without a word, the trained nets included; only a root with
