@@ -129,6 +129,10 @@ class FrameRecord:
     labels: annotated objects in {D} (empty when the dataset has none).
     extras: per-radar-point side information some datasets have (synthetic world: ``object_id``
         (M,) int32, ``material`` (M,) int32; -1 for ghosts and clutter).
+    counts: this frame's own counts of what its reader found or left out, under the keys of the
+        reader's ``frame_counts`` (MSC-Rad4R: the radar points' axis order, the Doppler checked,
+        lidar beams without a return); empty for readers that give none. Calibrate stores them
+        per frame and says their sums.
     """
 
     frame_id: str
@@ -146,6 +150,7 @@ class FrameRecord:
     ego_velocity_known: bool = True
     labels: list[Object3D] = field(default_factory=list)
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=dict)
 
     def validate(self) -> "FrameRecord":
         """Check shapes and dtypes; raise ValueError naming the field that is wrong."""

@@ -14,7 +14,9 @@ Writes (calibrate.zarr, one chunk per frame):
   motion for the frame, ego_velocity is zero); timestamp float64 s; sequence str; split int8
   (0 train, 1 val, 2 test); has_radar bool; radar_beyond_range int32, the radar points in the
   common field of view but beyond radar.max_range_m (dropped, as the method has it; counted so
-  that a run says how many: summarise()).
+  that a run says how many: summarise()); reader_counts (K,) int32, only for a reader that gives
+  per-frame counts (Reader.frame_counts: MSC-Rad4R's axis order, Doppler check and lidar beams
+  without a return), the frame's own counts in that order, which summarise() sums.
 Config: dataset.*, camera.*, radar fov/range/capacity and Doppler convention (the readers read the
 recorded radar with its own profile's: pipeline.config.own_radar), lidar.*, split.*.
 """
@@ -31,6 +33,7 @@ from pipeline.errors import FrameError
 from pipeline.frame import LABEL_COLUMNS, label_rows
 from pipeline.executor import FrameInputs, process_memo
 from pipeline.geometry import cartesian_to_spherical, invert_transform
+from pipeline.readers import reader_class
 from pipeline.split import SplitFallbackWarning, assign_split
 from pipeline.stage import ArraySpec, FrameStage
 from pipeline.working import common_fov_mask, crop_resize
@@ -39,7 +42,9 @@ MAX_LABELS = 64
 
 VERSION = 3
 """Bump when the outputs change for the same inputs (2: ego_velocity_known, radar_beyond_range; 3: labels
-gain the pitch and roll columns)."""
+gain the pitch and roll columns). Not bumped for reader_counts (2026-12-07): only the MSC-Rad4R reader
+gives counts, and its own version (5, in this stage's fingerprint: Pipeline.fingerprint) recomputes
+its outputs, while the other datasets' outputs are as before."""
 
 CONFIG_KEYS = (
     "dataset.reader", "dataset.world_frames", "dataset.world_seed", "dataset.world_resolution", "dataset.world_sequence_len",
@@ -74,7 +79,15 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
         ArraySpec("has_radar", (), "bool", "dataset records radar", fill=False),
         ArraySpec("radar_beyond_range", (), "int32", "radar points in the field of view beyond max range (dropped)",
                   fill=-1),
-    )
+    ) + _counts_spec(cfg)
+
+
+def _counts_spec(cfg: Config) -> tuple[ArraySpec, ...]:
+    """reader_counts, for a reader that gives per-frame counts (Reader.frame_counts); none for the
+    others, whose outputs and caches stay as they were."""
+    keys = reader_class(cfg).frame_counts
+    return (ArraySpec("reader_counts", (len(keys),), "int32", "per-frame counts of the reader: " + ", ".join(keys),
+                      fill=-1),) if keys else ()
 
 
 def _split_table(inputs: FrameInputs) -> dict[str, int]:
@@ -135,6 +148,8 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
         lidar = lidar[np.sort(inputs.rng(0, 7).choice(len(lidar), cap, replace=False))]
     obj = rec.extras.get("object_id", np.full(n, -2, np.int32))[kept]
     mat = rec.extras.get("material", np.full(n, -2, np.int32))[kept]
+    keys = reader_class(cfg).frame_counts  # as outputs() declared them
+    counts = {"reader_counts": np.array([rec.counts[k] for k in keys], np.int32)} if keys else {}
     return {
         "image": image_w, "K": K_w, "T_radar_cam": rec.T_radar_cam, "T_radar_lidar": rec.T_radar_lidar,
         "lidar": lidar.astype(np.float32), "radar": radar.astype(np.float32),
@@ -143,14 +158,16 @@ def process(inputs: FrameInputs, cfg: Config) -> dict[str, np.ndarray]:
         "ego_velocity_known": np.bool_(rec.ego_velocity_known),
         "radar_beyond_range": np.int32(in_view.sum() - kept.sum()),
         "timestamp": np.float64(rec.timestamp_s), "sequence": np.asarray(rec.sequence_id, dtype=object),
-        "split": np.int8(_split_table(inputs)[inputs.frame_id]), "has_radar": np.bool_(rec.has_radar),
+        "split": np.int8(_split_table(inputs)[inputs.frame_id]), "has_radar": np.bool_(rec.has_radar), **counts,
     }
 
 
 def summarise(store, cfg: Config) -> list[str]:
     """What the finished frames lost or lack, one line each (none when nothing): radar points
     dropped beyond radar.max_range_m, frames without a recorded ego motion, labelled objects of
-    unknown velocity, a 'sequence' split that fell back to blocks."""
+    unknown velocity, a 'sequence' split that fell back to blocks; and the sums of the reader's
+    per-frame counts in its own words (Reader.counts_summary: MSC-Rad4R's radar axis order, Doppler
+    check and lidar beams without a return), said on every run."""
     done = store.status() == DONE
     n_done = int(done.sum())
     if not n_done:
@@ -173,7 +190,17 @@ def summarise(store, cfg: Config) -> list[str]:
     if unknown.any():
         lines.append(f"labelled objects of unknown velocity: {int(unknown.sum()):,} of {int(real.sum()):,}: their "
                      f"points get a static object's Doppler (the export lists their frames)")
-    return lines
+    return lines + _reader_counts(store, cfg, done)
+
+
+def _reader_counts(store, cfg: Config, done: np.ndarray) -> list[str]:
+    """The reader's lines on its per-frame counts summed over the ``done`` frames (none for a
+    reader without counts)."""
+    reader = reader_class(cfg)
+    if not reader.frame_counts:
+        return []
+    totals = np.asarray(store.array("reader_counts")[:])[done].astype(np.int64).sum(axis=0)
+    return reader.counts_summary(dict(zip(reader.frame_counts, (int(v) for v in totals))), int(done.sum()))
 
 
 def _split_fallback(store, cfg: Config, done: np.ndarray) -> list[str]:

@@ -50,14 +50,20 @@ class Reader:
     """Base class of the dataset readers.
 
     Subclasses implement :meth:`frame_ids`, :meth:`sequence_of` and :meth:`read`; they count what
-    they skip in ``self._counts`` (reported by :meth:`report`). Construction does no heavy work:
-    the index is built lazily on first use.
+    they skip in ``self._counts`` (reported by :meth:`report`: the running totals of this instance,
+    which a worker process shares over its frames). What a run is to say per frame they give in
+    each record's ``counts`` (:attr:`frame_counts`). Construction does no heavy work: the index is
+    built lazily on first use.
     """
 
     name = "base"
     version = 1
     """Bumped when what the reader returns for the same files changes: part of the first stage's
     fingerprint from 2 on (so caches made by an earlier version are recomputed)."""
+    frame_counts: tuple[str, ...] = ()
+    """The keys of each record's ``counts`` (FrameRecord), in this order: calibrate stores them per
+    frame (its ``reader_counts`` array, declared only for a reader that gives some) and its summary
+    says their sums over the finished frames (:meth:`counts_summary`)."""
 
     def __init__(self, cfg: Config, data_root: str | Path) -> None:
         self.cfg = cfg
@@ -85,6 +91,12 @@ class Reader:
     def report(self) -> dict:
         """Counters of what the reader skipped or dropped, e.g. ``{"skipped_missing": 3}``."""
         return dict(self._counts)
+
+    @classmethod
+    def counts_summary(cls, totals: dict[str, int], n_frames: int) -> list[str]:
+        """Lines for calibrate's summary from ``totals``, the sums of the :attr:`frame_counts` over
+        ``n_frames`` finished frames; none for a reader without per-frame counts."""
+        return []
 
     def skip_missing(self, frame_id: str, missing: list[Path | str]) -> None:
         """Count a frame skipped for want of files, and keep the first few as examples."""

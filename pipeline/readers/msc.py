@@ -26,6 +26,16 @@ checked frames counted as ``doppler_checked``). The check only holds the reading
 the ego speed and the boresight above: slower frames are not checked, and a frame where no reading
 agrees (ego-motion-compensated Doppler, say) is read as configured and counted.
 
+What a first run on real data is to be checked by: each record counts its frame's radar axis order,
+whether its Doppler was checked and agreed, and its lidar beams without a return
+(:attr:`MscReader.frame_counts`); calibrate stores them per frame and its summary, printed under the
+stage's line, says their sums over the finished frames (:meth:`MscReader.counts_summary`), e.g.
+"MSC-Rad4R radar points in forward-left-up axes on 1,180 of 1,180 frames, right-down-forward on 0;
+lidar beams without a return left out: 3,400,000" and "MSC-Rad4R Doppler checked against the ego
+motion on 1,050 of 1,180 frames: agreed on all". Of the reader's other counts (:meth:`Reader.report`),
+``pairs_dropped`` is said where a run lists the frames; the calibration's ``extrinsics_in_millimetres``
+and ``radar_calibration_in_lidar_axes`` stay in the reader instance.
+
 Folder layout (one sequence per root, e.g. URBAN_D0/):
 ``1_IMAGE/LEFT/NNNNNN.png`` + ``1_IMAGE/timestamp_image_left.txt``; ``2_LIDAR/PCD/NNNNNN.pcd`` +
 ``2_LIDAR/timestamp_lidar.txt``; ``3_RADAR/PCD/NNNNNN.pcd`` (fields x y z beta alpha power doppler
@@ -227,13 +237,42 @@ class MscReader(Reader):
     """Common calibration, conversion and record building; use ``MscReader.open`` to get a reader."""
 
     name = "msc"
-    version = 4
+    version = 5
     """2 (2026-12-06): K's principal point in OpenCV's pixel convention (MATLAB_PIXEL_ORIGIN); lidar
     beams without a return (NaN or the origin in an organized scan) left out, counted in the report's
     lidar_points_without_return. 3 (2026-12-07): a radar calibration in the forward-left-up axes is
     read as such (:func:`calibration_axes`; before, every one was taken as right-down-forward). 4
     (2026-12-07): a frame whose Doppler disagrees with the ego motion where another reading of the
-    fields agrees is refused (:meth:`_check_doppler`); dataset.msc_doppler_field."""
+    fields agrees is refused (:meth:`_check_doppler`); dataset.msc_doppler_field. 5 (2026-12-07):
+    each record gives its frame's counts (:attr:`frame_counts`), which calibrate stores in an
+    output array of its own (reader_counts) and sums in its summary: an MSC-Rad4R calibrate output
+    made before lacks that array."""
+    frame_counts = ("radar_axes_flu", "radar_axes_rdf", "doppler_checked", "doppler_disagrees_with_every_reading",
+                    "lidar_points_without_return")
+    """Per frame: 1 where the radar points are in the forward-left-up axes (as MSC-Rad4R's data page
+    says), 1 where in the Oculii's own right-down-forward ones (:func:`radar_axes`); 1 where the
+    Doppler was checked against the ego motion, 1 where it was but no reading of the fields agreed
+    (:meth:`_check_doppler`); the lidar beams without a return left out."""
+
+    @classmethod
+    def counts_summary(cls, totals: dict[str, int], n_frames: int) -> list[str]:
+        """What calibrate's summary says of the unverified assumptions (module docstring), e.g.
+        'MSC-Rad4R radar points in forward-left-up axes on 1,180 of 1,180 frames, right-down-forward
+        on 0; lidar beams without a return left out: 3,400,000' and a line on the Doppler check."""
+        checked, none_agreed = totals["doppler_checked"], totals["doppler_disagrees_with_every_reading"]
+        lines = [f"MSC-Rad4R radar points in forward-left-up axes on {totals['radar_axes_flu']:,} of {n_frames:,} "
+                 f"frames, right-down-forward on {totals['radar_axes_rdf']:,}; lidar beams without a return left "
+                 f"out: {totals['lidar_points_without_return']:,}"]
+        if not checked:
+            lines.append(f"MSC-Rad4R Doppler checked against the ego motion on none of {n_frames:,} frames (checked "
+                         f"from {DOPPLER_CHECK_MIN_SPEED_MPS:g} m/s ahead and {DOPPLER_CHECK_MIN_POINTS} points): "
+                         f"its field and sign are as configured, unchecked")
+            return lines
+        agreed = f"all but {none_agreed:,}, where no reading of the fields agreed (read as configured)" \
+            if none_agreed else "all"
+        lines.append(f"MSC-Rad4R Doppler checked against the ego motion on {checked:,} of {n_frames:,} frames: "
+                     f"agreed on {agreed}")
+        return lines
 
     def __init__(self, cfg: Config, data_root: str | Path, pair_tolerance_s: float = 0.05,
                  calib_dir: str | Path | None = None) -> None:
@@ -289,9 +328,10 @@ class MscReader(Reader):
         field = self.cfg.dataset.msc_doppler_field
         return field, "power" if field == "doppler" else "doppler"
 
-    def _radar_D(self, fields: dict[str, np.ndarray], path: Path, fid: str) -> np.ndarray:
-        """(M, 5) float32 in {D} from the radar fields: xyz (in either axis order), radar.doppler_sign
-        times the Doppler field, the RSS field (:attr:`_doppler_fields`)."""
+    def _radar_D(self, fields: dict[str, np.ndarray], path: Path, fid: str) -> tuple[np.ndarray, str]:
+        """((M, 5) float32 in {D} from the radar fields: xyz (in either axis order), radar.doppler_sign
+        times the Doppler field, the RSS field (:attr:`_doppler_fields`); the points' axis order as
+        read, 'rdf' or 'flu' (:func:`radar_axes`))."""
         missing = [k for k in ("x", "y", "z", "doppler", "power") if k not in fields]
         if missing:
             raise ReaderError(path, f"radar point fields {missing} are missing", frame=fid)
@@ -302,7 +342,6 @@ class MscReader(Reader):
         check_finite(out, path, fid, "radar")
         check_not_empty(out, path, fid, "radar")
         axes = radar_axes(xyz, path, fid)
-        self._counts[f"radar_axes_{axes}"] += 1
         if axes == "rdf":
             out[:, :3] = xyz @ R_NATIVE_D  # = (R_NATIVE_D.T @ p)^T
         if "range" in fields:  # xyz must be centred on the radar, not moved into another sensor's frame
@@ -311,24 +350,22 @@ class MscReader(Reader):
                 raise ReaderError(path, f"radar x, y, z are not centred on the radar: their distance differs from "
                                         f"the range field by {off:.2f} m (median); points in another sensor's frame "
                                         "are not supported", frame=fid)
-        return out
+        return out, axes
 
-    def _check_doppler(self, radar_D: np.ndarray, speed_mps: float, path: Path, fid: str) -> None:
-        """ReaderError when the frame's Doppler as read disagrees with the ego motion and another
+    def _check_doppler(self, radar_D: np.ndarray, speed_mps: float, path: Path, fid: str) -> dict[str, int]:
+        """The frame's counts doppler_checked and doppler_disagrees_with_every_reading (0 or 1 each);
+        ReaderError when the frame's Doppler as read disagrees with the ego motion and another
         reading of the two fields agrees (:func:`static_doppler_shares`), naming the ``--set`` that
-        fixes it. Checked from DOPPLER_CHECK_MIN_SPEED_MPS and DOPPLER_CHECK_MIN_POINTS on (counted:
-        doppler_checked; doppler_disagrees_with_every_reading where none agrees)."""
+        fixes it. Checked from DOPPLER_CHECK_MIN_SPEED_MPS and DOPPLER_CHECK_MIN_POINTS on."""
         off_origin = np.count_nonzero(radar_D[:, :3].any(axis=1))
         if speed_mps < DOPPLER_CHECK_MIN_SPEED_MPS or off_origin < DOPPLER_CHECK_MIN_POINTS:
-            return
+            return {"doppler_checked": 0, "doppler_disagrees_with_every_reading": 0}
         shares = static_doppler_shares(radar_D, speed_mps)
-        self._counts["doppler_checked"] += 1
         best = 1 + int(np.argmax(shares[1:]))
         if shares[0] >= DOPPLER_LOW_SHARE:
-            return
+            return {"doppler_checked": 1, "doppler_disagrees_with_every_reading": 0}
         if shares[best] < DOPPLER_HIGH_SHARE or shares[best] < 2 * shares[0]:
-            self._counts["doppler_disagrees_with_every_reading"] += 1
-            return
+            return {"doppler_checked": 1, "doppler_disagrees_with_every_reading": 1}
         field, other = self._doppler_fields
         sign = self.radar.doppler_sign
         if best == 1:
@@ -345,8 +382,10 @@ class MscReader(Reader):
                                 f"run again with {fix}", frame=fid)
 
     def _record(self, fid: str, seq: str, t: float, image_bgr: np.ndarray, image_path: Path,
-                lidar_xyzi: np.ndarray, lidar_path: Path, radar_D: np.ndarray, speed: float,
-                radar_path: Path) -> FrameRecord:
+                lidar_xyzi: np.ndarray, lidar_path: Path, radar_D: np.ndarray, axes: str,
+                speed: float, radar_path: Path) -> FrameRecord:
+        """The frame's record with its counts (:attr:`frame_counts`; also added to :meth:`report`'s);
+        ``radar_D`` and ``axes`` as :meth:`_radar_D` gives them."""
         K, dist, T_radar_cam, T_radar_lidar = self.calibration
         h, w = image_bgr.shape[:2]
         if (w, h) != tuple(self.cfg.camera.full_size):
@@ -356,18 +395,21 @@ class MscReader(Reader):
         xyz = lidar_xyzi[:, :3]
         no_return = ~np.all(np.isfinite(xyz), axis=1) | np.all(xyz == 0, axis=1)
         if no_return.any():  # an organized Ouster scan keeps its beams without a return, as NaN or (0, 0, 0)
-            self._counts["lidar_points_without_return"] += int(no_return.sum())
             lidar_xyzi = lidar_xyzi[~no_return]
         check_finite(lidar_xyzi, lidar_path, fid, "lidar")
         check_not_empty(lidar_xyzi, lidar_path, fid, "lidar")
         lidar_D = lidar_xyzi[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
-        self._check_doppler(radar_D, speed, radar_path, fid)
-        record = FrameRecord(
+        counts = {"radar_axes_flu": int(axes == "flu"), "radar_axes_rdf": int(axes == "rdf"),
+                  **self._check_doppler(radar_D, speed, radar_path, fid),
+                  "lidar_points_without_return": int(no_return.sum())}
+        record = self.finish(FrameRecord(
             frame_id=fid, sequence_id=seq, timestamp_s=t, image=np.ascontiguousarray(image), K=K,
             lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar_xyzi[:, 3].astype(np.float32),
             radar_D=radar_D, T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam,
-            ego_velocity_D=np.array([speed, 0.0, 0.0]), has_radar=True)
-        return self.finish(record, radar_path)
+            ego_velocity_D=np.array([speed, 0.0, 0.0]), has_radar=True,
+            counts={k: counts[k] for k in self.frame_counts}), radar_path)
+        self._counts.update({k: v for k, v in counts.items() if v})
+        return record
 
 
 # -- extracted folders -------------------------------------------------------------------------------
@@ -454,14 +496,14 @@ class MscFolderReader(MscReader):
         if row > 0 and self._stamps[row - 1] >= t:
             raise ReaderError(_stamp_path(self.root / "3_RADAR", "radar"), f"non-monotonic timestamps: "
                               f"{t:.6f} s is not after the previous scan ({self._stamps[row - 1]:.6f} s)", frame=frame_id)
-        radar_D = self._radar_D(_pcd_fields(radar_path, frame_id), radar_path, frame_id)
+        radar_D, axes = self._radar_D(_pcd_fields(radar_path, frame_id), radar_path, frame_id)
         lidar = _pcd_fields(lidar_path, frame_id)
         intensity = lidar.get("intensity", lidar.get("reflectivity", np.zeros_like(lidar["x"])))
         lidar_xyzi = np.stack([lidar["x"], lidar["y"], lidar["z"], intensity], axis=1).astype(np.float64)
         image = cv2.imread(str(require_file(image_path, frame_id, "image")), cv2.IMREAD_COLOR)
         if image is None:
             raise ReaderError(image_path, "image cannot be decoded (corrupt or not an image)", frame=frame_id)
-        return self._record(frame_id, self.root.name, t, image, image_path, lidar_xyzi, lidar_path, radar_D,
+        return self._record(frame_id, self.root.name, t, image, image_path, lidar_xyzi, lidar_path, radar_D, axes,
                             self._speed(t), radar_path)
 
 
@@ -582,9 +624,9 @@ class MscBagReader(MscReader):
             image = image_msg_to_bgr(self._one(bag, "image", t_image, frame_id))
         except ValueError as exc:
             raise ReaderError(bag, f"malformed message: {exc}", frame=frame_id) from None
-        radar_D = self._radar_D(radar, bag, frame_id)
+        radar_D, axes = self._radar_D(radar, bag, frame_id)
         intensity = lidar.get("intensity", lidar.get("reflectivity", np.zeros_like(lidar["x"])))
         lidar_xyzi = np.stack([lidar["x"], lidar["y"], lidar["z"], intensity], axis=1)
         order = np.argsort(vel_t)
         speed = float(np.interp(t, vel_t[order], vel_v[order]))
-        return self._record(frame_id, bag.stem, t, image, bag, lidar_xyzi, bag, radar_D, speed, bag)
+        return self._record(frame_id, bag.stem, t, image, bag, lidar_xyzi, bag, radar_D, axes, speed, bag)
