@@ -524,10 +524,17 @@ def test_calibrate_says_the_readers_counts_summed_over_its_frames_serial_and_on_
     from pipeline.runner import Pipeline
     from stages import calibrate
 
+    from pipeline.readers.msc import R_NATIVE_D
+
     without_return = _counted_folder(tmp_path / "data")
+    # the same mounting as the fixture's, its attitude given for the forward-left-up frame and its
+    # translation in millimetres (both read as such, and counted per frame)
+    (tmp_path / "data" / "5_CALIBRATION_URBAN" / "CALIBRATION_CAMERA_RADAR.txt").write_text(
+        "attitude of RADAR in camera coordinate\n" + "\n".join(" ".join(f"{v:g}" for v in r) for r in R_NATIVE_D)
+        + "\ntranslation of RADAR in camera coordinate\n" + " ".join(str(1000 * v) for v in T_CAM_NATIVE_T) + "\n")
     cfg = _cfg().with_overrides({"camera.crop_rows": "0,48", "camera.working_size": "64,48"})
     keys = ("radar_axes_flu", "radar_axes_rdf", "doppler_checked", "doppler_disagrees_with_every_reading",
-            "lidar_points_without_return")
+            "lidar_points_without_return", "radar_calibration_in_lidar_axes", "calibration_in_millimetres")
     notes, counts = {}, {}
     for workers in (1, 2):
         cache = tmp_path / f"cache{workers}"
@@ -540,11 +547,14 @@ def test_calibrate_says_the_readers_counts_summed_over_its_frames_serial_and_on_
         counts[workers] = np.asarray(group["reader_counts"][:])
         assert keys == tuple(get_reader(cfg, tmp_path / "data").frame_counts) and ", ".join(keys) in \
             group["reader_counts"].attrs["units"]
-    np.testing.assert_array_equal(counts[1], [[0, 1, 0, 0, 0], [1, 0, 1, 0, without_return], [1, 0, 1, 1, 0]])
+    np.testing.assert_array_equal(counts[1], [[0, 1, 0, 0, 0, 1, 1], [1, 0, 1, 0, without_return, 1, 1],
+                                              [1, 0, 1, 1, 0, 1, 1]])
     np.testing.assert_array_equal(counts[1], counts[2])
     assert notes[1] == notes[2] == [
         f"MSC-Rad4R radar points in forward-left-up axes on 2 of 3 frames, right-down-forward on 1; lidar beams "
         f"without a return left out: {without_return}",
+        "MSC-Rad4R radar calibration (CALIBRATION_CAMERA_RADAR) in forward-left-up axes on 3 of 3 frames, "
+        "right-down-forward on 0; extrinsics read as millimetres on 3",
         "MSC-Rad4R Doppler checked against the ego motion on 2 of 3 frames: agreed on all but 1, where no reading "
         "of the fields agreed (read as configured)"], notes[1]
 
@@ -566,5 +576,7 @@ def test_the_counts_summary_says_when_no_frame_s_doppler_was_checked():
     lines = MscFolderReader.counts_summary(totals, 1180)
     assert lines == ["MSC-Rad4R radar points in forward-left-up axes on 1,180 of 1,180 frames, right-down-forward "
                      "on 0; lidar beams without a return left out: 3,400,000",
+                     "MSC-Rad4R radar calibration (CALIBRATION_CAMERA_RADAR) in forward-left-up axes on 0 of 1,180 "
+                     "frames, right-down-forward on 1,180; extrinsics read as millimetres on 0",
                      "MSC-Rad4R Doppler checked against the ego motion on none of 1,180 frames (checked from 1 m/s "
                      "ahead and 20 points): its field and sign are as configured, unchecked"]

@@ -27,14 +27,15 @@ the ego speed and the boresight above: slower frames are not checked, and a fram
 agrees (ego-motion-compensated Doppler, say) is read as configured and counted.
 
 What a first run on real data is to be checked by: each record counts its frame's radar axis order,
-whether its Doppler was checked and agreed, and its lidar beams without a return
-(:attr:`MscReader.frame_counts`); calibrate stores them per frame and its summary, printed under the
-stage's line, says their sums over the finished frames (:meth:`MscReader.counts_summary`), e.g.
-"MSC-Rad4R radar points in forward-left-up axes on 1,180 of 1,180 frames, right-down-forward on 0;
-lidar beams without a return left out: 3,400,000" and "MSC-Rad4R Doppler checked against the ego
-motion on 1,050 of 1,180 frames: agreed on all". Of the reader's other counts (:meth:`Reader.report`),
-``pairs_dropped`` is said where a run lists the frames; the calibration's ``extrinsics_in_millimetres``
-and ``radar_calibration_in_lidar_axes`` stay in the reader instance.
+whether its Doppler was checked and agreed, its lidar beams without a return, and the axes and
+units its sequence's calibration was read in (:attr:`MscReader.frame_counts`); calibrate stores
+them per frame and its summary, printed under the stage's line, says their sums over the finished
+frames (:meth:`MscReader.counts_summary`), e.g. "MSC-Rad4R radar points in forward-left-up axes on
+1,180 of 1,180 frames, right-down-forward on 0; lidar beams without a return left out: 3,400,000",
+"MSC-Rad4R radar calibration (CALIBRATION_CAMERA_RADAR) in forward-left-up axes on 0 of 1,180
+frames, right-down-forward on 1,180; extrinsics read as millimetres on 0" and "MSC-Rad4R Doppler
+checked against the ego motion on 1,050 of 1,180 frames: agreed on all". Of the reader's other
+counts (:meth:`Reader.report`), ``pairs_dropped`` is said where a run lists the frames.
 
 Folder layout (one sequence per root, e.g. URBAN_D0/):
 ``1_IMAGE/LEFT/NNNNNN.png`` + ``1_IMAGE/timestamp_image_left.txt``; ``2_LIDAR/PCD/NNNNNN.pcd`` +
@@ -248,11 +249,13 @@ class MscReader(Reader):
     output array of its own (reader_counts) and sums in its summary: an MSC-Rad4R calibrate output
     made before lacks that array."""
     frame_counts = ("radar_axes_flu", "radar_axes_rdf", "doppler_checked", "doppler_disagrees_with_every_reading",
-                    "lidar_points_without_return")
+                    "lidar_points_without_return", "radar_calibration_in_lidar_axes", "calibration_in_millimetres")
     """Per frame: 1 where the radar points are in the forward-left-up axes (as MSC-Rad4R's data page
     says), 1 where in the Oculii's own right-down-forward ones (:func:`radar_axes`); 1 where the
     Doppler was checked against the ego motion, 1 where it was but no reading of the fields agreed
-    (:meth:`_check_doppler`); the lidar beams without a return left out."""
+    (:meth:`_check_doppler`); the lidar beams without a return left out; 1 where the sequence's
+    CALIBRATION_CAMERA_RADAR gives the forward-left-up frame's attitude (:func:`calibration_axes`;
+    0: the native one's), 1 where its extrinsics were read as millimetres (:func:`read_extrinsics`)."""
 
     @classmethod
     def counts_summary(cls, totals: dict[str, int], n_frames: int) -> list[str]:
@@ -260,9 +263,13 @@ class MscReader(Reader):
         'MSC-Rad4R radar points in forward-left-up axes on 1,180 of 1,180 frames, right-down-forward
         on 0; lidar beams without a return left out: 3,400,000' and a line on the Doppler check."""
         checked, none_agreed = totals["doppler_checked"], totals["doppler_disagrees_with_every_reading"]
+        in_lidar_axes = totals["radar_calibration_in_lidar_axes"]
         lines = [f"MSC-Rad4R radar points in forward-left-up axes on {totals['radar_axes_flu']:,} of {n_frames:,} "
                  f"frames, right-down-forward on {totals['radar_axes_rdf']:,}; lidar beams without a return left "
-                 f"out: {totals['lidar_points_without_return']:,}"]
+                 f"out: {totals['lidar_points_without_return']:,}",
+                 f"MSC-Rad4R radar calibration (CALIBRATION_CAMERA_RADAR) in forward-left-up axes on "
+                 f"{in_lidar_axes:,} of {n_frames:,} frames, right-down-forward on {n_frames - in_lidar_axes:,}; "
+                 f"extrinsics read as millimetres on {totals['calibration_in_millimetres']:,}"]
         if not checked:
             lines.append(f"MSC-Rad4R Doppler checked against the ego motion on none of {n_frames:,} frames (checked "
                          f"from {DOPPLER_CHECK_MIN_SPEED_MPS:g} m/s ahead and {DOPPLER_CHECK_MIN_POINTS} points): "
@@ -316,6 +323,8 @@ class MscReader(Reader):
         self._counts["extrinsics_in_millimetres"] = int(mm_r) + int(mm_l)
         axes = calibration_axes(T_cam_calib[:3, :3], radar_file)
         self._counts["radar_calibration_in_lidar_axes"] = int(axes == "flu")
+        self._calibration_counts = {"radar_calibration_in_lidar_axes": int(axes == "flu"),
+                                    "calibration_in_millimetres": int(mm_r or mm_l)}  # each frame's
         T_calib_D = np.eye(4)
         if axes == "rdf":
             T_calib_D[:3, :3] = R_NATIVE_D
@@ -401,14 +410,14 @@ class MscReader(Reader):
         lidar_D = lidar_xyzi[:, :3] @ T_radar_lidar[:3, :3].T + T_radar_lidar[:3, 3]
         counts = {"radar_axes_flu": int(axes == "flu"), "radar_axes_rdf": int(axes == "rdf"),
                   **self._check_doppler(radar_D, speed, radar_path, fid),
-                  "lidar_points_without_return": int(no_return.sum())}
+                  "lidar_points_without_return": int(no_return.sum()), **self._calibration_counts}
         record = self.finish(FrameRecord(
             frame_id=fid, sequence_id=seq, timestamp_s=t, image=np.ascontiguousarray(image), K=K,
             lidar_D=lidar_D.astype(np.float32), lidar_intensity=lidar_xyzi[:, 3].astype(np.float32),
             radar_D=radar_D, T_radar_lidar=T_radar_lidar, T_radar_cam=T_radar_cam,
             ego_velocity_D=np.array([speed, 0.0, 0.0]), has_radar=True,
             counts={k: counts[k] for k in self.frame_counts}), radar_path)
-        self._counts.update({k: v for k, v in counts.items() if v})
+        self._counts.update({k: v for k, v in counts.items() if v and k not in self._calibration_counts})  # once
         return record
 
 
