@@ -123,7 +123,8 @@ def _baselines(inputs, table, idx, cfg: Config, root: Path) -> dict[str, float]:
     from pipeline.net_baselines import disnet_baseline, mean_map_baseline, rssnet_baseline
 
     heat = inputs.store("heatmaps").array("heatmap")
-    mean_map = mean_map_baseline(heat, idx["train"])  # read once: every training heatmap
+    mean_map = mean_map_baseline(heat, idx["train"], progress=inputs.progress,  # read once: every training heatmap
+                                 every_s=cfg.run.progress_every_s)
     out: dict[str, float] = {}
     if len(idx["test"]):
         d = disnet_baseline(heat, table["count"], idx["train"], idx["test"], mean_map=mean_map)
@@ -260,7 +261,8 @@ def _save_mean_map(inputs, root: Path) -> None:
     table = frame_table(inputs)
     train = np.flatnonzero(table["ok"] & (table["count"] > 0) & (table["split"] == 0))
     if len(train):
-        mean_map = mean_map_baseline(inputs.store("heatmaps").array("heatmap"), train).astype(np.float32)
+        mean_map = mean_map_baseline(inputs.store("heatmaps").array("heatmap"), train, progress=inputs.progress,
+                                     every_s=inputs.cfg.run.progress_every_s).astype(np.float32)
         np.save(root / MEAN_MAP_FILE, mean_map, allow_pickle=False)
 
 
