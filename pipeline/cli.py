@@ -608,10 +608,10 @@ def _refuse_another_world(out: Path, wanted: dict) -> None:
 @_handle_errors
 def estimate_sigma(dataset, data_root, cache_root, sets, frames_spec):
     """Estimate the heatmap Sigma (full-resolution pixels) from radar points on annotated objects."""
+    from pipeline.frame_selection import parse_frames
     from pipeline.heatmap import sigma_from_frames
     from pipeline.progress import bar
     from pipeline.readers import get_reader
-    from pipeline.frame_selection import parse_frames
 
     env = _context(dataset, data_root, cache_root, sets)
     _ensure_world(env, True)  # as run, ablate and check-physics do (else: 0 frames)

@@ -376,10 +376,11 @@ class Pipeline:
         return [n for n in self.order if n in out]
 
     def invalidate_downstream(self, name: str) -> None:
-        """After ``name`` was rebuilt (forced, or its output was missing, e.g. deleted by hand, or
-        stale) its fingerprint may equal the one its downstream outputs were made from, yet its
-        outputs are new (training is not bit-reproducible across thread counts): mark every
-        downstream output stale so that the next run recomputes it."""
+        """As ``name`` starts to be rebuilt (forced, or its output was missing, e.g. deleted by hand,
+        or stale), before any of it is written: its fingerprint may equal the one its downstream
+        outputs were made from, yet its outputs will be new (training is not bit-reproducible across
+        thread counts): mark every downstream output stale so that the next run recomputes it, also
+        where this one is killed while rebuilding."""
         for other in self.downstream(name):
             stage = self.stages[other]
             store = self.env.store(other) if isinstance(stage, FrameStage) else self.env.dir(other)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import ConfigError
+from pipeline.progress import EVERY_S, bar as progress_bar
 from pipeline.world.materials import MATERIALS
 from pipeline.world.radar import RadarModel
 from pipeline.world.rig import LIDAR_PATTERNS, make_rig
@@ -37,7 +38,7 @@ MAX_WORKERS = 2
 
 def generate(out_dir: str | Path, frames: int, seed: int, resolution_wh: tuple[int, int] = (640, 384),
              scene_mix: tuple[str, ...] = ("residential", "urban", "highway"), lidar_lines: int = 64,
-             sequence_len: int = 40, progress: bool = False, every_s: float = 60.0) -> dict:  # 60: pipeline.progress.EVERY_S
+             sequence_len: int = 40, progress: bool = False, every_s: float = EVERY_S) -> dict:
     """Generate ``frames`` frames into ``out_dir``; returns a summary
     {frames, sequences, seconds, mean_radar_points, out_dir}. ``progress``: on stderr
     (pipeline.progress.bar; ``every_s``: seconds between its lines where stderr is no terminal).
@@ -150,12 +151,10 @@ def _watch_parent(parent_pid: int) -> None:
 
 
 def _run_jobs(jobs: list[tuple], frames: int, progress: bool, done_frames: int = 0,
-              every_s: float = 60.0) -> list[dict]:
+              every_s: float = EVERY_S) -> list[dict]:
     """Run the sequence jobs (in 2 processes when there are several); results in sequence order.
     Each finished sequence's entry is recorded under ``partial/`` as it comes in (what a later run
     resumes from); ``done_frames`` of the ``frames`` were made by an earlier run."""
-    from pipeline.progress import bar as progress_bar
-
     bar = progress_bar(total=frames, initial=done_frames, unit="frame", enabled=progress, desc="generate-world",
                        every_s=every_s)
     workers = min(MAX_WORKERS, len(jobs), os.cpu_count() or 1)
