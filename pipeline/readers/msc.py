@@ -70,7 +70,7 @@ import numpy as np
 from pipeline.config import Config
 from pipeline.errors import ReaderError
 from pipeline.frame import FrameRecord
-from pipeline.geometry import invert_transform
+from pipeline.geometry import invert_transform, radial_velocity
 from pipeline.readers.base import (Reader, check_finite, check_intrinsics, check_not_empty, check_rigid,
                                    require_file)
 
@@ -141,13 +141,13 @@ def calibration_axes(R_cam_radar: np.ndarray, path: Path) -> str:
 def static_doppler_shares(radar_D: np.ndarray, speed_mps: float) -> np.ndarray:
     """(4,) shares of the points of ``radar_D`` (M, 5: x, y, z m in {D}, Doppler m/s, RSS; M > 0)
     whose reading is within DOPPLER_TOLERANCE_MPS of the range rate of a static point seen from a
-    radar moving at (speed_mps, 0, 0) in {D}, -speed * x / |p|, for four readings of the last two
-    columns: the Doppler as read, its opposite, the RSS column, its opposite. Most points of a street
-    scene are static: the right reading has a large share."""
+    radar moving at (speed_mps, 0, 0) in {D} (:func:`pipeline.geometry.radial_velocity`: -speed * x /
+    |p|), for four readings of the last two columns: the Doppler as read, its opposite, the RSS
+    column, its opposite; points at the origin left out. Most points of a street scene are static:
+    the right reading has a large share."""
     xyz = radar_D[:, :3].astype(np.float64)
-    distance_m = np.linalg.norm(xyz, axis=1)
-    seen = distance_m > 0
-    static_mps = -speed_mps * xyz[seen, 0] / distance_m[seen]
+    seen = np.any(xyz != 0, axis=1)
+    static_mps = radial_velocity(xyz[seen], np.array([speed_mps, 0.0, 0.0]))
     readings = radar_D[seen][:, [3, 3, 4, 4]].astype(np.float64) * np.array([1.0, -1.0, 1.0, -1.0])
     return np.mean(np.abs(readings - static_mps[:, None]) <= DOPPLER_TOLERANCE_MPS, axis=0)
 
