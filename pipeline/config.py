@@ -583,14 +583,37 @@ def check_relations(cfg: "Config") -> None:
                           f"{cfg.radar.rss_max:g}")
 
 
-CHOICES: dict[str, tuple[str, ...]] = {"dataset.msc_doppler_field": ("doppler", "power")}
-"""The values each text key of this table may take, checked where :data:`LIMITS` are."""
+SPLIT_CHOICES = ("train", "val", "test", "all")
+"""The values of a key naming the frames a stage works on: a split, or every frame."""
+
+CHOICES: dict[str, tuple[str, ...]] = {
+    "dataset.msc_doppler_field": ("doppler", "power"),
+    "split.rule": ("sequence", "block", "random"),
+    "disnet.prior_mix": ("off", "val"),
+    "train.lr_schedule": ("constant", "cosine"),
+    "train.select_on": ("loss", "kl"),
+    "synth.split": SPLIT_CHOICES,
+    "synth.range_estimator": ("mean", "nearest", "median", "min"),
+    "synth.no_support": ("widen", "drop"),
+    "synth.sampling": ("iid", "systematic"),
+    "synth.count": ("predicted", "disnet", "oracle"),
+    "synth.placement": ("lidar", "ray"),
+    "synth.rss_sampling": ("mean", "residual"),
+    "export.image_format": ("source", "png", "jpg"),
+    "eval.split": SPLIT_CHOICES,
+}
+"""The values each text key of this table may take, checked where :data:`LIMITS` are (profile,
+environment, --set), so that a misspelt one is refused by every command, whichever stages it runs.
+The modules that act on a key take its tuple from here. Devices are not listed: 'cuda:1' and the
+like are checked against the machine (pipeline.inference.select_device)."""
 
 
 def check_limit(key: str, value: Any) -> None:
     """ConfigError when ``value`` of ``key`` is outside its :data:`LIMITS` or :data:`CHOICES` (none: accepted)."""
     if key in CHOICES and value not in CHOICES[key]:
-        raise ConfigError(f"'{key}' must be one of {', '.join(CHOICES[key])}, got '{value}'")
+        near = difflib.get_close_matches(str(value).lower(), CHOICES[key], n=1, cutoff=0.6)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        raise ConfigError(f"'{key}' must be one of {', '.join(CHOICES[key])}, got '{value}'{hint}")
     limit = LIMITS.get(key)
     if limit is None:
         return

@@ -433,7 +433,7 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
 
 
 IMAGE_FORMATS = {"source": None, "png": ".png", "jpg": ".jpg"}
-"""Values of export.image_format and the suffix each writes (source: the dataset's own file as it
+"""The suffix each value of export.image_format (pipeline.config.CHOICES) writes (source: the dataset's own file as it
 is, the reader's image as PNG where there is none)."""
 
 

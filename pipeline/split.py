@@ -21,8 +21,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pipeline.config import CHOICES
+
 TRAIN, VAL, TEST = 0, 1, 2
-RULES = ("sequence", "block", "random")
+RULES = CHOICES["split.rule"]
 
 
 class SplitFallbackWarning(UserWarning):

@@ -17,12 +17,13 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pipeline.config import CHOICES
 from pipeline.frame import LABEL_COLUMNS, Object3D, box_rotations, check_shape, label_rows, to_box_frame
 from pipeline.geometry import cartesian_to_spherical, norms_m, pixel_rays_D, radial_velocity, wrap_doppler
 
-ESTIMATORS = ("mean", "nearest", "median", "min")
+ESTIMATORS = CHOICES["synth.range_estimator"]
 """Range estimators over the angular window: 'mean' is the paper's rule (eqs. 13-15)."""
-NO_SUPPORT_RULES = ("widen", "drop")
+NO_SUPPORT_RULES = CHOICES["synth.no_support"]
 """What to do when no lidar point lies in the window."""
 MAX_WIDENINGS = 4
 """'widen' doubles the window at most this many times (so up to 16x the resolution)."""
@@ -42,7 +43,7 @@ REFILL_MAX_FACTOR = 8
 # --------------------------------------------------------------------------- pixel sampling
 
 
-SAMPLINGS = ("iid", "systematic")
+SAMPLINGS = CHOICES["synth.sampling"]
 """How ``sample_pixels`` draws: independent draws (the paper) or one stratified (systematic) draw."""
 
 

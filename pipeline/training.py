@@ -35,7 +35,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from pipeline import augment
 from pipeline import checkpoint as ckpt
-from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS
+from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, check_limit
 from pipeline.continuation import continuation_problem
 from pipeline.errors import ConfigError
 from pipeline.net_baselines import mean_map_baseline, speed_count_prior
@@ -299,15 +299,10 @@ def publish_checkpoints(publish: Publish, best: Path, last: Path, with_best: boo
     return bool(publish([last, last.with_suffix(".json")]))
 
 
-SELECT_ON = ("loss", "kl")
-"""Values of train.select_on."""
-
-
 def selection_key(select_on: str, weights: dict[str, float]) -> str:
     """The loss term that picks the best epoch: ``select_on`` when the net has that term (Dis-Net's
     'kl'), else the weighted total 'loss' (RSS-Net has one term). ConfigError for unknown values."""
-    if select_on not in SELECT_ON:
-        raise ConfigError(f"train.select_on must be one of {SELECT_ON}, got {select_on!r}")
+    check_limit("train.select_on", select_on)
     return select_on if select_on in weights else "loss"
 
 
@@ -322,12 +317,8 @@ def unit_interval(key: str, value: float, include_one: bool = True) -> float:
 def check_training(cfg) -> None:
     """ConfigError for training settings no net could train with (the train stage's check, run
     before any output is touched; the same checks also guard the training functions)."""
-    # epochs, intervals (cutmix, jitter, ema_decay, ...) are held to pipeline.config.LIMITS where set
-    selection_key(cfg.train.select_on, {})
-    if cfg.disnet.prior_mix not in PRIOR_MIX_CHOICES:
-        raise ConfigError(f"disnet.prior_mix must be one of {', '.join(PRIOR_MIX_CHOICES)}; got '{cfg.disnet.prior_mix}'")
-    if cfg.train.lr_schedule not in LR_SCHEDULES:
-        raise ConfigError(f"train.lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got '{cfg.train.lr_schedule}'")
+    # epochs, intervals (cutmix, jitter, ema_decay, ...) and the text choices (select_on, lr_schedule,
+    # prior_mix) are held to pipeline.config.LIMITS and CHOICES where set
     select_device(cfg.train.device)
 
 
@@ -340,16 +331,12 @@ def make_ema(model: nn.Module, decay: float) -> AveragedModel | None:
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(decay), use_buffers=True)
 
 
-LR_SCHEDULES = ("constant", "cosine")
-
-
 def epoch_lr(cfg, epoch: int, base_lr: float | None = None, epochs: int | None = None) -> float:
     """Learning rate of epoch ``epoch`` (1-based) of ``epochs`` (None: cfg.train.epochs) under
     cfg.train.lr_schedule, starting from ``base_lr`` (None: cfg.train.lr)."""
     t = cfg.train
     lr = t.lr if base_lr is None else base_lr
-    if t.lr_schedule not in LR_SCHEDULES:
-        raise ConfigError(f"train.lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got '{t.lr_schedule}'")
+    check_limit("train.lr_schedule", t.lr_schedule)
     if t.lr_schedule == "constant":
         return lr
     return lr * 0.5 * (1.0 + math.cos(math.pi * (epoch - 1) / (t.epochs if epochs is None else epochs)))
@@ -544,8 +531,6 @@ def train_disnet(cfg, data: DisNetData, out_dir: str | Path, progress: bool = Tr
 
 PRIOR_MIX_KEY = "prior_mix"
 """Dis-Net checkpoint metadata: how its prior share was chosen (:func:`choose_prior_mix`)."""
-PRIOR_MIX_CHOICES = ("val", "off")
-"""Values of disnet.prior_mix."""
 PRIOR_MIX_GRID = np.round(np.linspace(0.0, 1.0, 21), 2)
 """The prior shares w disnet.prior_mix = 'val' tries."""
 
@@ -556,8 +541,7 @@ def choose_prior_mix(model: DisNet, data: DisNetData, idx: Sequence[int], settin
     else, without a prior or without frames, 0. Returns the record the checkpoint keeps: w, the
     setting and (with 'val') the val L_KL with and without the mixture."""
     model.set_prior_mix(0.0)
-    if setting not in PRIOR_MIX_CHOICES:
-        raise ConfigError(f"disnet.prior_mix must be one of {', '.join(PRIOR_MIX_CHOICES)}, got '{setting}'")
+    check_limit("disnet.prior_mix", setting)
     if setting == "off" or not model.use_prior or len(idx) == 0:
         return {"w": 0.0, "setting": setting}
     kl = prior_mix_kl(model, data, idx)

@@ -45,7 +45,7 @@ from pipeline.geometry import invert_transform, project_to_image
 from pipeline.metrics import region_mask
 from pipeline.progress import EVERY_S, bar as progress_bar
 from pipeline.stage import ArraySpec, DatasetStage, FrameStage
-from stages.synthesize import (SPLITS, capacity, check_generation, check_split, generate, lidar_tree, models,
+from stages.synthesize import (SPLITS, capacity, check_generation, generate, lidar_tree, models,
                                split_mask)
 from stages.train import MEAN_MAP_FILE
 
@@ -399,7 +399,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
     from pipeline.report import write_report
     from pipeline.transfer import comparison
 
-    check(cfg)
+    check_generation(cfg)
     calib, syn_store, part = inputs.store("calibrate"), inputs.store("synthesize"), inputs.store(FRAMES.name)
     has_radar = np.asarray(calib.array("has_radar")[:], bool)
     in_split = split_mask(np.asarray(calib.array("split")[:]), cfg.eval.split) & has_radar
@@ -658,15 +658,9 @@ def histogram_units(cfg) -> tuple[dict[str, str], dict[str, str]]:
             {"rss": f"RSS (real {real_unit}, synthetic {syn_unit})"})
 
 
-def check(cfg: Config) -> None:
-    """ConfigError for an unknown eval.split or generation settings no frame could run with."""
-    check_split("eval.split", cfg.eval.split)
-    check_generation(cfg)
-
-
 FRAMES = FrameStage(name="evaluate-frames", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize"),
                     config_keys=FRAME_KEYS, outputs=frame_outputs, process=evaluate_frame, select=select_frames,
-                    version=VERSION, doc=__doc__, check=check, part_of="evaluate", ready=ready)
+                    version=VERSION, doc=__doc__, check=check_generation, part_of="evaluate", ready=ready)
 STAGE = DatasetStage(name="evaluate", upstream=("calibrate", "heatmaps", "patches", "train", "synthesize", FRAMES.name),
-                     config_keys=CONFIG_KEYS, version=REPORT_VERSION, run=run, doc=__doc__, check=check,
+                     config_keys=CONFIG_KEYS, version=REPORT_VERSION, run=run, doc=__doc__, check=check_generation,
                      local_files=True)

@@ -59,19 +59,7 @@ CONFIG_KEYS = ("synth.split", "synth.range_estimator", "synth.no_support", "synt
                "radar.store_max_points", "patches.r_c_px", "patches.r_l_m", "patches.range_image_size",
                "patches.patch_size_px")
 SPLITS = {"train": 0, "val": 1, "test": 2}
-
-
-COUNTS = ("predicted", "disnet", "oracle")
-"""synth.count: 'predicted', the geometric mean of Dis-Net's count and PlaceNet's (:func:`frame_count`)
-with the lidar placement and this dataset's nets, else Dis-Net's alone (:func:`uses_placenet_count`);
-'disnet', Dis-Net's alone (the paper); 'oracle', the frame's real one (for experiments)."""
-
-
-def check_split(key: str, name: str) -> None:
-    """ConfigError unless ``name`` (the value of config key ``key``) names a split or 'all'."""
-    if name != "all" and name not in SPLITS:
-        from pipeline.errors import ConfigError
-        raise ConfigError(f"{key} must be one of train, val, test, all; got '{name}'")
+"""Split codes of calibrate's ``split`` array; synth.split and eval.split may also be 'all'."""
 
 
 def split_mask(split: np.ndarray, name: str) -> np.ndarray:
@@ -89,10 +77,6 @@ OUTSIDE_NOTE_SHARE = 0.05
 """summarise() names a PlaceNet or RSS-Net input outside its training range on more than this share
 of the candidates or points (1% by construction on the training data:
 pipeline.input_range.RANGE_PERCENTILES)."""
-PLACEMENTS = ("lidar", "ray")
-"""Values of synth.placement."""
-RSS_SAMPLINGS = ("mean", "residual")
-"""Values of synth.rss_sampling."""
 RAY_HINT = " (or set synth.placement=ray, which needs no PlaceNet)"
 """Said where PlaceNet alone is missing."""
 
@@ -123,17 +107,10 @@ def outputs(cfg: Config) -> tuple[ArraySpec, ...]:
 def check_generation(cfg: Config) -> None:
     """ConfigError for generation settings no frame could run with (before any frame is tried)."""
     from pipeline.errors import ConfigError
-    from pipeline.synthesis import ESTIMATORS, NO_SUPPORT_RULES, SAMPLINGS
 
     s = cfg.synth
-    for key, value, allowed in (("range_estimator", s.range_estimator, ESTIMATORS),
-                                ("no_support", s.no_support, NO_SUPPORT_RULES), ("sampling", s.sampling, SAMPLINGS),
-                                ("placement", s.placement, PLACEMENTS), ("count", s.count, COUNTS),
-                                ("rss_sampling", s.rss_sampling, RSS_SAMPLINGS)):
-        if value not in allowed:
-            raise ConfigError(f"synth.{key} must be one of {', '.join(allowed)}; got '{value}'")
-    # numeric settings (refill_rounds, voxel_m, map_weight) are held to pipeline.config.LIMITS where set
-    check_split("synth.split", s.split)
+    # the text choices (placement, count, sampling, split, ...) and the numeric settings (refill_rounds,
+    # voxel_m, map_weight) are held to pipeline.config.CHOICES and LIMITS where set
     if not cfg.train.nets_from:  # trained here: refused before training, not after it
         left_out = [n for n in needed_nets(cfg) if n not in named_nets(cfg)]
         if left_out:

@@ -191,8 +191,8 @@ def test_a_number_that_is_no_id_is_refused_where_ids_are_numbers():
     assert parse_frames("1,a", ["a", "b"]) == [1, 0]  # ids that are no numbers: a number is an index
 
 
-@pytest.mark.parametrize("setting, words", [("split.rule=sequnce", "split.rule must be one of sequence"),
-                                            ("synth.count=orcale", "synth.count must be one of predicted, disnet, oracle")])
+@pytest.mark.parametrize("setting, words", [("split.rule=sequnce", "'split.rule' must be one of sequence"),
+                                            ("synth.count=orcale", "'synth.count' must be one of predicted, disnet, oracle")])
 def test_a_misspelt_choice_is_refused_before_any_output_is_touched(world, tmp_path, setting, words):
     """A typo in split.rule failed every calibrate frame, discarding a finished output; one in
     synth.count recomputed synthesize with the predicted count."""

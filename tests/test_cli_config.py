@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import re
 
+import pytest
+
 from click.testing import CliRunner
 
 from pipeline.cli import main
@@ -91,3 +93,41 @@ def test_a_value_the_nets_of_another_dataset_bring_is_named_so(tmp_path, monkeyp
     listed = _lines(out.output)
     assert listed["radar.name"] == ("Their radar", "the nets of vod")
     assert listed["radar.fov_az_deg"][1] in ("profile kitti", "default")
+
+
+def test_every_text_choice_is_held_where_it_is_set_with_the_nearest_named():
+    """Every key of CHOICES refuses other values when the configuration is built (profile,
+    environment, --set), naming the key, its values and the nearest; every default and profile
+    value is one of them; the modules that act on a key take the same values."""
+    from pipeline.config import CHOICES, SECTIONS, profile_names
+    from pipeline.errors import ConfigError
+    from pipeline.export import IMAGE_FORMATS
+
+    for key, values in CHOICES.items():
+        section, name = key.split(".")
+        assert getattr(SECTIONS[section](), name) in values, key
+        for profile in profile_names():
+            assert load_config(profile, environ={}).get(key) in values, (profile, key)
+        for value in values:
+            assert load_config("synthetic", {key: value}, environ={}).get(key) == value
+        near = values[0][:-1] + "x" if len(values[0]) > 3 else values[0] + "x"
+        with pytest.raises(ConfigError) as err:
+            load_config("synthetic", {key: near}, environ={})
+        assert str(err.value).startswith(f"'{key}' must be one of {', '.join(values)}, got '{near}'"), str(err.value)
+        assert str(err.value).endswith(f"; did you mean '{values[0]}'?"), str(err.value)
+    assert tuple(IMAGE_FORMATS) == CHOICES["export.image_format"]
+
+
+def test_a_misspelt_choice_is_refused_by_a_command_whose_stages_do_not_use_it(tmp_path):
+    """Until 2026-12-07 a text choice was checked by the stage that used it: `run calibrate --set
+    synth.placement=lidr` ran calibrate and `status` answered, leaving the typo unnoticed, and a
+    variable in the environment likewise."""
+    cache = str(tmp_path / "cache")
+    for args, env in ((["run", "calibrate", "--data-root", str(tmp_path / "none"), "--set", "synth.placement=lidr"], {}),
+                      (["status", "--set", "synth.placement=lidr"], {}),
+                      (["status"], {"PIPELINE__SYNTH__PLACEMENT": "lidr"})):
+        out = CliRunner().invoke(main, [*args, "--dataset", "synthetic", "--cache", cache], env=env)
+        assert out.exit_code == 2, out.output
+        assert "must be one of lidar, ray, got 'lidr'; did you mean 'lidar'?" in out.output, out.output
+        assert ("PIPELINE__SYNTH__PLACEMENT" in out.output) == bool(env), out.output
+    assert not (tmp_path / "cache").exists()

@@ -199,5 +199,5 @@ def test_residual_rss_sampling_needs_rssnets_residual_quantiles(tmp_path):
     save_checkpoint(tmp_path / "cache" / "synthetic" / "train" / "rssnet" / "best.safetensors", weights,
                     {RESIDUAL_KEY: np.linspace(-5, 5, len(RESIDUAL_LEVELS)).tolist()})
     ready(inputs, residual)
-    with pytest.raises(ConfigError, match="synth.rss_sampling must be one of mean, residual"):
+    with pytest.raises(ConfigError, match="'synth.rss_sampling' must be one of mean, residual"):
         check_generation(load_config("synthetic", {"synth.rss_sampling": "residuals"}, environ={}))

@@ -621,11 +621,11 @@ def test_bad_generation_settings_are_config_errors():
     from stages.synthesize import check_generation
 
     check_generation(load_config("synthetic", environ={}))
-    for key, value, words in (("synth.sampling", "sorted", "synth.sampling must be one of iid, systematic"),
+    for key, value, words in (("synth.sampling", "sorted", "'synth.sampling' must be one of iid, systematic"),
                               ("synth.range_estimator", "far", "synth.range_estimator"),
                               ("synth.no_support", "skip", "synth.no_support"),
                               ("synth.refill_rounds", "-1", "synth.refill_rounds' must be finite and >= 0"),
-                              ("synth.placement", "mesh", "synth.placement must be one of lidar, ray"),
+                              ("synth.placement", "mesh", "'synth.placement' must be one of lidar, ray"),
                               ("placement.voxel_m", "-1", "placement.voxel_m' must be finite and >= 0"),
                               ("placement.map_weight", "1.5", r"placement.map_weight' must be in \[0, 1\]"),
                               ("synth.device", "tpu", "synth.device must be 'auto', 'cpu' or 'cuda', got 'tpu'")):
