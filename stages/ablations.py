@@ -11,8 +11,10 @@ import json
 import platform
 import time
 from pathlib import Path
+from typing import Callable
 
 from pipeline.config import Config
+from pipeline.run_report import NAME_WIDTH
 from stages.train import disnet_data, frame_table, rssnet_data, training_fingerprint
 
 TABLE2 = (("image only", {"disnet.use_speed": "false"}), ("image + speed", {"disnet.use_speed": "true"}))
@@ -31,13 +33,26 @@ def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in name.lower()).strip("_")
 
 
-def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] = ("2", "3")) -> dict:
-    """Train every variant of the requested tables; returns the results and writes the report."""
+def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] = ("2", "3"),
+                  log: Callable[[str], None] = lambda line: None) -> dict:
+    """Train every variant of the requested tables; returns the results and writes the report.
+    ``log`` gets a line as each variant is done (its test losses, where it resumed, its time): a run
+    of several minutes a variant otherwise shows only the training's progress lines, which do not
+    name the variant, and in a log file none at all for a variant shorter than
+    run.progress_every_s."""
     from pipeline.inference import load_disnet, load_rssnet
     from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
 
     table = frame_table(inputs)
     results: dict = {"table2": [], "table3": []}
+    variants = [name for t, rows in (("2", TABLE2), ("3", TABLE3)) if t in tables for name, _ in rows]
+
+    def done(name: str, res, losses: str, seconds: float) -> None:
+        trained = (f"trained epochs {res.resumed_from + 1}-{res.epoch}" if res.epoch > res.resumed_from
+                   else f"already trained ({res.epoch} epochs)")
+        log(f"{'ablate':<{NAME_WIDTH}} {variants.index(name) + 1}/{len(variants)} {name}: {losses} "
+            f"(best epoch {res.best_epoch}), {trained}, {seconds:.0f} s")
+
     t_start = time.perf_counter()
     if "2" in tables:
         data, idx = disnet_data(inputs, table)
@@ -49,6 +64,7 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
             m = disnet_metrics(load_disnet(c, res.best_path, device="cpu"), data, idx["test"], c.train.alpha)
             results["table2"].append({"variant": name, "L_KL": m["kl"], "L_n": m["n"], "best_epoch": res.best_epoch,
                                       "seconds": time.perf_counter() - t0})
+            done(name, res, f"test L_KL {m['kl']:.4f}, L_n {m['n']:.4f}", time.perf_counter() - t0)
     if "3" in tables:
         train_val, test = rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2)
         for name, overrides in TABLE3:
@@ -59,6 +75,7 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
             m = rssnet_metrics(load_rssnet(c, res.best_path, device="cpu"), test, test.train_idx)
             results["table3"].append({"variant": name, "L_a": m["a"], "best_epoch": res.best_epoch,
                                       "seconds": time.perf_counter() - t0})
+            done(name, res, f"test L_a {m['a']:.3e}", time.perf_counter() - t0)
     results["meta"] = {"dataset": inputs.env.dataset, "frames": {k: int(v) for k, v in zip(
         ("train", "val", "test"), [(table["ok"] & (table["split"] == p)).sum() for p in (0, 1, 2)])},
         "epochs": cfg.train.epochs, "split_rule": cfg.split.rule, "hardware": _hardware(),

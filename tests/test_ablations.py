@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -46,6 +47,14 @@ def test_ablate_trains_every_variant_with_its_settings_and_resumes(world, tmp_pa
         for key, value in overrides.items():
             assert arch[key.split(".")[1]] == (value in ("true", "1")), (name, key, arch)
     assert len({r["L_a"] for r in results["table3"]}) > 1  # different inputs, different nets
+    # a line as each variant is done (until 2026-12-07 a log showed none: the bars name no variant)
+    said = [line for line in first.output.splitlines() if line.startswith("ablate ")]
+    n = len(TABLE2) + len(TABLE3)
+    assert len(said) == n, first.output
+    for k, (line, r) in enumerate(zip(said, results["table2"] + results["table3"]), 1):
+        losses = (f"test L_KL {r['L_KL']:.4f}, L_n {r['L_n']:.4f}" if "L_KL" in r else f"test L_a {r['L_a']:.3e}")
+        assert re.fullmatch(rf"ablate +{k}/{n} {re.escape(r['variant'])}: {losses} \(best epoch {r['best_epoch']}\), "
+                            rf"trained epochs 1-{TINY['train.epochs']}, \d+ s", line), line
     report = (out / "ablations.md").read_text()
     assert "## Table II: Dis-Net" in report and "## Table III: RSS-Net" in report
     rows = [line for line in report.splitlines() if line.startswith("| ")]
@@ -58,6 +67,9 @@ def test_ablate_trains_every_variant_with_its_settings_and_resumes(world, tmp_pa
     assert again.exit_code == 0, again.output
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*.safetensors")} == stamps  # resumed: nothing retrained
     rerun = json.loads((out / "ablations.json").read_text())
+    said = [line for line in again.output.splitlines() if line.startswith("ablate ")]
+    assert len(said) == len(TABLE3) and all(f"already trained ({TINY['train.epochs']} epochs)" in s for s in said), said
+    assert said[0].startswith("ablate          1/7 Cam: test L_a "), said
     assert rerun["table2"] == [] and [r["L_a"] for r in rerun["table3"]] == [r["L_a"] for r in results["table3"]]
 
 
