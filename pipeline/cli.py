@@ -659,9 +659,12 @@ def _skipped_text(skipped: list[tuple[str, str]], shown: int = 3) -> str:
 @main.command()
 @dataset_options
 @click.option("--tables", default="2,3", show_default=True, help="Which of the paper's tables: 2 (Dis-Net), 3 (RSS-Net).")
+@click.option("--seeds", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Train each variant this many times (train.seed, train.seed + 1, ...); the tables give "
+                   "the mean and the range: on small datasets one run does not rank the rows.")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="dask workers for the preprocessing stages.")
 @_handle_errors
-def ablate(dataset, data_root, cache_root, sets, tables, workers):
+def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
     """Train the paper's ablation variants (Tables II and III) and write a table next to the paper's."""
     from pipeline.runner import DatasetInputs
     from stages.ablations import run_ablations
@@ -679,7 +682,8 @@ def ablate(dataset, data_root, cache_root, sets, tables, workers):
     _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it
     folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, then uploaded
     work = folder.work_folder(env.cfg.run.staging_dir)
-    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen, log=pipe.log)
+    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen, log=pipe.log,
+                  seeds=seeds)
     if work is not folder:
         folder.upload(work)
     click.echo((Path(work.path) / "ablations.md").read_text())

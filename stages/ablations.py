@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
+
 from pipeline.config import Config
 from pipeline.run_report import NAME_WIDTH
 from stages.train import disnet_data, frame_table, rssnet_data, training_fingerprint
@@ -34,56 +36,72 @@ def _slug(name: str) -> str:
 
 
 def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] = ("2", "3"),
-                  log: Callable[[str], None] = lambda line: None) -> dict:
-    """Train every variant of the requested tables; returns the results and writes the report.
-    ``log`` gets a line as each variant is done (its test losses, where it resumed, its time): a run
-    of several minutes a variant otherwise shows only the training's progress lines, which do not
-    name the variant, and in a log file none at all for a variant shorter than
-    run.progress_every_s."""
+                  log: Callable[[str], None] = lambda line: None, seeds: int = 1) -> dict:
+    """Train every variant of the requested tables ``seeds`` times (train.seed, train.seed + 1,
+    ...); returns the results and writes the report. A variant's row holds the mean of its seeds'
+    test losses and each seed's run (``runs``). The first seed trains into ``<variant>/``, the others
+    into ``<variant>-seed<N>/``. ``log`` gets a line as each run is done (its test losses, where it
+    resumed, its time): a run of several minutes a variant otherwise shows only the training's
+    progress lines, which do not name the variant, and in a log file none at all for a variant
+    shorter than run.progress_every_s."""
     from pipeline.inference import load_disnet, load_rssnet
     from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
 
     table = frame_table(inputs)
     results: dict = {"table2": [], "table3": []}
     variants = [name for t, rows in (("2", TABLE2), ("3", TABLE3)) if t in tables for name, _ in rows]
-
-    def done(name: str, res, losses: str, seconds: float) -> None:
-        trained = (f"trained epochs {res.resumed_from + 1}-{res.epoch}" if res.epoch > res.resumed_from
-                   else f"already trained ({res.epoch} epochs)")
-        log(f"{'ablate':<{NAME_WIDTH}} {variants.index(name) + 1}/{len(variants)} {name}: {losses} "
-            f"(best epoch {res.best_epoch}), {trained}, {seconds:.0f} s")
-
+    seed_list = [cfg.train.seed + k for k in range(seeds)]
     t_start = time.perf_counter()
-    if "2" in tables:
-        data, idx = disnet_data(inputs, table)
-        for name, overrides in TABLE2:
-            c = cfg.with_overrides(overrides)
-            t0 = time.perf_counter()
-            res = train_disnet(c, data, out_root / _slug(name), progress=inputs.progress,
-                               fingerprint=training_fingerprint(inputs, c, "disnet"))
-            m = disnet_metrics(load_disnet(c, res.best_path, device="cpu"), data, idx["test"], c.train.alpha)
-            results["table2"].append({"variant": name, "L_KL": m["kl"], "L_n": m["n"], "best_epoch": res.best_epoch,
-                                      "seconds": time.perf_counter() - t0})
-            done(name, res, f"test L_KL {m['kl']:.4f}, L_n {m['n']:.4f}", time.perf_counter() - t0)
-    if "3" in tables:
-        train_val, test = rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2)
-        for name, overrides in TABLE3:
-            c = cfg.with_overrides(overrides)
-            t0 = time.perf_counter()
-            res = train_rssnet(c, train_val, out_root / _slug(name), progress=inputs.progress,
-                               fingerprint=training_fingerprint(inputs, c, "rssnet"))
-            m = rssnet_metrics(load_rssnet(c, res.best_path, device="cpu"), test, test.train_idx)
-            results["table3"].append({"variant": name, "L_a": m["a"], "best_epoch": res.best_epoch,
-                                      "seconds": time.perf_counter() - t0})
-            done(name, res, f"test L_a {m['a']:.3e}", time.perf_counter() - t0)
+    for number, rows in (("2", TABLE2), ("3", TABLE3)):
+        if number not in tables:
+            continue
+        if number == "2":
+            data, idx = disnet_data(inputs, table)
+        else:
+            train_val, test = rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2)
+        for name, overrides in rows:
+            runs = []
+            for seed in seed_list:
+                c = cfg.with_overrides({**overrides, "train.seed": str(seed)})
+                folder = out_root / (_slug(name) if seed == seed_list[0] else f"{_slug(name)}-seed{seed}")
+                t0 = time.perf_counter()
+                if number == "2":
+                    res = train_disnet(c, data, folder, progress=inputs.progress,
+                                       fingerprint=training_fingerprint(inputs, c, "disnet"))
+                    m = disnet_metrics(load_disnet(c, res.best_path, device="cpu"), data, idx["test"], c.train.alpha)
+                    run = {"seed": seed, "L_KL": m["kl"], "L_n": m["n"]}
+                else:
+                    res = train_rssnet(c, train_val, folder, progress=inputs.progress,
+                                       fingerprint=training_fingerprint(inputs, c, "rssnet"))
+                    m = rssnet_metrics(load_rssnet(c, res.best_path, device="cpu"), test, test.train_idx)
+                    run = {"seed": seed, "L_a": m["a"]}
+                run.update(best_epoch=res.best_epoch, seconds=time.perf_counter() - t0)
+                runs.append(run)
+                trained = (f"trained epochs {res.resumed_from + 1}-{res.epoch}" if res.epoch > res.resumed_from
+                           else f"already trained ({res.epoch} epochs)")
+                losses = ", ".join(f"{k} {_fmt(k, run[k])}" for k in LOSSES[number])
+                log(f"{'ablate':<{NAME_WIDTH}} {variants.index(name) + 1}/{len(variants)} {name}"
+                    f"{f', seed {seed}' if seeds > 1 else ''}: test {losses} (best epoch {res.best_epoch}), "
+                    f"{trained}, {run['seconds']:.0f} s")
+            row = {"variant": name, **{k: float(np.mean([r[k] for r in runs])) for k in LOSSES[number]},
+                   "best_epoch": runs[0]["best_epoch"], "seconds": sum(r["seconds"] for r in runs), "runs": runs}
+            results[f"table{number}"].append(row)
     results["meta"] = {"dataset": inputs.env.dataset, "frames": {k: int(v) for k, v in zip(
         ("train", "val", "test"), [(table["ok"] & (table["split"] == p)).sum() for p in (0, 1, 2)])},
-        "epochs": cfg.train.epochs, "split_rule": cfg.split.rule, "hardware": _hardware(),
+        "epochs": cfg.train.epochs, "split_rule": cfg.split.rule, "hardware": _hardware(), "seeds": seed_list,
         "total_seconds": time.perf_counter() - t_start}
     out_root.mkdir(parents=True, exist_ok=True)
     (out_root / "ablations.json").write_text(json.dumps(results, indent=2, default=float))
     (out_root / "ablations.md").write_text(markdown(results, cfg.profile))
     return results
+
+
+LOSSES = {"2": ("L_KL", "L_n"), "3": ("L_a",)}
+"""The test losses each table reports."""
+
+
+def _fmt(key: str, value: float) -> str:
+    return f"{value:.3e}" if key == "L_a" else f"{value:.4f}"
 
 
 def _hardware() -> str:
@@ -94,25 +112,37 @@ def _hardware() -> str:
 
 
 def markdown(results: dict, profile: str) -> str:
-    """Tables II and III next to the paper's values for the profile's dataset."""
+    """Tables II and III next to the paper's values for the profile's dataset; with several seeds
+    each loss is their mean with the lowest and highest run in brackets."""
     paper = PAPER.get(profile, {})
     meta = results["meta"]
+    seeds = meta.get("seeds", [0])
+    several = len(seeds) > 1
     lines = [f"# Ablations: {meta['dataset']}", "",
              f"Frames train/val/test: {meta['frames']['train']}/{meta['frames']['val']}/{meta['frames']['test']} "
              f"(split rule '{meta['split_rule']}'), {meta['epochs']} epochs, {meta['hardware']}, "
-             f"total {meta['total_seconds'] / 60:.1f} min. Test split; models selected on val.", ""]
+             f"total {meta['total_seconds'] / 60:.1f} min. Test split; models selected on val."
+             + (f" {len(seeds)} seeds (train.seed {', '.join(map(str, seeds))}): each loss is their mean, "
+                f"(lowest - highest) beside it; train time is the seeds' together." if several else ""), ""]
+
+    def cell(r: dict, key: str) -> str:
+        if not several:
+            return _fmt(key, r[key])
+        values = [run[key] for run in r["runs"]]
+        return f"{_fmt(key, r[key])} ({_fmt(key, min(values))} - {_fmt(key, max(values))})"
+
     if results["table2"]:
         lines += ["## Table II: Dis-Net", "", "| input | L_KL | L_n | paper L_KL | paper L_n | train time |",
                   "|---|---|---|---|---|---|"]
         for r in results["table2"]:
             p = paper.get(r["variant"])
             ref = "| |" if p is None else f"| {p[0]:.4f} | {p[1]:.4f} |"
-            lines.append(f"| {r['variant']} | {r['L_KL']:.4f} | {r['L_n']:.4f} {ref} {r['seconds']:.0f} s |")
+            lines.append(f"| {r['variant']} | {cell(r, 'L_KL')} | {cell(r, 'L_n')} {ref} {r['seconds']:.0f} s |")
         lines.append("")
     if results["table3"]:
         lines += ["## Table III: RSS-Net", "", "| inputs | L_a | paper L_a | train time |", "|---|---|---|---|"]
         for r in results["table3"]:
             p = paper.get(r["variant"])
-            lines.append(f"| {r['variant']} | {r['L_a']:.3e} | {'' if p is None else f'{p:.2e}'} | {r['seconds']:.0f} s |")
+            lines.append(f"| {r['variant']} | {cell(r, 'L_a')} | {'' if p is None else f'{p:.2e}'} | {r['seconds']:.0f} s |")
         lines.append("")
     return "\n".join(lines)

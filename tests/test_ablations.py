@@ -8,6 +8,7 @@ import math
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -105,3 +106,35 @@ def test_ablate_on_a_remote_cache_trains_in_a_staging_folder_and_uploads(world, 
     assert again.exit_code == 0, again.output
     assert {p: p.stat().st_mtime_ns for p in staged.rglob("*.safetensors")} == stamps  # resumed: nothing retrained
     fs.rm(url.removeprefix("memory://"), recursive=True)
+
+
+def test_ablate_with_several_seeds_gives_each_run_and_their_mean(world, tmp_path):
+    """--seeds N trains each variant with train.seed, train.seed + 1, ...: the first seed in the
+    variant's own folder (a one-seed run's, which it resumes), the others beside it; the row holds
+    the mean of the runs and the report their range. One run per variant did not rank Table II on
+    Astyx (2026-12-07: a row's L_KL moved by up to 0.11 with the seed)."""
+    cache = tmp_path / "cache"
+    assert _ablate(world, cache, "--tables", "2").exit_code == 0
+    out = cache / "synthetic" / "ablations"
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*.safetensors")}
+    again = _ablate(world, cache, "--tables", "2", "--seeds", "2", "--set", "train.seed=0")
+    assert again.exit_code == 0, again.output
+    said = [line for line in again.output.splitlines() if line.startswith("ablate ")]
+    assert [re.sub(r": .*", "", line.split(maxsplit=2)[2]) for line in said] == \
+        ["image only, seed 0", "image only, seed 1", "image + speed, seed 0", "image + speed, seed 1"], said
+    assert ["already trained" in line for line in said] == [True, False, True, False], said  # seed 0 resumed
+    assert all(stamps[p] == p.stat().st_mtime_ns for p in stamps)
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == \
+        ["image___speed", "image___speed-seed1", "image_only", "image_only-seed1"]
+    results = json.loads((out / "ablations.json").read_text())
+    assert results["meta"]["seeds"] == [0, 1]
+    for row in results["table2"]:
+        assert [r["seed"] for r in row["runs"]] == [0, 1]
+        assert row["runs"][0]["L_KL"] != row["runs"][1]["L_KL"]  # another seed, another net
+        for key in ("L_KL", "L_n"):
+            assert row[key] == pytest.approx(np.mean([r[key] for r in row["runs"]]))
+    report = (out / "ablations.md").read_text()
+    assert "2 seeds (train.seed 0, 1): each loss is their mean" in report
+    first = results["table2"][0]
+    low, high = sorted(r["L_KL"] for r in first["runs"])
+    assert f"| image only | {first['L_KL']:.4f} ({low:.4f} - {high:.4f}) |" in report, report

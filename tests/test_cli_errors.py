@@ -210,7 +210,7 @@ def test_ablate_prints_each_stage_line_once(tmp_path, fake_cli, monkeypatch):
     _with_patches(monkeypatch)
     trained = []
 
-    def ablations(inputs, cfg, folder, tables, log):
+    def ablations(inputs, cfg, folder, tables, **options):
         trained.append(tables)
         folder.mkdir(parents=True, exist_ok=True)
         (folder / "ablations.md").write_text("| variant |\n")
