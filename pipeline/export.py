@@ -433,8 +433,8 @@ def kitti_label_text(objects: Sequence[Object3D], T_cam_radar: np.ndarray, K: np
 
 
 IMAGE_FORMATS = {"source": None, "png": ".png", "jpg": ".jpg"}
-"""The suffix each value of export.image_format (pipeline.config.CHOICES) writes (source: the dataset's own file as it
-is, the reader's image as PNG where there is none)."""
+"""The suffix each value of export.image_format (pipeline.config.CHOICES) writes (source: the
+dataset's own file as it is, the reader's image as PNG where there is none)."""
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> Path:

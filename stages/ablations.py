@@ -44,9 +44,6 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
     resumed, its time): a run of several minutes a variant otherwise shows only the training's
     progress lines, which do not name the variant, and in a log file none at all for a variant
     shorter than run.progress_every_s."""
-    from pipeline.inference import load_disnet, load_rssnet
-    from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
-
     table = frame_table(inputs)
     results: dict = {"table2": [], "table3": []}
     variants = [name for t, rows in (("2", TABLE2), ("3", TABLE3)) if t in tables for name, _ in rows]
@@ -55,37 +52,22 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
     for number, rows in (("2", TABLE2), ("3", TABLE3)):
         if number not in tables:
             continue
-        if number == "2":
-            data, idx = disnet_data(inputs, table)
-        else:
-            train_val, test = rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2)
+        data = disnet_data(inputs, table) if number == "2" else \
+            (rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2))
         for name, overrides in rows:
             runs = []
             for seed in seed_list:
                 c = cfg.with_overrides({**overrides, "train.seed": str(seed)})
                 folder = out_root / (_slug(name) if seed == seed_list[0] else f"{_slug(name)}-seed{seed}")
-                t0 = time.perf_counter()
-                if number == "2":
-                    res = train_disnet(c, data, folder, progress=inputs.progress,
-                                       fingerprint=training_fingerprint(inputs, c, "disnet"))
-                    m = disnet_metrics(load_disnet(c, res.best_path, device="cpu"), data, idx["test"], c.train.alpha)
-                    run = {"seed": seed, "L_KL": m["kl"], "L_n": m["n"]}
-                else:
-                    res = train_rssnet(c, train_val, folder, progress=inputs.progress,
-                                       fingerprint=training_fingerprint(inputs, c, "rssnet"))
-                    m = rssnet_metrics(load_rssnet(c, res.best_path, device="cpu"), test, test.train_idx)
-                    run = {"seed": seed, "L_a": m["a"]}
-                run.update(best_epoch=res.best_epoch, seconds=time.perf_counter() - t0)
+                run, trained = _train_and_test(number, inputs, c, data, folder)
                 runs.append(run)
-                trained = (f"trained epochs {res.resumed_from + 1}-{res.epoch}" if res.epoch > res.resumed_from
-                           else f"already trained ({res.epoch} epochs)")
                 losses = ", ".join(f"{k} {_fmt(k, run[k])}" for k in LOSSES[number])
                 log(f"{'ablate':<{NAME_WIDTH}} {variants.index(name) + 1}/{len(variants)} {name}"
-                    f"{f', seed {seed}' if seeds > 1 else ''}: test {losses} (best epoch {res.best_epoch}), "
+                    f"{f', seed {seed}' if seeds > 1 else ''}: test {losses} (best epoch {run['best_epoch']}), "
                     f"{trained}, {run['seconds']:.0f} s")
-            row = {"variant": name, **{k: float(np.mean([r[k] for r in runs])) for k in LOSSES[number]},
-                   "best_epoch": runs[0]["best_epoch"], "seconds": sum(r["seconds"] for r in runs), "runs": runs}
-            results[f"table{number}"].append(row)
+            results[f"table{number}"].append(
+                {"variant": name, **{k: float(np.mean([r[k] for r in runs])) for k in LOSSES[number]},
+                 "best_epoch": runs[0]["best_epoch"], "seconds": sum(r["seconds"] for r in runs), "runs": runs})
     results["meta"] = {"dataset": inputs.env.dataset, "frames": {k: int(v) for k, v in zip(
         ("train", "val", "test"), [(table["ok"] & (table["split"] == p)).sum() for p in (0, 1, 2)])},
         "epochs": cfg.train.epochs, "split_rule": cfg.split.rule, "hardware": _hardware(), "seeds": seed_list,
@@ -98,6 +80,31 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
 
 LOSSES = {"2": ("L_KL", "L_n"), "3": ("L_a",)}
 """The test losses each table reports."""
+
+
+def _train_and_test(number: str, inputs, cfg: Config, data, folder: Path) -> tuple[dict, str]:
+    """Train table ``number``'s net with ``cfg`` into ``folder`` (resuming what is there) and test
+    its best epoch: (the run's record: seed, test losses, best epoch, seconds; what was trained).
+    ``data``: Dis-Net's (data, split indices), or RSS-Net's (train + val, test) samples."""
+    from pipeline.inference import load_disnet, load_rssnet
+    from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
+
+    t0 = time.perf_counter()
+    if number == "2":
+        frames, idx = data
+        res = train_disnet(cfg, frames, folder, progress=inputs.progress,
+                           fingerprint=training_fingerprint(inputs, cfg, "disnet"))
+        m = disnet_metrics(load_disnet(cfg, res.best_path, device="cpu"), frames, idx["test"], cfg.train.alpha)
+        losses = {"L_KL": m["kl"], "L_n": m["n"]}
+    else:
+        train_val, test = data
+        res = train_rssnet(cfg, train_val, folder, progress=inputs.progress,
+                           fingerprint=training_fingerprint(inputs, cfg, "rssnet"))
+        losses = {"L_a": rssnet_metrics(load_rssnet(cfg, res.best_path, device="cpu"), test, test.train_idx)["a"]}
+    trained = (f"trained epochs {res.resumed_from + 1}-{res.epoch}" if res.epoch > res.resumed_from
+               else f"already trained ({res.epoch} epochs)")
+    return {"seed": cfg.train.seed, **losses, "best_epoch": res.best_epoch,
+            "seconds": time.perf_counter() - t0}, trained
 
 
 def _fmt(key: str, value: float) -> str:
