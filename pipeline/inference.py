@@ -176,8 +176,6 @@ def device_of(model: nn.Module) -> torch.device:
 
 
 @torch.no_grad()
-
-
 def disnet_predict(model: DisNet, images: Any, speeds: Any, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """images (B, H, W, 3) uint8 RGB, speeds (B,) m/s -> (prob_map (B, h, w) float32 summing to 1
     per frame at the model's out_hw, n_hat (B,) float32 expected point count)."""
@@ -195,8 +193,6 @@ def disnet_predict(model: DisNet, images: Any, speeds: Any, batch: int = 8) -> t
 
 
 @torch.no_grad()
-
-
 def rssnet_predict(model: RSSNet, patches: Any, range_images: Any, point_vectors: Any,
                    batch: int = 256) -> np.ndarray:
     """RSS (N,) float32 in dataset units for N points; inputs of dropped branches may be None."""
@@ -212,8 +208,6 @@ def rssnet_predict(model: RSSNet, patches: Any, range_images: Any, point_vectors
 
 
 @torch.no_grad()
-
-
 def placenet_predict(model: PlaceNet, features: np.ndarray, batch: int = 65536) -> np.ndarray:
     """Intensity lambda (C,) float64 >= 0 of candidates with features (C, n_features)."""
     model.eval()
