@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.config import Config
 from pipeline.run_report import NAME_WIDTH
-from stages.train import disnet_data, frame_table, rssnet_data, training_fingerprint
+from stages.train import disnet_data, frame_table, held_out_baselines, rssnet_data, training_fingerprint, training_mean_map
 
 TABLE2 = (("image only", {"disnet.use_speed": "false"}), ("image + speed", {"disnet.use_speed": "true"}))
 TABLE3 = tuple(
@@ -39,21 +39,27 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
                   log: Callable[[str], None] = lambda line: None, seeds: int = 1) -> dict:
     """Train every variant of the requested tables ``seeds`` times (train.seed, train.seed + 1,
     ...); returns the results and writes the report. A variant's row holds the mean of its seeds'
-    test losses and each seed's run (``runs``). The first seed trains into ``<variant>/``, the others
+    test losses and each seed's run (``runs``); ``baselines`` the train stage's held-out baselines
+    (the mean training map and count, the median training RSS) on the same test split. The first seed trains into ``<variant>/``, the others
     into ``<variant>-seed<N>/``. ``log`` gets a line as each run is done (its test losses, where it
     resumed, its time): a run of several minutes a variant otherwise shows only the training's
     progress lines, which do not name the variant, and in a log file none at all for a variant
     shorter than run.progress_every_s."""
     table = frame_table(inputs)
     results: dict = {"table2": [], "table3": []}
+    disnet = disnet_data(inputs, table)  # (data, split indices)
+    idx = disnet[1]
+    results["baselines"] = held_out_baselines(inputs, table, idx, cfg, training_mean_map(inputs, idx, cfg))
+    log(f"{'ablate':<{NAME_WIDTH}} baselines on the test split: " + ", ".join(
+        f"{label} {_fmt(loss, results['baselines'][key])}" for key, (label, loss) in BASELINES.items()
+        if key in results["baselines"]))
     variants = [name for t, rows in (("2", TABLE2), ("3", TABLE3)) if t in tables for name, _ in rows]
     seed_list = [cfg.train.seed + k for k in range(seeds)]
     t_start = time.perf_counter()
     for number, rows in (("2", TABLE2), ("3", TABLE3)):
         if number not in tables:
             continue
-        data = disnet_data(inputs, table) if number == "2" else \
-            (rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2))
+        data = disnet if number == "2" else (rssnet_data(inputs, table, 0, 1), rssnet_data(inputs, table, 2, 2))
         for name, overrides in rows:
             runs = []
             for seed in seed_list:
@@ -80,6 +86,10 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
 
 LOSSES = {"2": ("L_KL", "L_n"), "3": ("L_a",)}
 """The test losses each table reports."""
+BASELINES = {"mean_map_kl": ("mean training map L_KL", "L_KL"), "mean_count_L_n": ("mean training count L_n", "L_n"),
+             "median_rss_L_a": ("median training RSS L_a", "L_a")}
+"""The held-out baselines (stages.train.held_out_baselines) each table shows below its variants:
+how they are named, and which loss each is."""
 
 
 def _train_and_test(number: str, inputs, cfg: Config, data, folder: Path) -> tuple[dict, str]:
@@ -119,10 +129,12 @@ def _hardware() -> str:
 
 
 def markdown(results: dict, profile: str) -> str:
-    """Tables II and III next to the paper's values for the profile's dataset; with several seeds
-    each loss is their mean with the lowest and highest run in brackets."""
+    """Tables II and III next to the paper's values for the profile's dataset, the held-out
+    baselines below the variants; with several seeds each loss is their mean with the lowest and
+    highest run in brackets."""
     paper = PAPER.get(profile, {})
     meta = results["meta"]
+    base = results.get("baselines", {})
     seeds = meta.get("seeds", [0])
     several = len(seeds) > 1
     lines = [f"# Ablations: {meta['dataset']}", "",
@@ -145,11 +157,16 @@ def markdown(results: dict, profile: str) -> str:
             p = paper.get(r["variant"])
             ref = "| |" if p is None else f"| {p[0]:.4f} | {p[1]:.4f} |"
             lines.append(f"| {r['variant']} | {cell(r, 'L_KL')} | {cell(r, 'L_n')} {ref} {r['seconds']:.0f} s |")
+        if "mean_map_kl" in base:
+            lines.append(f"| baseline: mean training map and count | {_fmt('L_KL', base['mean_map_kl'])} | "
+                         f"{_fmt('L_n', base['mean_count_L_n'])} | | | |")
         lines.append("")
     if results["table3"]:
         lines += ["## Table III: RSS-Net", "", "| inputs | L_a | paper L_a | train time |", "|---|---|---|---|"]
         for r in results["table3"]:
             p = paper.get(r["variant"])
             lines.append(f"| {r['variant']} | {cell(r, 'L_a')} | {'' if p is None else f'{p:.2e}'} | {r['seconds']:.0f} s |")
+        if "median_rss_L_a" in base:
+            lines.append(f"| baseline: median training RSS | {_fmt('L_a', base['median_rss_L_a'])} | | |")
         lines.append("")
     return "\n".join(lines)

@@ -118,13 +118,29 @@ def candidate_counts(inputs, cfg: Config, frames: np.ndarray) -> np.ndarray:
 
 
 def _baselines(inputs, table, idx, cfg: Config, root: Path) -> dict[str, float]:
-    """Held-out test losses of the trivial predictors the networks must beat; the mean training
-    map saved under ``root`` (the stage's output folder) for evaluate's baselines."""
-    from pipeline.net_baselines import disnet_baseline, mean_map_baseline, rssnet_baseline
+    """Held-out test losses of the trivial predictors the networks must beat (:func:`held_out_baselines`);
+    the mean training map saved under ``root`` (the stage's output folder) for evaluate's baselines."""
+    mean_map = training_mean_map(inputs, idx, cfg)
+    out = held_out_baselines(inputs, table, idx, cfg, mean_map)
+    np.save(root / MEAN_MAP_FILE, mean_map.astype(np.float32), allow_pickle=False)
+    return out
+
+
+def training_mean_map(inputs, idx, cfg: Config) -> np.ndarray:
+    """The mean of the training frames' heatmaps (reads every one, with progress lines)."""
+    from pipeline.net_baselines import mean_map_baseline
+
+    return mean_map_baseline(inputs.store("heatmaps").array("heatmap"), idx["train"], progress=inputs.progress,
+                             every_s=cfg.run.progress_every_s)
+
+
+def held_out_baselines(inputs, table, idx, cfg: Config, mean_map: np.ndarray) -> dict[str, float]:
+    """Test losses of the trivial predictors the networks must beat: the mean training map
+    ('mean_map_kl') and count ('mean_count_L_n', with 'train_mean_count'), and the training median
+    RSS ('median_rss_L_a', with 'train_rss_median'); a loss is left out where its split is empty."""
+    from pipeline.net_baselines import disnet_baseline, rssnet_baseline
 
     heat = inputs.store("heatmaps").array("heatmap")
-    mean_map = mean_map_baseline(heat, idx["train"], progress=inputs.progress,  # read once: every training heatmap
-                                 every_s=cfg.run.progress_every_s)
     out: dict[str, float] = {}
     if len(idx["test"]):
         d = disnet_baseline(heat, table["count"], idx["train"], idx["test"], mean_map=mean_map)
@@ -137,7 +153,6 @@ def _baselines(inputs, table, idx, cfg: Config, root: Path) -> dict[str, float]:
         r = rssnet_baseline(rss, np.arange(len(train_rss)), np.arange(len(train_rss), len(rss)),
                             cfg.radar.rss_min, cfg.radar.rss_max)
         out.update(median_rss_L_a=r["a"], train_rss_median=r["median"])
-    np.save(root / MEAN_MAP_FILE, mean_map.astype(np.float32), allow_pickle=False)
     return out
 
 

@@ -49,7 +49,12 @@ def test_ablate_trains_every_variant_with_its_settings_and_resumes(world, tmp_pa
             assert arch[key.split(".")[1]] == (value in ("true", "1")), (name, key, arch)
     assert len({r["L_a"] for r in results["table3"]}) > 1  # different inputs, different nets
     # a line as each variant is done (until 2026-12-07 a log showed none: the bars name no variant)
+    base = results["baselines"]
     said = [line for line in first.output.splitlines() if line.startswith("ablate ")]
+    assert said[0] == (f"ablate          baselines on the test split: mean training map L_KL {base['mean_map_kl']:.4f}, "
+                       f"mean training count L_n {base['mean_count_L_n']:.4f}, "
+                       f"median training RSS L_a {base['median_rss_L_a']:.3e}"), said[0]
+    said = said[1:]
     n = len(TABLE2) + len(TABLE3)
     assert len(said) == n, first.output
     for k, (line, r) in enumerate(zip(said, results["table2"] + results["table3"]), 1):
@@ -59,7 +64,9 @@ def test_ablate_trains_every_variant_with_its_settings_and_resumes(world, tmp_pa
     report = (out / "ablations.md").read_text()
     assert "## Table II: Dis-Net" in report and "## Table III: RSS-Net" in report
     rows = [line for line in report.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + len(TABLE2) + 1 + len(TABLE3)  # a header and the variants, per table
+    assert len(rows) == 1 + len(TABLE2) + 1 + 1 + len(TABLE3) + 1  # a header, the variants and a baseline, per table
+    assert f"| baseline: mean training map and count | {base['mean_map_kl']:.4f} | {base['mean_count_L_n']:.4f} |" \
+        in report and f"| baseline: median training RSS | {base['median_rss_L_a']:.3e} |" in report, report
     assert "nan" not in report  # the paper has no values for the synthetic world: left empty
     astyx = markdown(results, "astyx")  # next to the paper's Astyx values
     assert "| image + speed |" in astyx and "| 0.2271 | 0.4499 |" in astyx and "| 1.45e-02 |" in astyx
@@ -68,7 +75,7 @@ def test_ablate_trains_every_variant_with_its_settings_and_resumes(world, tmp_pa
     assert again.exit_code == 0, again.output
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*.safetensors")} == stamps  # resumed: nothing retrained
     rerun = json.loads((out / "ablations.json").read_text())
-    said = [line for line in again.output.splitlines() if line.startswith("ablate ")]
+    said = [line for line in again.output.splitlines() if line.startswith("ablate ")][1:]
     assert len(said) == len(TABLE3) and all(f"already trained ({TINY['train.epochs']} epochs)" in s for s in said), said
     assert said[0].startswith("ablate          1/7 Cam: test L_a "), said
     assert rerun["table2"] == [] and [r["L_a"] for r in rerun["table3"]] == [r["L_a"] for r in results["table3"]]
@@ -119,7 +126,7 @@ def test_ablate_with_several_seeds_gives_each_run_and_their_mean(world, tmp_path
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*.safetensors")}
     again = _ablate(world, cache, "--tables", "2", "--seeds", "2", "--set", "train.seed=0")
     assert again.exit_code == 0, again.output
-    said = [line for line in again.output.splitlines() if line.startswith("ablate ")]
+    said = [line for line in again.output.splitlines() if line.startswith("ablate ")][1:]
     assert [re.sub(r": .*", "", line.split(maxsplit=2)[2]) for line in said] == \
         ["image only, seed 0", "image only, seed 1", "image + speed, seed 0", "image + speed, seed 1"], said
     assert ["already trained" in line for line in said] == [True, False, True, False], said  # seed 0 resumed
@@ -138,3 +145,11 @@ def test_ablate_with_several_seeds_gives_each_run_and_their_mean(world, tmp_path
     first = results["table2"][0]
     low, high = sorted(r["L_KL"] for r in first["runs"])
     assert f"| image only | {first['L_KL']:.4f} ({low:.4f} - {high:.4f}) |" in report, report
+    # the baselines are the train stage's, on the same test split
+    sets = [arg for key, value in TINY.items() for arg in ("--set", f"{key}={value}")]
+    trained = CliRunner().invoke(main, ["run", "train", "--dataset", "synthetic", "--data-root", str(world),
+                                        "--cache", str(cache), "--workers", "1", *sets])
+    assert trained.exit_code == 0, trained.output
+    stage = json.loads((cache / "synthetic" / "train" / "metrics.json").read_text())["baselines_test"]
+    assert set(results["baselines"]) == set(stage) and len(stage) >= 5
+    assert all(results["baselines"][k] == pytest.approx(stage[k], rel=1e-12) for k in stage), (results["baselines"], stage)
