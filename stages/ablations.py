@@ -142,7 +142,7 @@ def markdown(results: dict, profile: str) -> str:
              f"(split rule '{meta['split_rule']}'), {meta['epochs']} epochs, {meta['hardware']}, "
              f"total {meta['total_seconds'] / 60:.1f} min. Test split; models selected on val."
              + (f" {len(seeds)} seeds (train.seed {', '.join(map(str, seeds))}): each loss is their mean, "
-                f"(lowest - highest) beside it; train time is the seeds' together." if several else ""), ""]
+                f"(lowest - highest) beside it; train time: this run's, the seeds together." if several else ""), ""]
 
     def cell(r: dict, key: str) -> str:
         if not several:
