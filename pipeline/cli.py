@@ -682,8 +682,13 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
     _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it
     folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, then uploaded
     work = folder.work_folder(env.cfg.run.staging_dir)
-    run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen, log=pipe.log,
-                  seeds=seeds)
+    try:
+        run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen,
+                      log=pipe.log, seeds=seeds)
+    except StageInterrupted:
+        raise
+    except KeyboardInterrupt:  # each variant resumes from its last finished epoch
+        raise StageInterrupted("ablate", "resumes", False) from None
     if work is not folder:
         folder.upload(work)
     click.echo((Path(work.path) / "ablations.md").read_text())

@@ -224,6 +224,23 @@ def test_ablate_prints_each_stage_line_once(tmp_path, fake_cli, monkeypatch):
     assert trained == [("2", "3")] * 2 and "| variant |" in out.stdout
 
 
+def test_ctrl_c_while_ablate_trains_says_what_a_rerun_resumes(tmp_path, fake_cli, monkeypatch):
+    """Ctrl-C while ablate trained its variants printed only 'interrupted' (since 2026-12-07 it says
+    what is kept and how to go on, as a run interrupted in train does)."""
+    import stages.ablations
+
+    _with_patches(monkeypatch)
+
+    def ablations(inputs, cfg, folder, tables, **options):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stages.ablations, "run_ablations", ablations)
+    out = fake_cli(tmp_path, "ablate", "--workers", "1")
+    assert out.exit_code == 130, out.output
+    assert out.stderr.splitlines()[-1] == ("interrupted in ablate: what it saved is kept; run the same command again "
+                                           "to resume from its last checkpoint"), out.stderr
+
+
 def _failing_heatmaps(inputs, cfg):
     raise ValueError(f"frame {inputs.frame_id}: no heatmap")
 
