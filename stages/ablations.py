@@ -155,7 +155,7 @@ def markdown(results: dict, profile: str) -> str:
                   "|---|---|---|---|---|---|"]
         for r in results["table2"]:
             p = paper.get(r["variant"])
-            ref = "| |" if p is None else f"| {p[0]:.4f} | {p[1]:.4f} |"
+            ref = "| | |" if p is None else f"| {p[0]:.4f} | {p[1]:.4f} |"
             lines.append(f"| {r['variant']} | {cell(r, 'L_KL')} | {cell(r, 'L_n')} {ref} {r['seconds']:.0f} s |")
         if "mean_map_kl" in base:
             lines.append(f"| baseline: mean training map and count | {_fmt('L_KL', base['mean_map_kl'])} | "

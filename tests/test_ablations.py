@@ -68,6 +68,9 @@ def test_ablate_trains_every_variant_with_its_settings_and_resumes(world, tmp_pa
     assert f"| baseline: mean training map and count | {base['mean_map_kl']:.4f} | {base['mean_count_L_n']:.4f} |" \
         in report and f"| baseline: median training RSS | {base['median_rss_L_a']:.3e} |" in report, report
     assert "nan" not in report  # the paper has no values for the synthetic world: left empty
+    for table in report.split("## ")[1:]:  # every row as many cells as its header (Table II's had one too few)
+        cells = [line.count("|") for line in table.splitlines() if line.startswith("|")]
+        assert len(set(cells)) == 1, table
     astyx = markdown(results, "astyx")  # next to the paper's Astyx values
     assert "| image + speed |" in astyx and "| 0.2271 | 0.4499 |" in astyx and "| 1.45e-02 |" in astyx
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("*.safetensors")}
