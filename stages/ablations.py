@@ -140,7 +140,9 @@ def markdown(results: dict, profile: str) -> str:
     lines = [f"# Ablations: {meta['dataset']}", "",
              f"Frames train/val/test: {meta['frames']['train']}/{meta['frames']['val']}/{meta['frames']['test']} "
              f"(split rule '{meta['split_rule']}'), {meta['epochs']} epochs, {meta['hardware']}, "
-             f"total {meta['total_seconds'] / 60:.1f} min. Test split; models selected on val."
+             f"total {meta['total_seconds'] / 60:.1f} min. Test split; "
+             + ("models selected on val." if meta["frames"]["val"] else "no val frames: models selected on their "
+                "training loss (pipeline.training).")
              + (f" {len(seeds)} seeds (train.seed {', '.join(map(str, seeds))}): each loss is their mean, "
                 f"(lowest - highest) beside it; train time: this run's, the seeds together." if several else ""), ""]
 

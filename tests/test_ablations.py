@@ -156,3 +156,14 @@ def test_ablate_with_several_seeds_gives_each_run_and_their_mean(world, tmp_path
     stage = json.loads((cache / "synthetic" / "train" / "metrics.json").read_text())["baselines_test"]
     assert set(results["baselines"]) == set(stage) and len(stage) >= 5
     assert all(results["baselines"][k] == pytest.approx(stage[k], rel=1e-12) for k in stage), (results["baselines"], stage)
+
+
+def test_the_report_says_how_models_were_selected():
+    """Said 'models selected on val' also where the split had no val frame (the two View-of-Delft
+    frames: 1 train, 1 test), where training picks its best epoch on the training loss."""
+    results = {"table2": [], "table3": [], "meta": {"dataset": "vod", "frames": {"train": 1, "val": 0, "test": 1},
+                                                    "split_rule": "block", "epochs": 2, "hardware": "CPU",
+                                                    "total_seconds": 6.0}}
+    assert "no val frames: models selected on their training loss" in markdown(results, "vod")
+    results["meta"]["frames"]["val"] = 3
+    assert "Test split; models selected on val." in markdown(results, "vod")
