@@ -665,7 +665,10 @@ def _skipped_text(skipped: list[tuple[str, str]], shown: int = 3) -> str:
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="dask workers for the preprocessing stages.")
 @_handle_errors
 def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
-    """Train the paper's ablation variants (Tables II and III) and write a table next to the paper's."""
+    """Train the paper's ablation variants (Tables II and III) and write a table next to the paper's.
+
+    The tables, with the train stage's baselines, and each variant's checkpoints go to
+    CACHE/DATASET/ablations/; a rerun resumes what was trained."""
     from pipeline.runner import DatasetInputs
     from stages.ablations import run_ablations
 
