@@ -785,9 +785,11 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
             bars[stage] = bar(total=total, desc=f"verify {stage}", unit="chunk", every_s=env.cfg.run.progress_every_s)
         bars[stage].update(n)
 
-    rows = verify_cache(pipe, list(stages) or None, progress, wait_s)
-    for stage_bar in bars.values():
-        stage_bar.close()
+    try:
+        rows = verify_cache(pipe, list(stages) or None, progress, wait_s)
+    finally:  # also on Ctrl-C or an error: the message then starts on a line of its own
+        for stage_bar in bars.values():
+            stage_bar.close()
     click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")
     again = "".join(f" --set {shlex.quote(s)}" for s in sets)  # the repair runs with this command's settings
 

@@ -282,6 +282,9 @@ def test_ctrl_c_while_verify_reads_a_checkpoint_is_an_interrupt(tmp_path, fake_c
         _ctrl_c_in_torch(m, 2)  # the call whose errors torch reports as ValueError
         out = fake_cli(tmp_path, "verify")
     assert out.exit_code == 130 and out.stderr == "interrupted\n", out.output
+    from tqdm import tqdm  # the stage's bar closed (it was left open: a later bar drew escape codes)
+
+    assert not list(getattr(tqdm, "_instances", [])), [b.desc for b in tqdm._instances]
     again = fake_cli(tmp_path, "verify")
     assert again.exit_code == 0 and "train           1 file(s) intact; 1 checkpoint(s) read" in again.stdout, again.output
 
