@@ -25,7 +25,7 @@ from pipeline.errors import MetadataError, PipelineError
 from pipeline.executor import FrameInputs
 from pipeline.lock import rewriting, stage_lock
 from pipeline.stage import FrameStage
-from pipeline.staleness import options_text
+from pipeline.staleness import Staleness, options_text, sets_to_restore
 
 if TYPE_CHECKING:
     from pipeline.runner import Pipeline
@@ -131,17 +131,17 @@ def _refuse_leaving_behind(pipe: Pipeline, before: Pipeline, old: str) -> None:
     stage is moved), so that the next run would recompute them, training included (until
     2026-12-07). Outputs that are stale for other reasons (marked stale, made from another output)
     are left, as before."""
-    made_with_other = []
+    made_with_other: dict[str, Staleness] = {}
     for name in pipe.order[1:]:
         try:
             why = before.why_stale(name)
         except PipelineError:  # a damaged record: the run that reads it says so
             continue
         if why is not None and why.sets:
-            made_with_other.append(name)
+            made_with_other[name] = why
     if not made_with_other:
         return
-    sets, _ = before.forgotten_sets(made_with_other)
+    sets, _ = sets_to_restore(list(made_with_other.values()))
     raise PipelineError(f"dataset '{pipe.env.dataset}': the outputs of {', '.join(made_with_other)} were made with other settings "
                         f"than this command's, so relocating with them would leave those outputs as made from "
                         f"{old}, to be recomputed by the next run: run relocate with the options they were made "

@@ -43,7 +43,7 @@ from pipeline.executor import Executor, FrameInputs, RunEnv
 from pipeline.lock import held, reading, rewriting, stage_lock
 from pipeline.run_report import NAME_WIDTH, StageReport
 from pipeline.stage import DatasetStage, FrameStage, Stage
-from pipeline.staleness import Staleness, explain, options_text
+from pipeline.staleness import Staleness, explain, options_text, sets_to_restore
 
 FAILURES_LOGGED = 20
 """Failed frames of a stage logged one by one in a run; the rest are counted (a failure common to
@@ -220,23 +220,16 @@ class Pipeline:
     def forgotten_sets(self, names: list[str]) -> tuple[list[str], bool]:
         """The ``--set`` options ('key=value') that would give this command the settings the
         outputs of ``names`` that are not current were made with, and whether, as far as they
-        record, those options are all that differs. Where train.nets_from is among them, the radar
-        settings that come with the nets (transfer.RADAR_SETTINGS) are left out."""
-        from pipeline.transfer import RADAR_SETTINGS
-
-        sets: dict[str, None] = {}
-        settings_only = True
+        record, those options are all that differs (:func:`pipeline.staleness.sets_to_restore`)."""
+        whys = []
         for name in names:
             try:
                 why = self.why_stale(name)
             except PipelineError:
                 return [], False
             if why is not None:
-                sets.update(dict.fromkeys(why.sets))
-                settings_only &= why.settings_only
-        if any(s.startswith("train.nets_from=") for s in sets):
-            sets = {s: None for s in sets if s.split("=", 1)[0] not in RADAR_SETTINGS}
-        return list(sets), settings_only and bool(sets)
+                whys.append(why)
+        return sets_to_restore(whys)
 
     def frames_read(self, name: str) -> dict[str, str]:
         """Which frames the per-frame upstream stages of stage ``name`` have done (stage -> digest)."""

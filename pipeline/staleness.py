@@ -40,6 +40,19 @@ class Staleness:
         return "; ".join(self.reasons)
 
 
+def sets_to_restore(whys: list[Staleness]) -> tuple[list[str], bool]:
+    """The ``--set`` options ('key=value', each once, in order) that give a command the settings
+    the outputs ``whys`` describe were made with, and whether, as far as they record, those options
+    are all that differs. Where train.nets_from is among them, the radar settings that come with
+    the nets (transfer.RADAR_SETTINGS) are left out."""
+    from pipeline.transfer import RADAR_SETTINGS
+
+    sets = {s: None for why in whys for s in why.sets}
+    if any(s.startswith("train.nets_from=") for s in sets):
+        sets = {s: None for s in sets if s.split("=", 1)[0] not in RADAR_SETTINGS}
+    return list(sets), all(why.settings_only for why in whys) and bool(sets)
+
+
 def set_text(value: Any) -> str:
     """``value`` (a JSON value of a configuration key) as ``--set key=VALUE`` reads it back."""
     if isinstance(value, bool):
