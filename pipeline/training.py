@@ -35,8 +35,8 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from pipeline import augment
 from pipeline import checkpoint as ckpt
-from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, check_limit
-from pipeline.continuation import continuation_problem
+from pipeline.config import EPOCHS_KEYS, PATIENCE_KEYS, TRAINING_KEYS, check_limit
+from pipeline.continuation import continuation_problem, stalled
 from pipeline.errors import ConfigError
 from pipeline.net_baselines import mean_map_baseline, speed_count_prior
 from pipeline.inference import (RESIDUAL_KEY, RESIDUAL_LEVELS, device_of, disnet_inputs, jsonable_arch,
@@ -125,6 +125,9 @@ class TrainResult:
     best_epoch: int
     best_metric: float
     curves: list[dict[str, float]] = field(default_factory=list)
+    stopped_early: bool = False
+    """Whether the net stopped before its last epoch, its patience having run out (in this run or
+    the one it resumed)."""
 
 
 def _progress(iterable: Iterable, total: int, desc: str, enabled: bool, every_s: float = EVERY_S):
@@ -215,7 +218,8 @@ on) (pipeline.runner.DatasetInputs.publish)."""
 
 def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bool = True,
         publish: Publish | None = None) -> TrainResult:
-    """Train ``spec.model`` for the epochs its config key says (EPOCHS_KEYS), resuming from ``out_dir``
+    """Train ``spec.model`` for the epochs its config key says (EPOCHS_KEYS), or until as many epochs
+    as its patience (PATIENCE_KEYS; 0: none) have passed since its best one, resuming from ``out_dir``
     when possible. With ``publish`` (an output staged for a remote cache), an epoch ending at least
     cfg.run.checkpoint_upload_s after the last upload hands its checkpoints to it
     (:func:`publish_checkpoints`)."""
@@ -223,6 +227,9 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     n_epochs = int(cfg.get(epochs_key))
     if n_epochs < 0:
         raise ConfigError(f"{epochs_key} must be >= 0, got {n_epochs}")
+    patience = int(cfg.get(PATIENCE_KEYS[spec.name]))
+    if patience < 0:
+        raise ConfigError(f"{PATIENCE_KEYS[spec.name]} must be >= 0, got {patience}")
     out_dir = Path(out_dir)
     last, best = out_dir / "last.safetensors", out_dir / "best.safetensors"
     device = select_device(cfg.train.device)
@@ -237,7 +244,8 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     scored = ema.module if ema is not None else spec.model  # the weights validated and saved as best
     rng = np.random.default_rng(cfg.train.seed)
     state = {"epoch": 0, "best_epoch": 0, "best_metric": math.inf, "curves": []}
-    resumed = _resume(last, best, spec, optimizer, fingerprint, device, n_epochs, ema)
+    resumed = _resume(last, best, spec, optimizer, fingerprint, device, n_epochs, ema, patience,
+                      cfg.train.select_on)
     if resumed is not None:
         state, rng = resumed
     start = state["epoch"]
@@ -248,6 +256,8 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     every_s = cfg.run.progress_every_s
     heartbeat = Heartbeat(progress, every_s)
     for epoch in range(start + 1, n_epochs + 1):
+        if stalled(state, patience):
+            break  # stopped early, in this run or the one resumed
         t0 = time.perf_counter()
         for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
             group["lr"] = epoch_lr(cfg, epoch, base_lr, n_epochs)
@@ -274,8 +284,8 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
                 uploaded_best = state["best_epoch"]  # else a best that failed is sent again next time
             uploaded_at = time.monotonic()
     write_curves(out_dir, spec.name, state["curves"], plot=True)
-    return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"],
-                       state["best_metric"], state["curves"])
+    return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"], state["best_metric"],
+                       state["curves"], stopped_early=state["epoch"] < n_epochs and stalled(state, patience))
 
 
 def epoch_line(net: str, epoch: int, n_epochs: int, train: dict[str, float], val: dict[str, float] | None,
@@ -359,18 +369,18 @@ def _save_last(path: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, rng
 
 
 def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, fingerprint: str,
-            device: torch.device, n_epochs: int,
-            ema: AveragedModel | None = None) -> tuple[dict[str, Any], np.random.Generator] | None:
+            device: torch.device, n_epochs: int, ema: AveragedModel | None = None, patience: int = 0,
+            select_on: str = "loss") -> tuple[dict[str, Any], np.random.Generator] | None:
     """Restore model, optimizer, RNGs (and ``ema``) from ``last`` when it matches and a run of
-    ``n_epochs`` may continue it (pipeline.continuation); else clear the net's checkpoints, so that
-    it trains from scratch."""
+    ``n_epochs`` with ``patience`` may continue it (pipeline.continuation); else clear the net's
+    checkpoints, so that it trains from scratch."""
     if not last.exists():
         return None
     meta = ckpt.read_meta(last)
     if meta.get("net") != spec.name:
         raise ValueError(f"{last} is a {meta.get('net')!r} checkpoint: train {spec.name} in its own folder")
     problem = ("saved for other settings" if meta.get("fingerprint") != fingerprint or meta.get("arch") != spec.arch
-               else continuation_problem(meta, n_epochs))
+               else continuation_problem(meta, n_epochs, patience, select_on))
     if problem:
         log.warning("%s: %s; training %s from scratch", last, problem, spec.name)
         for p in (last, best, last.with_suffix(".json"), best.with_suffix(".json")):

@@ -76,7 +76,7 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
                  "best_epoch": runs[0]["best_epoch"], "seconds": sum(r["seconds"] for r in runs), "runs": runs})
     results["meta"] = {"dataset": inputs.env.dataset, "frames": {k: int(v) for k, v in zip(
         ("train", "val", "test"), [(table["ok"] & (table["split"] == p)).sum() for p in (0, 1, 2)])},
-        "epochs": cfg.train.epochs, "split_rule": cfg.split.rule, "hardware": _hardware(), "seeds": seed_list,
+        "epochs": cfg.train.epochs, "patience": cfg.train.patience, "split_rule": cfg.split.rule, "hardware": _hardware(), "seeds": seed_list,
         "total_seconds": time.perf_counter() - t_start}
     out_root.mkdir(parents=True, exist_ok=True)
     (out_root / "ablations.json").write_text(json.dumps(results, indent=2, default=float))
@@ -113,7 +113,9 @@ def _train_and_test(number: str, inputs, cfg: Config, data, folder: Path) -> tup
         losses = {"L_a": rssnet_metrics(load_rssnet(cfg, res.best_path, device="cpu"), test, test.train_idx)["a"]}
     trained = (f"trained epochs {res.resumed_from + 1}-{res.epoch}" if res.epoch > res.resumed_from
                else f"already trained ({res.epoch} epochs)")
-    return {"seed": cfg.train.seed, **losses, "best_epoch": res.best_epoch,
+    if res.stopped_early:
+        trained += f" (stopped early: train.patience {cfg.train.patience})"
+    return {"seed": cfg.train.seed, **losses, "best_epoch": res.best_epoch, "epochs": res.epoch,
             "seconds": time.perf_counter() - t0}, trained
 
 
@@ -137,9 +139,13 @@ def markdown(results: dict, profile: str) -> str:
     base = results.get("baselines", {})
     seeds = meta.get("seeds", [0])
     several = len(seeds) > 1
+    runs = [r for t in ("table2", "table3") for row in results.get(t, []) for r in row.get("runs", [])]
+    early = sum(r.get("epochs", meta["epochs"]) < meta["epochs"] for r in runs)
+    stopping = (f" (or fewer: train.patience {meta['patience']} stopped {early} of {len(runs)} runs early)"
+                if meta.get("patience") else "")
     lines = [f"# Ablations: {meta['dataset']}", "",
              f"Frames train/val/test: {meta['frames']['train']}/{meta['frames']['val']}/{meta['frames']['test']} "
-             f"(split rule '{meta['split_rule']}'), {meta['epochs']} epochs, {meta['hardware']}, "
+             f"(split rule '{meta['split_rule']}'), {meta['epochs']} epochs{stopping}, {meta['hardware']}, "
              f"total {meta['total_seconds'] / 60:.1f} min. Test split; "
              + ("models selected on val." if meta["frames"]["val"] else "no val frames: models selected on their "
                 "training loss (pipeline.training).")

@@ -25,7 +25,7 @@ import numpy as np
 
 from pipeline import transfer
 from pipeline.cache import DONE, RaggedRows
-from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS, Config, check_profile, named_nets
+from pipeline.config import EPOCHS_KEYS, PATIENCE_KEYS, TRAINING_KEYS, Config, check_profile, named_nets
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
@@ -40,7 +40,8 @@ scale retrains PlaceNet alone)."""
 NETS = ("disnet", "rssnet", "placenet")
 """Values train.nets may list."""
 CONFIG_KEYS = tuple(dict.fromkeys(sum((TRAINING_KEYS[n] for n in NETS), TRAINING_KEYS["common"])
-                                  + ("train.nets", "disnet.prior_mix", *EPOCHS_KEYS.values())))
+                                  + ("train.nets", "disnet.prior_mix", *EPOCHS_KEYS.values(),
+                                     *PATIENCE_KEYS.values())))
 COPIED = tuple(f"{net}/best.safetensors" for net in NETS)
 """What train.nets_from takes from the other dataset's train output (those of them it has)."""
 MEAN_MAP_FILE = "mean_heatmap.npy"
@@ -196,8 +197,7 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
         res = train_disnet(cfg, d_data, root / "disnet", progress=inputs.progress,
                            fingerprint=training_fingerprint(inputs, cfg, "disnet"), publish=inputs.publish)
         model = load_disnet(cfg, res.best_path, device="cpu")
-        summary["disnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from,
-                             "val": res.best_metric,
+        summary["disnet"] = {**_epochs(res), "val": res.best_metric,
                              "test": disnet_metrics(model, d_data, idx["test"], cfg.train.alpha, **shown) if len(idx["test"]) else {}}
         best_meta = read_meta(res.best_path)
         refit = best_meta.get("count_refit")
@@ -210,13 +210,20 @@ def run(inputs, cfg: Config, out, fingerprint: str) -> dict:
                            fingerprint=training_fingerprint(inputs, cfg, "rssnet"), publish=inputs.publish)
         model = load_rssnet(cfg, res.best_path, device="cpu")
         test = rssnet_data(inputs, table, 2, 2)
-        summary["rssnet"] = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
+        summary["rssnet"] = {**_epochs(res), "val": res.best_metric,
                              "test": rssnet_metrics(model, test, test.train_idx, **shown) if len(test.rss) else {}}
     if "placenet" in nets:
         summary["placenet"] = _train_placenet(inputs, cfg, table, root)
     (root / "metrics.json").write_text(json.dumps(summary, indent=2, default=float))
     summary["message"] = _headline(summary)
     return summary
+
+
+def _epochs(res) -> dict:
+    """A net's epochs in the summary: its best, the one this run resumed from (0: a fresh start), the
+    last it trained, and whether its patience ran out before its last epoch (train.patience)."""
+    return {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "epochs": res.epoch,
+            "stopped_early": res.stopped_early}
 
 
 def _final_place(inputs, out) -> str:
@@ -310,7 +317,7 @@ def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
                          fingerprint=training_fingerprint(inputs, cfg, "placenet"), publish=inputs.publish)
     model = load_placenet(cfg, res.best_path, device="cpu")
     test = placenet_data(inputs, table, 2, 2)
-    out = {"best_epoch": res.best_epoch, "resumed_from": res.resumed_from, "val": res.best_metric,
+    out = {**_epochs(res), "val": res.best_metric,
            "count_scale": model.count_scale,
            "rows": {"train": int(len(data.train_idx)), "val": int(len(data.val_idx)), "test": int(len(test.train_idx))},
            "test": {}}
@@ -337,6 +344,10 @@ def _headline(s: dict) -> str:
     if "placenet" in s and s["placenet"]["test"]:
         parts.append(f"PlaceNet test NLL {s['placenet']['test']['nll']:.4f} "
                      f"(constant intensity {s['placenet'].get('constant_intensity_test_nll', nan):.4f})")
+    stopped = [f"{net} after epoch {s[net]['epochs']} (best {s[net]['best_epoch']})"
+               for net in NETS if s.get(net, {}).get("stopped_early")]
+    if stopped:
+        parts.append(f"stopped early: {', '.join(stopped)}")
     return "; ".join(parts) or "trained"
 
 
@@ -366,8 +377,7 @@ def resume_point(inputs, cfg: Config, out) -> str | None:
     checkpoint. The epoch is the last checkpoint's own (its
     header, without torch), the one a run resumes from: on a remote cache the JSON sidecar beside
     it may arrive before it, and named one epoch more."""
-    from pipeline.config import EPOCHS_KEYS
-    from pipeline.continuation import continuation_problem
+    from pipeline.continuation import continuation_problem, stalled
     from pipeline.safetensors_meta import read_metadata
 
     said = []
@@ -382,11 +392,16 @@ def resume_point(inputs, cfg: Config, out) -> str | None:
         except (OSError, ValueError):
             said.append(f"{net}: an unreadable checkpoint")
             continue
-        n_epochs = int(cfg.get(EPOCHS_KEYS[net]))
+        n_epochs, patience = int(cfg.get(EPOCHS_KEYS[net])), int(cfg.get(PATIENCE_KEYS[net]))
+        problem = continuation_problem(meta, n_epochs, patience, cfg.train.select_on)
         if meta.get("fingerprint") != training_fingerprint(inputs, cfg, net):
             said.append(f"{net} epoch {meta.get('epoch')} for other settings or data (trains again)")
-        elif continuation_problem(meta, n_epochs):
+        elif int(meta.get("epoch", 0)) > n_epochs:
             said.append(f"{net} epoch {meta.get('epoch')}, more than the {n_epochs} now asked (trains again)")
+        elif problem:
+            said.append(f"{net} epoch {meta.get('epoch')}: {problem} (trains again)")
+        elif stalled(meta, patience) and int(meta.get("epoch", 0)) < n_epochs:
+            said.append(f"{net} done, stopped early after epoch {meta.get('epoch')} of {n_epochs}")
         else:
             said.append(f"{net} epoch {meta.get('epoch')} of {n_epochs}")
     return ", ".join(said) or None

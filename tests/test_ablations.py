@@ -167,3 +167,19 @@ def test_the_report_says_how_models_were_selected():
     assert "no val frames: models selected on their training loss" in markdown(results, "vod")
     results["meta"]["frames"]["val"] = 3
     assert "Test split; models selected on val." in markdown(results, "vod")
+
+
+def test_the_report_says_how_many_runs_a_patience_stopped_early():
+    """With train.patience the report's epochs are a most: it says how many runs stopped early
+    (runs without the record, written before 2026-12-07, count as having run every epoch); without
+    a patience it says the epochs alone."""
+    run = {"seed": 0, "L_KL": 0.3, "L_n": 0.2, "best_epoch": 2, "seconds": 1.0}
+    results = {"table2": [{"variant": "image", "L_KL": 0.3, "L_n": 0.2, "best_epoch": 2, "seconds": 2.0,
+                           "runs": [{**run, "epochs": 5}, {**run, "epochs": 12}]}],
+               "table3": [{"variant": "cam", "L_a": 0.02, "best_epoch": 3, "seconds": 1.0,
+                           "runs": [{"seed": 0, "L_a": 0.02, "best_epoch": 3, "seconds": 1.0}]}],
+               "meta": {"dataset": "astyx", "frames": {"train": 81, "val": 15, "test": 45}, "split_rule": "block",
+                        "epochs": 12, "patience": 3, "hardware": "CPU", "total_seconds": 60.0}}
+    assert "12 epochs (or fewer: train.patience 3 stopped 1 of 3 runs early), CPU" in markdown(results, "astyx")
+    results["meta"]["patience"] = 0
+    assert "12 epochs, CPU" in markdown(results, "astyx")

@@ -1174,6 +1174,22 @@ def test_a_key_added_later_is_left_out_of_fingerprints_at_its_old_value():
         assert residual.fingerprint(without) == cfg.fingerprint(without)
 
 
+def test_the_patience_keys_leave_trained_caches_current_at_zero():
+    """train.patience and placement.patience joined the train stage's fingerprint on 2026-12-07: at
+    0 (no early stop, as every earlier train ran) it is the fingerprint without them, so an upgraded
+    cache does not retrain, nor recompute what was synthesized from its nets; another value differs."""
+    from stages.train import CONFIG_KEYS
+
+    patience = ("train.patience", "placement.patience")
+    without = tuple(k for k in CONFIG_KEYS if k not in patience)
+    assert set(patience) <= set(CONFIG_KEYS)
+    for profile in ("astyx", "synthetic"):
+        cfg = load_config(profile, {}, environ={})
+        assert cfg.fingerprint(CONFIG_KEYS) == cfg.fingerprint(without)
+        for key in patience:
+            assert cfg.with_overrides({key: "3"}).fingerprint(CONFIG_KEYS) != cfg.fingerprint(CONFIG_KEYS)
+
+
 def test_a_key_of_another_reader_leaves_a_dataset_s_fingerprints_alone():
     """dataset.world_* only shape the synthetic world, dataset.radar_mount_T_radar_lidar only
     KITTI's radar: set for another dataset (PIPELINE__DATASET__WORLD_FRAMES=2400 from `make

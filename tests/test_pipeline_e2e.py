@@ -306,3 +306,18 @@ def test_train_headline_names_a_chosen_prior_share():
         assert ("the mean map's share 0.35 chosen on val" in message) == said, message
         assert message.startswith("Dis-Net test L_KL 0.2900 (mean map 0.3100")
     assert "share" not in _headline({**base, "disnet": {"test": test}})
+
+
+def test_train_headline_names_the_nets_stopped_early():
+    """train.patience: the train stage's message says which nets stopped early, after which epoch
+    and with which best; not for nets that ran all their epochs or summaries without the record."""
+    from stages.train import _headline
+
+    base = {"baselines_test": {"median_rss_L_a": 0.02}}
+    rss = {"test": {"a": 0.018}, "best_epoch": 3, "epochs": 6, "stopped_early": True}
+    assert _headline({**base, "rssnet": rss}).endswith("; stopped early: rssnet after epoch 6 (best 3)")
+    assert _headline({**base, "rssnet": rss, "placenet": {"test": {}, "best_epoch": 9, "epochs": 13,
+                                                         "stopped_early": True}}).endswith(
+        "stopped early: rssnet after epoch 6 (best 3), placenet after epoch 13 (best 9)")
+    for record in ({**rss, "stopped_early": False}, {"test": {"a": 0.018}}):
+        assert "stopped" not in _headline({**base, "rssnet": record})

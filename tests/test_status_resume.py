@@ -129,3 +129,31 @@ def test_a_damaged_train_record_names_the_way_that_keeps_the_training(tmp_path):
     assert report.summary["disnet"]["resumed_from"] == cfg.train.epochs == 2
     assert report.summary["placenet"]["resumed_from"] == cfg.placement.epochs > 0
     assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in best} == best
+
+
+def test_status_of_a_train_whose_nets_have_a_patience(tmp_path, monkeypatch):
+    """With train.patience, a net whose checkpoint already ended its run (best epoch that far back)
+    is shown as done, and one trained past the epoch where the patience now set would have stopped
+    it with another best epoch trains again (pipeline.continuation), with the reason."""
+    import torch
+
+    from pipeline import checkpoint as ckpt
+    from pipeline.dirstore import DirStore
+    from stages import train as train_stage
+
+    monkeypatch.setattr(train_stage, "training_fingerprint", lambda inputs, cfg, net: "fp")
+    curves = [{"epoch": e, "val_loss": v, "train_loss": 1.0} for e, v in enumerate((3.0, 1.0, 2.0, 2.5, 0.5), 1)]
+    for net, upto in (("disnet", 4), ("rssnet", 5)):
+        ckpt.save_checkpoint(tmp_path / net / "last.safetensors", {"w": torch.zeros(1)},
+                             {"net": net, "fingerprint": "fp", "epoch": upto, "selection": "val",
+                              "best_epoch": 2 if upto == 4 else 5, "curves": curves[:upto]})
+
+    def said(**settings: str) -> str | None:
+        cfg = load_config("synthetic", {"train.nets": "disnet,rssnet", "train.epochs": "8", **settings}, environ={})
+        return train_stage.resume_point(None, cfg, DirStore(str(tmp_path)))
+
+    assert said() == "disnet epoch 4 of 8, rssnet epoch 5 of 8"
+    assert said(**{"train.patience": "2"}) == (
+        "disnet done, stopped early after epoch 4 of 8, rssnet epoch 5: its best epoch, 5, came after epoch 4, "
+        "where a patience of 2 stops with epoch 2 best (trains again)")
+    assert said(**{"train.patience": "3"}) == "disnet epoch 4 of 8, rssnet epoch 5 of 8"

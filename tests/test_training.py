@@ -1355,3 +1355,100 @@ def test_test_metrics_log_their_progress(tmp_path, capsys):
     shown = T.disnet_metrics(model, data, data.val_idx, cfg.train.alpha, progress=True, every_s=1e-6)
     assert shown == quiet
     assert re.search(r"^disnet test: \d/1 \(\d+%\)", capsys.readouterr().err, re.M)
+
+
+def _scripted_val_losses(monkeypatch, losses: list[float]) -> list[int]:
+    """Make every validation of a Dis-Net epoch return ``losses[epoch - 1]`` as its loss (the epoch
+    read from the training pass's description, so that resumed runs get the same script); the
+    epochs trained are recorded in the returned list."""
+    real_train, real_evaluate, trained = T.train_one_epoch, T.evaluate, []
+
+    def train(*args, **kwargs):
+        trained.append(int(re.search(r"epoch (\d+)/", args[7]).group(1)))
+        return real_train(*args, **kwargs)
+
+    def evaluate(*args, **kwargs):
+        return {**real_evaluate(*args, **kwargs), "loss": losses[trained[-1] - 1]}
+
+    monkeypatch.setattr(T, "train_one_epoch", train)
+    monkeypatch.setattr(T, "evaluate", evaluate)
+    return trained
+
+
+def _same_tensors(a, b) -> bool:
+    x, y = _all_tensors(a), _all_tensors(b)
+    return set(x) == set(y) and all(torch.equal(x[k], y[k]) for k in x)
+
+
+def test_patience_stops_a_net_whose_val_loss_stalls_and_keeps_its_best(tmp_path, monkeypatch):
+    """train.patience = 2: training stops after the second epoch in a row without a lower val loss,
+    with the best epoch's weights those of a run of just that many epochs; a rerun trains nothing,
+    and a larger patience continues where the stopped run left off, as a fresh run of it would."""
+    data = make_disnet_data(n=16)
+    losses = [3.0, 1.0, 2.0, 2.5, 0.5, 4.0, 4.0, 4.0]
+    trained = _scripted_val_losses(monkeypatch, losses)
+    cfg = tiny_cfg(**{"train.epochs": "8", "train.patience": "2"})
+    res = T.train_disnet(cfg, data, tmp_path / "p2", progress=False)
+    assert trained == [1, 2, 3, 4] and (res.epoch, res.best_epoch, res.best_metric) == (4, 2, 1.0)
+    assert res.stopped_early and [c["epoch"] for c in res.curves] == [1, 2, 3, 4]
+    trained.clear()
+    four = T.train_disnet(tiny_cfg(**{"train.epochs": "4"}), data, tmp_path / "four", progress=False)
+    assert not four.stopped_early and four.best_epoch == 2 and _same_tensors(res.best_path, four.best_path)
+    trained.clear()  # the same settings again: done
+    again = T.train_disnet(cfg, data, tmp_path / "p2", progress=False)
+    assert trained == [] and (again.resumed_from, again.epoch, again.stopped_early) == (4, 4, True)
+    # patience 3 continues from epoch 4: epoch 5 is the best, and three epochs later the run ends
+    # at its last epoch (no early stop); a fresh patience-3 run gives the same best weights
+    more = T.train_disnet(tiny_cfg(**{"train.epochs": "8", "train.patience": "3"}), data, tmp_path / "p2",
+                          progress=False)
+    assert trained == [5, 6, 7, 8] and (more.resumed_from, more.epoch, more.best_epoch) == (4, 8, 5)
+    assert not more.stopped_early
+    fresh = T.train_disnet(tiny_cfg(**{"train.epochs": "8", "train.patience": "3"}), data, tmp_path / "p3",
+                           progress=False)
+    assert _same_tensors(more.best_path, fresh.best_path) and _same_tensors(more.last_path, fresh.last_path)
+
+
+def test_a_smaller_patience_retrains_a_net_only_where_it_would_have_kept_another_epoch(tmp_path, monkeypatch):
+    """A net trained without patience whose best epoch (5) came after the epoch where patience 2
+    stops (4, with epoch 2 best) trains again, to what a fresh patience-2 run gives; one whose best
+    came before that point keeps its checkpoints: a fresh run would have kept the same best."""
+    data = make_disnet_data(n=16)
+    trained = _scripted_val_losses(monkeypatch, [3.0, 1.0, 2.0, 2.5, 0.5, 4.0])
+    full = T.train_disnet(tiny_cfg(**{"train.epochs": "6"}), data, tmp_path / "a", progress=False)
+    assert full.best_epoch == 5 and not full.stopped_early
+    trained.clear()
+    p2 = tiny_cfg(**{"train.epochs": "6", "train.patience": "2"})
+    again = T.train_disnet(p2, data, tmp_path / "a", progress=False)
+    assert trained == [1, 2, 3, 4] and (again.resumed_from, again.epoch, again.best_epoch) == (0, 4, 2)
+    fresh = T.train_disnet(p2, data, tmp_path / "b", progress=False)
+    assert _same_tensors(again.best_path, fresh.best_path)
+
+    trained = _scripted_val_losses(monkeypatch, [3.0, 1.0, 2.0, 2.5, 2.6, 4.0])
+    full = T.train_disnet(tiny_cfg(**{"train.epochs": "6"}), data, tmp_path / "c", progress=False)
+    best_before = _all_tensors(full.best_path)
+    trained.clear()
+    kept = T.train_disnet(p2, data, tmp_path / "c", progress=False)
+    assert trained == [] and (kept.resumed_from, kept.epoch, kept.best_epoch) == (6, 6, 2)
+    assert all(torch.equal(v, _all_tensors(kept.best_path)[k]) for k, v in best_before.items())
+    with pytest.raises(ConfigError, match="train.patience"):
+        T.train_disnet(tiny_cfg(**{"train.patience": "-1"}), data, tmp_path / "bad", progress=False)
+
+
+def test_continuation_under_a_patience_follows_the_selection_loss():
+    """The running best is the selection split's select_on term where the curves hold it (else its
+    loss), with the training loop's strict comparison; the epoch a patience stops at is the first
+    whose best lies that far back."""
+    from pipeline.continuation import running_best_epochs, stop_epoch
+
+    curves = [{"val_loss": v, "val_kl": k, "train_loss": t}
+              for v, k, t in ((3, 5, 9), (1, 4, 8), (1, 6, 7), (2, 3, 6), (0.5, 7, 5))]
+    assert running_best_epochs(curves, "val", "loss") == [1, 2, 2, 2, 5]  # a tie is no improvement
+    assert running_best_epochs(curves, "val", "kl") == [1, 2, 2, 4, 4]
+    assert running_best_epochs(curves, "train", "kl") == [1, 2, 3, 4, 5]  # no train_kl: the loss
+    assert stop_epoch([1, 2, 2, 2, 5], 2) == 4 and stop_epoch([1, 2, 2, 2, 5], 3) is None
+    meta = {"epoch": 5, "selection": "val", "curves": curves}
+    assert continuation_problem(meta, 5, patience=2) == (
+        "its best epoch, 5, came after epoch 4, where a patience of 2 stops with epoch 2 best")
+    assert continuation_problem(meta, 5, patience=3) is None and continuation_problem(meta, 5) is None
+    assert continuation_problem(meta, 5, patience=2, select_on="kl") is None  # best 4 at epoch 5 either way
+    assert continuation_problem(meta, 5, patience=1, select_on="kl") is not None  # stops at 3, best 2
