@@ -452,7 +452,29 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
             _print_status_row(row, notes)
             for i, why in list(row.get("reasons", {}).items())[:reasons]:
                 click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
+        if not missing:
+            _print_ablations(pipe)
     _exit_if_damaged(rows)
+
+
+def _print_ablations(pipe) -> None:
+    """`pipeline status`'s line on the ablations folder (stages.ablations.ablation_status), where it
+    holds anything: on a remote cache this machine's staging folder while the remote has no report
+    (ablate uploads when it finishes). Nothing where the upstream outputs cannot be read (their rows
+    say so)."""
+    from pipeline.runner import DatasetInputs
+    from stages.ablations import REPORT, ablation_status
+
+    folder = pipe.env.dir("ablations")
+    work = folder.work_folder(pipe.env.cfg.run.staging_dir)
+    if work is not folder and not folder.fs.exists(folder.file(REPORT)) and work.holds_files():
+        folder = work
+    try:
+        line = ablation_status(DatasetInputs(pipe.env, pipe.frame_ids()), pipe.env.cfg, folder)
+    except PipelineError:  # ChunkError among them
+        return
+    if line:
+        click.echo(f"{'ablations':<{NAME_WIDTH}} {line}")
 
 
 def _cache_exists(env) -> bool:

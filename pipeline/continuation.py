@@ -17,6 +17,19 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from pipeline.config import EPOCHS_KEYS, TRAINING_KEYS
+
+
+def default_fingerprint(cfg, net: str) -> str:
+    """Fingerprint of the config keys that change what a net learns (not epochs/device/threads);
+    torch-free, so that `pipeline status` can tell a checkpoint's settings without loading torch."""
+    if net not in TRAINING_KEYS or net == "common":
+        raise ValueError(f"default_fingerprint: unknown net {net!r}")
+    common = list(TRAINING_KEYS["common"])
+    if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
+        common.append(EPOCHS_KEYS[net])
+    return cfg.fingerprint(list(TRAINING_KEYS[net]) + common)
+
 
 def continuation_problem(meta: Mapping[str, Any], n_epochs: int, patience: int = 0,
                          select_on: str = "loss") -> str | None:

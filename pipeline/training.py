@@ -35,8 +35,8 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from pipeline import augment
 from pipeline import checkpoint as ckpt
-from pipeline.config import EPOCHS_KEYS, PATIENCE_KEYS, TRAINING_KEYS, check_limit
-from pipeline.continuation import continuation_problem, stalled
+from pipeline.config import EPOCHS_KEYS, PATIENCE_KEYS, check_limit
+from pipeline.continuation import continuation_problem, default_fingerprint, stalled
 from pipeline.errors import ConfigError
 from pipeline.net_baselines import mean_map_baseline, speed_count_prior
 from pipeline.inference import (RESIDUAL_KEY, RESIDUAL_LEVELS, device_of, disnet_inputs, jsonable_arch,
@@ -453,16 +453,6 @@ def disnet_terms(model: nn.Module, batch: Batch, device: torch.device, flip: boo
         img = augment.photometric(img, jitter)
     log_map, n_hat = model(img, speed)
     return {"kl": kl_loss(log_map, target), "n": count_loss(n_hat, counts)}
-
-
-def default_fingerprint(cfg, net: str) -> str:
-    """Fingerprint of the config keys that change what a net learns (not epochs/device/threads)."""
-    if net not in TRAINING_KEYS or net == "common":
-        raise ValueError(f"default_fingerprint: unknown net {net!r}")
-    common = list(TRAINING_KEYS["common"])
-    if cfg.train.lr_schedule != "constant":  # the schedule spans the epochs: more epochs, another run
-        common.append(EPOCHS_KEYS[net])
-    return cfg.fingerprint(list(TRAINING_KEYS[net]) + common)
 
 
 def _setup(cfg) -> None:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import platform
 import time
+from collections import Counter
+from posixpath import join
 from pathlib import Path
 from typing import Callable
 
@@ -64,8 +66,7 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
             runs = []
             for seed in seed_list:
                 c = cfg.with_overrides({**overrides, "train.seed": str(seed)})
-                folder = out_root / (_slug(name) if seed == seed_list[0] else f"{_slug(name)}-seed{seed}")
-                run, trained = _train_and_test(number, inputs, c, data, folder)
+                run, trained = _train_and_test(number, inputs, c, data, out_root / run_folder(name, seed, seed_list))
                 runs.append(run)
                 losses = ", ".join(f"{k} {_fmt(k, run[k])}" for k in LOSSES[number])
                 log(f"{'ablate':<{NAME_WIDTH}} {variants.index(name) + 1}/{len(variants)} {name}"
@@ -76,12 +77,82 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
                  "best_epoch": runs[0]["best_epoch"], "seconds": sum(r["seconds"] for r in runs), "runs": runs})
     results["meta"] = {"dataset": inputs.env.dataset, "frames": {k: int(v) for k, v in zip(
         ("train", "val", "test"), [(table["ok"] & (table["split"] == p)).sum() for p in (0, 1, 2)])},
-        "epochs": cfg.train.epochs, "patience": cfg.train.patience, "split_rule": cfg.split.rule, "hardware": _hardware(), "seeds": seed_list,
-        "total_seconds": time.perf_counter() - t_start}
+        "epochs": cfg.train.epochs, "patience": cfg.train.patience, "split_rule": cfg.split.rule,
+        "hardware": _hardware(), "seeds": seed_list, "total_seconds": time.perf_counter() - t_start}
     out_root.mkdir(parents=True, exist_ok=True)
-    (out_root / "ablations.json").write_text(json.dumps(results, indent=2, default=float))
-    (out_root / "ablations.md").write_text(markdown(results, cfg.profile))
+    (out_root / REPORT).write_text(json.dumps(results, indent=2, default=float))
+    (out_root / MARKDOWN).write_text(markdown(results, cfg.profile))
     return results
+
+
+def run_folder(variant: str, seed: int, seeds: list[int]) -> str:
+    """The folder, under the ablations folder, that the run of ``variant`` with ``seed`` (one of
+    ``seeds``) trains into: the variant's own for the first seed, ``<variant>-seed<N>`` for the others."""
+    return _slug(variant) if seed == seeds[0] else f"{_slug(variant)}-seed{seed}"
+
+
+NETS = {"2": "disnet", "3": "rssnet"}
+"""The net each table trains."""
+REPORT, MARKDOWN = "ablations.json", "ablations.md"
+"""The results of a finished `pipeline ablate` in the ablations folder, and its tables."""
+
+
+def ablation_status(inputs, cfg: Config, folder) -> str | None:
+    """What the ablations folder ``folder`` (a DirStore) holds, for `pipeline status`: with a
+    report, its tables and seeds and how many of their runs are trained with ``cfg`` and the data as
+    they are now (stages.train.net_state); without one (ablate cut off), the runs whose checkpoints
+    are there, by the same states. None when the folder holds nothing."""
+    from stages.train import checkpoint_meta, net_state
+
+    try:
+        present = {name.rstrip("/").rsplit("/", 1)[-1] for name in folder.fs.ls(folder.path, detail=False)}
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    if not present:
+        return None
+    report = None
+    if REPORT in present:
+        try:
+            report = json.loads(folder.fs.cat_file(folder.file(REPORT)))
+        except (OSError, ValueError) as exc:
+            return f"an unreadable report {folder.file(REPORT)} ({exc}); `pipeline ablate` writes it again"
+    meta = (report or {}).get("meta", {})
+    seeds = meta.get("seeds") or _seeds_in(present, cfg.train.seed)
+    tables = [t for t in NETS if report is None or report.get(f"table{t}")]
+    states: Counter = Counter()
+    for number in tables:
+        for name, overrides in TABLE2 if number == "2" else TABLE3:
+            for seed in seeds:
+                sub = run_folder(name, seed, seeds)
+                if report is None and sub not in present:
+                    continue
+                try:
+                    ck = checkpoint_meta(folder, f"{sub}/last.safetensors")
+                except ValueError:
+                    states["unreadable"] += 1
+                    continue
+                c = cfg.with_overrides({**overrides, "train.seed": str(seed)})
+                states["not trained" if ck is None else net_state(inputs, c, NETS[number], ck)] += 1
+    runs = sum(states.values())
+    said = ", ".join(f"{states[k]} {text}" for k, text in (
+        ("part-trained", "part-trained (resume)"), ("retrains", "for other settings or data (train again)"),
+        ("not trained", "not trained"), ("unreadable", "with an unreadable checkpoint")) if states[k])
+    if report is None:
+        return (f"unfinished, no report yet: {runs} run(s) begun, {states['trained']} of them trained"
+                + (f"; {said}" if said else "") + "; `pipeline ablate` with the same options goes on")
+    where = folder.file(MARKDOWN) if folder.is_local else join(folder.url, MARKDOWN)
+    head = (f"report {where} ({'tables 2 and 3' if len(tables) == 2 else f'table {tables[0]}' if tables else 'no table'}, "
+            f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''}): ")
+    if states["trained"] == runs:
+        return head + f"all {runs} runs trained with these settings and data"
+    return head + f"{states['trained']} of {runs} runs trained with these settings and data; {said}"
+
+
+def _seeds_in(names: set[str], first: int) -> list[int]:
+    """The seeds whose runs the folder names ``names`` hold: ``first`` (the variants' own folders)
+    and each N of a ``<variant>-seed<N>``."""
+    more = {int(tail) for head, sep, tail in (n.rpartition("-seed") for n in names) if sep and tail.isdigit()}
+    return [first, *sorted(more - {first})]
 
 
 LOSSES = {"2": ("L_KL", "L_n"), "3": ("L_a",)}

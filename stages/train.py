@@ -165,7 +165,7 @@ def training_fingerprint(inputs, cfg: Config, net: str) -> str:
     Raising train.epochs (placement.epochs for PlaceNet) re-runs the stage but continues from the
     last finished epoch; lowering them below it trains the net again (pipeline.continuation).
     """
-    from pipeline.training import default_fingerprint
+    from pipeline.continuation import default_fingerprint
 
     stores = ("calibrate", "heatmaps") if net == "disnet" else ("calibrate", "heatmaps", "patches")
     data = [f"{inputs.store(s).fingerprint()}:{inputs.store(s).done_digest()}" for s in stores]  # Dis-Net reads no patches
@@ -378,19 +378,15 @@ def resume_point(inputs, cfg: Config, out) -> str | None:
     header, without torch), the one a run resumes from: on a remote cache the JSON sidecar beside
     it may arrive before it, and named one epoch more."""
     from pipeline.continuation import continuation_problem, stalled
-    from pipeline.safetensors_meta import read_metadata
 
     said = []
     for net in (n for n in NETS if n in named_nets(cfg)):
         try:
-            with out.fs.open(out.file(f"{net}/last.safetensors"), "rb", block_size=HEADER_READ_BYTES) as fh:
-                meta = json.loads(read_metadata(fh).get("meta", "{}"))
-            if not isinstance(meta, dict):
-                raise ValueError("its metadata is not a JSON object")
-        except FileNotFoundError:
-            continue
-        except (OSError, ValueError):
+            meta = checkpoint_meta(out, f"{net}/last.safetensors")
+        except ValueError:
             said.append(f"{net}: an unreadable checkpoint")
+            continue
+        if meta is None:
             continue
         n_epochs, patience = int(cfg.get(EPOCHS_KEYS[net])), int(cfg.get(PATIENCE_KEYS[net]))
         problem = continuation_problem(meta, n_epochs, patience, cfg.train.select_on)
@@ -405,6 +401,37 @@ def resume_point(inputs, cfg: Config, out) -> str | None:
         else:
             said.append(f"{net} epoch {meta.get('epoch')} of {n_epochs}")
     return ", ".join(said) or None
+
+
+def checkpoint_meta(out, name: str) -> dict | None:
+    """The metadata of the checkpoint ``name`` in the folder ``out`` (a DirStore), read from its
+    header without torch; None when there is none; ValueError when it cannot be read."""
+    from pipeline.safetensors_meta import read_metadata
+
+    try:
+        with out.fs.open(out.file(name), "rb", block_size=HEADER_READ_BYTES) as fh:
+            meta = json.loads(read_metadata(fh).get("meta", "{}"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{out.file(name)}: {exc}") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{out.file(name)}: its metadata is not a JSON object")
+    return meta
+
+
+def net_state(inputs, cfg: Config, net: str, meta: dict) -> str:
+    """Where a net whose last checkpoint has metadata ``meta`` stands under ``cfg``: 'trained' (its
+    epochs done, or its patience run out), 'part-trained' (a run goes on from its epoch) or
+    'retrains' (saved for other settings or data, or past where these settings stop:
+    pipeline.continuation)."""
+    from pipeline.continuation import continuation_problem, stalled
+
+    n_epochs, patience = int(cfg.get(EPOCHS_KEYS[net])), int(cfg.get(PATIENCE_KEYS[net]))
+    if (meta.get("fingerprint") != training_fingerprint(inputs, cfg, net)
+            or continuation_problem(meta, n_epochs, patience, cfg.train.select_on)):
+        return "retrains"
+    return "trained" if int(meta.get("epoch", 0)) == n_epochs or stalled(meta, patience) else "part-trained"
 
 
 STAGE = DatasetStage(name="train", upstream=("calibrate", "heatmaps", "patches"), config_keys=CONFIG_KEYS, version=VERSION,

@@ -111,6 +111,10 @@ def test_ablate_on_a_remote_cache_trains_in_a_staging_folder_and_uploads(world, 
     for name, _ in TABLE2:
         assert fs.cat_file(f"{root}/{_slug(name)}/best.safetensors") == \
             (staged / _slug(name) / "best.safetensors").read_bytes()
+    sets = [arg for key, value in {**TINY, "run.staging_dir": str(staging)}.items() for arg in ("--set", f"{key}={value}")]
+    status = CliRunner().invoke(main, ["status", "--dataset", "synthetic", "--data-root", str(world), "--cache", url,
+                                       *sets])
+    assert f"report {url}/synthetic/ablations/ablations.md (table 2, 1 seed): all 2 runs trained" in status.output
     stamps = {p: p.stat().st_mtime_ns for p in staged.rglob("*.safetensors")}
     again = _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={staging}")
     assert again.exit_code == 0, again.output
@@ -183,3 +187,35 @@ def test_the_report_says_how_many_runs_a_patience_stopped_early():
     assert "12 epochs (or fewer: train.patience 3 stopped 1 of 3 runs early), CPU" in markdown(results, "astyx")
     results["meta"]["patience"] = 0
     assert "12 epochs, CPU" in markdown(results, "astyx")
+
+
+def test_status_says_what_the_ablations_folder_holds(world, tmp_path):
+    """`pipeline status` did not mention ablate's folder (until 2026-12-07): a run of several minutes
+    per variant, cut off or finished, left no trace in it. Now a line says whether a report is there
+    and how many of its runs are trained with the command's settings and the data as they are, or
+    that a cut-off ablate left runs to go on from."""
+    cache = tmp_path / "cache"
+    sets = [arg for key, value in TINY.items() for arg in ("--set", f"{key}={value}")]
+
+    def status(*extra: str) -> str:
+        out = CliRunner().invoke(main, ["status", "--dataset", "synthetic", "--data-root", str(world), "--cache",
+                                        str(cache), *sets, *extra])
+        assert out.exit_code == 0, out.output
+        return "\n".join(line for line in out.output.splitlines() if line.startswith("ablations "))
+
+    assert _ablate(world, cache, "--tables", "2").exit_code == 0
+    assert status() == "ablations".ljust(16) + "report {} (table 2, 1 seed): all 2 runs trained with these settings " \
+        "and data".format(cache / "synthetic" / "ablations" / "ablations.md")
+    more = int(TINY["train.epochs"]) + 1
+    assert status("--set", f"train.epochs={more}").endswith(
+        ": 0 of 2 runs trained with these settings and data; 2 part-trained (resume)")
+    assert status("--set", "train.lr=0.5").endswith(
+        ": 0 of 2 runs trained with these settings and data; 2 for other settings or data (train again)")
+    (cache / "synthetic" / "ablations" / "ablations.json").unlink()  # as if cut off before the report
+    (cache / "synthetic" / "ablations" / "image_only" / "last.safetensors").unlink()
+    assert status() == "ablations".ljust(16) + "unfinished, no report yet: 2 run(s) begun, 1 of them trained; " \
+        "1 not trained; `pipeline ablate` with the same options goes on"
+    import shutil
+
+    shutil.rmtree(cache / "synthetic" / "ablations")
+    assert status() == ""

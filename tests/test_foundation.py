@@ -1222,10 +1222,14 @@ def test_a_key_of_another_reader_leaves_a_dataset_s_fingerprints_alone():
 def test_the_stages_and_the_cli_load_without_torch():
     """`pipeline status` and every command that only lists the stages took 0.8 s longer (1.9 s
     against 1.1 s on the demo's cache) while stages.train imported torch through pipeline.checkpoint
-    at module level; a stage imports torch when it runs a net."""
+    at module level; a stage imports torch when it runs a net. A net's training fingerprint, which
+    status compares with a checkpoint's (an unfinished train, the ablations' runs), is torch-free
+    too (until 2026-12-07 it imported torch through pipeline.training)."""
     import subprocess
     import sys
 
     code = ("import sys; from stages import all_stages; all_stages(); import pipeline.cli; "
-            "assert 'torch' not in sys.modules, 'torch imported'")
+            "from pipeline.config import load_config; from pipeline.continuation import default_fingerprint; "
+            "[default_fingerprint(load_config('synthetic', {}, environ={}), n) for n in ('disnet', 'rssnet')]; "
+            "import stages.ablations; assert 'torch' not in sys.modules, 'torch imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])
