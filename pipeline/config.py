@@ -260,6 +260,12 @@ class TrainSection:
     (pipeline.transfer). '' (default): train on this dataset."""
     epochs: int = 20
     """Epochs per net."""
+    checkpoint_every_s: float = 600.0
+    """Inside an epoch, every net saves a resume point after the first window of batches
+    (pipeline.rows.WINDOW_BATCHES) that ends this many seconds or more after its last save, so a
+    run killed in a long epoch (tens of thousands of frames) resumes from there, to the weights an
+    uninterrupted run gives; 0: only at the end of each epoch. No training key: it changes when the
+    last checkpoint is written, not what is learned."""
     patience: int = 0
     """Early stopping of Dis-Net and RSS-Net: a net stops once this many epochs in a row have not
     lowered its selection loss (train.select_on, on the val frames, or the training frames without
@@ -547,7 +553,7 @@ LIMITS: dict[str, str] = {
     "placement.map_weight": "[0,1]", "placement.patience": ">=0",
     "disnet.width": ">0",
     "train.epochs": ">=0", "train.lr": ">0", "train.batch_size": ">0", "train.rss_batch_size": ">0", "train.alpha": ">=0",
-    "train.patience": ">=0",
+    "train.patience": ">=0", "train.checkpoint_every_s": ">=0",
     "train.count_grad_scale": "[0,1]", "train.count_refit_epochs": ">=0", "train.weight_decay": ">=0",
     "train.cutmix": "[0,1]", "train.jitter": "[0,1]", "train.map_dropout": "[0,1)", "train.ema_decay": "[0,1)",
     "train.threads": ">0",

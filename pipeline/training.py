@@ -144,16 +144,20 @@ def _weighted_total(terms: dict[str, Tensor], weights: dict[str, float]) -> Tens
 def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches: Iterable[Batch],
                     terms_fn: TermsFn, weights: dict[str, float], device: torch.device,
                     n_batches: int = 0, desc: str = "train", progress: bool = True,
-                    ema: AveragedModel | None = None, every_s: float = EVERY_S) -> dict[str, float]:
+                    ema: AveragedModel | None = None, every_s: float = EVERY_S,
+                    totals: tuple[dict[str, float], int] | None = None,
+                    after_step: Callable[[int, dict[str, float], int], None] | None = None) -> dict[str, float]:
     """One pass over ``batches``; loss = mean over the batch of sum_k weights[k] * term_k; ``ema``
-    (when given) is updated after every optimiser step.
+    (when given) is updated after every optimiser step. ``totals``: the per-sample sums and their
+    count of the epoch's batches trained before these (a resume inside the epoch); ``after_step``
+    is called after each step with its index in ``batches`` and the sums and count so far.
 
     Returns per-sample means of every term and of the loss (key 'loss'). Raises FloatingPointError
     on a non-finite loss (before any checkpoint of the epoch is written).
     """
     model.train()
-    sums: dict[str, float] = {}
-    count = 0
+    sums: dict[str, float] = dict(totals[0]) if totals else {}
+    count = totals[1] if totals else 0
     bar = _progress(batches, n_batches, desc, progress, every_s)
     for step, batch in enumerate(bar):
         terms = terms_fn(model, batch, device)
@@ -167,6 +171,8 @@ def train_one_epoch(model: nn.Module, optimizer: torch.optim.Optimizer, batches:
         if ema is not None:
             ema.update_parameters(model)
         count += _accumulate(sums, {**terms, "loss": total})
+        if after_step is not None:
+            after_step(step, sums, count)
         if step % 10 == 0 and hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{loss.item():.4g}", refresh=False)  # a refresh would write a log line now
     return {k: v / max(count, 1) for k, v in sums.items()}
@@ -252,19 +258,53 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
     rows_per_chunk = chunk_len(next(iter(spec.arrays.values())))
     n_train_batches = math.ceil(len(spec.train_idx) / spec.batch_size)
     n_val_batches = math.ceil(len(spec.val_idx) / spec.batch_size)
+    partial = state.pop("partial", None)  # a resume point inside epoch start + 1
+    save_every_s = float(cfg.train.checkpoint_every_s)
     uploaded_at, uploaded_best = time.monotonic(), None
     every_s = cfg.run.progress_every_s
     heartbeat = Heartbeat(progress, every_s)
+
+    def upload() -> None:
+        nonlocal uploaded_at, uploaded_best
+        if publish is not None and time.monotonic() - uploaded_at >= cfg.run.checkpoint_upload_s:
+            if publish_checkpoints(publish, best, last, with_best=state["best_epoch"] != uploaded_best):
+                uploaded_best = state["best_epoch"]  # else a best that failed is sent again next time
+            uploaded_at = time.monotonic()
+
     for epoch in range(start + 1, n_epochs + 1):
         if stalled(state, patience):
             break  # stopped early, in this run or the one resumed
         t0 = time.perf_counter()
         for group in optimizer.param_groups:  # a function of the epoch alone: resumes exactly
             group["lr"] = epoch_lr(cfg, epoch, base_lr, n_epochs)
+        epoch_rng = ckpt.numpy_rng_state(rng)  # the epoch's windows are drawn from this state
         order = epoch_windows(spec.train_idx, rows_per_chunk, spec.batch_size * WINDOW_BATCHES, rng)
+        skipped, totals = 0, None
+        if partial is not None:
+            skipped, totals, t0 = partial["windows"], (partial["sums"], partial["count"]), t0 - partial["seconds"]
+            for _ in range(skipped):
+                next(order)  # drawn as the run that trained them drew them, not read again
+            partial = None
+        saved_at = time.monotonic()
+
+        def save_inside_epoch(step: int, sums: dict[str, float], count: int) -> None:
+            """After a batch window that ends at least train.checkpoint_every_s after the last save
+            (not the epoch's last: the epoch's end saves), a resume point inside the epoch."""
+            nonlocal saved_at
+            batches = skipped * WINDOW_BATCHES + step + 1
+            if batches % WINDOW_BATCHES or batches >= n_train_batches or time.monotonic() - saved_at < save_every_s:
+                return
+            inside = {"epoch": epoch, "windows": batches // WINDOW_BATCHES, "batches": batches,
+                      "of_batches": n_train_batches, "sums": sums, "count": count,
+                      "seconds": time.perf_counter() - t0}
+            _save_last(last, spec, optimizer, epoch_rng, fingerprint, {**state, "partial": inside}, ema)
+            saved_at = time.monotonic()
+            upload()
+
         tr = train_one_epoch(spec.model, optimizer, iter_batches(spec.arrays, order, spec.batch_size),
-                             spec.terms_fn, spec.weights, device, n_train_batches,
-                             f"{spec.name} epoch {epoch}/{n_epochs}", progress, ema, every_s)
+                             spec.terms_fn, spec.weights, device, n_train_batches - skipped * WINDOW_BATCHES,
+                             f"{spec.name} epoch {epoch}/{n_epochs}", progress, ema, every_s, totals,
+                             save_inside_epoch if save_every_s > 0 else None)
         va = evaluate(scored, iter_batches(spec.arrays, spec.val_idx, spec.batch_size), spec.terms_fn,
                       spec.weights, device, n_val_batches, f"{spec.name} val", progress, every_s)
         metric = va[select_key] if len(spec.val_idx) else tr[select_key]
@@ -275,14 +315,11 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         if metric < state["best_metric"]:
             state["best_epoch"], state["best_metric"] = epoch, metric
             ckpt.save_checkpoint(best, ckpt.model_tensors(scored), _meta(spec, fingerprint, state))
-        _save_last(last, spec, optimizer, rng, fingerprint, state, ema)  # the commit point of the epoch
+        _save_last(last, spec, optimizer, ckpt.numpy_rng_state(rng), fingerprint, state, ema)  # the epoch's commit
         heartbeat.maybe(epoch_line(spec.name, epoch, n_epochs, tr, va if len(spec.val_idx) else None, select_key,
                                    state["best_epoch"], state["curves"][-1]["seconds"]))
         write_curves(out_dir, spec.name, state["curves"], plot=False)
-        if publish is not None and time.monotonic() - uploaded_at >= cfg.run.checkpoint_upload_s:
-            if publish_checkpoints(publish, best, last, with_best=state["best_epoch"] != uploaded_best):
-                uploaded_best = state["best_epoch"]  # else a best that failed is sent again next time
-            uploaded_at = time.monotonic()
+        upload()
     write_curves(out_dir, spec.name, state["curves"], plot=True)
     return TrainResult(spec.name, last, best, state["epoch"], start, state["best_epoch"], state["best_metric"],
                        state["curves"], stopped_early=state["epoch"] < n_epochs and stalled(state, patience))
@@ -357,14 +394,16 @@ def _meta(spec: _NetSpec, fingerprint: str, state: dict[str, Any]) -> dict[str, 
             "selection": "val" if len(spec.val_idx) else "train", **state}
 
 
-def _save_last(path: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, rng: np.random.Generator,
+def _save_last(path: Path, spec: _NetSpec, optimizer: torch.optim.Optimizer, rng_state: dict[str, Any],
                fingerprint: str, state: dict[str, Any], ema: AveragedModel | None = None) -> None:
+    """The resume point: weights, optimizer, torch RNGs (and ``ema``) as they are now, the numpy
+    generator's ``rng_state`` (the next epoch's windows are drawn from it; for a point inside an
+    epoch, state['partial'], that epoch's), and ``state``."""
     opt_tensors, opt_json = ckpt.flatten_optimizer(optimizer)
     tensors = {**ckpt.model_tensors(spec.model), **opt_tensors, **ckpt.rng_tensors()}
     if ema is not None:
         tensors.update({f"ema.{k}": v for k, v in ema.state_dict().items()})
-    meta = {**_meta(spec, fingerprint, state), "optimizer": opt_json,
-            "numpy_rng": ckpt.numpy_rng_state(rng)}
+    meta = {**_meta(spec, fingerprint, state), "optimizer": opt_json, "numpy_rng": rng_state}
     ckpt.save_checkpoint(path, tensors, meta)
 
 
@@ -394,6 +433,8 @@ def _resume(last: Path, best: Path, spec: _NetSpec, optimizer: torch.optim.Optim
         ema.load_state_dict(ckpt.strip_prefix(tensors, "ema."), strict=True)
     ckpt.restore_rng(tensors)
     state = {k: meta[k] for k in ("epoch", "best_epoch", "best_metric", "curves")}
+    if meta.get("partial") and meta["partial"].get("epoch") == meta["epoch"] + 1:
+        state["partial"] = meta["partial"]  # weights and optimizer from inside that epoch
     return state, ckpt.numpy_rng_from_state(meta["numpy_rng"])
 
 

@@ -399,7 +399,10 @@ def resume_point(inputs, cfg: Config, out) -> str | None:
         elif stalled(meta, patience) and int(meta.get("epoch", 0)) < n_epochs:
             said.append(f"{net} done, stopped early after epoch {meta.get('epoch')} of {n_epochs}")
         else:
-            said.append(f"{net} epoch {meta.get('epoch')} of {n_epochs}")
+            inside = meta.get("partial") or {}
+            more = (f" and {inside['batches']} of {inside['of_batches']} batches of epoch {inside['epoch']}"
+                    if inside.get("epoch") == int(meta.get("epoch", 0)) + 1 and "batches" in inside else "")
+            said.append(f"{net} epoch {meta.get('epoch')} of {n_epochs}{more}")
     return ", ".join(said) or None
 
 

@@ -215,6 +215,7 @@ def train_direct_config():
         "train.batch_size": "8", "train.lr": "3e-3", "train.threads": "1", "train.device": "cpu",
         "patches.patch_size_px": "16", "train.rss_batch_size": "32",
         "train.epochs": os.environ.get(TRAIN_EPOCHS_ENV, "6"),
+        "train.checkpoint_every_s": "1e-9",  # a resume point after every window of batches inside an epoch
         "train.seed": "3"}, environ={})
 
 
@@ -223,6 +224,7 @@ def train_direct(out_dir: str) -> None:
     from pipeline import training as T
 
     cfg = train_direct_config()
+    T.WINDOW_BATCHES = 1  # one batch a window: kills land between resume points inside the epochs too
     rng = np.random.default_rng(0)
     scale = int(os.environ.get(TRAIN_SCALE_ENV, "2"))
     n, h, w, p = 12 * scale, 32, 64, 160 * scale

@@ -131,10 +131,11 @@ def test_a_damaged_train_record_names_the_way_that_keeps_the_training(tmp_path):
     assert {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in best} == best
 
 
-def test_status_of_a_train_whose_nets_have_a_patience(tmp_path, monkeypatch):
+def test_status_of_a_train_whose_nets_have_a_patience_or_a_resume_point_inside_an_epoch(tmp_path, monkeypatch):
     """With train.patience, a net whose checkpoint already ended its run (best epoch that far back)
     is shown as done, and one trained past the epoch where the patience now set would have stopped
-    it with another best epoch trains again (pipeline.continuation), with the reason."""
+    it with another best epoch trains again (pipeline.continuation), with the reason; a checkpoint
+    saved inside an epoch (train.checkpoint_every_s) says how far into it."""
     import torch
 
     from pipeline import checkpoint as ckpt
@@ -157,3 +158,8 @@ def test_status_of_a_train_whose_nets_have_a_patience(tmp_path, monkeypatch):
         "disnet done, stopped early after epoch 4 of 8, rssnet epoch 5: its best epoch, 5, came after epoch 4, "
         "where a patience of 2 stops with epoch 2 best (trains again)")
     assert said(**{"train.patience": "3"}) == "disnet epoch 4 of 8, rssnet epoch 5 of 8"
+    # a resume point inside an epoch (train.checkpoint_every_s): how far into it
+    ckpt.save_checkpoint(tmp_path / "rssnet" / "last.safetensors", {"w": torch.zeros(1)},
+                         {"net": "rssnet", "fingerprint": "fp", "epoch": 5, "selection": "val", "best_epoch": 5,
+                          "curves": curves, "partial": {"epoch": 6, "windows": 3, "batches": 24, "of_batches": 40}})
+    assert said() == "disnet epoch 4 of 8, rssnet epoch 5 of 8 and 24 of 40 batches of epoch 6"

@@ -139,18 +139,31 @@ def test_disnet_data_errors(tmp_path):
 @pytest.mark.parametrize("extra", [{}, {"train.flip": "true", "train.weight_decay": "0.01",
                                          "train.lr_schedule": "cosine", "train.count_grad_scale": "0.1"},
                                    {"train.cutmix": "0.5", "train.ema_decay": "0.8", "train.jitter": "0.3",
-                                    "train.map_dropout": "0.2"}])
+                                    "train.map_dropout": "0.2"},
+                                   {"train.checkpoint_every_s": "1e-9"},
+                                   {"train.checkpoint_every_s": "1e-9", "train.cutmix": "0.5", "train.ema_decay": "0.8",
+                                    "train.jitter": "0.3", "train.map_dropout": "0.2", "train.flip": "true"}])
 def test_kill_and_resume_equals_uninterrupted(tmp_path, monkeypatch, extra):
+    """A run killed in its third epoch resumes to the uninterrupted run's weights, optimizer state
+    and curves: from the end of the second epoch, or, with resume points inside an epoch
+    (train.checkpoint_every_s; the default 600 s saves none in so short an epoch), from after the
+    third epoch's second batch window, which it does not train or read again."""
     monkeypatch.setattr(T, "WINDOW_BATCHES", 1)          # one read per batch: kill mid-epoch
-    data = make_disnet_data(n=20)                        # 15 train frames = 4 batches, 5 val = 2: 6 reads per epoch
+    data = make_disnet_data(n=20)  # 15 train frames = 4 batches, 4 reads; 5 val frames, one read: 5 reads per epoch
     cfg = tiny_cfg(**{"train.batch_size": "4", **extra})
+    inside = cfg.train.checkpoint_every_s < 1
     ref = T.train_disnet(cfg, data, tmp_path / "a", progress=False, fingerprint="fp")
-    killed = T.DisNetData(**{**data.__dict__, "images": KilledAfter(data.images, 2 * 6 + 2)})
+    killed = T.DisNetData(**{**data.__dict__, "images": KilledAfter(data.images, 2 * 5 + 2)})
     with pytest.raises(KeyboardInterrupt):               # dies after 2 optimizer steps of epoch 3
         T.train_disnet(cfg, killed, tmp_path / "b", progress=False, fingerprint="fp")
-    assert ckpt.read_meta(tmp_path / "b" / "last.safetensors")["epoch"] == 2
-    res = T.train_disnet(cfg, data, tmp_path / "b", progress=False, fingerprint="fp")
+    meta = ckpt.read_meta(tmp_path / "b" / "last.safetensors")
+    assert meta["epoch"] == 2
+    assert (meta.get("partial") or {}).get("windows") == (2 if inside else None), meta.get("partial")
+    counted = KilledAfter(data.images, 10**6)
+    res = T.train_disnet(cfg, T.DisNetData(**{**data.__dict__, "images": counted}), tmp_path / "b", progress=False,
+                         fingerprint="fp")
     assert res.resumed_from == 2 and res.epoch == 3
+    assert 10**6 - counted.left == (2 + 1 if inside else 4 + 1)  # the train windows left and the val one
     a, b = _all_tensors(ref.last_path), _all_tensors(res.last_path)
     assert set(a) == set(b) and any(k.startswith("optim.") for k in a)
     for k in a:
