@@ -226,8 +226,10 @@ def run(spec: _NetSpec, cfg, out_dir: str | Path, fingerprint: str, progress: bo
         publish: Publish | None = None) -> TrainResult:
     """Train ``spec.model`` for the epochs its config key says (EPOCHS_KEYS), or until as many epochs
     as its patience (PATIENCE_KEYS; 0: none) have passed since its best one, resuming from ``out_dir``
-    when possible. With ``publish`` (an output staged for a remote cache), an epoch ending at least
-    cfg.run.checkpoint_upload_s after the last upload hands its checkpoints to it
+    when possible: from the last epoch's end, or from a resume point inside the next epoch (saved
+    after a window of batches every cfg.train.checkpoint_every_s), skipping the windows it trained.
+    With ``publish`` (an output staged for a remote cache), a save at least
+    cfg.run.checkpoint_upload_s after the last upload hands the checkpoints to it
     (:func:`publish_checkpoints`)."""
     epochs_key = EPOCHS_KEYS[spec.name]
     n_epochs = int(cfg.get(epochs_key))
