@@ -435,8 +435,9 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
     missing = not _cache_exists(env)
     pipe = _pipeline(env, 1, None, progress=False)
     rows = cache_status(pipe, reasons=None if as_json else reasons)
+    ablations = None if missing else _ablations(pipe)
     if as_json:
-        click.echo(json.dumps(rows, indent=2, default=str))
+        click.echo(json.dumps(rows + ([{"stage": "ablations", **ablations}] if ablations else []), indent=2, default=str))
     else:
         click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}  data {env.data_root or '(none)'}")
         if missing:
@@ -452,29 +453,30 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
             _print_status_row(row, notes)
             for i, why in list(row.get("reasons", {}).items())[:reasons]:
                 click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
-        if not missing:
-            _print_ablations(pipe)
+        if ablations:
+            from stages.ablations import ablation_line
+
+            click.echo(f"{'ablations':<{NAME_WIDTH}} {ablation_line(ablations)}")
     _exit_if_damaged(rows)
 
 
-def _print_ablations(pipe) -> None:
-    """`pipeline status`'s line on the ablations folder (stages.ablations.ablation_status), where it
-    holds anything: on a remote cache this machine's staging folder while the remote has no report
-    (ablate uploads when it finishes). Nothing where the upstream outputs cannot be read (their rows
-    say so)."""
+def _ablations(pipe) -> dict | None:
+    """What the ablations folder holds (stages.ablations.ablation_state), for `pipeline status`,
+    with ``folder``, where it holds anything: on a remote cache this machine's staging folder while
+    the remote has no report (ablate uploads when it finishes). None where the upstream outputs
+    cannot be read (their rows say so)."""
     from pipeline.runner import DatasetInputs
-    from stages.ablations import REPORT, ablation_status
+    from stages.ablations import REPORT, ablation_state
 
     folder = pipe.env.dir("ablations")
     work = folder.work_folder(pipe.env.cfg.run.staging_dir)
     if work is not folder and not folder.fs.exists(folder.file(REPORT)) and work.holds_files():
         folder = work
     try:
-        line = ablation_status(DatasetInputs(pipe.env, pipe.frame_ids()), pipe.env.cfg, folder)
+        state = ablation_state(DatasetInputs(pipe.env, pipe.frame_ids()), pipe.env.cfg, folder)
     except PipelineError:  # ChunkError among them
-        return
-    if line:
-        click.echo(f"{'ablations':<{NAME_WIDTH}} {line}")
+        return None
+    return None if state is None else {"folder": folder.path if folder.is_local else folder.url, **state}
 
 
 def _cache_exists(env) -> bool:

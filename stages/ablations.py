@@ -97,11 +97,14 @@ REPORT, MARKDOWN = "ablations.json", "ablations.md"
 """The results of a finished `pipeline ablate` in the ablations folder, and its tables."""
 
 
-def ablation_status(inputs, cfg: Config, folder) -> str | None:
-    """What the ablations folder ``folder`` (a DirStore) holds, for `pipeline status`: with a
-    report, its tables and seeds and how many of their runs are trained with ``cfg`` and the data as
-    they are now (stages.train.net_state); without one (ablate cut off), the runs whose checkpoints
-    are there, by the same states. None when the folder holds nothing."""
+def ablation_state(inputs, cfg: Config, folder) -> dict | None:
+    """What the ablations folder ``folder`` (a DirStore) holds, for `pipeline status`: ``report``,
+    the Markdown tables' path or URL (None without a report: ablate cut off); ``tables`` and
+    ``seeds``; ``runs``, the runs the report covers (without one, those whose folders are there),
+    and how many of them are ``trained`` with ``cfg`` and the data as they are now
+    (stages.train.net_state), ``part-trained``, for other settings or data (``retrains``), ``not
+    trained`` or with an ``unreadable`` checkpoint; ``error`` instead where the report cannot be
+    read. None when the folder holds nothing. ``ablation_line`` says it in words."""
     from stages.train import checkpoint_meta, net_state
 
     try:
@@ -115,7 +118,7 @@ def ablation_status(inputs, cfg: Config, folder) -> str | None:
         try:
             report = json.loads(folder.fs.cat_file(folder.file(REPORT)))
         except (OSError, ValueError) as exc:
-            return f"an unreadable report {folder.file(REPORT)} ({exc}); `pipeline ablate` writes it again"
+            return {"report": None, "error": f"an unreadable report {folder.file(REPORT)} ({exc})"}
     meta = (report or {}).get("meta", {})
     seeds = meta.get("seeds") or _seeds_in(present, cfg.train.seed)
     tables = [t for t in NETS if report is None or report.get(f"table{t}")]
@@ -133,19 +136,31 @@ def ablation_status(inputs, cfg: Config, folder) -> str | None:
                     continue
                 c = cfg.with_overrides({**overrides, "train.seed": str(seed)})
                 states["not trained" if ck is None else net_state(inputs, c, NETS[number], ck)] += 1
-    runs = sum(states.values())
-    said = ", ".join(f"{states[k]} {text}" for k, text in (
-        ("part-trained", "part-trained (resume)"), ("retrains", "for other settings or data (train again)"),
-        ("not trained", "not trained"), ("unreadable", "with an unreadable checkpoint")) if states[k])
-    if report is None:
-        return (f"unfinished, no report yet: {runs} run(s) begun, {states['trained']} of them trained"
-                + (f"; {said}" if said else "") + "; `pipeline ablate` with the same options goes on")
     where = folder.file(MARKDOWN) if folder.is_local else join(folder.url, MARKDOWN)
-    head = (f"report {where} ({'tables 2 and 3' if len(tables) == 2 else f'table {tables[0]}' if tables else 'no table'}, "
+    return {"report": where if report is not None else None, "tables": tables, "seeds": seeds,
+            "runs": sum(states.values()), **{key: states[key] for key in RUN_STATES}}
+
+
+RUN_STATES = {"trained": "trained", "part-trained": "part-trained (resume)",
+              "retrains": "for other settings or data (train again)", "not trained": "not trained",
+              "unreadable": "with an unreadable checkpoint"}
+"""The states ablation_state counts the runs in, and how ablation_line says each."""
+
+
+def ablation_line(state: dict) -> str:
+    """`pipeline status`'s line on the ablations folder, from ``ablation_state``."""
+    if "error" in state:
+        return f"{state['error']}; `pipeline ablate` writes it again"
+    runs, tables, seeds = state["runs"], state["tables"], state["seeds"]
+    said = ", ".join(f"{state[key]} {text}" for key, text in RUN_STATES.items() if key != "trained" and state[key])
+    if state["report"] is None:
+        return (f"unfinished, no report yet: {runs} run(s) begun, {state['trained']} of them trained"
+                + (f"; {said}" if said else "") + "; `pipeline ablate` with the same options goes on")
+    head = (f"report {state['report']} ({'tables 2 and 3' if len(tables) == 2 else f'table {tables[0]}' if tables else 'no table'}, "
             f"{len(seeds)} seed{'s' if len(seeds) > 1 else ''}): ")
-    if states["trained"] == runs:
+    if state["trained"] == runs:
         return head + f"all {runs} runs trained with these settings and data"
-    return head + f"{states['trained']} of {runs} runs trained with these settings and data; {said}"
+    return head + f"{state['trained']} of {runs} runs trained with these settings and data; {said}"
 
 
 def _seeds_in(names: set[str], first: int) -> list[int]:

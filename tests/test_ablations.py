@@ -206,12 +206,28 @@ def test_status_says_what_the_ablations_folder_holds(world, tmp_path):
     assert _ablate(world, cache, "--tables", "2").exit_code == 0
     assert status() == "ablations".ljust(16) + "report {} (table 2, 1 seed): all 2 runs trained with these settings " \
         "and data".format(cache / "synthetic" / "ablations" / "ablations.md")
+    out = CliRunner().invoke(main, ["status", "--dataset", "synthetic", "--data-root", str(world), "--cache",
+                                    str(cache), *sets, "--json"])
+    assert out.exit_code == 0, out.output
+    rows = json.loads(out.output)
+    assert "ablations" not in [row["stage"] for row in rows[:-1]]  # the stages' rows, then the folder's
+    assert rows[-1] == {"stage": "ablations", "folder": str(cache / "synthetic" / "ablations"),
+                        "report": str(cache / "synthetic" / "ablations" / "ablations.md"), "tables": ["2"],
+                        "seeds": [0], "runs": 2, "trained": 2, "part-trained": 0,
+                        "retrains": 0, "not trained": 0, "unreadable": 0}
     more = int(TINY["train.epochs"]) + 1
     assert status("--set", f"train.epochs={more}").endswith(
         ": 0 of 2 runs trained with these settings and data; 2 part-trained (resume)")
     assert status("--set", "train.lr=0.5").endswith(
         ": 0 of 2 runs trained with these settings and data; 2 for other settings or data (train again)")
-    (cache / "synthetic" / "ablations" / "ablations.json").unlink()  # as if cut off before the report
+    report = cache / "synthetic" / "ablations" / "ablations.json"
+    report.write_text('{"table2": [')  # cut short
+    assert status().startswith("ablations".ljust(16) + f"an unreadable report {report} (")
+    assert status().endswith("; `pipeline ablate` writes it again")
+    out = CliRunner().invoke(main, ["status", "--dataset", "synthetic", "--data-root", str(world), "--cache",
+                                    str(cache), *sets, "--json"])
+    assert json.loads(out.output)[-1]["error"].startswith(f"an unreadable report {report} (")
+    report.unlink()  # as if cut off before the report
     (cache / "synthetic" / "ablations" / "image_only" / "last.safetensors").unlink()
     assert status() == "ablations".ljust(16) + "unfinished, no report yet: 2 run(s) begun, 1 of them trained; " \
         "1 not trained; `pipeline ablate` with the same options goes on"
