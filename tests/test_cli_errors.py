@@ -399,3 +399,25 @@ def test_a_closed_stdout_ends_the_command_quietly(tmp_path, command):
     piped = subprocess.run(f"{sys.executable} -m pipeline.cli {' '.join(args)} | head -1", shell=True, cwd=tmp_path,
                            env=env, capture_output=True, text=True, timeout=120)
     assert piped.stderr == "" and len(piped.stdout.splitlines()) == 1, piped.stderr
+
+
+def test_ctrl_c_while_the_cli_loads_ends_with_one_line(tmp_path):
+    """A Ctrl-C in the first half second of a command, while pipeline.cli imports dask, ended with a
+    30-line traceback from inside dask's import (until 2026-12-07). The `pipeline` command's entry
+    point (pipeline.__main__) ends it as a later Ctrl-C ends: 'interrupted', exit code 130. The
+    KeyboardInterrupt is raised deterministically, by an import hook, where a real SIGINT would race."""
+    hook = ("import sys\n"
+            "class Interrupt:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            "        if name == 'dask':\n"
+            "            raise KeyboardInterrupt\n"
+            "sys.meta_path.insert(0, Interrupt())\n"
+            "from pipeline.__main__ import main\n"
+            "main()\n")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", hook, "datasets"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert (out.returncode, out.stderr) == (130, "interrupted\n"), out.stderr
+    ran = subprocess.run([sys.executable, "-m", "pipeline", "datasets"], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert ran.returncode == 0 and "astyx" in ran.stdout, ran.stderr
