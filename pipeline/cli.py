@@ -693,7 +693,7 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
 
     The tables, with the train stage's baselines, and each variant's checkpoints go to
     CACHE/DATASET/ablations/; a rerun resumes what was trained."""
-    from pipeline.runner import DatasetInputs
+    from pipeline.runner import DatasetInputs, go_on_staged, new_run_token, publish_staged
     from stages.ablations import run_ablations
 
     chosen = tuple(dict.fromkeys(t.strip() for t in tables.split(",") if t.strip()))
@@ -707,11 +707,19 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
     finally:
         pipe.executor.close()
     _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it
-    folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, then uploaded
+    folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, uploaded as it goes
     work = folder.work_folder(env.cfg.run.staging_dir)
+    publish = None
+    if work is not folder:  # go on from this machine's staging folder, or from what the last run uploaded
+        # a staging folder an ablate before 2026-12-07 left has no token (the remote none either): kept
+        tokenless = work.holds_files() and work.run_token() is None and folder.run_token() is None
+        if tokenless or not go_on_staged(folder, work, "ablate", pipe.log):
+            folder.ensure()
+            new_run_token(folder, work)
+        publish = functools.partial(publish_staged, folder, work, "ablate", pipe.log)
     try:
         run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen,
-                      log=pipe.log, seeds=seeds)
+                      log=pipe.log, seeds=seeds, publish=publish)
     except StageInterrupted:
         raise
     except KeyboardInterrupt:  # each variant resumes from its last finished epoch

@@ -596,7 +596,7 @@ class Pipeline:
         work = out.work_folder(self.env.cfg.run.staging_dir) if stage.local_files else out
         staged = work is not out
         self._prepare_output(stage, out, work, force)
-        publish = functools.partial(self._publish, stage.name, out, work) if staged else None
+        publish = functools.partial(publish_staged, out, work, stage.name, self.log) if staged else None
         try:
             summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress, publish), self.env.cfg, work,
                                 fingerprint=fp)
@@ -617,55 +617,75 @@ class Pipeline:
         report.summary = summary
         return report
 
-    def _publish(self, name: str, out, work, paths: list[Path]) -> bool:
-        """Upload ``paths`` of the staging folder ``work`` into the remote output ``out`` while the
-        stage runs (DatasetInputs.publish); whether it did. A failure is logged: the run goes on,
-        and its upload at the end uploads everything (or fails the stage)."""
-        try:
-            out.upload(work, paths)
-        except CacheError as exc:
-            self.log(f"{name:<{NAME_WIDTH}} {exc}; going on (a kill now resumes from the last upload, or from "
-                     f"{work.path} on this machine)")
-            return False
-        return True
-
     def _prepare_output(self, stage: DatasetStage, out, work, force: bool) -> None:
         """Make the folder ``work`` the stage writes into ready: ``out`` itself, or its local staging
         folder on a remote cache. From scratch (forced, or a stage that does not resume) both are
-        emptied; else a killed run's temporary files go, and a staging folder that is not the last
-        run's (no RUN_TOKEN, or one other than ``out``'s) is replaced by what that run uploaded.
-        Then ``out`` loses its completion mark and a staged run that does not go on in the last
-        run's staging folder writes a new token into both (one that does keeps theirs: a kill
-        between the two writes would otherwise leave them different and the next run downloading
-        the last upload instead of going on from the newer staging folder)."""
+        emptied; else as :func:`go_on_staged` leaves them. Then ``out`` loses its completion mark
+        and a staged run that does not go on in the last run's staging folder writes a new token
+        into both (:func:`new_run_token`)."""
         staged = work is not out
-        same_run = staged and work.holds_run_of(out)
         if force or not stage.resumes:
             out.clear()  # from scratch: nothing of an earlier run is reused or left (forced: train's checkpoints too)
             if staged:
                 work.clear()
-                same_run = False
-        elif staged and not same_run:  # begun elsewhere, run elsewhere since, or cut off while downloading
-            out.remove_temporaries()  # a killed upload's (DirStore.upload on a filesystem that writes in place)
-            work.clear()
-            taken = out.download(work)
-            if taken:
-                self.log(f"{stage.name:<{NAME_WIDTH}} resuming from {taken} file(s) of {out.url}")
-        else:  # a killed run's half-written files (and a killed upload's, on a remote folder)
-            left = [os.path.relpath(name, work.path) for name in work.remove_temporaries()]
-            if staged:
-                left += [os.path.relpath(name, out.path) for name in out.remove_temporaries()]
-            if left:
-                files = f"file{'s' * (len(left) > 1)}"
-                self.log(f"{stage.name:<{NAME_WIDTH}} removed {len(left)} temporary {files} a killed run left: "
-                         f"{', '.join(left[:3])}{' ...' * (len(left) > 3)}")
+            same_run = False
+        else:
+            same_run = go_on_staged(out, work, stage.name, self.log)
         out.ensure()
         out.invalidate()
         if staged and not same_run:
-            work.ensure()
-            token = uuid.uuid4().hex
-            for folder in (out, work):
-                folder.write_text(RUN_TOKEN, token)
+            new_run_token(out, work)
+
+
+def go_on_staged(out, work, name: str, log: Callable[[str], None]) -> bool:
+    """Ready the folder ``work`` that a resumable output ``out`` (a DirStore) is written into, ``out``
+    itself or its local staging folder on a remote cache, for a run that goes on from what is there;
+    whether ``work`` is a staging folder holding the last run begun in ``out`` (its RUN_TOKEN). A
+    staging folder that does not (begun elsewhere, run elsewhere since, or cut off while
+    downloading) is replaced by what ``out`` holds, said in ``log`` under ``name``; else a killed
+    run's half-written files go (and a killed upload's, on a remote folder)."""
+    staged = work is not out
+    same_run = staged and work.holds_run_of(out)
+    if staged and not same_run:
+        out.remove_temporaries()  # a killed upload's (DirStore.upload on a filesystem that writes in place)
+        work.clear()
+        taken = out.download(work)
+        if taken:
+            log(f"{name:<{NAME_WIDTH}} resuming from {taken} file(s) of {out.url}")
+        return False
+    left = [os.path.relpath(path, work.path) for path in work.remove_temporaries()]
+    if staged:
+        left += [os.path.relpath(path, out.path) for path in out.remove_temporaries()]
+    if left:
+        files = f"file{'s' * (len(left) > 1)}"
+        log(f"{name:<{NAME_WIDTH}} removed {len(left)} temporary {files} a killed run left: "
+            f"{', '.join(left[:3])}{' ...' * (len(left) > 3)}")
+    return same_run
+
+
+def new_run_token(out, work) -> None:
+    """A new RUN_TOKEN in the remote folder ``out`` and its staging folder ``work``: the run about to
+    begin in ``work`` is the last begun in ``out``. Written where the run does not go on in the last
+    run's staging folder only (one that does keeps theirs: a kill between the two writes would
+    otherwise leave them different and the next run downloading the last upload instead of going on
+    from the newer staging folder)."""
+    work.ensure()
+    token = uuid.uuid4().hex
+    for folder in (out, work):
+        folder.write_text(RUN_TOKEN, token)
+
+
+def publish_staged(out, work, name: str, log: Callable[[str], None], paths: list[Path]) -> bool:
+    """Upload ``paths`` of the staging folder ``work`` into the remote output ``out`` while it is
+    being written (DatasetInputs.publish); whether it did. A failure is said in ``log`` under
+    ``name``: the run goes on, and its upload at the end uploads everything (or fails)."""
+    try:
+        out.upload(work, paths)
+    except CacheError as exc:
+        log(f"{name:<{NAME_WIDTH}} {exc}; going on (a kill now resumes from the last upload, or from "
+            f"{work.path} on this machine)")
+        return False
+    return True
 
 
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)

@@ -13,13 +13,16 @@ import time
 from collections import Counter
 from posixpath import join
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from pipeline.config import Config
 from pipeline.run_report import NAME_WIDTH
 from stages.train import disnet_data, frame_table, held_out_baselines, rssnet_data, training_fingerprint, training_mean_map
+
+if TYPE_CHECKING:  # pipeline.training imports torch, which a stage module does not import when loaded
+    from pipeline.training import Publish
 
 TABLE2 = (("image only", {"disnet.use_speed": "false"}), ("image + speed", {"disnet.use_speed": "true"}))
 TABLE3 = tuple(
@@ -38,7 +41,8 @@ def _slug(name: str) -> str:
 
 
 def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] = ("2", "3"),
-                  log: Callable[[str], None] = lambda line: None, seeds: int = 1) -> dict:
+                  log: Callable[[str], None] = lambda line: None, seeds: int = 1,
+                  publish: Publish | None = None) -> dict:
     """Train every variant of the requested tables ``seeds`` times (train.seed, train.seed + 1,
     ...); returns the results and writes the report. A variant's row holds the mean of its seeds'
     test losses and each seed's run (``runs``); ``baselines`` the train stage's held-out baselines
@@ -46,7 +50,10 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
     into ``<variant>-seed<N>/``. ``log`` gets a line as each run is done (its test losses, where it
     resumed, its time): a run of several minutes a variant otherwise shows only the training's
     progress lines, which do not name the variant, and in a log file none at all for a variant
-    shorter than run.progress_every_s."""
+    shorter than run.progress_every_s. With ``publish`` (``out_root`` a local staging folder of a
+    remote cache), each run's checkpoints are handed to it while it trains, as the train stage's
+    are (run.checkpoint_upload_s), and once it is done: a run cut off resumes on any machine from
+    the last upload, and a finished run is not trained again there."""
     table = frame_table(inputs)
     results: dict = {"table2": [], "table3": []}
     disnet = disnet_data(inputs, table)  # (data, split indices)
@@ -66,7 +73,8 @@ def run_ablations(inputs, cfg: Config, out_root: Path, tables: tuple[str, ...] =
             runs = []
             for seed in seed_list:
                 c = cfg.with_overrides({**overrides, "train.seed": str(seed)})
-                run, trained = _train_and_test(number, inputs, c, data, out_root / run_folder(name, seed, seed_list))
+                run, trained = _train_and_test(number, inputs, c, data, out_root / run_folder(name, seed, seed_list),
+                                               publish)
                 runs.append(run)
                 losses = ", ".join(f"{k} {_fmt(k, run[k])}" for k in LOSSES[number])
                 log(f"{'ablate':<{NAME_WIDTH}} {variants.index(name) + 1}/{len(variants)} {name}"
@@ -178,24 +186,27 @@ BASELINES = {"mean_map_kl": ("mean training map L_KL", "L_KL"), "mean_count_L_n"
 how they are named, and which loss each is."""
 
 
-def _train_and_test(number: str, inputs, cfg: Config, data, folder: Path) -> tuple[dict, str]:
-    """Train table ``number``'s net with ``cfg`` into ``folder`` (resuming what is there) and test
-    its best epoch: (the run's record: seed, test losses, best epoch, seconds; what was trained).
-    ``data``: Dis-Net's (data, split indices), or RSS-Net's (train + val, test) samples."""
+def _train_and_test(number: str, inputs, cfg: Config, data, folder: Path,
+                    publish: Publish | None = None) -> tuple[dict, str]:
+    """Train table ``number``'s net with ``cfg`` into ``folder`` (resuming what is there), hand its
+    checkpoints to ``publish`` (see run_ablations) and test its best epoch: (the run's record: seed,
+    test losses, best epoch, seconds; what was trained). ``data``: Dis-Net's (data, split
+    indices), or RSS-Net's (train + val, test) samples."""
     from pipeline.inference import load_disnet, load_rssnet
-    from pipeline.training import disnet_metrics, rssnet_metrics, train_disnet, train_rssnet
+    from pipeline.training import disnet_metrics, publish_checkpoints, rssnet_metrics, train_disnet, train_rssnet
 
     t0 = time.perf_counter()
+    train = train_disnet if number == "2" else train_rssnet
+    res = train(cfg, data[0], folder, progress=inputs.progress, publish=publish,
+                fingerprint=training_fingerprint(inputs, cfg, NETS[number]))
+    if publish is not None and res.epoch > res.resumed_from:  # its last epochs, not yet uploaded
+        publish_checkpoints(publish, res.best_path, res.last_path)
     if number == "2":
         frames, idx = data
-        res = train_disnet(cfg, frames, folder, progress=inputs.progress,
-                           fingerprint=training_fingerprint(inputs, cfg, "disnet"))
         m = disnet_metrics(load_disnet(cfg, res.best_path, device="cpu"), frames, idx["test"], cfg.train.alpha)
         losses = {"L_KL": m["kl"], "L_n": m["n"]}
     else:
-        train_val, test = data
-        res = train_rssnet(cfg, train_val, folder, progress=inputs.progress,
-                           fingerprint=training_fingerprint(inputs, cfg, "rssnet"))
+        test = data[1]
         losses = {"L_a": rssnet_metrics(load_rssnet(cfg, res.best_path, device="cpu"), test, test.train_idx)["a"]}
     trained = (f"trained epochs {res.resumed_from + 1}-{res.epoch}" if res.epoch > res.resumed_from
                else f"already trained ({res.epoch} epochs)")

@@ -14,6 +14,7 @@ from click.testing import CliRunner
 
 from pipeline.cli import main
 from pipeline.checkpoint import read_meta
+from pipeline.dirstore import RUN_TOKEN
 from pipeline.world import generate
 from stages.ablations import TABLE2, TABLE3, _slug, markdown
 from tests.test_pipeline_e2e import TINY
@@ -119,6 +120,54 @@ def test_ablate_on_a_remote_cache_trains_in_a_staging_folder_and_uploads(world, 
     again = _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={staging}")
     assert again.exit_code == 0, again.output
     assert {p: p.stat().st_mtime_ns for p in staged.rglob("*.safetensors")} == stamps  # resumed: nothing retrained
+    (staged / RUN_TOKEN).unlink()  # as an ablate before 2026-12-07 left its staging folder: kept too
+    fs.rm(f"{root}/{RUN_TOKEN}")
+    assert _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={staging}").exit_code == 0
+    assert {p: p.stat().st_mtime_ns for p in staged.rglob("*.safetensors")} == stamps
+    fs.rm(url.removeprefix("memory://"), recursive=True)
+
+
+def test_ablate_cut_off_on_a_remote_cache_goes_on_on_another_machine(world, tmp_path, monkeypatch):
+    """On a remote cache ablate's runs stayed in the staging folder of the machine that trained them
+    until the whole ablate finished (until 2026-12-07): cut off, it began again on any other
+    machine. Now each run's checkpoints are uploaded as it trains and once it is done, and an
+    ablate on another machine downloads them and goes on: the finished run is not trained again."""
+    import uuid
+
+    import fsspec
+
+    import stages.ablations as ablations
+
+    url = f"memory://ablate-{uuid.uuid4().hex[:8]}"
+    fs, root = fsspec.filesystem("memory"), url.removeprefix("memory://") + "/synthetic/ablations"
+    train_and_test, calls = ablations._train_and_test, []
+
+    def cut_off_at_the_second_run(*args, **kwargs):
+        calls.append(args[4].name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # Ctrl-C, or the machine gone, as the second run begins
+        return train_and_test(*args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(ablations, "_train_and_test", cut_off_at_the_second_run)
+        first = _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={tmp_path / 'machine-a'}")
+    assert first.exit_code == 130 and calls == [_slug(name) for name, _ in TABLE2], first.output
+    machine_a = next((tmp_path / "machine-a").glob("ablations-*/staging"))
+    uploaded = sorted(f.removeprefix(f"/{root}/") for f in fs.find(root) if not f.endswith(RUN_TOKEN))
+    assert uploaded == [f"image_only/{name}" for name in ("best.json", "best.safetensors", "last.json",
+                                                            "last.safetensors")], uploaded
+    for name in uploaded:
+        assert fs.cat_file(f"{root}/{name}") == (machine_a / name).read_bytes(), name
+    second = _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={tmp_path / 'machine-b'}")
+    assert second.exit_code == 0, second.output
+    said = [line for line in second.output.splitlines() if line.startswith("ablate ")]
+    assert said[0] == f"ablate          resuming from 4 file(s) of {url}/synthetic/ablations", said
+    assert "1/2 image only: " in said[2] and f"already trained ({TINY['train.epochs']} epochs), " in said[2], said
+    assert "2/2 image + speed: " in said[3] and f"trained epochs 1-{TINY['train.epochs']}" in said[3], said
+    machine_b = next((tmp_path / "machine-b").glob("ablations-*/staging"))
+    assert (machine_b / "image_only" / "best.safetensors").read_bytes() == \
+        (machine_a / "image_only" / "best.safetensors").read_bytes()
+    assert json.loads(fs.cat_file(f"{root}/ablations.json"))["table2"][1]["variant"] == "image + speed"
     fs.rm(url.removeprefix("memory://"), recursive=True)
 
 
