@@ -692,7 +692,8 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
     """Train the paper's ablation variants (Tables II and III) and write a table next to the paper's.
 
     The tables, with the train stage's baselines, and each variant's checkpoints go to
-    CACHE/DATASET/ablations/; a rerun resumes what was trained."""
+    CACHE/DATASET/ablations/; a rerun resumes what was trained (on a remote cache, on any machine:
+    each run's checkpoints are uploaded as it trains)."""
     from pipeline.runner import DatasetInputs, go_on_staged, new_run_token, publish_staged
     from stages.ablations import run_ablations
 
