@@ -463,14 +463,16 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
 def _ablations(pipe) -> dict | None:
     """What the ablations folder holds (stages.ablations.ablation_state), for `pipeline status`,
     with ``folder``, where it holds anything: on a remote cache this machine's staging folder while
-    the remote has no report (ablate uploads when it finishes). None where the upstream outputs
-    cannot be read (their rows say so)."""
+    the remote has no report and the last ablate begun there ran here (the staging folder may hold
+    epochs not yet uploaded), else the remote. None where the upstream outputs cannot be read
+    (their rows say so)."""
     from pipeline.runner import DatasetInputs
     from stages.ablations import REPORT, ablation_state
 
     folder = pipe.env.dir("ablations")
     work = folder.work_folder(pipe.env.cfg.run.staging_dir)
-    if work is not folder and not folder.fs.exists(folder.file(REPORT)) and work.holds_files():
+    if work is not folder and not folder.fs.exists(folder.file(REPORT)) and work.holds_files() and (
+            work.holds_run_of(folder) or folder.run_token() is None):  # none: an ablate before 2026-12-07's
         folder = work
     try:
         state = ablation_state(DatasetInputs(pipe.env, pipe.frame_ids()), pipe.env.cfg, folder)

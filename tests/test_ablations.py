@@ -158,6 +158,11 @@ def test_ablate_cut_off_on_a_remote_cache_goes_on_on_another_machine(world, tmp_
                                                             "last.safetensors")], uploaded
     for name in uploaded:
         assert fs.cat_file(f"{root}/{name}") == (machine_a / name).read_bytes(), name
+    sets = [arg for key, value in {**TINY, "run.staging_dir": str(tmp_path / "machine-b")}.items()
+            for arg in ("--set", f"{key}={value}")]
+    status = CliRunner().invoke(main, ["status", "--dataset", "synthetic", "--data-root", str(world), "--cache", url,
+                                       *sets])
+    assert "ablations".ljust(16) + "unfinished, no report yet: 1 run(s) begun, 1 of them trained; " in status.output
     second = _ablate(world, url, "--tables", "2", "--set", f"run.staging_dir={tmp_path / 'machine-b'}")
     assert second.exit_code == 0, second.output
     said = [line for line in second.output.splitlines() if line.startswith("ablate ")]
@@ -168,6 +173,19 @@ def test_ablate_cut_off_on_a_remote_cache_goes_on_on_another_machine(world, tmp_
     assert (machine_b / "image_only" / "best.safetensors").read_bytes() == \
         (machine_a / "image_only" / "best.safetensors").read_bytes()
     assert json.loads(fs.cat_file(f"{root}/ablations.json"))["table2"][1]["variant"] == "image + speed"
+    # status reads a staging folder only where the last ablate begun on the remote ran in it
+    fs.rm(f"{root}/ablations.json")  # as if machine b had been cut off before the report
+
+    def status_on(machine: str) -> str:
+        sets = [arg for key, value in {**TINY, "run.staging_dir": str(tmp_path / machine)}.items()
+                for arg in ("--set", f"{key}={value}")]
+        out = CliRunner().invoke(main, ["status", "--dataset", "synthetic", "--data-root", str(world), "--cache",
+                                        url, *sets])
+        return next(line for line in out.output.splitlines() if line.startswith("ablations "))
+
+    assert "2 run(s) begun, 2 of them trained" in status_on("machine-a")  # the remote's, not a's one run
+    fs.pipe(f"{root}/{RUN_TOKEN}", (machine_a / RUN_TOKEN).read_bytes())  # as if a had begun the last ablate
+    assert "1 run(s) begun, 1 of them trained" in status_on("machine-a")
     fs.rm(url.removeprefix("memory://"), recursive=True)
 
 
