@@ -20,3 +20,18 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 
 for _name in [n for n in os.environ if n.startswith("PIPELINE_") or n == "DASK_SCHEDULER_ADDRESS"]:
     del os.environ[_name]
+
+
+import pytest  # noqa: E402  (after the signal and environment set-up above, which must come first)
+
+
+@pytest.fixture(scope="session")
+def tiny_world(tmp_path_factory):
+    """The 10-frame synthetic world (seed 5, 640 x 384, one sequence) that many tests run the
+    pipeline on, generated once per session (about 3 s each time otherwise); a test copies it
+    (shutil.copytree) where it may change it, and so that each cache records a world of its own."""
+    from pipeline.world import generate
+
+    root = tmp_path_factory.mktemp("tiny-world") / "world"
+    generate(root, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    return root

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -15,15 +16,14 @@ from click.testing import CliRunner
 from pipeline.cli import main
 from pipeline.checkpoint import read_meta
 from pipeline.dirstore import RUN_TOKEN
-from pipeline.world import generate
 from stages.ablations import TABLE2, TABLE3, _slug, markdown
 from tests.test_pipeline_e2e import TINY
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("world")
-    generate(root, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+def world(tiny_world, tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("world") / "world"
+    shutil.copytree(tiny_world, root)
     return root
 
 
@@ -298,7 +298,5 @@ def test_status_says_what_the_ablations_folder_holds(world, tmp_path):
     (cache / "synthetic" / "ablations" / "image_only" / "last.safetensors").unlink()
     assert status() == "ablations".ljust(16) + "unfinished, no report yet: 2 run(s) begun, 1 of them trained; " \
         "1 not trained; `pipeline ablate` with the same options goes on"
-    import shutil
-
     shutil.rmtree(cache / "synthetic" / "ablations")
     assert status() == ""

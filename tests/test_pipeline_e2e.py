@@ -22,7 +22,6 @@ from pipeline.errors import ConfigError
 from pipeline.executor import Executor, RunEnv
 from pipeline.readers.vod import VodReader
 from pipeline.runner import Pipeline
-from pipeline.world import generate
 from stages import all_stages
 
 TINY = {"train.epochs": "1", "placement.epochs": "1", "disnet.width": "8", "patches.points_per_frame": "16",
@@ -34,9 +33,9 @@ FRAME_STAGES = ("calibrate", "heatmaps", "patches", "synthesize", "evaluate-fram
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("world")
-    generate(root, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+def world(tiny_world, tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("world") / "world"
+    shutil.copytree(tiny_world, root)
     return root
 
 

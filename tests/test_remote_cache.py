@@ -146,16 +146,14 @@ def _tensors(data: bytes) -> dict[str, np.ndarray]:
     return load(data)
 
 
-def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tmp_path, remote, monkeypatch):
+def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tiny_world, tmp_path, remote, monkeypatch):
     """train, evaluate and export write with local file APIs: on a remote cache they write into a
     local staging folder (run.staging_dir) that is uploaded when they finish, and synthesize and
     evaluate read the checkpoints through a local copy. Everything equals a local cache's run; a
     second machine (another staging folder) resumes train from what the first uploaded. While
     training, every net's checkpoints are uploaded (here after every epoch), not only Dis-Net's."""
-    from pipeline.world import generate
-
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     logs: list[str] = []
     local = _real_pipe(str(tmp_path / "cache"), world, tmp_path / "unused", logs)
     far = _real_pipe(remote, world, tmp_path / "machine-a", logs, **{"run.checkpoint_upload_s": "0"})
@@ -252,16 +250,15 @@ def _killed_in_the_second_epoch(patch) -> None:
     patch.setattr(pipeline.training, "train_one_epoch", killed)
 
 
-def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tmp_path, remote, monkeypatch):
+def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tiny_world, tmp_path, remote, monkeypatch):
     """A train killed after its first epoch on a remote cache, before its first upload of
     checkpoints was due (run.checkpoint_upload_s), has uploaded none (the output is not done); run
     again on the same machine it goes on from that epoch in its staging folder, without
     downloading, and uploads the finished nets."""
     from pipeline.errors import StageInterrupted
-    from pipeline.world import generate
 
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     logs: list[str] = []
     pipe = _real_pipe(remote, world, tmp_path / "machine", logs, **{"train.epochs": "2", "train.nets": "disnet",
                                                                     "run.checkpoint_upload_s": "3600"})
@@ -283,16 +280,15 @@ def test_a_staged_train_killed_mid_run_resumes_from_its_staging_folder(tmp_path,
         (staged[0].parent / "best.safetensors").read_bytes()
 
 
-def test_a_staged_train_killed_mid_run_resumes_on_another_machine_from_its_last_upload(tmp_path, remote, monkeypatch):
+def test_a_staged_train_killed_mid_run_resumes_on_another_machine_from_its_last_upload(tiny_world, tmp_path, remote, monkeypatch):
     """While training, a staged train uploads each finished epoch's checkpoints (here after every
     epoch: run.checkpoint_upload_s 0), best before last, so that a train killed in its second
     epoch on one machine resumes on another from the first epoch, not from scratch, and ends with
     the weights of an uninterrupted run."""
     from pipeline.errors import StageInterrupted
-    from pipeline.world import generate
 
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     settings = {"train.epochs": "3", "train.nets": "disnet", "run.checkpoint_upload_s": "0"}
     logs: list[str] = []
     uploads: list[list[str]] = []

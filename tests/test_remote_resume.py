@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import uuid
 
 import fsspec
@@ -11,18 +12,17 @@ from pipeline.dirstore import DirStore
 from tests.test_remote_cache import _killed_in_the_second_epoch, _real_pipe
 
 
-def test_a_download_cut_off_midway_is_done_again(tmp_path, monkeypatch):
+def test_a_download_cut_off_midway_is_done_again(tiny_world, tmp_path, monkeypatch):
     """A machine taking over a remote train downloads the last run's files into its staging
     folder. Killed midway (here after the first file), the folder holds part of them; it must not
     then pass for the remote run's staging folder (the download used to copy the run token too,
     first), or the next run resumes from half-written checkpoints. It downloads again and ends with
     the weights of an uninterrupted run."""
     from pipeline.errors import StageInterrupted
-    from pipeline.world import generate
     from tests.test_remote_cache import _tensors
 
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     remote = f"memory://resume-{uuid.uuid4().hex[:8]}"
     settings = {"train.epochs": "3", "train.nets": "disnet", "run.checkpoint_upload_s": "0"}
     first = _real_pipe(remote, world, tmp_path / "machine-a", [], **settings)
@@ -56,17 +56,16 @@ def test_a_download_cut_off_midway_is_done_again(tmp_path, monkeypatch):
     fs.rm(remote.removeprefix("memory://"), recursive=True)
 
 
-def test_a_run_going_on_in_its_own_staging_folder_keeps_the_run_token(tmp_path, monkeypatch):
+def test_a_run_going_on_in_its_own_staging_folder_keeps_the_run_token(tiny_world, tmp_path, monkeypatch):
     """A run that goes on in this machine's staging folder of the last run keeps that run's token:
     it used to write a new one into the remote folder and then the staging folder, and a kill
     between the two writes left them different, so the next run threw away the staging folder's
     newer epochs for the remote's last upload (here none: training from scratch)."""
     from pipeline.dirstore import RUN_TOKEN
     from pipeline.errors import StageInterrupted
-    from pipeline.world import generate
 
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     remote = f"memory://token-{uuid.uuid4().hex[:8]}"
     settings = {"train.epochs": "2", "train.nets": "disnet", "run.checkpoint_upload_s": "3600"}
     logs: list[str] = []

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import pytest
 
 from pipeline.config import load_config
@@ -26,7 +28,7 @@ def _train_row(pipe: Pipeline) -> dict:
 
 
 @pytest.mark.parametrize("where", ["local", "remote"])
-def test_status_says_which_epochs_an_unfinished_train_resumes_from(tmp_path, monkeypatch, where):
+def test_status_says_which_epochs_an_unfinished_train_resumes_from(tiny_world, tmp_path, monkeypatch, where):
     """A train killed in Dis-Net's second epoch was shown as 'not run', as if hours of training were
     lost. Its status row names each net's last finished epoch, of the epochs now set (raising
     them resumes too), or that the checkpoint is for other settings, from which the net trains
@@ -36,10 +38,8 @@ def test_status_says_which_epochs_an_unfinished_train_resumes_from(tmp_path, mon
 
     import fsspec
 
-    from pipeline.world import generate
-
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     cache = str(tmp_path / "cache") if where == "local" else f"memory://status-{uuid.uuid4().hex[:8]}"
     settings = {"train.epochs": "3", "run.checkpoint_upload_s": "3600"}  # remote: no upload before the kill
     pipe = _pipe(cache, world, tmp_path / "staging", **settings)
@@ -83,14 +83,12 @@ def test_status_line_of_an_unfinished_train(capsys):
                      "evaluate        stale or missing    files of an unfinished or stale run"]
 
 
-def test_status_of_a_report_made_stale_says_its_files_are_there(tmp_path):
+def test_status_of_a_report_made_stale_says_its_files_are_there(tiny_world, tmp_path):
     """A dataset stage marked stale (its upstream recomputed) keeps its files but not its record,
     and status called it 'not run' (until 2026-12-07) beside the report of its earlier run; a stage
     never run still is."""
-    from pipeline.world import generate
-
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     pipe = _pipe(str(tmp_path / "cache"), world, tmp_path / "staging",
                  **{"train.epochs": "1", "train.nets": "disnet,rssnet,placenet"})
     pipe.run("evaluate")
@@ -104,17 +102,16 @@ def test_status_of_a_report_made_stale_says_its_files_are_there(tmp_path):
     assert rows["export"]["earlier_files"] is False
 
 
-def test_a_damaged_train_record_names_the_way_that_keeps_the_training(tmp_path):
+def test_a_damaged_train_record_names_the_way_that_keeps_the_training(tiny_world, tmp_path):
     """A damaged train/_stage.json stops the run; its message names, beside --force (which trains
     again), deleting the file: the next run then resumes from the checkpoints, trains no epoch
     and gives the same nets."""
     import hashlib
 
     from pipeline.errors import MetadataError
-    from pipeline.world import generate
 
     world = tmp_path / "world"
-    generate(world, frames=10, seed=5, resolution_wh=(640, 384), sequence_len=10)
+    shutil.copytree(tiny_world, world)
     pipe = _pipe(str(tmp_path / "cache"), world, tmp_path / "staging", **{"train.epochs": "2"})
     pipe.run("train")
     train = tmp_path / "cache" / "synthetic" / "train"
