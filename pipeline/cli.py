@@ -717,7 +717,6 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
         # a staging folder an ablate before 2026-12-07 left has no token (the remote none either): kept
         tokenless = work.holds_files() and work.run_token() is None and folder.run_token() is None
         if tokenless or not go_on_staged(folder, work, "ablate", pipe.log):
-            folder.ensure()
             new_run_token(folder, work)
         publish = functools.partial(publish_staged, folder, work, "ablate", pipe.log)
     try:

@@ -668,7 +668,8 @@ def new_run_token(out, work) -> None:
     begin in ``work`` is the last begun in ``out``. Written where the run does not go on in the last
     run's staging folder only (one that does keeps theirs: a kill between the two writes would
     otherwise leave them different and the next run downloading the last upload instead of going on
-    from the newer staging folder)."""
+    from the newer staging folder). Creates both folders where they are not there."""
+    out.ensure()
     work.ensure()
     token = uuid.uuid4().hex
     for folder in (out, work):
