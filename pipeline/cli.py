@@ -471,9 +471,9 @@ def _ablations(pipe) -> dict | None:
 
     folder = pipe.env.dir("ablations")
     work = folder.work_folder(pipe.env.cfg.run.staging_dir)
-    if work is not folder and not folder.fs.exists(folder.file(REPORT)) and work.holds_files() and (
-            work.holds_run_of(folder) or folder.run_token() is None):  # none: an ablate before 2026-12-07's
-        folder = work
+    if work is not folder and not folder.fs.exists(folder.file(REPORT)) and (
+            work.holds_files() and work.holds_run_of(folder) or work.holds_untokened_run_of(folder)):
+        folder = work  # what ablate would go on from (below)
     try:
         state = ablation_state(DatasetInputs(pipe.env, pipe.frame_ids()), pipe.env.cfg, folder)
     except PipelineError:  # ChunkError among them
@@ -715,8 +715,7 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
     publish = None
     if work is not folder:  # go on from this machine's staging folder, or from what the last run uploaded
         # a staging folder an ablate before 2026-12-07 left has no token (the remote none either): kept
-        tokenless = work.holds_files() and work.run_token() is None and folder.run_token() is None
-        if tokenless or not go_on_staged(folder, work, "ablate", pipe.log):
+        if work.holds_untokened_run_of(folder) or not go_on_staged(folder, work, "ablate", pipe.log):
             new_run_token(folder, work)
         publish = functools.partial(publish_staged, folder, work, "ablate", pipe.log)
     try:

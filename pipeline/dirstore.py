@@ -220,6 +220,12 @@ class DirStore:
         token = self.run_token()
         return token is not None and token == other.run_token()
 
+    def holds_untokened_run_of(self, other: DirStore) -> bool:
+        """Whether this (staging) folder holds the files of a run in ``other`` begun before run
+        tokens were written (2026-12-07): it holds files and neither folder has a :data:`RUN_TOKEN`.
+        Kept, as :meth:`holds_run_of`'s are, rather than replaced by ``other``'s."""
+        return self.holds_files() and self.run_token() is None and other.run_token() is None
+
     def run_token(self) -> str | None:
         """The token of the last run begun in this folder (:data:`RUN_TOKEN`; a staged stage writes
         one into its staging folder and the remote one when it begins), None if none was."""

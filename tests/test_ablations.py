@@ -186,6 +186,8 @@ def test_ablate_cut_off_on_a_remote_cache_goes_on_on_another_machine(world, tmp_
     assert "2 run(s) begun, 2 of them trained" in status_on("machine-a")  # the remote's, not a's one run
     fs.pipe(f"{root}/{RUN_TOKEN}", (machine_a / RUN_TOKEN).read_bytes())  # as if a had begun the last ablate
     assert "1 run(s) begun, 1 of them trained" in status_on("machine-a")
+    fs.rm(f"{root}/{RUN_TOKEN}")  # the remote's token gone, a's kept: ablate would go on from the remote
+    assert "2 run(s) begun, 2 of them trained" in status_on("machine-a")
     fs.rm(url.removeprefix("memory://"), recursive=True)
 
 

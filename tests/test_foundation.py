@@ -150,6 +150,28 @@ def test_a_dataset_stage_folder_records_its_files_and_each_changed_one_is_named(
     assert checked == 0 and len(problems) == 1 and problems[0].startswith(f"{out.file(FILES_MANIFEST)}: unreadable")
 
 
+def test_a_staging_folder_holds_the_last_run_by_its_token_or_where_neither_folder_has_one(tmp_path):
+    """DirStore.holds_run_of: the same run token in both folders (files or not); a missing or other
+    token in either is no. holds_untokened_run_of: a folder from before tokens holding files, with
+    no token in either; a token in either (the remote's last run begun elsewhere, or the remote
+    wiped since this folder's run began) or no files is no."""
+    from pipeline.dirstore import RUN_TOKEN
+
+    remote, work = DirStore(str(tmp_path / "remote")), DirStore(str(tmp_path / "work"))
+    work.write_text("runs/1.txt", "epoch 1")
+    assert work.holds_untokened_run_of(remote) and not work.holds_run_of(remote)
+    remote.write_text(RUN_TOKEN, "a")
+    assert not work.holds_untokened_run_of(remote) and not work.holds_run_of(remote)
+    work.write_text(RUN_TOKEN, "a")
+    assert work.holds_run_of(remote) and not work.holds_untokened_run_of(remote)
+    work.write_text(RUN_TOKEN, "b")
+    assert not work.holds_run_of(remote)
+    Path(remote.file(RUN_TOKEN)).unlink()
+    assert not work.holds_run_of(remote) and not work.holds_untokened_run_of(remote)
+    empty = DirStore(str(tmp_path / "empty"))
+    assert not empty.holds_untokened_run_of(DirStore(str(tmp_path / "none")))
+
+
 def test_frame_memo_builds_once_per_frame_and_key():
     """FrameInputs.memo: one build per (frame, key); another key or another frame builds again;
     the memo does not collide with the frame's array reads."""
