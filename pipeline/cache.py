@@ -311,11 +311,22 @@ class FrameStore:
         direct = self._read_chunk_files(name, index)
         if direct is not None:
             return direct
-        value = self._checked(self._array(name), index)
-        counts = self._array(f"{name}_count", missing_ok=True)  # ragged arrays have one
-        if counts is not None:
-            value = value[: int(self._checked(counts, index))]
+        return self._read_through_zarr(name, index)
+
+    def _read_through_zarr(self, name: str, index: int) -> np.ndarray:
+        """:meth:`read` through zarr (a remote cache): :meth:`read_many` of the one array, two round
+        trips to the store where there were four, one after the other (until 2026-12-07)."""
+        value = self.read_many([name], index)[name]
+        if isinstance(value, Exception):
+            raise value
         return value
+
+    def read_many(self, names: Sequence[str], index: int) -> dict[str, np.ndarray | Exception]:
+        """Frame ``index`` of each array of ``names``, as :meth:`read` gives it, through zarr, in two
+        round trips to a remote store for them all (:func:`read_frame`). Each name's value, or the
+        exception its read raised (ChunkError, MetadataError, KeyError, ...), for the caller to
+        raise where it uses that array."""
+        return read_frame([(self, names)], index)[0]
 
     def _read_chunk_files(self, name: str, index: int) -> np.ndarray | None:
         """:meth:`read` from the frame's chunk files (a local cache, the arrays opened once per
@@ -389,8 +400,17 @@ class FrameStore:
         file when it cannot be read (every frame of the array is then unreadable)."""
         try:
             node = sync(member_async(self.url, name, mode))
-        except (ValueError, TypeError) as exc:  # json.JSONDecodeError for a truncated or garbled zarr.json
-            raise self._damaged_array(name, exc) from None
+        except (ValueError, TypeError) as exc:
+            node = exc
+        return self._opened(name, node, missing_ok)
+
+    def _opened(self, name: str, node: Any, missing_ok: bool = False) -> Any:
+        """:meth:`_array` of what :func:`member_async` gave for array ``name``: its node, None, or the
+        exception it raised."""
+        if isinstance(node, (ValueError, TypeError)):  # json.JSONDecodeError for a truncated or garbled zarr.json
+            raise self._damaged_array(name, node)
+        if isinstance(node, BaseException):
+            raise node
         if node is None:
             if missing_ok:
                 return None
@@ -398,19 +418,22 @@ class FrameStore:
             raise KeyError(name)
         return zarr.Array(node) if isinstance(node, zarr.AsyncArray) else zarr.Group(node)
 
-    def _decode(self, arr: zarr.Array, index: int) -> np.ndarray:
-        """Frame ``index`` of ``arr``; ChunkError when its chunk cannot be decoded."""
+    def _decode(self, arr: zarr.Array, index: int, got: Any = None) -> np.ndarray:
+        """Frame ``index`` of ``arr`` (or what reading it gave: ``got``, a value or the exception
+        raised); ChunkError when its chunk cannot be decoded."""
         try:
-            return np.asarray(arr[index])
+            if isinstance(got, BaseException):
+                raise got
+            return np.asarray(arr[index] if got is None else got)
         except DECODE_ERRORS as exc:
             raise self._chunk_error(arr, index, f"cannot be decoded ({one_line(exc)})") from None
 
-    def _checked(self, arr: zarr.Array, index: int) -> np.ndarray:
+    def _checked(self, arr: zarr.Array, index: int, got: Any = None) -> np.ndarray:
         """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
         although the frame is done and the group has every chunk written (:data:`EVERY_CHUNK`;
         zarr writes no chunk for a frame of no elements, which is never missing). The group's
         metadata and the file system are asked only for a value that is all fill."""
-        value = self._decode(arr, index)
+        value = self._decode(arr, index, got)
         if value.size and _all_fill(value, arr.fill_value) and self._group("r").attrs.get(EVERY_CHUNK) \
                 and not sync(arr.store.exists(f"{arr.path}/{chunk_key(arr, index)}")) \
                 and int(self._decode(self._array("status"), index)) == DONE:
@@ -612,6 +635,49 @@ def _all_fill(value: np.ndarray, fill: Any) -> bool:
         return np.isnan(v) if nan else v == fill
 
     return value.size == 0 or (bool(same(value[:1]).all()) and bool(same(value).all()))
+
+
+def read_frame(wanted: Sequence[tuple[FrameStore, Sequence[str]]], index: int) -> list[dict[str, np.ndarray | Exception]]:
+    """Frame ``index`` of the arrays ``names`` of each ``(store, names)`` of ``wanted``, as
+    FrameStore.read gives them, through zarr: the ``zarr.json`` of every array and of its row count
+    (ragged arrays have one) read concurrently, then every chunk; two round trips to a remote cache
+    for a frame's arrays of several stages. Per store, each name's value or the exception its read
+    raised (the array's error first, as read reports it)."""
+    asked = [(store, list(dict.fromkeys(names))) for store, names in wanted]
+    members = [(store, member) for store, names in asked for name in names for member in (name, f"{name}_count")]
+
+    async def metadata() -> list[Any]:
+        return await asyncio.gather(*(member_async(store.url, m, "r") for store, m in members), return_exceptions=True)
+
+    nodes = iter(sync(metadata()))
+    results: list[dict[str, np.ndarray | Exception]] = []
+    opened: list[tuple[FrameStore, dict[str, np.ndarray | Exception], str, list[zarr.Array]]] = []
+    for store, names in asked:
+        out: dict[str, np.ndarray | Exception] = {}
+        results.append(out)
+        for name in names:
+            node, count_node = next(nodes), next(nodes)
+            try:
+                arr = store._opened(name, node)
+                counts = store._opened(f"{name}_count", count_node, missing_ok=True)
+            except Exception as exc:  # noqa: BLE001 - the caller raises it where it reads the array
+                out[name] = exc
+            else:
+                opened.append((store, out, name, [arr] if counts is None else [arr, counts]))
+    chosen = [arr for *_, arrays in opened for arr in arrays]
+
+    async def chunks() -> list[Any]:
+        return await asyncio.gather(*(a.async_array.getitem(index) for a in chosen), return_exceptions=True)
+
+    got = iter(sync(chunks()))
+    for store, out, name, arrays in opened:
+        read = [next(got) for _ in arrays]
+        try:
+            value, *rows = (store._checked(arr, index, r) for arr, r in zip(arrays, read))
+            out[name] = value[: int(rows[0])] if rows else value
+        except Exception as exc:  # noqa: BLE001 - as above
+            out[name] = exc
+    return [{name: out[name] for name in names} for (_, names), out in zip(asked, results)]
 
 
 def done_digest(status: np.ndarray) -> str:

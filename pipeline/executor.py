@@ -23,7 +23,8 @@ import dask
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from pipeline.cache import DONE, FAILED, FrameStore, frame_store
+from pipeline.cache import DONE, FAILED, FrameStore, frame_store, read_frame
+from pipeline.cachefs import local_path
 from pipeline.config import Config
 from pipeline.dirstore import dir_store
 from pipeline.errors import (CacheError, ClusterFailed, FrameError, PipelineError, cache_error, exception_line,
@@ -67,6 +68,10 @@ class RunEnv:
     """This environment's own token (one per command): what a process keeps of the raw dataset for
     its frames (the reader and its index, the split) is kept for one session, so that a cluster's
     workers, which outlive a run, read a dataset changed since (frames added) as it is now."""
+    stage_run: str = field(default="", compare=False)
+    """The token of one run of a frame stage's frames (set by the runner for that run, else empty):
+    what the frames read of the finished upstream outputs, which the run holds against rewriting,
+    is kept for it (:func:`run_memo`)."""
 
     def store(self, stage: str) -> FrameStore:
         return frame_store(self.cache_root, self.dataset, stage)
@@ -87,6 +92,13 @@ def process_memo(key: tuple, build: Callable[[], Any]) -> Any:
     return _MEMO[key]
 
 
+def run_memo(env: RunEnv, key: tuple, build: Callable[[], Any]) -> Any:
+    """``build()`` once per process and run of a frame stage's frames (RunEnv.stage_run), for what
+    its frames read of finished upstream outputs that do not change during the run (their records,
+    their fingerprints: a request each on a remote cache); built each time outside such a run."""
+    return process_memo((*key, env.stage_run), build) if env.stage_run else build()
+
+
 @dataclass
 class FrameInputs:
     """What a per-frame function may read: its frame's upstream arrays, the raw reader, seeds."""
@@ -105,7 +117,31 @@ class FrameInputs:
         key = (stage, name)
         if key not in self._cache:
             self._cache[key] = self.env.store(stage).read(name, self.index)
-        return self._cache[key]
+        value = self._cache[key]
+        if isinstance(value, Exception):  # its read in prefetch failed: raised where it is used
+            raise value
+        return value
+
+    def prefetch(self, keys: list[tuple[str, str]]) -> None:
+        """On a remote cache, read this frame's arrays ``keys`` ((stage, array name) pairs) at once,
+        in two round trips to the store (pipeline.cache.read_frame); :meth:`get` then returns them,
+        or raises the error a read met. Each array was read in four round trips, one array after
+        the other (until 2026-12-07). On a local cache nothing: :meth:`get` reads the chunk files."""
+        wanted: dict[str, list[str]] = {}
+        for stage, name in keys:
+            if (stage, name) not in self._cache and local_path(self.env.store(stage).url) is None:
+                wanted.setdefault(stage, []).append(name)
+        if not wanted:
+            return
+        stages = list(wanted)
+        got = read_frame([(self.env.store(stage), wanted[stage]) for stage in stages], self.index)
+        for stage, values in zip(stages, got):
+            for name, value in values.items():
+                self._cache[(stage, name)] = value
+
+    def read_keys(self) -> list[tuple[str, str]]:
+        """The (stage, array name) pairs this frame has read (or prefetched)."""
+        return [key for key in self._cache if key[0] != "memo"]
 
     def memo(self, key: tuple, build: Callable[[], Any]) -> Any:
         """``build()`` once per key for this frame (work that several callers of one frame share,
@@ -134,6 +170,9 @@ class FrameInputs:
         return np.random.default_rng([seed, salt, self.index])
 
 
+_READ_SETS: dict[tuple[str, str], list[tuple[str, str]]] = {}  # (stage, run): the arrays a frame read
+
+
 def process_frame(stage: FrameStage, env: RunEnv, index: int, frame_id: str) -> tuple[int, int, str]:
     """Compute and write one frame; returns (index, status code, reason).
 
@@ -142,8 +181,15 @@ def process_frame(stage: FrameStage, env: RunEnv, index: int, frame_id: str) -> 
     """
     store = env.store(stage.name)
     specs = stage.outputs(env.cfg)
+    inputs = FrameInputs(env, index, frame_id)
+    read_set = (stage.name, env.stage_run or env.session)
     try:
-        out = stage.process(FrameInputs(env, index, frame_id), env.cfg)
+        inputs.prefetch(_READ_SETS.get(read_set, []))  # on a remote cache: what the frame before read
+        out = stage.process(inputs, env.cfg)
+        if local_path(store.url) is None:
+            if len(_READ_SETS) > 64:
+                _READ_SETS.clear()
+            _READ_SETS[read_set] = inputs.read_keys()
         _check_outputs(stage, env.cfg, specs, out)
     except CacheError:
         raise

@@ -518,7 +518,8 @@ class Pipeline:
         report = StageReport(stage.name, "recomputed" if created else "resumed")
         todo_mask = self._frames_to_do(stage, store, status, frames, retry_failed)
         todo = [(int(i), ids[int(i)]) for i in np.flatnonzero(todo_mask)]
-        for index, code, reason in self.executor.map(stage, self.env, todo, strict):
+        env = replace(self.env, stage_run=uuid.uuid4().hex[:12])  # this run's: executor.run_memo
+        for index, code, reason in self.executor.map(stage, env, todo, strict):
             report.processed += 1
             if code == FAILED:
                 report.failures.append((index, reason))

@@ -41,7 +41,7 @@ import numpy as np
 from pipeline import transfer
 from pipeline.config import Config, named_nets
 from pipeline.errors import PipelineError
-from pipeline.executor import FrameInputs, process_memo
+from pipeline.executor import FrameInputs, process_memo, run_memo
 from pipeline.geometry import wrap_doppler
 from pipeline.input_range import RANGE_PERCENTILES
 from pipeline.patches import INPUT_SUMMARIES, input_summaries
@@ -226,7 +226,7 @@ def models(inputs: FrameInputs, cfg: Config) -> Nets:
     from pipeline.inference import load_disnet, load_placenet, load_rssnet, select_device
 
     out = inputs.env.dir("train")
-    meta = out.meta() or {}
+    meta = run_memo(inputs.env, ("train record", out.url), lambda: out.meta() or {})  # once a run, not a frame
     key = ("models", out.url, meta.get("fingerprint"), meta.get("finished"), cfg.synth.placement, cfg.train.nets_from,
            cfg.synth.device)
 

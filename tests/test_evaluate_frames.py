@@ -285,10 +285,14 @@ def test_static_points_leave_out_boxes_of_unknown_velocity():
 
 
 class _FakeStore:
-    """A frame store of whole arrays (status, split, ...) for the functions that read one."""
+    """A frame store of whole arrays (status, split, ...) for the functions that read one (a local
+    one: nothing is read ahead)."""
+
+    url = "/fake/calibrate.zarr"
 
     def __init__(self, status, **arrays):
         self._status, self._arrays = np.asarray(status), {k: np.asarray(v) for k, v in arrays.items()}
+        self._arrays["status"] = self._status
 
     def status(self):
         return self._status

@@ -1015,3 +1015,130 @@ def test_on_s3_a_frame_s_read_is_one_get_per_object(tmp_path, s3, monkeypatch):
     store.read("value", 3)
     assert (store.status() == DONE).all()
     assert calls == ["get_object"] * (4 + 3 + 1 + len(IDS)), calls
+
+
+def test_a_frame_s_arrays_on_a_remote_cache_are_read_in_two_round_trips(tmp_path):
+    """FrameStore.read_many (and read_frame, of several outputs) reads the zarr.json of every array
+    asked and of its row count concurrently, then every chunk: each read below waits at a barrier until all of its round trip
+    are in flight (one after the other, as until 2026-12-07, the first would wait alone and the
+    barrier break). A damaged chunk or a missing array is that name's value, an exception with
+    read's own message, and the other arrays are read all the same."""
+    import threading
+
+    from fsspec.implementations.local import LocalFileSystem
+
+    from pipeline.cache import FrameStore, read_frame
+    from pipeline.stage import ArraySpec
+
+    barriers: dict[str, threading.Barrier] = {}
+
+    class Together(LocalFileSystem):
+        protocol = ("together",)
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**kwargs, "auto_mkdir": True})
+
+        @classmethod
+        def _strip_protocol(cls, path):
+            return super()._strip_protocol(str(path).removeprefix("together://"))
+
+        def cat_file(self, path, *args, **kwargs):
+            barrier = barriers.get("metadata" if str(path).endswith("zarr.json") else "chunks")
+            if barrier is not None:
+                barrier.wait(timeout=20)
+            return super().cat_file(path, *args, **kwargs)
+
+    fsspec.register_implementation("together", Together, clobber=True)
+    store = FrameStore(f"together://{tmp_path / 'out.zarr'}")
+    specs = (ArraySpec("points", (4, 3), "float32", "m", fill=np.nan, ragged=True),
+             ArraySpec("value", (), "float64", "-"))
+    store.create("fp", ["a", "b"], specs, {"points": (4, 3), "value": ()}, {})
+    points = np.arange(6, dtype=np.float32).reshape(2, 3)
+    store.write_frame(1, {"points": points, "value": np.float64(5)}, specs)
+    # points, points_count, value, value_count (not there); then the chunks of the three that are
+    barriers.update(metadata=threading.Barrier(4), chunks=threading.Barrier(3))
+    got = store.read_many(["points", "value"], 1)
+    np.testing.assert_array_equal(got["points"], points)
+    assert got["value"] == 5 and not any(b.broken for b in barriers.values())
+    barriers.clear()
+    other = FrameStore(f"together://{tmp_path / 'other.zarr'}")  # another stage's output: the same round trips
+    other.create("fp", ["a", "b"], specs, {"points": (4, 3), "value": ()}, {})
+    other.write_frame(1, {"points": points[:1], "value": np.float64(7)}, specs)
+    barriers.update(metadata=threading.Barrier(4), chunks=threading.Barrier(3))
+    mine, theirs = read_frame([(store, ["points"]), (other, ["value"])], 1)
+    np.testing.assert_array_equal(mine["points"], points)
+    assert theirs == {"value": 7} and not any(b.broken for b in barriers.values())
+    barriers.clear()
+    (tmp_path / "out.zarr" / "value" / "c" / "1").write_bytes(b"garbage")
+    got = store.read_many(["value", "nothing", "points"], 1)
+    with pytest.raises(ChunkError) as damaged:
+        store.read("value", 1)
+    assert isinstance(got["value"], ChunkError) and str(got["value"]) == str(damaged.value)
+    assert isinstance(got["nothing"], KeyError)
+    np.testing.assert_array_equal(got["points"], points)
+
+
+def test_a_frame_stage_on_a_remote_cache_reads_a_frame_s_arrays_at_once(tmp_path, remote, monkeypatch):
+    """On a remote cache each frame after a process's first of the stage reads at once
+    (FrameInputs.prefetch, pipeline.cache.read_frame) the arrays that frame read: the fake heatmaps
+    frame's points and value in one read_frame, not one after the other; the results equal a local
+    cache's, and the frame whose chunk is damaged fails naming it. On a local cache nothing is
+    read ahead (its chunk files are read directly)."""
+    import pipeline.executor as executor
+    from pipeline.cache import FrameStore
+
+    calls: list[tuple[str, ...]] = []
+    read_frame, read_many = executor.read_frame, FrameStore.read_many
+    monkeypatch.setattr(executor, "read_frame", lambda wanted, index: calls.append(
+        tuple(f"{s.stage}:{n}" for s, names in wanted for n in names)) or read_frame(wanted, index))
+    monkeypatch.setattr(FrameStore, "read_many", lambda self, names, index: calls.append(
+        tuple(f"{self.stage}:{n}" for n in names)) or read_many(self, names, index))
+    local, far = _pipe(str(tmp_path / "cache"), tmp_path), _pipe(remote, tmp_path)
+    for pipe in (local, far):
+        pipe.run("calibrate")
+    calls.clear()
+    local.run("heatmaps")
+    assert calls == []
+    far.run("heatmaps")
+    frame_reads = [c for c in calls if c != ("heatmaps:status",) and c != ("calibrate:status",)]
+    assert frame_reads[:2] == [("calibrate:points",), ("calibrate:value",)], frame_reads  # the first frame
+    assert frame_reads[2:] == [("calibrate:points", "calibrate:value")] * (len(IDS) - 1), frame_reads
+    _assert_same_frames(local, far)
+    chunk = f"{remote.removeprefix('memory://')}/fake/calibrate.zarr/value/c/3"
+    fsspec.filesystem("memory").pipe_file(f"/{chunk}", b"garbage")
+    far.run("heatmaps", force=True)
+    reasons = far.env.store("heatmaps").reasons()
+    assert list(reasons) == [3] and "calibrate.zarr/value, frame 3" in reasons[3], reasons
+
+
+def test_each_run_of_a_stage_s_frames_keeps_what_it_reads_of_finished_outputs_for_itself(tmp_path, monkeypatch):
+    """The runner gives each run of a frame stage's frames a token of its own (RunEnv.stage_run),
+    the same for all its frames; run_memo builds once per process and token (the records a frame
+    function reads of finished upstream outputs: a request per frame on a remote cache until
+    2026-12-07), and each time where there is none: synthesize run again after a retraining, by the
+    same Pipeline in the same process, reads the new train record and so loads the new nets."""
+    import dataclasses
+
+    import pipeline.executor as executor
+
+    tokens: list[tuple[str, str]] = []
+    process_frame = executor.process_frame
+
+    def recording(stage, env, index, frame_id):
+        tokens.append((stage.name, env.stage_run))
+        return process_frame(stage, env, index, frame_id)
+
+    monkeypatch.setattr(executor, "process_frame", recording)
+    pipe = _pipe(str(tmp_path / "cache"), tmp_path)
+    pipe.run("heatmaps")
+    pipe.run("heatmaps", force=True)
+    runs = [token for stage, token in tokens if stage == "heatmaps"]
+    assert len(runs) == 2 * len(IDS) and all(runs)
+    assert len(set(runs[:len(IDS)])) == len(set(runs[len(IDS):])) == 1 and runs[0] != runs[-1]
+    assert pipe.env.stage_run == ""  # the pipeline's own environment keeps none
+    built: list[int] = []
+    env = pipe.env
+    for token in ("a", "a", "b", "", ""):
+        executor.run_memo(dataclasses.replace(env, stage_run=token) if token else env, ("test", tmp_path),
+                          lambda: built.append(1) or len(built))
+    assert len(built) == 4  # a once, b once, and each call without a token
