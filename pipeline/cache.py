@@ -41,9 +41,9 @@ from pipeline.cachefs import join, local_path
 from pipeline.errors import CacheError, ChunkError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
 from pipeline.stage import ArraySpec
-from pipeline.zarr_io import (DECODE_ERRORS, ZARR_FORMAT, chunk_key, chunk_path, direct_layout, frames_from_chunk_files,
-                              gather_all, member_async, open_group, opened_array, put_chunk, write_targets,
-                              zarr_options)
+from pipeline.zarr_io import (DECODE_ERRORS, OPENED_MAX, ZARR_FORMAT, chunk_key, chunk_path, direct_layout,
+                              frames_from_chunk_files, gather_all, member_async, open_group, opened_array, put_chunk,
+                              write_targets, zarr_options)
 
 PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
 STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed", EXCLUDED: "excluded"}
@@ -220,13 +220,15 @@ class FrameStore:
                                f"--retry-failed runs the frame again)")
         return out
 
-    def write_frame(self, index: int, arrays: dict[str, np.ndarray], specs: tuple[ArraySpec, ...]) -> None:
+    def write_frame(self, index: int, arrays: dict[str, np.ndarray], specs: tuple[ArraySpec, ...],
+                    run: str = "") -> None:
         """Write one frame's arrays, then mark it done (the marker last).
 
         A local output's chunk files are written directly, as zarr's local store writes them (each
         encoded by the array's own codecs, to a temporary file renamed over the chunk): zarr's
         writes cost about 4 ms a frame in IO-thread hand-offs. Otherwise (a remote cache, another
-        layout) all arrays of the frame are written concurrently in one round trip to zarr's IO loop.
+        layout) all arrays of the frame are written concurrently in one round trip to zarr's IO loop,
+        their metadata read once per ``run`` (RunEnv.stage_run; zarr_io.write_targets) if given.
         """
         values: list[tuple[str, Any]] = []
         for spec in specs:
@@ -237,7 +239,7 @@ class FrameStore:
         fills = {spec.name: spec.fill for spec in specs if spec.ragged}
         try:
             if not self._write_chunk_files([index], [*values, ("reason", "")], fills, DONE):
-                sync(_write_frame_async(self.url, index, fills, values))
+                sync(_write_frame_async(self.url, index, fills, values, run))
         except OSError as exc:
             raise cache_error(exc, f"writing frame {index} of {self.url}") from None
 
@@ -303,30 +305,31 @@ class FrameStore:
             what = f"frame {indices[0]}" if len(indices) == 1 else f"{len(indices)} frames"
             raise cache_error(exc, f"recording {what} of {self.url}") from None
 
-    def read(self, name: str, index: int) -> np.ndarray:
-        """One frame of an array; ragged arrays are trimmed to the frame's row count.
+    def read(self, name: str, index: int, run: str = "") -> np.ndarray:
+        """One frame of an array; ragged arrays are trimmed to the frame's row count. ``run``: as
+        for :func:`read_frame`.
 
         ChunkError when a chunk it reads cannot be decoded, or is missing while the frame is done.
         """
         direct = self._read_chunk_files(name, index)
         if direct is not None:
             return direct
-        return self._read_through_zarr(name, index)
+        return self._read_through_zarr(name, index, run)
 
-    def _read_through_zarr(self, name: str, index: int) -> np.ndarray:
+    def _read_through_zarr(self, name: str, index: int, run: str = "") -> np.ndarray:
         """:meth:`read` through zarr (a remote cache): :meth:`read_many` of the one array, two round
         trips to the store where there were four, one after the other (until 2026-12-07)."""
-        value = self.read_many([name], index)[name]
+        value = self.read_many([name], index, run)[name]
         if isinstance(value, Exception):
             raise value
         return value
 
-    def read_many(self, names: Sequence[str], index: int) -> dict[str, np.ndarray | Exception]:
+    def read_many(self, names: Sequence[str], index: int, run: str = "") -> dict[str, np.ndarray | Exception]:
         """Frame ``index`` of each array of ``names``, as :meth:`read` gives it, through zarr, in two
         round trips to a remote store for them all (:func:`read_frame`). Each name's value, or the
         exception its read raised (ChunkError, MetadataError, KeyError, ...), for the caller to
         raise where it uses that array."""
-        return read_frame([(self, names)], index)[0]
+        return read_frame([(self, names)], index, run)[0]
 
     def _read_chunk_files(self, name: str, index: int) -> np.ndarray | None:
         """:meth:`read` from the frame's chunk files (a local cache, the arrays opened once per
@@ -637,19 +640,36 @@ def _all_fill(value: np.ndarray, fill: Any) -> bool:
     return value.size == 0 or (bool(same(value[:1]).all()) and bool(same(value).all()))
 
 
-def read_frame(wanted: Sequence[tuple[FrameStore, Sequence[str]]], index: int) -> list[dict[str, np.ndarray | Exception]]:
+_READABLE: dict[tuple[str, str], tuple[str, Any]] = {}
+"""Arrays of finished outputs opened for reading, by (store URL, array name): the run of a stage's
+frames that opened them (RunEnv.stage_run) and the node, or None for an array not there."""
+
+
+def read_frame(wanted: Sequence[tuple[FrameStore, Sequence[str]]], index: int,
+               run: str = "") -> list[dict[str, np.ndarray | Exception]]:
     """Frame ``index`` of the arrays ``names`` of each ``(store, names)`` of ``wanted``, as
     FrameStore.read gives them, through zarr: the ``zarr.json`` of every array and of its row count
     (ragged arrays have one) read concurrently, then every chunk; two round trips to a remote cache
-    for a frame's arrays of several stages. Per store, each name's value or the exception its read
-    raised (the array's error first, as read reports it)."""
+    for a frame's arrays of several stages. With ``run`` (RunEnv.stage_run: the run of a stage's
+    frames, which holds the read locks of the finished outputs it reads) each ``zarr.json`` is read
+    once per process and run, then only the chunks: one round trip (until 2026-12-07 every frame
+    read each ``zarr.json``). Per store, each name's value or the exception its read raised (the
+    array's error first, as read reports it)."""
     asked = [(store, list(dict.fromkeys(names))) for store, names in wanted]
     members = [(store, member) for store, names in asked for name in names for member in (name, f"{name}_count")]
+    known = {m: hit[1] for m in {(store.url, member) for store, member in members}
+             if run and (hit := _READABLE.get(m)) is not None and hit[0] == run}
+    fetch = list(dict.fromkeys((store.url, member) for store, member in members if (store.url, member) not in known))
 
     async def metadata() -> list[Any]:
-        return await asyncio.gather(*(member_async(store.url, m, "r") for store, m in members), return_exceptions=True)
+        return await asyncio.gather(*(member_async(url, m, "r") for url, m in fetch), return_exceptions=True)
 
-    nodes = iter(sync(metadata()))
+    fetched = dict(zip(fetch, sync(metadata()) if fetch else []))
+    if run:
+        if len(_READABLE) + len(fetched) > 4 * OPENED_MAX:
+            _READABLE.clear()
+        _READABLE.update({m: (run, node) for m, node in fetched.items() if not isinstance(node, BaseException)})
+    nodes = iter({**known, **fetched}[(store.url, member)] for store, member in members)
     results: list[dict[str, np.ndarray | Exception]] = []
     opened: list[tuple[FrameStore, dict[str, np.ndarray | Exception], str, list[zarr.Array]]] = []
     for store, names in asked:
@@ -686,11 +706,12 @@ def done_digest(status: np.ndarray) -> str:
     return hashlib.sha256(done.tobytes()).hexdigest()[:16]
 
 
-async def _write_frame_async(url: str, index: int, fills: dict[str, Any], values: list[tuple[str, Any]]) -> None:
+async def _write_frame_async(url: str, index: int, fills: dict[str, Any], values: list[tuple[str, Any]],
+                             run: str = "") -> None:
     """Write ``values`` into row ``index`` of the group's arrays concurrently, then the status;
-    ``fills``: the ragged arrays' padding values, by name."""
+    ``fills``: the ragged arrays' padding values, by name; ``run``: as for write_targets."""
     names = [name for name, _ in values] + ["reason", "status"]
-    targets = await write_targets(url, names)
+    targets = await write_targets(url, names, run)
 
     def row(name: str, value: Any) -> Any:
         target = targets[name]

@@ -116,7 +116,7 @@ class FrameInputs:
         """This frame's array ``name`` of ``stage`` (ragged arrays trimmed to their rows)."""
         key = (stage, name)
         if key not in self._cache:
-            self._cache[key] = self.env.store(stage).read(name, self.index)
+            self._cache[key] = self.env.store(stage).read(name, self.index, self.env.stage_run)
         value = self._cache[key]
         if isinstance(value, Exception):  # its read in prefetch failed: raised where it is used
             raise value
@@ -124,9 +124,10 @@ class FrameInputs:
 
     def prefetch(self, keys: list[tuple[str, str]]) -> None:
         """On a remote cache, read this frame's arrays ``keys`` ((stage, array name) pairs) at once,
-        in two round trips to the store (pipeline.cache.read_frame); :meth:`get` then returns them,
-        or raises the error a read met. Each array was read in four round trips, one array after
-        the other (until 2026-12-07). On a local cache nothing: :meth:`get` reads the chunk files."""
+        in two round trips to the store, one within a run of a stage's frames once the process has
+        read their metadata (pipeline.cache.read_frame); :meth:`get` then returns them, or raises
+        the error a read met. Each array was read in four round trips, one array after the other
+        (until 2026-12-07). On a local cache nothing: :meth:`get` reads the chunk files."""
         wanted: dict[str, list[str]] = {}
         for stage, name in keys:
             if (stage, name) not in self._cache and local_path(self.env.store(stage).url) is None:
@@ -134,7 +135,7 @@ class FrameInputs:
         if not wanted:
             return
         stages = list(wanted)
-        got = read_frame([(self.env.store(stage), wanted[stage]) for stage in stages], self.index)
+        got = read_frame([(self.env.store(stage), wanted[stage]) for stage in stages], self.index, self.env.stage_run)
         for stage, values in zip(stages, got):
             for name, value in values.items():
                 self._cache[(stage, name)] = value
@@ -199,7 +200,7 @@ def process_frame(stage: FrameStage, env: RunEnv, index: int, frame_id: str) -> 
         where = traceback.extract_tb(exc.__traceback__)[-1]
         reason = f"internal error {type(exc).__name__}: {exc} (at {where.filename}:{where.lineno})"
     else:
-        store.write_frame(index, out, specs)
+        store.write_frame(index, out, specs, env.stage_run)
         return index, DONE, ""
     if not reason.startswith(f"stage {stage.name}"):
         own = f"frame {frame_id}: "  # a ReaderError names its frame already

@@ -71,19 +71,23 @@ def put_chunk(path: str, data: bytes) -> None:
         raise
 
 
-_WRITABLE: dict[str, tuple[tuple[bytes | None, ...], dict[str, Any]]] = {}
+_WRITABLE: dict[str, tuple[tuple[Any, ...], dict[str, Any]]] = {}
 """Arrays opened for writing frames, by store URL, with the bytes of each one's zarr.json (a local
-store; keyed as _OPENED): opening the group and its arrays for every frame cost about 1.5 ms."""
+store; keyed as _OPENED; opening the group and its arrays for every frame cost about 1.5 ms), or
+with the token of the run of the stage's frames that writes them (a remote store)."""
 
 
-async def write_targets(url: str, names: list[str]) -> dict[str, Any]:
+async def write_targets(url: str, names: list[str], run: str = "") -> dict[str, Any]:
     """The async arrays ``names`` of the store at ``url``, set to write every chunk (a fill-valued
     one too, pipeline.cache.EVERY_CHUNK: a missing chunk is then damage), each opened by its own
     zarr.json (not the group's too: a request more per frame on an object store); a local store's
-    are opened once per process while their zarr.json files hold the same bytes, others for each
-    frame (another process may re-create the output between two frames)."""
+    are opened once per process while their zarr.json files hold the same bytes; a remote one's
+    once per process and ``run`` (the token of the run of a stage's frames, which created the
+    output before it began and holds its lock: each frame read every zarr.json until 2026-12-07),
+    else for each call (another process may re-create the output between two frames)."""
     root = local_path(url)
-    key = None if root is None else tuple(_metadata_bytes(root, name) for name in names)
+    key = (("run", run), *names) if root is None and run else None if root is None else \
+        tuple(_metadata_bytes(root, name) for name in names)
     hit = _WRITABLE.get(url)
     if key is not None and None not in key and hit is not None and hit[0] == key:
         return hit[1]

@@ -145,11 +145,11 @@ def install_hooks() -> None:
 
     original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache.put_chunk
 
-    def write_frame(self, index, arrays, specs):
+    def write_frame(self, index, arrays, specs, run=""):
         stage = self.url.rstrip("/").rsplit("/", 1)[-1].removesuffix(".zarr")
         _WRITING[:] = [stage, int(index), 0]
         try:
-            original_write(self, index, arrays, specs)
+            original_write(self, index, arrays, specs, run)
         finally:
             _WRITING.clear()
         log_event("written", stage, index)

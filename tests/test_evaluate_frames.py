@@ -300,11 +300,13 @@ class _FakeStore:
     def array(self, name):
         return self._status if name == "status" else self._arrays[name]
 
-    def read(self, name, index):
+    def read(self, name, index, run=""):
         return self._arrays[name][index]
 
 
 class _FakeEnv:
+    stage_run = ""
+
     def __init__(self, **stores):
         self.stores = stores
 

@@ -160,10 +160,10 @@ def _fault_after_first_array(monkeypatch, stage: str, index: int, code: int) -> 
     original_write, original_setitem, original_put = FrameStore.write_frame, zarr.AsyncArray.setitem, cache.put_chunk
     state: list = []
 
-    def write_frame(self, i, arrays, specs):
+    def write_frame(self, i, arrays, specs, run=""):
         state[:] = [self.url.endswith(f"/{stage}.zarr") and i == index, 0]
         try:
-            original_write(self, i, arrays, specs)
+            original_write(self, i, arrays, specs, run)
         finally:
             state.clear()
 
@@ -586,10 +586,10 @@ def test_a_cache_error_reading_a_frames_input_stops_the_run_and_fails_no_frame(t
     pipe.run("calibrate")
     original = FrameStore.read
 
-    def unreadable(self, name, index):
+    def unreadable(self, name, index, run=""):
         if self.url.endswith("/calibrate.zarr"):
             raise CacheError(f"opening {self.url}: [Errno 5] Input/output error")
-        return original(self, name, index)
+        return original(self, name, index, run)
 
     with monkeypatch.context() as patch:
         patch.setattr(FrameStore, "read", unreadable)

@@ -15,7 +15,7 @@ import fsspec
 import numpy as np
 import pytest
 
-from pipeline.cache import DONE, PENDING
+from pipeline.cache import DONE, FAILED, PENDING
 from pipeline.dirstore import RUN_TOKEN, DirStore
 from pipeline.config import load_config
 from pipeline.errors import CacheError, ChunkError
@@ -1089,10 +1089,10 @@ def test_a_frame_stage_on_a_remote_cache_reads_a_frame_s_arrays_at_once(tmp_path
 
     calls: list[tuple[str, ...]] = []
     read_frame, read_many = executor.read_frame, FrameStore.read_many
-    monkeypatch.setattr(executor, "read_frame", lambda wanted, index: calls.append(
-        tuple(f"{s.stage}:{n}" for s, names in wanted for n in names)) or read_frame(wanted, index))
-    monkeypatch.setattr(FrameStore, "read_many", lambda self, names, index: calls.append(
-        tuple(f"{self.stage}:{n}" for n in names)) or read_many(self, names, index))
+    monkeypatch.setattr(executor, "read_frame", lambda wanted, *args: calls.append(
+        tuple(f"{s.stage}:{n}" for s, names in wanted for n in names)) or read_frame(wanted, *args))
+    monkeypatch.setattr(FrameStore, "read_many", lambda self, names, *args: calls.append(
+        tuple(f"{self.stage}:{n}" for n in names)) or read_many(self, names, *args))
     local, far = _pipe(str(tmp_path / "cache"), tmp_path), _pipe(remote, tmp_path)
     for pipe in (local, far):
         pipe.run("calibrate")
@@ -1142,3 +1142,62 @@ def test_each_run_of_a_stage_s_frames_keeps_what_it_reads_of_finished_outputs_fo
         executor.run_memo(dataclasses.replace(env, stage_run=token) if token else env, ("test", tmp_path),
                           lambda: built.append(1) or len(built))
     assert len(built) == 4  # a once, b once, and each call without a token
+
+
+def test_a_run_of_a_stage_s_frames_on_a_remote_cache_opens_its_arrays_once(tmp_path):
+    """Each frame's write on a remote cache read the zarr.json of every array it writes, and each
+    frame's read that of every array it reads (until 2026-12-07): on an object store a request
+    each, every frame. Within one run of a stage's frames (RunEnv.stage_run; the run created its
+    output before and holds its lock and the read locks of the outputs it reads) they are read once
+    per process; another run reads them again, and the frames equal a local cache's."""
+    asked: list[tuple[str, str]] = []
+    _counting_filesystem(asked)
+    far = _pipe(f"counted://{tmp_path / 'remote'}", tmp_path)
+    local = _pipe(str(tmp_path / "cache"), tmp_path)
+    local.run("heatmaps")
+    far.run("calibrate")
+
+    def metadata_reads(run) -> tuple[int, int]:
+        asked.clear()
+        run()
+        reads = [path for what, path in asked if what == "cat_file"]
+        return (sum(p.endswith("heatmaps.zarr/total/zarr.json") for p in reads),
+                sum(p.endswith("calibrate.zarr/points/zarr.json") for p in reads))
+
+    first = metadata_reads(lambda: far.run("heatmaps"))
+    again = metadata_reads(lambda: far.run("heatmaps", force=True))
+    assert first == again and max(first) <= 3, (first, again)  # (2, 1); before, (9, 9): one per frame
+    _assert_same_frames(local, far)
+
+
+def test_a_cache_error_reading_a_frames_inputs_on_a_remote_cache_stops_the_run(tmp_path, remote, monkeypatch):
+    """As on a local cache (test_reliability): a cache problem reading an input array is no bad
+    input of one frame, on the first frame (read alone) and on those read at once after it
+    (FrameInputs.prefetch keeps the error for the stage's read to raise): the run stops at once,
+    no frame failed, and a run after the problem is gone finishes every frame."""
+    from pipeline.cache import FrameStore
+
+    pipe = _pipe(remote, tmp_path)
+    pipe.run("calibrate")
+    checked, reads = FrameStore._checked, []
+
+    def failing_at(n: int):
+        def reading(self, arr, index, got=None):
+            if self.url.endswith("/calibrate.zarr") and arr.path in ("points", "value"):
+                reads.append(arr.path)
+                if len(reads) > n:
+                    raise CacheError(f"reading {self.url}: [Errno 5] Input/output error")
+            return checked(self, arr, index, got)
+        return reading
+
+    for n in (0, 3):  # the first frame's read; the second frame's, read at once
+        reads.clear()
+        with monkeypatch.context() as patch:
+            patch.setattr(FrameStore, "_checked", failing_at(n))
+            with pytest.raises(CacheError, match="Input/output error"):
+                pipe.run("heatmaps", force=True)
+        status = pipe.env.store("heatmaps").status()
+        assert not (status == FAILED).any() and pipe.env.store("heatmaps").reasons() == {}, n
+        assert (status == DONE).sum() == (0 if n == 0 else 1), (n, status)
+    pipe.run("heatmaps")
+    assert (pipe.env.store("heatmaps").status() == DONE).all()
