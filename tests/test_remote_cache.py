@@ -897,24 +897,30 @@ def test_on_s3_a_process_that_outlives_runs_reads_the_records_another_run_rewrot
     assert (again / "disnet" / "best.safetensors").read_text() == "weights 2"
 
 
+def _object_store(protocol: str) -> type:
+    """The local filesystem under ``protocol``:// as an object store (no folders to make; the
+    pipeline does not take it for the local one), for a test to subclass and register."""
+    from fsspec.implementations.local import LocalFileSystem
+
+    class ObjectStore(LocalFileSystem):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**kwargs, "auto_mkdir": True})
+
+        @classmethod
+        def _strip_protocol(cls, path):
+            return super()._strip_protocol(str(path).removeprefix(f"{protocol}://"))
+
+    ObjectStore.protocol = (protocol,)
+    return ObjectStore
+
+
 def test_a_remote_cache_never_asks_for_zarr_format_2_metadata(tmp_path):
     """Every output is zarr format 3; opened without saying so, zarr also asks for .zgroup, .zarray
     and .zattrs at each open, a request each on an object store (246 of 1,043 requests of the fake
     pipeline's run on moto's S3 server, 2026-12-07; none with the format named: 737 in all)."""
-    from fsspec.implementations.local import LocalFileSystem
-
     asked: list[str] = []
 
-    class Asked(LocalFileSystem):
-        protocol = ("asked",)
-
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **{**kwargs, "auto_mkdir": True})  # as an object store: no folders to make
-
-        @classmethod
-        def _strip_protocol(cls, path):
-            return super()._strip_protocol(str(path).removeprefix("asked://"))
-
+    class Asked(_object_store("asked")):
         def cat_file(self, path, *args, **kwargs):
             asked.append(str(path))
             return super().cat_file(path, *args, **kwargs)
@@ -935,22 +941,15 @@ def test_a_remote_cache_never_asks_for_zarr_format_2_metadata(tmp_path):
 def _counting_filesystem(asked: list[tuple[str, str]]):
     """The local filesystem under protocol counted://, as an object store (no folders to make),
     recording each request zarr or the cache makes (cat_file, info, exists, ls) in ``asked``."""
-    from fsspec.implementations.local import LocalFileSystem
+    base = _object_store("counted")
 
-    class Counted(LocalFileSystem):
-        protocol = ("counted",)
-
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **{**kwargs, "auto_mkdir": True})
-
-        @classmethod
-        def _strip_protocol(cls, path):
-            return super()._strip_protocol(str(path).removeprefix("counted://"))
+    class Counted(base):
+        pass
 
     for name in ("cat_file", "info", "exists", "ls"):
         def asking(self, path, *args, _name=name, **kwargs):
             asked.append((_name, str(path)))
-            return getattr(LocalFileSystem, _name)(self, path, *args, **kwargs)
+            return getattr(base, _name)(self, path, *args, **kwargs)
         setattr(Counted, name, asking)
     fsspec.register_implementation("counted", Counted, clobber=True)
 
@@ -1025,23 +1024,12 @@ def test_a_frame_s_arrays_on_a_remote_cache_are_read_in_two_round_trips(tmp_path
     read's own message, and the other arrays are read all the same."""
     import threading
 
-    from fsspec.implementations.local import LocalFileSystem
-
     from pipeline.cache import FrameStore, read_frame
     from pipeline.stage import ArraySpec
 
     barriers: dict[str, threading.Barrier] = {}
 
-    class Together(LocalFileSystem):
-        protocol = ("together",)
-
-        def __init__(self, *args, **kwargs):
-            super().__init__(*args, **{**kwargs, "auto_mkdir": True})
-
-        @classmethod
-        def _strip_protocol(cls, path):
-            return super()._strip_protocol(str(path).removeprefix("together://"))
-
+    class Together(_object_store("together")):
         def cat_file(self, path, *args, **kwargs):
             barrier = barriers.get("metadata" if str(path).endswith("zarr.json") else "chunks")
             if barrier is not None:
