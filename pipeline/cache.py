@@ -5,7 +5,8 @@ Layout under the cache root (a local folder or any fsspec URL)::
 
     <root>/<dataset>/<stage>.zarr/       frame stage: declared arrays, one chunk per frame,
                                          plus ``status`` (uint8 per frame), ``reason`` (str)
-                                         and ``frame_ids`` (str, one chunk)
+                                         and ``frame_ids`` (str, one chunk); on a remote cache
+                                         ``status_snapshot``, the status in one object
     <root>/<dataset>/<stage>/            dataset stage: files, and ``_stage.json`` written last
     <root>/<dataset>/locks/<stage>.lock  one writer per stage output
 
@@ -23,6 +24,7 @@ MetadataError: the output is not taken for absent (and recomputed, its frames lo
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import os
 import shlex
@@ -34,7 +36,9 @@ from typing import Any
 import fsspec
 import numpy as np
 import zarr
+import numcodecs
 from zarr.codecs import ZstdCodec
+from zarr.core.buffer import default_buffer_prototype
 from zarr.core.sync import sync
 
 from pipeline.cachefs import join, local_path
@@ -60,6 +64,21 @@ Outputs created before 2026-12-03 lack it: there a missing chunk still reads as 
 COMPRESSOR = ZstdCodec(level=0, checksum=True)
 """zarr's default compressor plus zstd's content checksum: a flipped bit in a chunk is then an
 error when read instead of a silently wrong value (outputs created before 2026-12-03 have none)."""
+
+STATUS_SNAPSHOT = "status_snapshot"
+"""A remote output's whole status array in one object (since 2026-12-07), for the readers of every
+frame's status (a run's checks of its upstream outputs, `pipeline status`, the dataset stages):
+the array holds one chunk per frame, a request each on an object store (30,000 at 30,000 frames,
+minutes at 20 ms a request), read several times per command. :meth:`FrameStore.create` writes one
+of pending frames, the runner one when a run of the stage's frames ends
+(:meth:`FrameStore.save_status_snapshot`; it holds the stage's lock), and every write of a status
+chunk removes it first, so one that is there is the status array; without one the chunks are
+read. A local output's status is read from its chunk files (0.4 s at 20,000 frames), the snapshot
+only removed there (a local cache copied to an object store keeps none that is stale)."""
+_SNAPSHOT_HEADER = b"radarsim status snapshot 1 "
+_SNAPSHOT_CODEC = numcodecs.Zstd(level=0, checksum=True)
+_SNAPSHOT_DROPPED: set[tuple[str, str]] = set()
+"""(store URL, run token) of the runs of a stage's frames whose snapshot this process removed."""
 
 
 @dataclass(frozen=True)
@@ -145,6 +164,7 @@ class FrameStore:
             ids = g.create_array(FRAME_IDS, shape=(n,), chunks=(max(n, 1),), dtype=str, fill_value="",
                                  compressors=COMPRESSOR)
             ids[:] = np.asarray(list(frame_ids), dtype=str)
+            self.save_status_snapshot(np.full(n, PENDING, np.uint8))  # a remote one's: every frame pending
             g.attrs.update({**attrs, "created": time.time(), EVERY_CHUNK: True})
             # The fingerprint goes last: a group without it counts as absent.
             g.attrs["fingerprint"] = fingerprint
@@ -186,9 +206,12 @@ class FrameStore:
                             f"recompute the stage: delete {self.url} or run it with --force")
 
     def status(self) -> np.ndarray:
-        """(F,) uint8 status codes; ChunkError naming the lowest damaged chunk when one is."""
+        """(F,) uint8 status codes; ChunkError naming the lowest damaged chunk when one is. A remote
+        output's from its :data:`STATUS_SNAPSHOT` when it has one (one request, not one per frame)."""
         arr = self._array("status")
         status = frames_from_chunk_files(arr)
+        if status is None and local_path(self.url) is None:
+            status = self._status_snapshot(arr)
         if status is not None:
             return status
         try:
@@ -196,6 +219,48 @@ class FrameStore:
         except DECODE_ERRORS as exc:
             _settle_io()
             raise self.damaged("status", np.arange(arr.shape[0]), exc) from None
+
+    def _status_snapshot(self, arr: zarr.Array) -> np.ndarray | None:
+        """The status from the :data:`STATUS_SNAPSHOT` of the output whose status array is ``arr``;
+        None when there is none or it does not hold one code per frame (then the chunks are read)."""
+        try:
+            data = sync(arr.store_path.store.get(STATUS_SNAPSHOT, default_buffer_prototype()))
+        except (OSError, ValueError):  # unreadable: the chunks' read says what is wrong
+            return None
+        if data is None:
+            return None
+        head, _, body = data.to_bytes().partition(b"\n")
+        if not head.startswith(_SNAPSHOT_HEADER) or head[len(_SNAPSHOT_HEADER):] != str(arr.shape[0]).encode():
+            return None
+        try:
+            status = np.frombuffer(_SNAPSHOT_CODEC.decode(body), np.uint8)
+        except (RuntimeError, ValueError):  # truncated, or not zstd: numcodecs raises RuntimeError
+            return None
+        if len(status) != arr.shape[0] or not np.isin(status, list(STATUS_NAMES)).all():
+            return None
+        return status.copy()
+
+    def save_status_snapshot(self, status: np.ndarray) -> None:
+        """Write ``status`` (F,), the output's whole status array, as its :data:`STATUS_SNAPSHOT`
+        (a remote output only): what the runner knows the status to be when a run of the stage's
+        frames ends, holding the stage's lock (the status it read, the marks and frames it wrote)."""
+        if local_path(self.url) is not None:
+            return
+        status = np.asarray(status, np.uint8).reshape(-1)
+        arr = self._array("status", "r+")
+        if len(status) != arr.shape[0]:
+            raise ValueError(f"{self.url}: a status snapshot of {len(status)} frames for {arr.shape[0]}")
+        data = _SNAPSHOT_HEADER + str(len(status)).encode() + b"\n" + _SNAPSHOT_CODEC.encode(status.tobytes())
+        try:
+            sync(arr.store_path.store.set(STATUS_SNAPSHOT, default_buffer_prototype().buffer.from_bytes(data)))
+        except OSError as exc:
+            raise cache_error(exc, f"writing {join(self.url, STATUS_SNAPSHOT)}") from None
+
+    def _drop_local_status_snapshot(self) -> None:
+        """Remove a local output's :data:`STATUS_SNAPSHOT`, if any (one copied from an object
+        store): before its status chunks are written directly."""
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(os.path.join(local_path(self.url), STATUS_SNAPSHOT))
 
     def done_digest(self) -> str:
         """A short digest of which frames are done ('absent' without an output): what a dataset
@@ -260,6 +325,7 @@ class FrameStore:
             if np.shape(row) != layout.shape:
                 return False
             chunks.append((arr, layout.encode(row)))
+        self._drop_local_status_snapshot()
         for index in indices:
             for arr, data in chunks:  # the status last: the frame is done only once the rest is written
                 put_chunk(chunk_path(arr, int(index)), data)
@@ -295,6 +361,7 @@ class FrameStore:
             if self._write_chunk_files(indices, [("reason", reason)], {}, code):
                 return
             reasons, status = self._array("reason", "r+"), self._array("status", "r+")
+            sync(drop_status_snapshot(status))
             if len(indices) == 1:
                 reasons[int(indices[0])] = reason
                 status[int(indices[0])] = code
@@ -717,9 +784,22 @@ async def _write_frame_async(url: str, index: int, fills: dict[str, Any], values
         target = targets[name]
         return _frame_row(value, target.dtype, target.shape[1:], name in fills, fills.get(name))
 
+    drop = []  # the status snapshot goes before the status chunk: once per run of the stage's frames
+    if not run or (url, run) not in _SNAPSHOT_DROPPED:
+        drop.append(drop_status_snapshot(targets["status"]))
     await gather_all([*(targets[name].setitem(index, row(name, v)) for name, v in values),
-                       targets["reason"].setitem(index, "")])
+                       targets["reason"].setitem(index, ""), *drop])
+    if run and drop:
+        if len(_SNAPSHOT_DROPPED) > 4 * OPENED_MAX:
+            _SNAPSHOT_DROPPED.clear()
+        _SNAPSHOT_DROPPED.add((url, run))
     await targets["status"].setitem(index, DONE)
+
+
+async def drop_status_snapshot(status: Any) -> None:
+    """Remove the :data:`STATUS_SNAPSHOT` of the output whose status array (zarr.Array or
+    AsyncArray, opened for writing) is ``status``, if it has one."""
+    await status.store_path.store.delete(STATUS_SNAPSHOT)
 
 
 def _frame_row(value: Any, dtype: Any, shape: tuple[int, ...], ragged: bool, fill: Any) -> Any:

@@ -474,11 +474,12 @@ class Pipeline:
         return True
 
     def _frames_to_do(self, stage: FrameStage, store, status: np.ndarray, frames: list[int] | None,
-                      retry_failed: bool) -> np.ndarray:
+                      retry_failed: bool, marked: np.ndarray) -> np.ndarray:
         """Mask (F,) of the frames of ``stage`` to compute now: pending ones (and failed ones with
         ``retry_failed``; else those blocked by an upstream that is done now), limited to ``frames``.
         Marks in ``store`` the frames an upstream failure or exclusion blocks, and the pending frames
-        the stage's configuration does not select (excluded), with the reason."""
+        the stage's configuration does not select (excluded), with the reason; and in ``marked``
+        (F,), a copy of ``status``, the codes it wrote."""
         ids = self.frame_ids()
         todo_mask = status == PENDING
         if retry_failed:
@@ -496,14 +497,16 @@ class Pipeline:
             for code, word in ((FAILED, "failed"), (EXCLUDED, "was excluded")):
                 blocked = todo_mask & (up_status == code)
                 store.mark_many(np.flatnonzero(blocked), code, f"upstream stage {up} {word} for this frame")
+                marked[blocked] = code
                 todo_mask &= ~blocked
             todo_mask &= up_status == DONE
         if stage.select is not None and (todo_mask.any() or (status == PENDING).any()):
             chosen = np.asarray(stage.select(DatasetInputs(self.env, ids), self.env.cfg), bool)
             # every pending frame the configuration leaves out, whatever --frames asked for, so
             # that the pending count is what is left to do
-            store.mark_many(np.flatnonzero((todo_mask | (status == PENDING)) & ~chosen), EXCLUDED,
-                            "not selected by this stage's configuration")
+            left_out = (todo_mask | (status == PENDING)) & ~chosen
+            store.mark_many(np.flatnonzero(left_out), EXCLUDED, "not selected by this stage's configuration")
+            marked[left_out] = EXCLUDED
             todo_mask &= chosen
         return todo_mask
 
@@ -515,12 +518,14 @@ class Pipeline:
             store.check_metadata()
         ids = self.frame_ids()
         status = store.status()
+        written = status.copy()  # the status as this run writes it
         report = StageReport(stage.name, "recomputed" if created else "resumed")
-        todo_mask = self._frames_to_do(stage, store, status, frames, retry_failed)
+        todo_mask = self._frames_to_do(stage, store, status, frames, retry_failed, written)
         todo = [(int(i), ids[int(i)]) for i in np.flatnonzero(todo_mask)]
         env = replace(self.env, stage_run=uuid.uuid4().hex[:12])  # this run's: executor.run_memo
         for index, code, reason in self.executor.map(stage, env, todo, strict):
             report.processed += 1
+            written[index] = code
             if code == FAILED:
                 report.failures.append((index, reason))
                 if len(report.failures) <= FAILURES_LOGGED:
@@ -532,6 +537,11 @@ class Pipeline:
                      f"run: `pipeline status --reasons N` lists their reasons")
         if report.processed:  # the run's frames reach the disk before it reports them done
             store.flush()
+        # A remote output's status in one object, for the next readers of every frame's (their own
+        # reads of the one-chunk-per-frame array took a request per frame). A frame that a run
+        # stopped by --strict was still computing may finish after it: the snapshot then has it as
+        # it was (pending or failed: computed again), never done where it is not.
+        store.save_status_snapshot(written)
         final = store.status()
         self._done[stage.name] = done_digest(final)  # what frames_read would read again
         report.set_counts(final)

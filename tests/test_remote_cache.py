@@ -996,7 +996,9 @@ def test_on_s3_a_frame_s_read_is_one_get_per_object(tmp_path, s3, monkeypatch):
     and then a GET; a missing one with a HEAD and a listing. The cache's zarr store reads each
     zarr.json and chunk with one GET: a frame of points (a ragged array: its rows and their count),
     its value (and the one request saying it has no count) and the status of the output are
-    4, 3 and 1 + 8 GETs (40 requests before 2026-12-07, the group's zarr.json read by each)."""
+    4, 3 and 1 + 8 GETs (40 requests before 2026-12-07, the group's zarr.json read by each); the
+    status 2 GETs where the run left its snapshot (since 2026-12-07), 1 + 1 + 8 once a frame's
+    status is written (the snapshot asked for, gone)."""
     import s3fs.core
 
     calls: list[str] = []
@@ -1013,7 +1015,11 @@ def test_on_s3_a_frame_s_read_is_one_get_per_object(tmp_path, s3, monkeypatch):
     store.read("points", 3)
     store.read("value", 3)
     assert (store.status() == DONE).all()
-    assert calls == ["get_object"] * (4 + 3 + 1 + len(IDS)), calls
+    assert calls == ["get_object"] * (4 + 3 + 2), calls
+    store.mark(2, FAILED, "bad")
+    calls.clear()
+    assert (store.status() == FAILED).sum() == 1
+    assert calls == ["get_object"] * (2 + len(IDS)), calls
 
 
 def test_a_frame_s_arrays_on_a_remote_cache_are_read_in_two_round_trips(tmp_path):
@@ -1189,3 +1195,121 @@ def test_a_cache_error_reading_a_frames_inputs_on_a_remote_cache_stops_the_run(t
         assert (status == DONE).sum() == (0 if n == 0 else 1), (n, status)
     pipe.run("heatmaps")
     assert (pipe.env.store("heatmaps").status() == DONE).all()
+
+
+def _chunks_status(store) -> np.ndarray:
+    """The status array as its chunks hold it (zarr's read, not the snapshot)."""
+    return np.asarray(store._array("status")[:])
+
+
+def _snapshot(store) -> np.ndarray | None:
+    return store._status_snapshot(store._array("status"))
+
+
+def test_each_run_of_a_stage_s_frames_on_a_remote_cache_leaves_a_snapshot_equal_to_its_status(tmp_path, remote,
+                                                                                           monkeypatch):
+    """The runner writes a remote output's status snapshot from what it read and wrote, not from a
+    read of every chunk: after runs that fail, block, exclude, retry, redo and stop at a failure
+    (--strict), the snapshot is the status array's chunks, code for code."""
+    from dataclasses import replace
+
+    from pipeline.errors import FrameError
+
+    ids = [*IDS[:3], "bad003", *IDS[4:]]
+    picked = [i for i in range(len(ids)) if i != 5]  # heatmaps leaves frame 5 out (excluded)
+    stages = [fake_stages.STAGES[0], replace(fake_stages.STAGES[1], select=lambda inputs, cfg: np.isin(
+        np.arange(len(ids)), picked)), fake_stages.STAGES[2]]
+    env = RunEnv(cfg=load_config("synthetic", {}, environ={}), cache_root=remote, dataset="fake",
+                 data_root=str(tmp_path))
+    pipe = Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(ids))
+
+    def snapshots_hold_the_chunks() -> dict[str, list[int]]:
+        out = {}
+        for name in ("calibrate", "heatmaps"):
+            store = pipe.env.store(name)
+            if store.exists():
+                chunks = _chunks_status(store)
+                assert _snapshot(store) is not None, name
+                np.testing.assert_array_equal(_snapshot(store), chunks, err_msg=name)
+                np.testing.assert_array_equal(store.status(), chunks, err_msg=name)
+                out[name] = chunks.tolist()
+        return out
+
+    pipe.run("heatmaps")
+    assert snapshots_hold_the_chunks() == {"calibrate": [DONE] * 3 + [FAILED] + [DONE] * 4,
+                                           "heatmaps": [DONE] * 3 + [FAILED, DONE, 3, DONE, DONE]}
+    monkeypatch.setenv("FAKE_STAGE_FIXED", "1")
+    pipe.run("calibrate", retry_failed=True)
+    pipe.run("heatmaps")  # the frame its upstream blocked is tried now
+    assert snapshots_hold_the_chunks()["heatmaps"] == [DONE] * 5 + [3, DONE, DONE]
+    pipe.run("heatmaps", frames=[1, 6], force=True)  # redone: marked pending, then done again
+    assert snapshots_hold_the_chunks()["heatmaps"] == [DONE] * 5 + [3, DONE, DONE]
+    monkeypatch.delenv("FAKE_STAGE_FIXED")
+    with pytest.raises(FrameError):
+        pipe.run("calibrate", force=True, strict=True)  # stops at bad003: the frames after stay pending
+    assert snapshots_hold_the_chunks()["calibrate"] == [DONE] * 3 + [FAILED] + [PENDING] * 4
+
+
+def test_a_remote_output_s_status_comes_from_its_snapshot_until_a_status_chunk_is_written(tmp_path):
+    """status() reads the snapshot, one object, where there is one (2 requests, not one per frame);
+    writing a frame or marking one removes it first, so what status() then reads is the chunks
+    again; creating the output writes one of pending frames. A local output reads its chunk files and keeps no snapshot (one
+    copied there is removed by its first write)."""
+    from pipeline.cache import STATUS_SNAPSHOT, FrameStore
+    from pipeline.stage import ArraySpec
+
+    asked: list[tuple[str, str]] = []
+    _counting_filesystem(asked)
+    specs = (ArraySpec("value", (), "float64", "-"),)
+    ids = [f"f{i}" for i in range(40)]
+    store = FrameStore(f"counted://{tmp_path / 'out.zarr'}")
+    store.create("fp", ids, specs, {"value": ()}, {})
+    store.write_frame(0, {"value": np.float64(1)}, specs)
+    asked.clear()
+    assert store.status().tolist() == [DONE] + [PENDING] * 39
+    assert len(asked) == 2 + 40  # the status array's zarr.json, the missing snapshot, each chunk
+    claimed = np.full(40, DONE, np.uint8)  # not what the chunks hold: tells which one status() read
+    store.save_status_snapshot(claimed)
+    asked.clear()
+    assert store.status().tolist() == claimed.tolist() and len(asked) == 2
+
+    for write in (lambda: store.write_frame(3, {"value": np.float64(2)}, specs),
+                  lambda: store.write_frame(4, {"value": np.float64(2)}, specs, run="run-a"),
+                  lambda: store.write_frame(5, {"value": np.float64(2)}, specs, run="run-b"),
+                  lambda: store.mark(6, FAILED, "bad"),
+                  lambda: store.mark_many(np.array([7, 8]), 3, "left out")):
+        store.save_status_snapshot(claimed)
+        write()
+        assert not (tmp_path / "out.zarr" / STATUS_SNAPSHOT).exists()
+        np.testing.assert_array_equal(store.status(), _chunks_status(store))
+    store.save_status_snapshot(claimed)
+    store.create("fp", ids, specs, {"value": ()}, {})  # re-created: its snapshot says every frame is pending
+    assert _snapshot(store).tolist() == _chunks_status(store).tolist() == [PENDING] * 40
+
+    local = FrameStore(str(tmp_path / "local.zarr"))
+    local.create("fp", ids, specs, {"value": ()}, {})
+    local.save_status_snapshot(claimed)  # nothing on a local cache
+    assert not (tmp_path / "local.zarr" / STATUS_SNAPSHOT).exists()
+    shutil.copy(tmp_path / "out.zarr" / "zarr.json", tmp_path / "local.zarr" / STATUS_SNAPSHOT)
+    assert local.status().tolist() == [PENDING] * 40  # the chunk files, not the copied file
+    local.write_frame(2, {"value": np.float64(1)}, specs)
+    assert not (tmp_path / "local.zarr" / STATUS_SNAPSHOT).exists()
+
+
+@pytest.mark.parametrize("damage", ["another frame count", "truncated", "not zstd", "an unknown code", "empty"])
+def test_a_status_snapshot_that_does_not_hold_the_output_s_status_is_not_read(tmp_path, remote, damage):
+    from pipeline.cache import _SNAPSHOT_CODEC, _SNAPSHOT_HEADER, STATUS_SNAPSHOT, FrameStore
+    from pipeline.stage import ArraySpec
+
+    specs = (ArraySpec("value", (), "float64", "-"),)
+    store = FrameStore(f"{remote}/out.zarr")
+    store.create("fp", [f"f{i}" for i in range(6)], specs, {"value": ()}, {})
+    store.write_frame(1, {"value": np.float64(1)}, specs)
+    body = _SNAPSHOT_CODEC.encode(np.full(6, DONE, np.uint8).tobytes())
+    data = {"another frame count": _SNAPSHOT_HEADER + b"5\n" + _SNAPSHOT_CODEC.encode(bytes(5)),
+            "truncated": _SNAPSHOT_HEADER + b"6\n" + body[:-3],
+            "not zstd": _SNAPSHOT_HEADER + b"6\n" + bytes(6),
+            "an unknown code": _SNAPSHOT_HEADER + b"6\n" + _SNAPSHOT_CODEC.encode(bytes([1, 1, 1, 1, 1, 9])),
+            "empty": b""}[damage]
+    fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", data)
+    assert store.status().tolist() == [PENDING, DONE, PENDING, PENDING, PENDING, PENDING]

@@ -693,6 +693,36 @@ def test_synthesize_summary_names_the_inputs_outside_placenets_training_range():
     assert summarise(quiet, cfg) == []
 
 
+def test_synthesize_summary_of_many_frames_reads_a_sample_of_them(monkeypatch):
+    """Above SUMMARY_FRAMES_MAX finished frames the shares are counted over a random sample of
+    them (a read of four chunks per frame, a request each on an object store), and the line says
+    so; the sample holds finished frames only."""
+    import stages.synthesize as synthesize
+    from pipeline.cache import DONE, PENDING
+    from pipeline.config import load_config
+    from pipeline.placement import FEATURES
+
+    monkeypatch.setattr(synthesize, "SUMMARY_FRAMES_MAX", 50)
+    n = 400
+    status = np.where(np.arange(n) % 4 == 3, PENDING, DONE)  # 300 finished
+    outside = np.zeros((n, len(FEATURES)), np.int32)
+    outside[:, FEATURES.index("log_range")] = np.where(status == DONE, 30, 10**6)  # 30% where finished
+    read: list[np.ndarray] = []
+
+    class Rows(_Rows):
+        def __getitem__(self, index):
+            read.append(np.asarray(index))
+            return self.values[index]
+
+    store = _Store(status, candidates=np.full(n, 100), outside_training=outside, rss_points=np.zeros(n, int),
+                   rss_outside=np.zeros((n, 4), np.int32))
+    store._arrays = {k: Rows(v.values) for k, v in store._arrays.items()}
+    (line,) = synthesize.summarise(store, load_config("synthetic", environ={}))
+    assert "log_range on 30% of the 5,000 lidar candidates (in a random sample of 50 of the 300 finished " \
+        "frames);" in line, line
+    assert all(len(index) == 50 and (status[index] == DONE).all() for index in read) and len(read) == 4
+
+
 def test_synthesize_frame_doppler_uses_labels_sign_and_span():
     """The frame's Doppler is eq. 16 with each point's object velocity, in the simulated radar's
     convention: an Astyx-like radar (sign -1: positive approaching, wrapped into 10.39 m/s) seeing a
