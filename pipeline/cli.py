@@ -696,7 +696,7 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
     The tables, with the train stage's baselines, and each variant's checkpoints go to
     CACHE/DATASET/ablations/; a rerun resumes what was trained (on a remote cache, on any machine:
     each run's checkpoints are uploaded as it trains)."""
-    from pipeline.runner import DatasetInputs, go_on_staged, new_run_token, publish_staged
+    from pipeline.runner import DatasetInputs, StagedUploads, go_on_staged, new_run_token
     from stages.ablations import run_ablations
 
     chosen = tuple(dict.fromkeys(t.strip() for t in tables.split(",") if t.strip()))
@@ -712,21 +712,21 @@ def ablate(dataset, data_root, cache_root, sets, tables, seeds, workers):
     _exit_if_nothing_done(reports, _note_failed(reports, dataset, cache_root))  # as `run` says it
     folder = env.dir("ablations")  # on a remote cache: trained in a local staging folder, uploaded as it goes
     work = folder.work_folder(env.cfg.run.staging_dir)
-    publish = None
+    uploads = None
     if work is not folder:  # go on from this machine's staging folder, or from what the last run uploaded
         # a staging folder an ablate before 2026-12-07 left has no token (the remote none either): kept
         if work.holds_untokened_run_of(folder) or not go_on_staged(folder, work, "ablate", pipe.log):
             new_run_token(folder, work)
-        publish = functools.partial(publish_staged, folder, work, "ablate", pipe.log)
+        uploads = StagedUploads(folder, work, "ablate", pipe.log)
     try:
         run_ablations(DatasetInputs(env, pipe.frame_ids(), pipe.progress), env.cfg, Path(work.path), chosen,
-                      log=pipe.log, seeds=seeds, publish=publish)
+                      log=pipe.log, seeds=seeds, publish=uploads.publish if uploads else None)
     except StageInterrupted:
         raise
     except KeyboardInterrupt:  # each variant resumes from its last finished epoch
         raise StageInterrupted("ablate", "resumes", False) from None
-    if work is not folder:
-        folder.upload(work)
+    if uploads is not None:
+        folder.upload(work, uploads.left())
     click.echo((Path(work.path) / "ablations.md").read_text())
     click.echo(f"ablations: {folder.file('ablations.md') if work is folder else join(folder.url, 'ablations.md')}")
 

@@ -18,14 +18,13 @@ from __future__ import annotations
 import contextlib
 import difflib
 import errno
-import functools
 import hashlib
 import json
 import os
 import sys
 import time
 import uuid
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -36,7 +35,7 @@ from pipeline.cache import DONE, EXCLUDED, FAILED, PENDING, done_digest
 from pipeline.cachefs import is_local, join
 from pipeline.config import jsonable
 from pipeline.dataroot import FIRST_STAGE, absolute_root, made_from, other_root_message
-from pipeline.dirstore import RUN_TOKEN
+from pipeline.dirstore import RUN_TOKEN, UNRECORDED
 from pipeline.errors import (CacheError, ChunkError, ClusterFailed, ConfigError, FrameError, InterruptedKind,
                              MetadataError, PipelineError, StageInterrupted, cache_error, from_dask)
 from pipeline.executor import Executor, FrameInputs, RunEnv
@@ -607,20 +606,23 @@ class Pipeline:
         work = out.work_folder(self.env.cfg.run.staging_dir) if stage.local_files else out
         staged = work is not out
         self._prepare_output(stage, out, work, force)
-        publish = functools.partial(publish_staged, out, work, stage.name, self.log) if staged else None
+        uploads = StagedUploads(out, work, stage.name, self.log) if staged else None
         try:
-            summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress, publish), self.env.cfg, work,
-                                fingerprint=fp)
+            summary = stage.run(DatasetInputs(self.env, self.frame_ids(), self.progress,
+                                              uploads.publish if uploads else None), self.env.cfg, work, fingerprint=fp)
         except OSError as exc:
             if not _writing_into(exc, work.path):
                 raise  # a read error, or one naming other files only (e.g. a dataset file it read)
             raise cache_error(exc, f"{stage.name}: writing into {work.path}") from None
         sizes = work.sizes()
         work.write_manifest(sizes)  # uploaded with the files it records
-        if staged:
-            self.log(f"{stage.name:<{NAME_WIDTH}} uploading {len(sizes)} file(s), {sum(sizes.values()) / 1e6:.1f} MB, "
-                     f"to {out.url}")
-            out.upload(work)
+        if uploads is not None:
+            files = uploads.left()
+            told = [f for f in files if f.name not in UNRECORDED]  # what it sends, the bookkeeping files aside
+            sent = f" (the other {len(sizes) - len(told)} as it ran)" if len(told) < len(sizes) else ""
+            self.log(f"{stage.name:<{NAME_WIDTH}} uploading {len(told)} file(s), "
+                     f"{sum(f.stat().st_size for f in told) / 1e6:.1f} MB, to {out.url}{sent}")
+            out.upload(work, files)
             summary = _moved_paths(summary, work.path, out.url)
             if not stage.resumes:  # nothing to resume from: the local copy of an export is not kept
                 work.clear()
@@ -687,17 +689,47 @@ def new_run_token(out, work) -> None:
         folder.write_text(RUN_TOKEN, token)
 
 
-def publish_staged(out, work, name: str, log: Callable[[str], None], paths: list[Path]) -> bool:
-    """Upload ``paths`` of the staging folder ``work`` into the remote output ``out`` while it is
-    being written (DatasetInputs.publish); whether it did. A failure is said in ``log`` under
-    ``name``: the run goes on, and its upload at the end uploads everything (or fails)."""
-    try:
-        out.upload(work, paths)
-    except CacheError as exc:
-        log(f"{name:<{NAME_WIDTH}} {exc}; going on (a kill now resumes from the last upload, or from "
-            f"{work.path} on this machine)")
-        return False
-    return True
+@dataclass
+class StagedUploads:
+    """Uploads of a local staging folder ``work`` into the remote output ``out`` (DirStores) that a
+    stage (or ablate), named ``name`` in ``log``, writes: the files it hands over while it runs
+    (:meth:`publish`: train's checkpoints of a finished epoch), and when it is done the files not
+    uploaded as they now are (:meth:`left`; every file was uploaded again until 2026-12-07)."""
+
+    out: Any
+    work: Any
+    name: str
+    log: Callable[[str], None]
+    sent: dict[str, tuple[int, int, int]] = field(default_factory=dict)
+    """Each file uploaded, by path, with its inode, size and modification time then."""
+
+    def publish(self, paths: list[Path]) -> bool:
+        """Upload ``paths`` of the staging folder now, in one call (DatasetInputs.publish); whether
+        it did. A failure is said in the log: the run goes on, and its upload at the end sends
+        them (or fails)."""
+        seen = {str(path): _file_state(path) for path in paths}  # before: a file written again meanwhile goes again
+        try:
+            self.out.upload(self.work, paths)
+        except CacheError as exc:
+            self.log(f"{self.name:<{NAME_WIDTH}} {exc}; going on (a kill now resumes from the last upload, or from "
+                     f"{self.work.path} on this machine)")
+            return False
+        self.sent.update(seen)
+        return True
+
+    def left(self) -> list[Path]:
+        """The files of the staging folder but ``_stage.json`` that :meth:`publish` did not upload
+        as they now are: what the upload at the end sends."""
+        root = Path(self.work.path)
+        return [path for path in sorted(root.rglob("*")) if path.is_file() and path.name != "_stage.json"
+                and self.sent.get(str(path)) != _file_state(path)]
+
+
+def _file_state(path: Path) -> tuple[int, int, int]:
+    """(inode, size, modification time in ns) of ``path``: a file written again (checkpoints are
+    written to a temporary name and renamed) differs in one of them."""
+    st = os.stat(path)
+    return st.st_ino, st.st_size, st.st_mtime_ns
 
 
 WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS)

@@ -21,7 +21,7 @@ from pipeline.config import load_config
 from pipeline.errors import CacheError, ChunkError
 from pipeline.executor import Executor, RunEnv
 from pipeline.inspection import cache_status, verify_cache
-from pipeline.runner import Pipeline
+from pipeline.runner import Pipeline, StagedUploads
 from tests import fake_stages
 from tests.test_damaged_cache import IDS
 
@@ -158,20 +158,32 @@ def test_the_stages_writing_local_files_stage_and_upload_on_a_remote_cache(tiny_
     local = _real_pipe(str(tmp_path / "cache"), world, tmp_path / "unused", logs)
     far = _real_pipe(remote, world, tmp_path / "machine-a", logs, **{"run.checkpoint_upload_s": "0"})
     published: set[str] = set()
-    upload = DirStore.upload
+    finals: dict[str, list[str]] = {}
+    publish, left = StagedUploads.publish, StagedUploads.left
 
-    def recorded(self, staged, files=None):
-        if files is not None:
-            published.update(Path(f).relative_to(staged.path).as_posix() for f in files)
-        return upload(self, staged, files)
+    def recorded(self, paths):
+        published.update(Path(f).relative_to(self.work.path).as_posix() for f in paths)
+        return publish(self, paths)
+
+    def final(self):
+        files = left(self)
+        finals[self.name] = [Path(f).relative_to(self.work.path).as_posix() for f in files]
+        return files
 
     with monkeypatch.context() as patch:
-        patch.setattr(DirStore, "upload", recorded)
+        patch.setattr(StagedUploads, "publish", recorded)
+        patch.setattr(StagedUploads, "left", final)
         for pipe in (local, far):
             pipe.run("evaluate")
             pipe.run("export")
     assert published == {f"{net}/{name}" for net in ("disnet", "rssnet", "placenet")
                          for name in ("best.safetensors", "best.json", "last.safetensors", "last.json")}, published
+    # the upload at its end sends what was not uploaded as it trained (until 2026-12-07 every file
+    # again): not the last epoch's resume points; the best checkpoints, which got their input ranges
+    # and quantiles after training, and the rest
+    lasts = {f"{net}/last.{ext}" for net in ("disnet", "rssnet", "placenet") for ext in ("safetensors", "json")}
+    assert "metrics.json" in finals["train"] and "disnet/best.safetensors" in finals["train"], finals
+    assert not lasts & set(finals["train"]), finals
     fs = fsspec.filesystem("memory")
     here, there = tmp_path / "cache" / "synthetic", remote.removeprefix("memory://") + "/synthetic"
     for net in ("disnet", "rssnet", "placenet"):  # the same training, the same weights
@@ -335,12 +347,15 @@ def test_a_failed_upload_while_a_stage_runs_is_logged_and_the_run_goes_on(tmp_pa
 
     published: list[bool] = []
     uploaded: list[bool] = []
+    running: list[bool] = []
 
     def run(inputs, cfg, out, fingerprint):
+        running.append(True)
         (Path(out.path) / "part.txt").write_bytes(bytes(1_500_000))
         published.append(inputs.publish is not None)
         if inputs.publish is not None:
             uploaded.append(inputs.publish([Path(out.path) / "part.txt"]))
+        running.clear()
         return {"message": "done"}
 
     stage = DatasetStage("train", ("heatmaps",), ("train.epochs",), run, local_files=True, resumes=True)
@@ -350,7 +365,7 @@ def test_a_failed_upload_while_a_stage_runs_is_logged_and_the_run_goes_on(tmp_pa
     upload = DirStore.upload
 
     def fails_while_running(self, staged, files=None):
-        if files is not None:
+        if running:
             raise CacheError(f"uploading to {self.url}: Connection reset by peer")
         logs.append("(the final upload)")
         return upload(self, staged, files)
@@ -466,7 +481,7 @@ def test_a_failed_upload_leaves_the_stage_unfinished(tmp_path, remote, monkeypat
 
     pipe(1).run("train")
 
-    def fails(self, staged):
+    def fails(self, staged, files=None):
         raise CacheError(f"uploading to {self.url}: Input/output error")
 
     with monkeypatch.context() as patch:
@@ -1313,3 +1328,30 @@ def test_a_status_snapshot_that_does_not_hold_the_output_s_status_is_not_read(tm
             "empty": b""}[damage]
     fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", data)
     assert store.status().tolist() == [PENDING, DONE, PENDING, PENDING, PENDING, PENDING]
+
+
+def test_the_upload_at_the_end_of_a_staged_run_sends_what_was_not_uploaded_as_it_now_is(tmp_path, remote,
+                                                                                         monkeypatch):
+    """StagedUploads: a file published while the stage ran is not sent again at its end unless it
+    was written again since (checkpoints are renamed over: another inode), nor is _stage.json; a
+    file whose upload failed is."""
+    from pipeline.errors import CacheError
+
+    out = DirStore(f"{remote}/train")
+    work = DirStore(str(tmp_path / "staging"))
+    logs: list[str] = []
+    uploads = StagedUploads(out, work, "train", logs.append)
+    root = tmp_path / "staging"
+    for name in ("a.bin", "b.bin", "c.bin", "_stage.json"):
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_bytes(name.encode())
+    assert uploads.publish([root / "a.bin", root / "b.bin"]) and out.fs.cat_file(out.file("a.bin")) == b"a.bin"
+    (root / "b.tmp").write_bytes(b"b, again")
+    (root / "b.tmp").replace(root / "b.bin")
+    assert [p.name for p in uploads.left()] == ["b.bin", "c.bin"]
+    def fails(self, staged, files=None):
+        raise CacheError(f"uploading to {self.url}: Connection reset by peer")
+
+    monkeypatch.setattr(DirStore, "upload", fails)
+    assert not uploads.publish([root / "c.bin"]) and "going on" in logs[-1]
+    assert [p.name for p in uploads.left()] == ["b.bin", "c.bin"]
