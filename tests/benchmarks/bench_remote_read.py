@@ -9,6 +9,10 @@ of both arrays of FRAMES_TIMED frames is timed each way, interleaved, best of RE
 (FrameStore.read_many, as a frame stage reads a frame's arrays after its first frame), each with
 FrameStore.read (two round trips each), and the old sequence. Prints one line with the requests
 per frame each way and the ratios of the old sequence's time to the new ways'.
+
+A second line: the output's status read whole (``FrameStore.status``) from its snapshot, against
+its N_FRAMES chunks read as until 2026-12-07 (a request each), best of REPEATS; the same codes
+both ways or exit status 1.
 """
 
 from __future__ import annotations
@@ -95,6 +99,26 @@ def reads(store: FrameStore, frames: range, read) -> tuple[float, int, list]:
     return time.perf_counter() - t0, LatencyFileSystem.requests, values
 
 
+def status_reads(store: FrameStore) -> tuple[float, float, int, int]:
+    """Best seconds of REPEATS and requests of the status read from its snapshot and from its
+    chunks (as until 2026-12-07); exits with status 1 where the two differ."""
+    store.save_status_snapshot(np.asarray(store._array("status")[:]))
+    best = {"snapshot": np.inf, "chunks": np.inf}
+    requests = {}
+    for _ in range(REPEATS):
+        got = {}
+        for way, read in (("snapshot", store.status), ("chunks", lambda: np.asarray(store._array("status")[:]))):
+            LatencyFileSystem.requests = 0
+            t0 = time.perf_counter()
+            got[way] = read()
+            best[way] = min(best[way], time.perf_counter() - t0)
+            requests[way] = LatencyFileSystem.requests
+        if not np.array_equal(got["snapshot"], got["chunks"]):
+            print("the status read from its snapshot differs from its chunks'", file=sys.stderr)
+            sys.exit(1)
+    return best["snapshot"], best["chunks"], requests["snapshot"], requests["chunks"]
+
+
 def main() -> None:
     fsspec.register_implementation(PROTOCOL, LatencyFileSystem, clobber=True)
     root = f"bench-{uuid.uuid4().hex[:8]}"
@@ -120,6 +144,7 @@ def main() -> None:
                     if not (p.dtype == q.dtype and np.array_equal(p, q) and v.shape == w.shape and v == w):
                         print(f"a frame read by {way} differs from the old sequence's read", file=sys.stderr)
                         sys.exit(1)
+        snapshot_s, chunks_s, snapshot_n, chunks_n = status_reads(store)
     finally:
         LatencyFileSystem.latency = 0.0
         LatencyFileSystem().rm(f"/{root}", recursive=True)
@@ -131,6 +156,9 @@ def main() -> None:
           f"each with FrameStore.read {ms['read']:.0f} ms ({per['read']:.0f}), one request after the other as until "
           f"2026-12-07 {old:.0f} ms ({per['until 2026-12-07']:.0f}; identical values); old/new ratio "
           f"{old / ms['frame']:.2f}x at once, {old / ms['read']:.2f}x each")
+    print(f"the status of {N_FRAMES} frames read on a remote cache, {1e3 * LATENCY_S:.0f} ms a request (best of "
+          f"{REPEATS}): from its snapshot {1e3 * snapshot_s:.0f} ms ({snapshot_n} requests), from its chunks as until "
+          f"2026-12-07 {1e3 * chunks_s:.0f} ms ({chunks_n}; the same codes); old/new ratio {chunks_s / snapshot_s:.1f}x")
 
 if __name__ == "__main__":
     main()
