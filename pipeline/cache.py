@@ -45,9 +45,9 @@ from pipeline.cachefs import join, local_path
 from pipeline.errors import CacheError, ChunkError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
 from pipeline.stage import ArraySpec
-from pipeline.zarr_io import (DECODE_ERRORS, OPENED_MAX, ZARR_FORMAT, chunk_key, chunk_path, direct_layout,
-                              frames_from_chunk_files, gather_all, member_async, open_group, opened_array, put_chunk,
-                              write_targets, zarr_options)
+from pipeline.zarr_io import (DECODE_ERRORS, ZARR_FORMAT, chunk_key, chunk_path, direct_layout,
+                              frames_from_chunk_files, gather_all, keep, kept, member_async, open_group, opened_array,
+                              put_chunk, write_targets, zarr_options)
 
 PENDING, DONE, FAILED, EXCLUDED = 0, 1, 2, 3
 STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed", EXCLUDED: "excluded"}
@@ -77,8 +77,6 @@ read. A local output's status is read from its chunk files (0.4 s at 20,000 fram
 only removed there (a local cache copied to an object store keeps none that is stale)."""
 _SNAPSHOT_HEADER = b"radarsim status snapshot 1 "
 _SNAPSHOT_CODEC = numcodecs.Zstd(level=0, checksum=True)
-_SNAPSHOT_DROPPED: set[tuple[str, str]] = set()
-"""(store URL, run token) of the runs of a stage's frames whose snapshot this process removed."""
 
 
 @dataclass(frozen=True)
@@ -707,11 +705,6 @@ def _all_fill(value: np.ndarray, fill: Any) -> bool:
     return value.size == 0 or (bool(same(value[:1]).all()) and bool(same(value).all()))
 
 
-_READABLE: dict[tuple[str, str], tuple[str, Any]] = {}
-"""Arrays of finished outputs opened for reading, by (store URL, array name): the run of a stage's
-frames that opened them (RunEnv.stage_run) and the node, or None for an array not there."""
-
-
 def read_frame(wanted: Sequence[tuple[FrameStore, Sequence[str]]], index: int,
                run: str = "") -> list[dict[str, np.ndarray | Exception]]:
     """Frame ``index`` of the arrays ``names`` of each ``(store, names)`` of ``wanted``, as
@@ -724,18 +717,20 @@ def read_frame(wanted: Sequence[tuple[FrameStore, Sequence[str]]], index: int,
     array's error first, as read reports it)."""
     asked = [(store, list(dict.fromkeys(names))) for store, names in wanted]
     members = [(store, member) for store, names in asked for name in names for member in (name, f"{name}_count")]
-    known = {m: hit[1] for m in {(store.url, member) for store, member in members}
-             if run and (hit := _READABLE.get(m)) is not None and hit[0] == run}
+    known = {}
+    for url, member in {(store.url, member) for store, member in members} if run else ():
+        found, node = kept(url, member, "read", ("run", run))
+        if found:
+            known[(url, member)] = node
     fetch = list(dict.fromkeys((store.url, member) for store, member in members if (store.url, member) not in known))
 
     async def metadata() -> list[Any]:
         return await asyncio.gather(*(member_async(url, m, "r") for url, m in fetch), return_exceptions=True)
 
     fetched = dict(zip(fetch, sync(metadata()) if fetch else []))
-    if run:
-        if len(_READABLE) + len(fetched) > 4 * OPENED_MAX:
-            _READABLE.clear()
-        _READABLE.update({m: (run, node) for m, node in fetched.items() if not isinstance(node, BaseException)})
+    for (url, member), node in fetched.items() if run else ():
+        if not isinstance(node, BaseException):
+            keep(url, member, "read", ("run", run), node)
     nodes = iter({**known, **fetched}[(store.url, member)] for store, member in members)
     results: list[dict[str, np.ndarray | Exception]] = []
     opened: list[tuple[FrameStore, dict[str, np.ndarray | Exception], str, list[zarr.Array]]] = []
@@ -784,15 +779,13 @@ async def _write_frame_async(url: str, index: int, fills: dict[str, Any], values
         target = targets[name]
         return _frame_row(value, target.dtype, target.shape[1:], name in fills, fills.get(name))
 
-    drop = []  # the status snapshot goes before the status chunk: once per run of the stage's frames
-    if not run or (url, run) not in _SNAPSHOT_DROPPED:
-        drop.append(drop_status_snapshot(targets["status"]))
+    # the status snapshot goes before the status chunk: once per process and run of the stage's frames
+    dropped = bool(run) and kept(url, STATUS_SNAPSHOT, "removed", ("run", run))[0]
+    drop = [] if dropped else [drop_status_snapshot(targets["status"])]
     await gather_all([*(targets[name].setitem(index, row(name, v)) for name, v in values),
                        targets["reason"].setitem(index, ""), *drop])
     if run and drop:
-        if len(_SNAPSHOT_DROPPED) > 4 * OPENED_MAX:
-            _SNAPSHOT_DROPPED.clear()
-        _SNAPSHOT_DROPPED.add((url, run))
+        keep(url, STATUS_SNAPSHOT, "removed", ("run", run), True)
     await targets["status"].setitem(index, DONE)
 
 

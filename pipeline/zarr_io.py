@@ -71,35 +71,27 @@ def put_chunk(path: str, data: bytes) -> None:
         raise
 
 
-_WRITABLE: dict[str, tuple[tuple[Any, ...], dict[str, Any]]] = {}
-"""Arrays opened for writing frames, by store URL, with the bytes of each one's zarr.json (a local
-store; keyed as _OPENED; opening the group and its arrays for every frame cost about 1.5 ms), or
-with the token of the run of the stage's frames that writes them (a remote store)."""
-
-
 async def write_targets(url: str, names: list[str], run: str = "") -> dict[str, Any]:
     """The async arrays ``names`` of the store at ``url``, set to write every chunk (a fill-valued
     one too, pipeline.cache.EVERY_CHUNK: a missing chunk is then damage), each opened by its own
-    zarr.json (not the group's too: a request more per frame on an object store); a local store's
-    are opened once per process while their zarr.json files hold the same bytes; a remote one's
-    once per process and ``run`` (the token of the run of a stage's frames, which created the
-    output before it began and holds its lock: each frame read every zarr.json until 2026-12-07),
-    else for each call (another process may re-create the output between two frames)."""
+    zarr.json (not the group's too: a request more per frame on an object store); kept (:func:`keep`)
+    where they are local or ``run`` is given, else opened for each call (another process may
+    re-create the output between two frames)."""
     root = local_path(url)
-    key = (("run", run), *names) if root is None and run else None if root is None else \
-        tuple(_metadata_bytes(root, name) for name in names)
-    hit = _WRITABLE.get(url)
-    if key is not None and None not in key and hit is not None and hit[0] == key:
-        return hit[1]
+    stamps = [_metadata_bytes(root, name) for name in names] if root is not None else \
+        [("run", run)] * len(names) if run else [None]
+    if None not in stamps:
+        hits = [kept(url, name, "write", stamp) for name, stamp in zip(names, stamps)]
+        if all(found for found, _ in hits):
+            return {name: arr for name, (_, arr) in zip(names, hits)}
     arrays = await gather_all(member_async(url, name, "r+") for name in names)  # not the group's zarr.json
     if None in arrays:  # the group's own error when it is gone, else the array's, as group[name] raises
         await zarr_async.open_group(url, mode="r+", zarr_format=ZARR_FORMAT, **zarr_options(url))
         raise KeyError(names[arrays.index(None)])
     targets = {name: arr.with_config({"write_empty_chunks": True}) for name, arr in zip(names, arrays)}
-    if key is not None and None not in key:
-        if len(_WRITABLE) >= OPENED_MAX:
-            _WRITABLE.clear()
-        _WRITABLE[url] = (key, targets)
+    if None not in stamps:
+        for name, stamp in zip(names, stamps):
+            keep(url, name, "write", stamp, targets[name])
     return targets
 
 
@@ -199,12 +191,33 @@ def frames_from_chunk_files(arr: zarr.Array, frames: np.ndarray | None = None,
     return out
 
 
-_OPENED: dict[str, tuple[bytes, zarr.Array | None]] = {}
-"""Arrays opened for reading, by the path of their zarr.json, with that file's bytes: a frame's read
-opened its group and arrays each time, about 2 ms of zarr's IO-thread hand-offs per array read
-(FrameStore.read). Keyed by the metadata itself, not the file's inode and time: zarr replaces the
-file by a rename, inode numbers are reused and a file time may not change within a clock tick."""
-OPENED_MAX = 512
+_KEPT: dict[tuple[str, str, str], tuple[Any, Any]] = {}
+"""Arrays a process keeps open, by (store URL, array name, use: 'chunk files' (:func:`opened_array`),
+'read' (pipeline.cache.read_frame) or 'write' (:func:`write_targets`)), each with the stamp under
+which it holds: a local array's ``zarr.json`` bytes (zarr replaces that file by a rename, inode
+numbers are reused and a file time may not change within a clock tick, so the metadata itself),
+or on a remote store the token of the run of a stage's frames that opened it (RunEnv.stage_run:
+that run created its output before its frames, or reads finished ones, and holds the locks that
+keep others from re-creating them). Opening the group and its arrays for every frame's read or
+write cost about 2 ms of zarr's IO-thread hand-offs per array locally, and on an object store a
+request per ``zarr.json`` per frame (until 2026-12-07). None for an array that is not there or
+that zarr could not open. Also the snapshots of status a run's process has removed ('removed',
+pipeline.cache.STATUS_SNAPSHOT)."""
+_KEPT_MAX = 2048
+
+
+def kept(url: str, name: str, use: str, stamp: Any) -> tuple[bool, Any]:
+    """(True, the array or None) where array ``name`` of the store at ``url`` is kept for ``use``
+    under ``stamp`` (:data:`_KEPT`), else (False, None)."""
+    hit = _KEPT.get((url, name, use))
+    return (True, hit[1]) if hit is not None and hit[0] == stamp else (False, None)
+
+
+def keep(url: str, name: str, use: str, stamp: Any, node: Any) -> None:
+    """Keep ``node``, array ``name`` of the store at ``url`` opened for ``use``, under ``stamp``."""
+    if len(_KEPT) >= _KEPT_MAX:
+        _KEPT.clear()
+    _KEPT[(url, name, use)] = (stamp, node)
 
 
 def _metadata_bytes(root: str, name: str) -> bytes | None:
@@ -225,10 +238,9 @@ def opened_array(url: str, name: str) -> tuple[bool, zarr.Array | None]:
     meta = None if root is None else _metadata_bytes(root, name)
     if meta is None:
         return False, None
-    path = os.path.join(root, name)
-    hit = _OPENED.get(path)
-    if hit is not None and hit[0] == meta:
-        return True, hit[1]
+    found, arr = kept(url, name, "chunk files", meta)
+    if found:
+        return True, arr
     try:
         arr: zarr.Array | None = zarr.open_array(join(url, name), mode="r", zarr_format=ZARR_FORMAT)
         if json.dumps(arr.metadata.to_dict(), sort_keys=True, default=str) != \
@@ -236,9 +248,7 @@ def opened_array(url: str, name: str) -> tuple[bool, zarr.Array | None]:
             arr = None  # the file was replaced between the two reads: zarr's path this time
     except Exception:  # noqa: BLE001 - damaged or racing metadata: left to zarr's path, which names it
         arr = None
-    if len(_OPENED) >= OPENED_MAX:
-        _OPENED.clear()
-    _OPENED[path] = (meta, arr)
+    keep(url, name, "chunk files", meta, arr)
     return True, arr
 
 

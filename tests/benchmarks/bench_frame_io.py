@@ -56,7 +56,7 @@ def writes(store: FrameStore, frames: range, direct: bool) -> float:
         t0 = time.perf_counter()
         for i, arrays in zip(frames, data):
             if not direct:
-                zarr_io._WRITABLE.clear()
+                zarr_io._KEPT.clear()
             store.write_frame(i, arrays, SPECS)
         return time.perf_counter() - t0
     finally:
