@@ -496,18 +496,29 @@ class FrameStore:
         except DECODE_ERRORS as exc:
             raise self._chunk_error(arr, index, f"cannot be decoded ({one_line(exc)})") from None
 
-    def _checked(self, arr: zarr.Array, index: int, got: Any = None) -> np.ndarray:
+    def _checked(self, arr: zarr.Array, index: int, got: Any = None, run: str = "") -> np.ndarray:
         """:meth:`_decode`, and ChunkError when the value is all fill because the chunk is missing
         although the frame is done and the group has every chunk written (:data:`EVERY_CHUNK`;
         zarr writes no chunk for a frame of no elements, which is never missing). The group's
-        metadata and the file system are asked only for a value that is all fill."""
+        metadata (once per process and ``run``, as :func:`read_frame`'s) and the file system are
+        asked only for a value that is all fill."""
         value = self._decode(arr, index, got)
-        if value.size and _all_fill(value, arr.fill_value) and self._group("r").attrs.get(EVERY_CHUNK) \
+        if value.size and _all_fill(value, arr.fill_value) and self._every_chunk(run) \
                 and not sync(arr.store.exists(f"{arr.path}/{chunk_key(arr, index)}")) \
                 and int(self._decode(self._array("status"), index)) == DONE:
             raise self._chunk_error(arr, index, "is missing although the frame is done (zarr would read the fill "
                                                    "value in its place)")
         return value
+
+    def _every_chunk(self, run: str = "") -> bool:
+        """Whether the group has every chunk written (:data:`EVERY_CHUNK`), its metadata read once
+        per process and ``run`` (RunEnv.stage_run) where one is given."""
+        found, every = kept(self.url, "", "every chunk", ("run", run)) if run else (False, None)
+        if not found:
+            every = bool(self._group("r").attrs.get(EVERY_CHUNK))
+            if run:
+                keep(self.url, "", "every chunk", ("run", run), every)
+        return every
 
     def _chunk_error(self, arr: zarr.Array, index: int, problem: str) -> ChunkError:
         """ChunkError for frame ``index`` of ``arr``, with the command that
@@ -755,7 +766,7 @@ def read_frame(wanted: Sequence[tuple[FrameStore, Sequence[str]]], index: int,
     for store, out, name, arrays in opened:
         read = [next(got) for _ in arrays]
         try:
-            value, *rows = (store._checked(arr, index, r) for arr, r in zip(arrays, read))
+            value, *rows = (store._checked(arr, index, r, run) for arr, r in zip(arrays, read))
             out[name] = value[: int(rows[0])] if rows else value
         except Exception as exc:  # noqa: BLE001 - as above
             out[name] = exc

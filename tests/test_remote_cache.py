@@ -1191,12 +1191,12 @@ def test_a_cache_error_reading_a_frames_inputs_on_a_remote_cache_stops_the_run(t
     checked, reads = FrameStore._checked, []
 
     def failing_at(n: int):
-        def reading(self, arr, index, got=None):
+        def reading(self, arr, index, got=None, run=""):
             if self.url.endswith("/calibrate.zarr") and arr.path in ("points", "value"):
                 reads.append(arr.path)
                 if len(reads) > n:
                     raise CacheError(f"reading {self.url}: [Errno 5] Input/output error")
-            return checked(self, arr, index, got)
+            return checked(self, arr, index, got, run)
         return reading
 
     for n in (0, 3):  # the first frame's read; the second frame's, read at once
@@ -1355,3 +1355,32 @@ def test_the_upload_at_the_end_of_a_staged_run_sends_what_was_not_uploaded_as_it
     monkeypatch.setattr(DirStore, "upload", fails)
     assert not uploads.publish([root / "c.bin"]) and "going on" in logs[-1]
     assert [p.name for p in uploads.left()] == ["b.bin", "c.bin"]
+
+
+def test_a_run_reads_the_group_metadata_once_for_values_that_are_all_fill(tmp_path):
+    """A value that is all fill (a stopped ego's velocity) is checked against a missing chunk,
+    which zarr reads as the fill: whether the output has every chunk written is in its group's
+    zarr.json, read for each such value, a request each on an object store; within a run of a
+    stage's frames once per process. A missing chunk of a done frame is still named."""
+    from pipeline.cache import FrameStore, read_frame
+    from pipeline.stage import ArraySpec
+
+    asked: list[tuple[str, str]] = []
+    _counting_filesystem(asked)
+    root = tmp_path / "out.zarr"
+    store = FrameStore(f"counted://{root}")
+    specs = (ArraySpec("ego", (3,), "float32", "m/s"),)
+    store.create("fp", [f"f{i}" for i in range(6)], specs, {"ego": (3,)}, {})
+    for i in range(6):
+        store.write_frame(i, {"ego": np.zeros(3, np.float32)}, specs)
+
+    def group_reads(run: str) -> int:
+        asked.clear()
+        for i in range(5):
+            assert read_frame([(store, ["ego"])], i, run)[0]["ego"].tolist() == [0, 0, 0]
+        return sum(path == f"{root}/zarr.json" for _, path in asked)
+
+    assert group_reads("") == 5 and group_reads("run-a") == 1 and group_reads("run-a") == 0
+    (root / "ego" / "c" / "5" / "0").unlink()
+    got = read_frame([(store, ["ego"])], 5, "run-a")[0]["ego"]
+    assert isinstance(got, ChunkError) and "is missing although the frame is done" in str(got)
