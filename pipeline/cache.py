@@ -555,11 +555,27 @@ class FrameStore:
         errors: dict[int, ChunkError] = {}
         status = self._scan(every_chunk, "status", None, errors, progress, block_bytes)
         status = np.where(np.isin(np.arange(len(status)), list(errors)), PENDING, status).astype(np.uint8)
+        self._check_status_snapshot(status, errors)
         self._scan(every_chunk, "reason", status == FAILED, errors, progress, block_bytes, "failed")
         done = status == DONE
         for name in names:
             self._scan(every_chunk, name, done, errors, progress, block_bytes, "is done")
         return status, dict(sorted(errors.items()))
+
+    def _check_status_snapshot(self, status: np.ndarray, errors: dict[int, ChunkError]) -> None:
+        """Add to ``errors`` a ChunkError for each frame whose code in a remote output's
+        :data:`STATUS_SNAPSHOT` is not its status chunk's, ``status`` (F,): readers would take the
+        snapshot's (its repair, recomputing the frame, removes the snapshot and writes it again)."""
+        if local_path(self.url) is not None:
+            return
+        arr = self._array("status")
+        snapshot = self._status_snapshot(arr)
+        if snapshot is None:
+            return
+        for i in np.flatnonzero(snapshot != status):
+            errors.setdefault(int(i), self._chunk_error(
+                arr, int(i), f"says the frame is {STATUS_NAMES[int(status[i])]} where the output's status snapshot "
+                             f"({join(self.url, STATUS_SNAPSHOT)}) says {STATUS_NAMES[int(snapshot[i])]}"))
 
     def _scan(self, every_chunk: bool, name: str, frames: np.ndarray | None, errors: dict[int, ChunkError],
               progress: Callable[[int], None], block_bytes: int, state: str = "") -> np.ndarray | None:

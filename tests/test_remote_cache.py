@@ -1384,3 +1384,24 @@ def test_a_run_reads_the_group_metadata_once_for_values_that_are_all_fill(tmp_pa
     (root / "ego" / "c" / "5" / "0").unlink()
     got = read_frame([(store, ["ego"])], 5, "run-a")[0]["ego"]
     assert isinstance(got, ChunkError) and "is missing although the frame is done" in str(got)
+
+
+def test_verify_names_the_frames_whose_status_snapshot_disagrees_with_their_status_chunks(tmp_path, remote):
+    """Readers of a remote output's status take its snapshot: verify, which reads every status
+    chunk, names each frame where the two disagree (the status chunk, with the command that
+    recomputes the frame), and that command leaves them agreeing."""
+    pipe = _pipe(remote, tmp_path)
+    pipe.run("heatmaps")
+    assert all(not r.get("damaged") for r in verify_cache(pipe))
+    store = pipe.env.store("calibrate")
+    claimed = _chunks_status(store)
+    claimed[[2, 5]] = [PENDING, FAILED]
+    store.save_status_snapshot(claimed)
+    damaged = {r["stage"]: r.get("damaged") for r in verify_cache(pipe)}
+    assert sorted(damaged["calibrate"]) == [2, 5] and not damaged["heatmaps"], damaged
+    assert "calibrate.zarr/status/c/5" in damaged["calibrate"][5] and "says the frame is done where the output's " \
+        "status snapshot" in damaged["calibrate"][5] and "says failed" in damaged["calibrate"][5], damaged
+    assert "--force --frames f005" in damaged["calibrate"][5], damaged
+    pipe.run("calibrate", frames=[2, 5], force=True)
+    assert all(not r.get("damaged") for r in verify_cache(pipe))
+    assert _snapshot(store).tolist() == _chunks_status(store).tolist() == [DONE] * len(IDS)
