@@ -707,6 +707,8 @@ class StagedUploads:
         """Upload ``paths`` of the staging folder now, in one call (DatasetInputs.publish); whether
         it did. A failure is said in the log: the run goes on, and its upload at the end sends
         them (or fails)."""
+        root = Path(self.work.path)
+        paths = [Path(p) if Path(p).is_absolute() else root / p for p in paths]  # as DirStore.upload takes them
         seen = {str(path): _file_state(path) for path in paths}  # before: a file written again meanwhile goes again
         try:
             self.out.upload(self.work, paths)
