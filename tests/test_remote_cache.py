@@ -1349,12 +1349,14 @@ def test_the_upload_at_the_end_of_a_staged_run_sends_what_was_not_uploaded_as_it
     (root / "b.tmp").write_bytes(b"b, again")
     (root / "b.tmp").replace(root / "b.bin")
     assert [p.name for p in uploads.left()] == ["b.bin", "c.bin"]
+    assert uploads.publish(["b.bin"]) and [p.name for p in uploads.left()] == ["c.bin"]  # a path inside the folder
+
     def fails(self, staged, files=None):
         raise CacheError(f"uploading to {self.url}: Connection reset by peer")
 
     monkeypatch.setattr(DirStore, "upload", fails)
     assert not uploads.publish([root / "c.bin"]) and "going on" in logs[-1]
-    assert [p.name for p in uploads.left()] == ["b.bin", "c.bin"]
+    assert [p.name for p in uploads.left()] == ["c.bin"]
 
 
 def test_a_run_reads_the_group_metadata_once_for_values_that_are_all_fill(tmp_path):
