@@ -34,9 +34,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import fsspec
+import numcodecs
 import numpy as np
 import zarr
-import numcodecs
 from zarr.codecs import ZstdCodec
 from zarr.core.buffer import default_buffer_prototype
 from zarr.core.sync import sync
