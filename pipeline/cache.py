@@ -549,7 +549,7 @@ class FrameStore:
         if not self.exists():
             raise CacheError(f"{self.url}: no output to verify")
         names = sorted(set(self.check_metadata()) - {"status", "reason", FRAME_IDS})
-        every_chunk = bool(self._group("r").attrs.get(EVERY_CHUNK))
+        every_chunk = self._every_chunk()
         total = self._array("status").shape[0] * (2 + len(names))
         progress = (lambda n: None) if progress is None else (lambda n, _p=progress: _p(n, total))
         errors: dict[int, ChunkError] = {}
