@@ -34,16 +34,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import fsspec
-import numcodecs
 import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
-from zarr.core.buffer import default_buffer_prototype
 from zarr.core.sync import sync
 
 from pipeline.cachefs import join, local_path
 from pipeline.errors import CacheError, ChunkError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
+from pipeline.snapshots import (STATUS_SNAPSHOT, column_eligible, column_key, decode_column, decode_status,
+                                encode_column, encode_status, get_objects, new_token, put_object)
 from pipeline.stage import ArraySpec
 from pipeline.zarr_io import (DECODE_ERRORS, ZARR_FORMAT, chunk_key, chunk_path, direct_layout,
                               frames_from_chunk_files, gather_all, keep, kept, member_async, open_group, opened_array,
@@ -65,18 +65,6 @@ COMPRESSOR = ZstdCodec(level=0, checksum=True)
 """zarr's default compressor plus zstd's content checksum: a flipped bit in a chunk is then an
 error when read instead of a silently wrong value (outputs created before 2026-12-03 have none)."""
 
-STATUS_SNAPSHOT = "status_snapshot"
-"""A remote output's whole status array in one object (since 2026-12-07), for the readers of every
-frame's status (a run's checks of its upstream outputs, `pipeline status`, the dataset stages):
-the array holds one chunk per frame, a request each on an object store (30,000 at 30,000 frames,
-minutes at 20 ms a request), read several times per command. :meth:`FrameStore.create` writes one
-of pending frames, the runner one when a run of the stage's frames ends
-(:meth:`FrameStore.save_status_snapshot`; it holds the stage's lock), and every write of a status
-chunk removes it first, so one that is there is the status array; without one the chunks are
-read. A local output's status is read from its chunk files (0.4 s at 20,000 frames), the snapshot
-only removed there (a local cache copied to an object store keeps none that is stale)."""
-_SNAPSHOT_HEADER = b"radarsim status snapshot 1 "
-_SNAPSHOT_CODEC = numcodecs.Zstd(level=0, checksum=True)
 
 
 @dataclass(frozen=True)
@@ -221,38 +209,55 @@ class FrameStore:
     def _status_snapshot(self, arr: zarr.Array) -> np.ndarray | None:
         """The status from the :data:`STATUS_SNAPSHOT` of the output whose status array is ``arr``;
         None when there is none or it does not hold one code per frame (then the chunks are read)."""
-        try:
-            data = sync(arr.store_path.store.get(STATUS_SNAPSHOT, default_buffer_prototype()))
-        except (OSError, ValueError):  # unreadable: the chunks' read says what is wrong
-            return None
-        if data is None:
-            return None
-        head, _, body = data.to_bytes().partition(b"\n")
-        if not head.startswith(_SNAPSHOT_HEADER) or head[len(_SNAPSHOT_HEADER):] != str(arr.shape[0]).encode():
-            return None
-        try:
-            status = np.frombuffer(_SNAPSHOT_CODEC.decode(body), np.uint8)
-        except (RuntimeError, ValueError):  # truncated, or not zstd: numcodecs raises RuntimeError
-            return None
-        if len(status) != arr.shape[0] or not np.isin(status, list(STATUS_NAMES)).all():
-            return None
-        return status.copy()
+        data = sync(get_objects(arr.store_path.store, [STATUS_SNAPSHOT]))[0]
+        parsed = decode_status(data, arr.shape[0], STATUS_NAMES)
+        return None if parsed is None else parsed[0]
 
-    def save_status_snapshot(self, status: np.ndarray) -> None:
+    def save_status_snapshot(self, status: np.ndarray, keep_unchanged: bool = False) -> None:
         """Write ``status`` (F,), the output's whole status array, as its :data:`STATUS_SNAPSHOT`
-        (a remote output only): what the runner knows the status to be when a run of the stage's
-        frames ends, holding the stage's lock (the status it read, the marks and frames it wrote)."""
+        with a new token (a remote output only): what the runner knows the status to be, holding
+        the stage's lock (when a run of the stage's frames ends: the status it read, the marks and
+        frames it wrote). ``keep_unchanged``: leave a snapshot there that holds ``status`` with a
+        token (no status chunk was written since it was, so the column snapshots tagged with it
+        still hold their arrays: a run with nothing to do keeps them)."""
         if local_path(self.url) is not None:
             return
         status = np.asarray(status, np.uint8).reshape(-1)
         arr = self._array("status", "r+")
         if len(status) != arr.shape[0]:
             raise ValueError(f"{self.url}: a status snapshot of {len(status)} frames for {arr.shape[0]}")
-        data = _SNAPSHOT_HEADER + str(len(status)).encode() + b"\n" + _SNAPSHOT_CODEC.encode(status.tobytes())
+        store = arr.store_path.store
+        if keep_unchanged:
+            there = decode_status(sync(get_objects(store, [STATUS_SNAPSHOT]))[0], len(status), STATUS_NAMES)
+            if there is not None and there[1] is not None and np.array_equal(there[0], status):
+                return
         try:
-            sync(arr.store_path.store.set(STATUS_SNAPSHOT, default_buffer_prototype().buffer.from_bytes(data)))
+            sync(put_object(store, STATUS_SNAPSHOT, encode_status(status, new_token())))
         except OSError as exc:
             raise cache_error(exc, f"writing {join(self.url, STATUS_SNAPSHOT)}") from None
+
+    def column(self, arr: zarr.Array, frames: np.ndarray | None,
+               read_chunks: Callable[[], np.ndarray]) -> np.ndarray | None:
+        """Frames ``frames`` (F',) of this remote output's array ``arr`` (every frame: None), from its
+        column snapshot (pipeline.snapshots) when one holds what its chunks hold; else, when the
+        read wants at least half of the frames, every frame's from ``read_chunks()`` (the whole
+        array, read from its chunks), kept as the column snapshot for the next reads. None, having
+        read nothing, where the output is local, the array is not small or has no frames, or the
+        output has no status snapshot with a token (the caller reads its chunks)."""
+        n = arr.shape[0]
+        if not n or arr.basename in ("status", "reason", FRAME_IDS):
+            return None
+        values, token = self._column_snapshot(arr)
+        if token is None:
+            return None
+        if values is None:
+            if frames is not None and 2 * len(frames) < n:
+                return None
+            values = np.asarray(read_chunks())
+            with contextlib.suppress(OSError):  # e.g. read-only credentials: the next read reads the chunks too
+                sync(put_object(arr.store_path.store.with_read_only(False), column_key(arr.basename),
+                                encode_column(values, token)))
+        return values if frames is None else values[frames]
 
     def _drop_local_status_snapshot(self) -> None:
         """Remove a local output's :data:`STATUS_SNAPSHOT`, if any (one copied from an object
@@ -559,8 +564,35 @@ class FrameStore:
         self._scan(every_chunk, "reason", status == FAILED, errors, progress, block_bytes, "failed")
         done = status == DONE
         for name in names:
-            self._scan(every_chunk, name, done, errors, progress, block_bytes, "is done")
+            column = self._column_snapshot(self._array(name))[0]
+            values = self._scan(every_chunk, name, done, errors, progress, block_bytes, "is done", column is not None)
+            if column is not None:
+                self._check_column_snapshot(name, column, values, done, errors)
         return status, dict(sorted(errors.items()))
+
+    def _column_snapshot(self, arr: zarr.Array) -> tuple[np.ndarray | None, str | None]:
+        """(the values of array ``arr``'s column snapshot where readers take them, else None; the
+        token of the output's status snapshot, which a column read now would be tagged with, None
+        when there is none to tag it with or the output is local or the array not small)."""
+        if local_path(self.url) is not None or not column_eligible(arr.dtype, arr.shape[1:]):
+            return None, None
+        status_data, column_data = sync(get_objects(arr.store_path.store, [STATUS_SNAPSHOT, column_key(arr.basename)]))
+        parsed = decode_status(status_data, arr.shape[0], STATUS_NAMES)
+        if parsed is None or parsed[1] is None:
+            return None, None
+        return decode_column(column_data, parsed[1], arr.dtype, arr.shape), parsed[1]
+
+    def _check_column_snapshot(self, name: str, column: np.ndarray, values: np.ndarray, done: np.ndarray,
+                               errors: dict[int, ChunkError]) -> None:
+        """Add to ``errors`` a ChunkError for each done frame (``done`` (F,)) whose chunk of array
+        ``name`` holds ``values`` (F, ...) other than its column snapshot ``column`` (readers would
+        take the snapshot's; recomputing the frame removes the status snapshot it is tagged with)."""
+        arr = self._array(name)
+        same = (column == values) | ((column != column) & (values != values))  # NaN where both are NaN
+        for i in np.flatnonzero(done & ~same.reshape(len(same), -1).all(axis=1)):
+            errors.setdefault(int(i), self._chunk_error(
+                arr, int(i), f"holds {values[i].tolist()} where the output's column snapshot "
+                             f"({join(self.url, column_key(name))}) holds {column[i].tolist()}"))
 
     def _check_status_snapshot(self, status: np.ndarray, errors: dict[int, ChunkError]) -> None:
         """Add to ``errors`` a ChunkError for each frame whose code in a remote output's
@@ -578,18 +610,19 @@ class FrameStore:
                              f"({join(self.url, STATUS_SNAPSHOT)}) says {STATUS_NAMES[int(snapshot[i])]}"))
 
     def _scan(self, every_chunk: bool, name: str, frames: np.ndarray | None, errors: dict[int, ChunkError],
-              progress: Callable[[int], None], block_bytes: int, state: str = "") -> np.ndarray | None:
+              progress: Callable[[int], None], block_bytes: int, state: str = "",
+              values_too: bool = False) -> np.ndarray | None:
         """Decode array ``name`` in blocks, recording in ``errors`` a ChunkError for each frame of
         mask ``frames`` (every frame: None) whose chunk cannot be decoded or, where the group has every
         chunk written (``every_chunk``), is missing (the frames being in ``state``); the values when ``frames`` is None
-        (the status array)."""
+        (the status array) or ``values_too`` (a frame whose chunk cannot be decoded: undefined)."""
         arr = self._array(name)
         n = arr.shape[0]
         wanted = np.ones(n, bool) if frames is None else frames
         per_frame_size = int(np.prod(arr.shape[1:], dtype=np.int64))
         per_frame = max(1, per_frame_size * arr.dtype.itemsize)
         step = max(1, block_bytes // per_frame)
-        values = np.empty(n, arr.dtype) if frames is None else None
+        values = np.empty(arr.shape, arr.dtype) if frames is None or values_too else None
         for start in range(0, n, step):
             stop = min(n, start + step)
             if not wanted[start:stop].any():
@@ -626,7 +659,9 @@ class FrameStore:
 class CheckedArray:
     """A FrameStore's zarr array: index it (``[sel]``, ``oindex[sel]``) like the zarr array, whose
     other attributes it passes on; a read that meets a damaged chunk raises the ChunkError of the
-    lowest damaged frame it read instead of the codec's error."""
+    lowest damaged frame it read instead of the codec's error. Reads of whole frames come from the
+    chunk files of a local output, and from the column snapshot of a remote output's small array
+    (:meth:`FrameStore.column`)."""
 
     def __init__(self, store: FrameStore, array: zarr.Array) -> None:
         self._store = store
@@ -634,11 +669,17 @@ class CheckedArray:
 
     def __getitem__(self, selection: Any) -> Any:
         if selection is Ellipsis or (isinstance(selection, slice) and selection == slice(None)):
-            # the whole array, from its chunk files
+            # the whole array, from its chunk files (a local output) or its column snapshot (a remote one)
             value = frames_from_chunk_files(self._array)
+            if value is None:
+                value = self._store.column(self._array, None, self._whole)
             if value is not None:
                 return value
         return self._read(lambda: self._array[selection], selection)
+
+    def _whole(self) -> np.ndarray:
+        """Every frame's values, read from the chunks."""
+        return self._read(lambda: self._array[...], Ellipsis)
 
     @property
     def oindex(self) -> "_CheckedOIndex":
@@ -679,8 +720,10 @@ class _CheckedOIndex:
 
     def __getitem__(self, selection: Any) -> Any:
         frames = _frame_indices(selection, self._checked._array.shape[0])
-        if frames is not None:  # some whole frames, from their chunk files
+        if frames is not None:  # some whole frames, from their chunk files or the column snapshot
             value = frames_from_chunk_files(self._checked._array, frames)
+            if value is None and frames.size and frames.max() < self._checked._array.shape[0]:
+                value = self._checked._store.column(self._checked._array, frames, self._checked._whole)
             if value is not None:
                 return value
         return self._checked._read(lambda: self._checked._array.oindex[selection], selection)

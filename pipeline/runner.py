@@ -403,9 +403,13 @@ class Pipeline:
                 status = store.status()
                 redo = [i for i in frames if 0 <= i < len(status) and status[i] in (DONE, FAILED)]
             except ChunkError:  # a damaged status chunk: marking the frames rewrites it
+                status = None
                 redo = [i for i in frames if 0 <= i < len(self.frame_ids())]
             for i in redo:
                 store.mark(i, PENDING)
+            if redo and other == name and status is not None:  # its status in one object again (the run holds its lock)
+                status[redo] = PENDING
+                store.save_status_snapshot(status)
             if redo and other != name:
                 self.log(f"{other:<{NAME_WIDTH}} {len(redo)} frame(s) to recompute (upstream {name} recomputes them)")
 
@@ -539,11 +543,12 @@ class Pipeline:
         # A remote output's status in one object, for the next readers of every frame's (their own
         # reads of the one-chunk-per-frame array took a request per frame). A frame that a run
         # stopped by --strict was still computing may finish after it: the snapshot then has it as
-        # it was (pending or failed: computed again), never done where it is not.
-        store.save_status_snapshot(written)
-        final = store.status()
-        self._done[stage.name] = done_digest(final)  # what frames_read would read again
-        report.set_counts(final)
+        # it was (pending or failed: computed again), never done where it is not. One that holds it
+        # already was written after the last write of a status chunk: kept, with the column
+        # snapshots read under it (pipeline.snapshots).
+        store.save_status_snapshot(written, keep_unchanged=True)
+        self._done[stage.name] = done_digest(written)  # what frames_read would read again
+        report.set_counts(written)
         if stage.summarise is not None and report.processed:
             try:
                 report.notes = list(stage.summarise(store, self.env.cfg))

@@ -202,7 +202,7 @@ keep others from re-creating them). Opening the group and its arrays for every f
 write cost about 2 ms of zarr's IO-thread hand-offs per array locally, and on an object store a
 request per ``zarr.json`` per frame (until 2026-12-07). None for an array that is not there or
 that zarr could not open. Also the snapshots of status a run's process has removed ('removed',
-pipeline.cache.STATUS_SNAPSHOT)."""
+pipeline.snapshots.STATUS_SNAPSHOT)."""
 _KEPT_MAX = 2048
 
 

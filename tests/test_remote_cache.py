@@ -1311,23 +1311,32 @@ def test_a_remote_output_s_status_comes_from_its_snapshot_until_a_status_chunk_i
     assert not (tmp_path / "local.zarr" / STATUS_SNAPSHOT).exists()
 
 
-@pytest.mark.parametrize("damage", ["another frame count", "truncated", "not zstd", "an unknown code", "empty"])
+@pytest.mark.parametrize("damage", ["another frame count", "truncated", "not zstd", "an unknown code", "empty",
+                                    "no token", "an unknown version"])
 def test_a_status_snapshot_that_does_not_hold_the_output_s_status_is_not_read(tmp_path, remote, damage):
-    from pipeline.cache import _SNAPSHOT_CODEC, _SNAPSHOT_HEADER, STATUS_SNAPSHOT, FrameStore
+    from pipeline.cache import STATUS_SNAPSHOT, FrameStore
+    from pipeline.snapshots import _CODEC
     from pipeline.stage import ArraySpec
 
     specs = (ArraySpec("value", (), "float64", "-"),)
     store = FrameStore(f"{remote}/out.zarr")
     store.create("fp", [f"f{i}" for i in range(6)], specs, {"value": ()}, {})
     store.write_frame(1, {"value": np.float64(1)}, specs)
-    body = _SNAPSHOT_CODEC.encode(np.full(6, DONE, np.uint8).tobytes())
-    data = {"another frame count": _SNAPSHOT_HEADER + b"5\n" + _SNAPSHOT_CODEC.encode(bytes(5)),
-            "truncated": _SNAPSHOT_HEADER + b"6\n" + body[:-3],
-            "not zstd": _SNAPSHOT_HEADER + b"6\n" + bytes(6),
-            "an unknown code": _SNAPSHOT_HEADER + b"6\n" + _SNAPSHOT_CODEC.encode(bytes([1, 1, 1, 1, 1, 9])),
-            "empty": b""}[damage]
+    body = _CODEC.encode(np.full(6, DONE, np.uint8).tobytes())
+    head = b"radarsim status snapshot "
+    data = {"another frame count": head + b"2 5 abc\n" + _CODEC.encode(bytes(5)),
+            "truncated": head + b"2 6 abc\n" + body[:-3],
+            "not zstd": head + b"2 6 abc\n" + bytes(6),
+            "an unknown code": head + b"2 6 abc\n" + _CODEC.encode(bytes([1, 1, 1, 1, 1, 9])),
+            "empty": b"",
+            "no token": head + b"2 6\n" + body,
+            "an unknown version": head + b"3 6 abc\n" + body}[damage]
     fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", data)
     assert store.status().tolist() == [PENDING, DONE, PENDING, PENDING, PENDING, PENDING]
+    fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", head + b"2 6 abc\n" + body)
+    assert store.status().tolist() == [DONE] * 6  # the same, whole: read
+    fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", head + b"1 6\n" + body)
+    assert store.status().tolist() == [DONE] * 6  # 2026-12-07's version, without a token: read too
 
 
 def test_the_upload_at_the_end_of_a_staged_run_sends_what_was_not_uploaded_as_it_now_is(tmp_path, remote,
@@ -1407,3 +1416,185 @@ def test_verify_names_the_frames_whose_status_snapshot_disagrees_with_their_stat
     pipe.run("calibrate", frames=[2, 5], force=True)
     assert all(not r.get("damaged") for r in verify_cache(pipe))
     assert _snapshot(store).tolist() == _chunks_status(store).tolist() == [DONE] * len(IDS)
+
+
+def _small_output(url: str, n: int):
+    """A FrameStore at ``url`` of ``n`` frames with a scalar, a vector and a ragged array, every
+    frame written (value i, vector i + (0, 1, 2)) and its status snapshot saved."""
+    from pipeline.cache import FrameStore
+    from pipeline.stage import ArraySpec
+
+    specs = (ArraySpec("value", (), "float64", "-", fill=np.nan), ArraySpec("vec", (3,), "int32", "-"),
+             ArraySpec("rows", (64, 32), "float32", "-", fill=np.nan, ragged=True))
+    store = FrameStore(url)
+    store.create("fp", [f"f{i}" for i in range(n)], specs, {"value": (), "vec": (3,), "rows": (64, 32)}, {})
+    for i in range(n):
+        store.write_frame(i, {"value": np.float64(i), "vec": np.arange(3, dtype=np.int32) + i,
+                              "rows": np.ones((i % 3, 32), np.float32)}, specs)
+    store.save_status_snapshot(np.full(n, DONE, np.uint8))
+    return store, specs
+
+
+def test_a_remote_output_s_small_arrays_are_read_whole_from_their_column_snapshot(tmp_path):
+    """A whole read of a small per-frame array (numbers, at most 4 kB a frame) of a remote output
+    reads its chunks once, a request per frame, and keeps them in one object that the next whole
+    reads take (2 requests and the array's zarr.json), while the status snapshot it was read under
+    is there: a frame written or marked since, or the output re-created, and the chunks are read
+    again, also when the status snapshot is written again with the same codes (a forced frame
+    goes back to done). A read of some frames takes the column too; it reads all the chunks to
+    make one only when it wants at least half of them. Larger arrays are always read from their chunks."""
+    from pipeline.cache import FAILED
+
+    asked: list[tuple[str, str]] = []
+    _counting_filesystem(asked)
+    root = tmp_path / "out.zarr"
+    store, specs = _small_output(f"counted://{root}", 40)
+
+    def read(name: str, frames=None) -> tuple[np.ndarray, int]:
+        """The values and how many chunks the read asked for."""
+        asked.clear()
+        got = store.array(name)[:] if frames is None else store.array(name).oindex[frames]
+        return np.asarray(got), sum("/c/" in path for _, path in asked)
+
+    values, chunks = read("value")
+    assert values.tolist() == list(range(40)) and chunks == 40
+    values, chunks = read("value")
+    assert values.tolist() == list(range(40)) and chunks == 0 and len(asked) == 3
+    assert read("vec", [3, 5])[1] == 2  # 2 of 40 frames: their chunks, no column made
+    assert read("vec", np.arange(20))[1] == 40  # half: the column is made
+    vec, chunks = read("vec", [3, 5])
+    assert vec.tolist() == [[3, 4, 5], [5, 6, 7]] and chunks == 0
+    rows, chunks = read("rows_count")
+    assert rows.tolist() == [i % 3 for i in range(40)] and chunks == 40
+    assert read("rows")[1] == 40 and read("rows")[1] == 40  # 8 kB a frame: no column
+    assert sorted(p.name for p in root.glob("column_snapshot.*")) == \
+        ["column_snapshot.rows_count", "column_snapshot.value", "column_snapshot.vec"]
+
+    store.write_frame(5, {"value": np.float64(-5), "vec": np.zeros(3, np.int32), "rows": np.ones((0, 32))}, specs)
+    values, chunks = read("value")  # no status snapshot: the chunks, and no column made
+    assert values[5] == -5 and chunks == 40 and read("value")[1] == 40
+    store.save_status_snapshot(np.full(40, DONE, np.uint8))  # the same codes, another token
+    values, chunks = read("value")
+    assert values[5] == -5 and chunks == 40
+    values, chunks = read("value")
+    assert values[5] == -5 and chunks == 0
+    assert read("vec", [5])[0].tolist() == [[0, 0, 0]]
+    store.mark(6, FAILED, "bad")
+    assert read("value")[1] == 40
+
+    store.save_status_snapshot(np.full(40, DONE, np.uint8))
+    assert read("value")[1] == 40 and read("value")[1] == 0
+    store.create("fp", [f"f{i}" for i in range(40)], specs, {"value": (), "vec": (3,), "rows": (64, 32)}, {})
+    values, chunks = read("value")  # re-created: nothing written yet
+    assert np.isnan(values).all() and chunks == 40
+
+    local, _ = _small_output(str(tmp_path / "local.zarr"), 6)
+    assert np.asarray(local.array("value")[:]).tolist() == list(range(6))
+    assert not list((tmp_path / "local.zarr").glob("column_snapshot.*"))
+
+
+@pytest.mark.parametrize("damage", ["another token", "another dtype", "another shape", "truncated", "not zstd",
+                                    "empty", "a status snapshot without a token"])
+def test_a_column_snapshot_that_does_not_hold_the_array_is_not_read(tmp_path, remote, damage):
+    from pipeline.cache import STATUS_SNAPSHOT
+    from pipeline.snapshots import _CODEC, decode_status, encode_column
+
+    store, _ = _small_output(f"{remote}/out.zarr", 6)
+    fs = fsspec.filesystem("memory")
+    status, token = decode_status(fs.cat_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}"), 6, (0, 1, 2, 3))
+    lie = np.full(6, 7.0)  # not what the chunks hold
+    good = encode_column(lie, token)
+    head = b"radarsim column snapshot 1 "
+    data = {"another token": encode_column(lie, "0123456789abcdef"),
+            "another dtype": encode_column(lie.astype(np.float32), token),
+            "another shape": encode_column(lie[:5], token),
+            "truncated": good[:-3],
+            "not zstd": head + f"{token} <f8 6\n".encode() + lie.tobytes(),
+            "empty": b"",
+            "a status snapshot without a token": good}[damage]
+    if damage == "a status snapshot without a token":
+        fs.pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", b"radarsim status snapshot 1 6\n" +
+                     _CODEC.encode(status.tobytes()))
+    fs.pipe_file(f"{remote}/out.zarr/column_snapshot.value", data)
+    assert np.asarray(store.array("value")[:]).tolist() == list(range(6))
+    if damage != "a status snapshot without a token":  # the column is made again, holding the chunks
+        assert np.asarray(store.array("value")[:]).tolist() == list(range(6))
+        fs.pipe_file(f"{remote}/out.zarr/column_snapshot.value", good)  # and the check tells them apart
+    assert np.asarray(store.array("value")[:]).tolist() == (lie.tolist() if damage != "a status snapshot without a "
+                                                            "token" else list(range(6)))
+
+
+def test_a_reader_that_cannot_write_the_column_snapshot_reads_the_chunks(tmp_path, remote, monkeypatch):
+    """Read-only credentials: the column cannot be kept, so each whole read reads the chunks (the
+    read does not fail)."""
+    import pipeline.cache
+
+    store, _ = _small_output(f"{remote}/out.zarr", 6)
+
+    async def refused(*args, **kwargs):
+        raise PermissionError("Access Denied")
+
+    monkeypatch.setattr(pipeline.cache, "put_object", refused)
+    for _ in range(2):
+        assert np.asarray(store.array("value")[:]).tolist() == list(range(6))
+    assert not fsspec.filesystem("memory").exists(f"{remote}/out.zarr/column_snapshot.value")
+
+
+def test_verify_names_the_frames_whose_column_snapshot_disagrees_with_their_chunks(tmp_path, remote):
+    """Readers take a remote output's column snapshot where it is tagged with the status snapshot
+    there: verify, which reads every chunk, names each done frame whose chunk holds another value."""
+    from pipeline.cache import STATUS_SNAPSHOT
+    from pipeline.snapshots import decode_status, encode_column
+
+    store, _ = _small_output(f"{remote}/out.zarr", 6)
+    assert store.verify()[1] == {}
+    fs = fsspec.filesystem("memory")
+    token = decode_status(fs.cat_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}"), 6, (0, 1, 2, 3))[1]
+    vec = np.asarray(store.array("vec")[:])
+    vec[4, 1] = 99
+    fs.pipe_file(f"{remote}/out.zarr/column_snapshot.vec", encode_column(vec, token))
+    errors = store.verify()[1]
+    assert list(errors) == [4] and "out.zarr/vec" in str(errors[4]) and "holds [4, 5, 6] where the output's column " \
+        "snapshot" in str(errors[4]) and "column_snapshot.vec) holds [4, 99, 6]" in str(errors[4]), errors
+    store.save_status_snapshot(np.full(6, DONE, np.uint8))  # what recomputing the frame does to it
+    assert store.verify()[1] == {}
+
+
+def test_a_run_with_nothing_to_do_keeps_the_status_snapshot_and_the_columns_read_under_it(tmp_path, remote):
+    """On a remote cache every command runs the stages before its target under their locks; one
+    with nothing to do leaves the status snapshot there, token and all, so that the column
+    snapshots read under it stay (calibrate's split, read by each later stage's frame selection,
+    is read once, not once per command). Frames forced again change the token; the forced stage's
+    snapshot is written again once its frames are marked pending, so that its run reads one
+    object rather than every status chunk."""
+    from pipeline.cache import STATUS_SNAPSHOT
+    from pipeline.snapshots import decode_status
+
+    pipe = _pipe(remote, tmp_path)
+    pipe.run("heatmaps")
+    fs = fsspec.filesystem("memory")
+
+    def token(stage: str) -> str | None:
+        path = f"{remote}/fake/{stage}.zarr/{STATUS_SNAPSHOT}"
+        parsed = decode_status(fs.cat_file(path) if fs.exists(path) else None, len(IDS), (0, 1, 2, 3))
+        return None if parsed is None else parsed[1]
+
+    calibrate = pipe.env.store("calibrate")
+    values = np.asarray(calibrate.array("value")[:])
+    column = fs.cat_file(f"{remote}/fake/calibrate.zarr/column_snapshot.value")
+    before = {stage: token(stage) for stage in ("calibrate", "heatmaps")}
+    assert all(before.values())
+    pipe.run("heatmaps")
+    assert {stage: token(stage) for stage in ("calibrate", "heatmaps")} == before
+    assert before["calibrate"].encode() in column
+
+    pipe.redo_frames("heatmaps", [2])
+    assert token("heatmaps") not in (None, before["heatmaps"])
+    heatmaps = pipe.env.store("heatmaps")
+    assert _snapshot(heatmaps).tolist() == _chunks_status(heatmaps).tolist() == [DONE] * 2 + [PENDING] + [DONE] * 5
+    pipe.run("heatmaps")
+    assert token("calibrate") == before["calibrate"] and (heatmaps.status() == DONE).all()
+    pipe.run("calibrate", frames=[1], force=True)
+    assert token("calibrate") not in (None, before["calibrate"])
+    np.testing.assert_array_equal(calibrate.array("value")[:], values)  # read again from the chunks
+    assert fs.cat_file(f"{remote}/fake/calibrate.zarr/column_snapshot.value") != column

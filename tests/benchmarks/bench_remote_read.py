@@ -11,8 +11,9 @@ FrameStore.read (two round trips each), and the old sequence. Prints one line wi
 per frame each way and the ratios of the old sequence's time to the new ways'.
 
 A second line: the output's status read whole (``FrameStore.status``) from its snapshot, against
-its N_FRAMES chunks read as until 2026-12-07 (a request each), best of REPEATS; the same codes
-both ways or exit status 1.
+its N_FRAMES chunks read as until 2026-12-07 (a request each), best of REPEATS; a third the scalar
+array read whole from its column snapshot (pipeline.snapshots; kept by the read before, timed
+apart) against its chunks. The same values both ways or exit status 1.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import fsspec
@@ -99,24 +101,32 @@ def reads(store: FrameStore, frames: range, read) -> tuple[float, int, list]:
     return time.perf_counter() - t0, LatencyFileSystem.requests, values
 
 
-def status_reads(store: FrameStore) -> tuple[float, float, int, int]:
-    """Best seconds of REPEATS and requests of the status read from its snapshot and from its
-    chunks (as until 2026-12-07); exits with status 1 where the two differ."""
-    store.save_status_snapshot(np.asarray(store._array("status")[:]))
-    best = {"snapshot": np.inf, "chunks": np.inf}
+def whole_reads(ways: dict[str, Callable[[], np.ndarray]], what: str) -> tuple[dict[str, float], dict[str, int]]:
+    """Best seconds of REPEATS and requests of each of two ``ways`` of reading ``what`` whole, the
+    snapshot's ('snapshot') and the chunks' ('chunks', as until 2026-12-07); exits with status 1
+    where the two differ."""
+    best = {way: np.inf for way in ways}
     requests = {}
     for _ in range(REPEATS):
         got = {}
-        for way, read in (("snapshot", store.status), ("chunks", lambda: np.asarray(store._array("status")[:]))):
+        for way, read in ways.items():
             LatencyFileSystem.requests = 0
             t0 = time.perf_counter()
             got[way] = read()
             best[way] = min(best[way], time.perf_counter() - t0)
             requests[way] = LatencyFileSystem.requests
         if not np.array_equal(got["snapshot"], got["chunks"]):
-            print("the status read from its snapshot differs from its chunks'", file=sys.stderr)
+            print(f"{what} read from its snapshot differs from its chunks'", file=sys.stderr)
             sys.exit(1)
-    return best["snapshot"], best["chunks"], requests["snapshot"], requests["chunks"]
+    return best, requests
+
+
+def whole_line(what: str, seconds: dict[str, float], requests: dict[str, int], note: str = "") -> str:
+    """The benchmark's line for a whole read of ``what`` (:func:`whole_reads`)."""
+    return (f"{what} read whole on a remote cache, {1e3 * LATENCY_S:.0f} ms a request (best of {REPEATS}): from its "
+            f"snapshot {1e3 * seconds['snapshot']:.0f} ms ({requests['snapshot']} requests{note}), from its chunks as "
+            f"until 2026-12-07 {1e3 * seconds['chunks']:.0f} ms ({requests['chunks']}; the same values); old/new ratio "
+            f"{seconds['chunks'] / seconds['snapshot']:.1f}x")
 
 
 def main() -> None:
@@ -144,7 +154,15 @@ def main() -> None:
                     if not (p.dtype == q.dtype and np.array_equal(p, q) and v.shape == w.shape and v == w):
                         print(f"a frame read by {way} differs from the old sequence's read", file=sys.stderr)
                         sys.exit(1)
-        snapshot_s, chunks_s, snapshot_n, chunks_n = status_reads(store)
+        store.save_status_snapshot(np.asarray(store._array("status")[:]))
+        status = whole_reads({"snapshot": store.status, "chunks": lambda: np.asarray(store._array("status")[:])},
+                             "the status")
+        LatencyFileSystem.requests = 0
+        t0 = time.perf_counter()
+        store.array("value")[:]  # reads the chunks and keeps the column snapshot
+        first = (time.perf_counter() - t0, LatencyFileSystem.requests)
+        column = whole_reads({"snapshot": lambda: np.asarray(store.array("value")[:]),
+                              "chunks": lambda: np.asarray(store._array("value")[:])}, "a scalar array")
     finally:
         LatencyFileSystem.latency = 0.0
         LatencyFileSystem().rm(f"/{root}", recursive=True)
@@ -156,9 +174,9 @@ def main() -> None:
           f"each with FrameStore.read {ms['read']:.0f} ms ({per['read']:.0f}), one request after the other as until "
           f"2026-12-07 {old:.0f} ms ({per['until 2026-12-07']:.0f}; identical values); old/new ratio "
           f"{old / ms['frame']:.2f}x at once, {old / ms['read']:.2f}x each")
-    print(f"the status of {N_FRAMES} frames read on a remote cache, {1e3 * LATENCY_S:.0f} ms a request (best of "
-          f"{REPEATS}): from its snapshot {1e3 * snapshot_s:.0f} ms ({snapshot_n} requests), from its chunks as until "
-          f"2026-12-07 {1e3 * chunks_s:.0f} ms ({chunks_n}; the same codes); old/new ratio {chunks_s / snapshot_s:.1f}x")
+    print(whole_line(f"the status of {N_FRAMES} frames", *status))
+    print(whole_line(f"a scalar array of {N_FRAMES} frames", *column,
+                     f"; the read before, which keeps it, {1e3 * first[0]:.0f} ms, {first[1]} requests"))
 
 if __name__ == "__main__":
     main()
