@@ -209,9 +209,14 @@ class FrameStore:
     def _status_snapshot(self, arr: zarr.Array) -> np.ndarray | None:
         """The status from the :data:`STATUS_SNAPSHOT` of the output whose status array is ``arr``;
         None when there is none or it does not hold one code per frame (then the chunks are read)."""
-        data = sync(get_objects(arr.store_path.store, [STATUS_SNAPSHOT]))[0]
-        parsed = decode_status(data, arr.shape[0], STATUS_NAMES)
+        parsed = self._status_snapshot_there(arr)
         return None if parsed is None else parsed[0]
+
+    def _status_snapshot_there(self, arr: zarr.Array) -> tuple[np.ndarray, str | None] | None:
+        """(status, token) of the :data:`STATUS_SNAPSHOT` of the output whose status array is
+        ``arr`` (pipeline.snapshots.decode_status), None when there is none that holds its status."""
+        data = sync(get_objects(arr.store_path.store, [STATUS_SNAPSHOT]))[0]
+        return decode_status(data, arr.shape[0], STATUS_NAMES)
 
     def save_status_snapshot(self, status: np.ndarray, keep_unchanged: bool = False) -> None:
         """Write ``status`` (F,), the output's whole status array, as its :data:`STATUS_SNAPSHOT`
@@ -226,13 +231,12 @@ class FrameStore:
         arr = self._array("status", "r+")
         if len(status) != arr.shape[0]:
             raise ValueError(f"{self.url}: a status snapshot of {len(status)} frames for {arr.shape[0]}")
-        store = arr.store_path.store
         if keep_unchanged:
-            there = decode_status(sync(get_objects(store, [STATUS_SNAPSHOT]))[0], len(status), STATUS_NAMES)
+            there = self._status_snapshot_there(arr)
             if there is not None and there[1] is not None and np.array_equal(there[0], status):
                 return
         try:
-            sync(put_object(store, STATUS_SNAPSHOT, encode_status(status, new_token())))
+            sync(put_object(arr.store_path.store, STATUS_SNAPSHOT, encode_status(status, new_token())))
         except OSError as exc:
             raise cache_error(exc, f"writing {join(self.url, STATUS_SNAPSHOT)}") from None
 
@@ -245,7 +249,7 @@ class FrameStore:
         read nothing, where the output is local, the array is not small or has no frames, or the
         output has no status snapshot with a token (the caller reads its chunks)."""
         n = arr.shape[0]
-        if not n or arr.basename in ("status", "reason", FRAME_IDS):
+        if not n or arr.basename == "status":  # the status has its own snapshot (reasons and ids are strings)
             return None
         values, token = self._column_snapshot(arr)
         if token is None:
@@ -564,10 +568,11 @@ class FrameStore:
         self._scan(every_chunk, "reason", status == FAILED, errors, progress, block_bytes, "failed")
         done = status == DONE
         for name in names:
-            column = self._column_snapshot(self._array(name))[0]
+            arr = self._array(name)
+            column = self._column_snapshot(arr)[0]
             values = self._scan(every_chunk, name, done, errors, progress, block_bytes, "is done", column is not None)
             if column is not None:
-                self._check_column_snapshot(name, column, values, done, errors)
+                self._check_column_snapshot(arr, column, values, done, errors)
         return status, dict(sorted(errors.items()))
 
     def _column_snapshot(self, arr: zarr.Array) -> tuple[np.ndarray | None, str | None]:
@@ -582,17 +587,16 @@ class FrameStore:
             return None, None
         return decode_column(column_data, parsed[1], arr.dtype, arr.shape), parsed[1]
 
-    def _check_column_snapshot(self, name: str, column: np.ndarray, values: np.ndarray, done: np.ndarray,
+    def _check_column_snapshot(self, arr: zarr.Array, column: np.ndarray, values: np.ndarray, done: np.ndarray,
                                errors: dict[int, ChunkError]) -> None:
         """Add to ``errors`` a ChunkError for each done frame (``done`` (F,)) whose chunk of array
-        ``name`` holds ``values`` (F, ...) other than its column snapshot ``column`` (readers would
+        ``arr`` holds ``values`` (F, ...) other than its column snapshot ``column`` (readers would
         take the snapshot's; recomputing the frame removes the status snapshot it is tagged with)."""
-        arr = self._array(name)
         same = (column == values) | ((column != column) & (values != values))  # NaN where both are NaN
         for i in np.flatnonzero(done & ~same.reshape(len(same), -1).all(axis=1)):
             errors.setdefault(int(i), self._chunk_error(
                 arr, int(i), f"holds {values[i].tolist()} where the output's column snapshot "
-                             f"({join(self.url, column_key(name))}) holds {column[i].tolist()}"))
+                             f"({join(self.url, column_key(arr.basename))}) holds {column[i].tolist()}"))
 
     def _check_status_snapshot(self, status: np.ndarray, errors: dict[int, ChunkError]) -> None:
         """Add to ``errors`` a ChunkError for each frame whose code in a remote output's
