@@ -42,8 +42,8 @@ from zarr.core.sync import sync
 from pipeline.cachefs import join, local_path
 from pipeline.errors import CacheError, ChunkError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
-from pipeline.snapshots import (STATUS_SNAPSHOT, column_eligible, column_key, decode_column, decode_status,
-                                encode_column, encode_status, get_objects, new_token, put_object)
+from pipeline.snapshots import (STATUS_SNAPSHOT, StatusSnapshot, column_eligible, column_key, decode_column,
+                                decode_status, encode_column, fresh_status, get_objects, put_object)
 from pipeline.stage import ArraySpec
 from pipeline.zarr_io import (DECODE_ERRORS, ZARR_FORMAT, chunk_key, chunk_path, direct_layout,
                               frames_from_chunk_files, gather_all, keep, kept, member_async, open_group, opened_array,
@@ -150,7 +150,7 @@ class FrameStore:
             ids = g.create_array(FRAME_IDS, shape=(n,), chunks=(max(n, 1),), dtype=str, fill_value="",
                                  compressors=COMPRESSOR)
             ids[:] = np.asarray(list(frame_ids), dtype=str)
-            self.save_status_snapshot(np.full(n, PENDING, np.uint8))  # a remote one's: every frame pending
+            self.save_status_snapshot(np.full(n, PENDING, np.uint8))  # a remote one's: every frame pending, no lineage
             g.attrs.update({**attrs, "created": time.time(), EVERY_CHUNK: True})
             # The fingerprint goes last: a group without it counts as absent.
             g.attrs["fingerprint"] = fingerprint
@@ -194,37 +194,40 @@ class FrameStore:
     def status(self) -> np.ndarray:
         """(F,) uint8 status codes; ChunkError naming the lowest damaged chunk when one is. A remote
         output's from its :data:`STATUS_SNAPSHOT` when it has one (one request, not one per frame)."""
+        return self.status_and_snapshot()[0]
+
+    def status_and_snapshot(self) -> tuple[np.ndarray, StatusSnapshot | None]:
+        """(status, the status snapshot it was read from, None when it was read from the chunks):
+        what a run that saves the next snapshot (:meth:`save_status_snapshot`) starts from."""
         arr = self._array("status")
         status = frames_from_chunk_files(arr)
-        if status is None and local_path(self.url) is None:
-            status = self._status_snapshot(arr)
         if status is not None:
-            return status
+            return status, None
+        snapshot = None if local_path(self.url) is not None else self._status_snapshot_there(arr)
+        if snapshot is not None:
+            return snapshot.status, snapshot
         try:
-            return np.asarray(arr[:])
+            return np.asarray(arr[:]), None
         except DECODE_ERRORS as exc:
             _settle_io()
             raise self.damaged("status", np.arange(arr.shape[0]), exc) from None
 
-    def _status_snapshot(self, arr: zarr.Array) -> np.ndarray | None:
-        """The status from the :data:`STATUS_SNAPSHOT` of the output whose status array is ``arr``;
-        None when there is none or it does not hold one code per frame (then the chunks are read)."""
-        parsed = self._status_snapshot_there(arr)
-        return None if parsed is None else parsed[0]
-
-    def _status_snapshot_there(self, arr: zarr.Array) -> tuple[np.ndarray, str | None] | None:
-        """(status, token) of the :data:`STATUS_SNAPSHOT` of the output whose status array is
-        ``arr`` (pipeline.snapshots.decode_status), None when there is none that holds its status."""
+    def _status_snapshot_there(self, arr: zarr.Array) -> StatusSnapshot | None:
+        """The :data:`STATUS_SNAPSHOT` of the output whose status array is ``arr``, None when there
+        is none that holds its status (pipeline.snapshots.decode_status)."""
         data = sync(get_objects(arr.store_path.store, [STATUS_SNAPSHOT]))[0]
         return decode_status(data, arr.shape[0], STATUS_NAMES)
 
-    def save_status_snapshot(self, status: np.ndarray, keep_unchanged: bool = False) -> None:
+    def save_status_snapshot(self, status: np.ndarray, keep_unchanged: bool = False,
+                             after: StatusSnapshot | None = None, changed: np.ndarray | None = None) -> None:
         """Write ``status`` (F,), the output's whole status array, as its :data:`STATUS_SNAPSHOT`
         with a new token (a remote output only): what the runner knows the status to be, holding
         the stage's lock (when a run of the stage's frames ends: the status it read, the marks and
         frames it wrote). ``keep_unchanged``: leave a snapshot there that holds ``status`` with a
         token (no status chunk was written since it was, so the column snapshots tagged with it
-        still hold their arrays: a run with nothing to do keeps them)."""
+        still hold their arrays: a run with nothing to do keeps them). ``after``: the snapshot the
+        status was read from before frames ``changed`` ((F,) bool) were written or marked, and no
+        others: the new one succeeds it (pipeline.snapshots, the lineage)."""
         if local_path(self.url) is not None:
             return
         status = np.asarray(status, np.uint8).reshape(-1)
@@ -233,34 +236,43 @@ class FrameStore:
             raise ValueError(f"{self.url}: a status snapshot of {len(status)} frames for {arr.shape[0]}")
         if keep_unchanged:
             there = self._status_snapshot_there(arr)
-            if there is not None and there[1] is not None and np.array_equal(there[0], status):
+            if there is not None and there.token is not None and np.array_equal(there.status, status):
                 return
+        snapshot = fresh_status(status) if after is None or changed is None else after.successor(status, changed)
         try:
-            sync(put_object(arr.store_path.store, STATUS_SNAPSHOT, encode_status(status, new_token())))
+            sync(put_object(arr.store_path.store, STATUS_SNAPSHOT, snapshot.encode()))
         except OSError as exc:
             raise cache_error(exc, f"writing {join(self.url, STATUS_SNAPSHOT)}") from None
 
     def column(self, arr: zarr.Array, frames: np.ndarray | None,
-               read_chunks: Callable[[], np.ndarray]) -> np.ndarray | None:
+               read_chunks: Callable[[np.ndarray | None], np.ndarray]) -> np.ndarray | None:
         """Frames ``frames`` (F',) of this remote output's array ``arr`` (every frame: None), from its
-        column snapshot (pipeline.snapshots) when one holds what its chunks hold; else, when the
-        read wants at least half of the frames, every frame's from ``read_chunks()`` (the whole
-        array, read from its chunks), kept as the column snapshot for the next reads. None, having
-        read nothing, where the output is local, the array is not small or has no frames, or the
-        output has no status snapshot with a token (the caller reads its chunks)."""
+        column snapshot (pipeline.snapshots) when one holds what its chunks hold, or does once the
+        chunks of the frames written since it was read are read; else every frame's, read from its
+        chunks, kept as the column snapshot for the next reads. ``read_chunks(frames)``: the values
+        of frames ``frames`` (every frame: None), read from their chunks. A read makes or brings up
+        to date the column when that reads at most twice the chunks it wants, else it reads the
+        chunks it wants (the caller does: None, having read nothing). None too where the output is
+        local, the array is not small or has no frames, or the output has no status snapshot with
+        a token."""
         n = arr.shape[0]
         if not n or arr.basename == "status":  # the status has its own snapshot (reasons and ids are strings)
             return None
-        values, token = self._column_snapshot(arr)
-        if token is None:
+        snapshot, values, stale = self._column_snapshot(arr)
+        if snapshot is None:
             return None
-        if values is None:
-            if frames is not None and 2 * len(frames) < n:
-                return None
-            values = np.asarray(read_chunks())
+        wanted = n if frames is None else len(frames)
+        if values is not None and len(stale) <= 2 * wanted:
+            if len(stale):  # the frames written since the column was read, from their chunks
+                values[stale] = read_chunks(stale)
+        elif n <= 2 * wanted:
+            values, stale = np.asarray(read_chunks(None)), None
+        else:
+            return None
+        if stale is None or len(stale):
             with contextlib.suppress(OSError):  # e.g. read-only credentials: the next read reads the chunks too
                 sync(put_object(arr.store_path.store.with_read_only(False), column_key(arr.basename),
-                                encode_column(values, token)))
+                                encode_column(values, snapshot.token)))
         return values if frames is None else values[frames]
 
     def _drop_local_status_snapshot(self) -> None:
@@ -569,29 +581,35 @@ class FrameStore:
         done = status == DONE
         for name in names:
             arr = self._array(name)
-            column = self._column_snapshot(arr)[0]
+            _, column, stale = self._column_snapshot(arr)
             values = self._scan(every_chunk, name, done, errors, progress, block_bytes, "is done", column is not None)
-            if column is not None:
-                self._check_column_snapshot(arr, column, values, done, errors)
+            if column is not None:  # readers take the column's values but for the frames written since
+                self._check_column_snapshot(arr, column, values, done & ~np.isin(np.arange(len(done)), stale), errors)
         return status, dict(sorted(errors.items()))
 
-    def _column_snapshot(self, arr: zarr.Array) -> tuple[np.ndarray | None, str | None]:
-        """(the values of array ``arr``'s column snapshot where readers take them, else None; the
-        token of the output's status snapshot, which a column read now would be tagged with, None
-        when there is none to tag it with or the output is local or the array not small)."""
+    def _column_snapshot(self, arr: zarr.Array) -> tuple[StatusSnapshot | None, np.ndarray | None,
+                                                          np.ndarray | None]:
+        """(the output's status snapshot, which a column read now would be tagged with: None when it
+        has none with a token, or the output is local or the array not small; the values of array
+        ``arr``'s column snapshot when it was read under that snapshot or one of its ancestors, else
+        None; then the frames (indices) written since, whose values it does not hold: empty when
+        tagged with that snapshot, None without values)."""
         if local_path(self.url) is not None or not column_eligible(arr.dtype, arr.shape[1:]):
-            return None, None
+            return None, None, None
         status_data, column_data = sync(get_objects(arr.store_path.store, [STATUS_SNAPSHOT, column_key(arr.basename)]))
-        parsed = decode_status(status_data, arr.shape[0], STATUS_NAMES)
-        if parsed is None or parsed[1] is None:
-            return None, None
-        return decode_column(column_data, parsed[1], arr.dtype, arr.shape), parsed[1]
+        snapshot = decode_status(status_data, arr.shape[0], STATUS_NAMES)
+        if snapshot is None or snapshot.token is None:
+            return None, None, None
+        column = decode_column(column_data, arr.dtype, arr.shape)
+        stale = None if column is None else snapshot.written_since(column[1])
+        return snapshot, (None if stale is None else column[0]), stale
 
     def _check_column_snapshot(self, arr: zarr.Array, column: np.ndarray, values: np.ndarray, done: np.ndarray,
                                errors: dict[int, ChunkError]) -> None:
-        """Add to ``errors`` a ChunkError for each done frame (``done`` (F,)) whose chunk of array
-        ``arr`` holds ``values`` (F, ...) other than its column snapshot ``column`` (readers would
-        take the snapshot's; recomputing the frame removes the status snapshot it is tagged with)."""
+        """Add to ``errors`` a ChunkError for each frame of ``done`` ((F,) bool: done frames that
+        readers take from the column) whose chunk of array ``arr`` holds ``values`` (F, ...) other
+        than its column snapshot ``column`` (recomputing the frame removes the status snapshot it
+        is tagged with, and the next snapshot has the frame written since)."""
         same = (column == values) | ((column != column) & (values != values))  # NaN where both are NaN
         for i in np.flatnonzero(done & ~same.reshape(len(same), -1).all(axis=1)):
             errors.setdefault(int(i), self._chunk_error(
@@ -605,9 +623,10 @@ class FrameStore:
         if local_path(self.url) is not None:
             return
         arr = self._array("status")
-        snapshot = self._status_snapshot(arr)
+        snapshot = self._status_snapshot_there(arr)
         if snapshot is None:
             return
+        snapshot = snapshot.status
         for i in np.flatnonzero(snapshot != status):
             errors.setdefault(int(i), self._chunk_error(
                 arr, int(i), f"says the frame is {STATUS_NAMES[int(status[i])]} where the output's status snapshot "
@@ -676,14 +695,16 @@ class CheckedArray:
             # the whole array, from its chunk files (a local output) or its column snapshot (a remote one)
             value = frames_from_chunk_files(self._array)
             if value is None:
-                value = self._store.column(self._array, None, self._whole)
+                value = self._store.column(self._array, None, self._chunks)
             if value is not None:
                 return value
         return self._read(lambda: self._array[selection], selection)
 
-    def _whole(self) -> np.ndarray:
-        """Every frame's values, read from the chunks."""
-        return self._read(lambda: self._array[...], Ellipsis)
+    def _chunks(self, frames: np.ndarray | None) -> np.ndarray:
+        """The values of frames ``frames`` (every frame: None), read from their chunks."""
+        if frames is None:
+            return self._read(lambda: self._array[...], Ellipsis)
+        return self._read(lambda: self._array.oindex[frames], frames)
 
     @property
     def oindex(self) -> "_CheckedOIndex":
@@ -727,7 +748,7 @@ class _CheckedOIndex:
         if frames is not None:  # some whole frames, from their chunk files or the column snapshot
             value = frames_from_chunk_files(self._checked._array, frames)
             if value is None and frames.size and frames.max() < self._checked._array.shape[0]:
-                value = self._checked._store.column(self._checked._array, frames, self._checked._whole)
+                value = self._checked._store.column(self._checked._array, frames, self._checked._chunks)
             if value is not None:
                 return value
         return self._checked._read(lambda: self._checked._array.oindex[selection], selection)

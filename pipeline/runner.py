@@ -400,16 +400,18 @@ class Pipeline:
             if not store.exists():
                 continue
             try:
-                status = store.status()
+                status, snapshot = store.status_and_snapshot()
                 redo = [i for i in frames if 0 <= i < len(status) and status[i] in (DONE, FAILED)]
             except ChunkError:  # a damaged status chunk: marking the frames rewrites it
-                status = None
+                status = snapshot = None
                 redo = [i for i in frames if 0 <= i < len(self.frame_ids())]
             for i in redo:
                 store.mark(i, PENDING)
             if redo and other == name and status is not None:  # its status in one object again (the run holds its lock)
-                status[redo] = PENDING
-                store.save_status_snapshot(status)
+                marked = np.zeros(len(status), bool)
+                marked[redo] = True
+                status[marked] = PENDING
+                store.save_status_snapshot(status, after=snapshot, changed=marked)
             if redo and other != name:
                 self.log(f"{other:<{NAME_WIDTH}} {len(redo)} frame(s) to recompute (upstream {name} recomputes them)")
 
@@ -520,7 +522,7 @@ class Pipeline:
         if not created:  # resumed: an array whose metadata is damaged stops the run before any frame
             store.check_metadata()
         ids = self.frame_ids()
-        status = store.status()
+        status, snapshot = store.status_and_snapshot()
         written = status.copy()  # the status as this run writes it
         report = StageReport(stage.name, "recomputed" if created else "resumed")
         todo_mask = self._frames_to_do(stage, store, status, frames, retry_failed, written)
@@ -545,8 +547,11 @@ class Pipeline:
         # stopped by --strict was still computing may finish after it: the snapshot then has it as
         # it was (pending or failed: computed again), never done where it is not. One that holds it
         # already was written after the last write of a status chunk: kept, with the column
-        # snapshots read under it (pipeline.snapshots).
-        store.save_status_snapshot(written, keep_unchanged=True)
+        # snapshots read under it; else the new one succeeds the one this run read its status from
+        # (pipeline.snapshots: the columns read under that one are brought up to date from the frames
+        # whose code changed here, which are all it wrote: a frame it computes was pending or
+        # failed, and one that fails again has no array written).
+        store.save_status_snapshot(written, keep_unchanged=True, after=snapshot, changed=written != status)
         self._done[stage.name] = done_digest(written)  # what frames_read would read again
         report.set_counts(written)
         if stage.summarise is not None and report.processed:

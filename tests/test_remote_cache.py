@@ -1218,7 +1218,9 @@ def _chunks_status(store) -> np.ndarray:
 
 
 def _snapshot(store) -> np.ndarray | None:
-    return store._status_snapshot(store._array("status"))
+    """The status as the output's status snapshot holds it (None: it has none)."""
+    there = store._status_snapshot_there(store._array("status"))
+    return None if there is None else there.status
 
 
 def test_each_run_of_a_stage_s_frames_on_a_remote_cache_leaves_a_snapshot_equal_to_its_status(tmp_path, remote,
@@ -1312,7 +1314,8 @@ def test_a_remote_output_s_status_comes_from_its_snapshot_until_a_status_chunk_i
 
 
 @pytest.mark.parametrize("damage", ["another frame count", "truncated", "not zstd", "an unknown code", "empty",
-                                    "no token", "an unknown version"])
+                                    "no token", "an unknown version", "no ages", "an age beyond its ancestors",
+                                    "an age of 0", "an empty ancestor"])
 def test_a_status_snapshot_that_does_not_hold_the_output_s_status_is_not_read(tmp_path, remote, damage):
     from pipeline.cache import STATUS_SNAPSHOT, FrameStore
     from pipeline.snapshots import _CODEC
@@ -1330,13 +1333,20 @@ def test_a_status_snapshot_that_does_not_hold_the_output_s_status_is_not_read(tm
             "an unknown code": head + b"2 6 abc\n" + _CODEC.encode(bytes([1, 1, 1, 1, 1, 9])),
             "empty": b"",
             "no token": head + b"2 6\n" + body,
-            "an unknown version": head + b"3 6 abc\n" + body}[damage]
+            "an unknown version": head + b"4 6 abc\n" + body,
+            "no ages": head + b"3 6 abc def\n" + body,
+            "an age beyond its ancestors": head + b"3 6 abc def\n" + _CODEC.encode(bytes([1] * 6 + [1, 2, 255] * 2)),
+            "an age of 0": head + b"3 6 abc def\n" + _CODEC.encode(bytes([1] * 6 + [1, 0, 255] * 2)),
+            "an empty ancestor": head + b"3 6 abc def,\n" + _CODEC.encode(bytes([1] * 6 + [1] * 6))}[damage]
     fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", data)
     assert store.status().tolist() == [PENDING, DONE, PENDING, PENDING, PENDING, PENDING]
     fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", head + b"2 6 abc\n" + body)
     assert store.status().tolist() == [DONE] * 6  # the same, whole: read
     fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", head + b"1 6\n" + body)
-    assert store.status().tolist() == [DONE] * 6  # 2026-12-07's version, without a token: read too
+    assert store.status().tolist() == [DONE] * 6  # 2026-12-07's first version, without a token: read too
+    fsspec.filesystem("memory").pipe_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}", head + b"3 6 abc def,ghi\n" +
+                                          _CODEC.encode(bytes([1] * 6 + [1, 2, 255, 1, 1, 2])))
+    assert store.status().tolist() == [DONE] * 6  # a lineage that fits
 
 
 def test_the_upload_at_the_end_of_a_staged_run_sends_what_was_not_uploaded_as_it_now_is(tmp_path, remote,
@@ -1501,7 +1511,8 @@ def test_a_column_snapshot_that_does_not_hold_the_array_is_not_read(tmp_path, re
 
     store, _ = _small_output(f"{remote}/out.zarr", 6)
     fs = fsspec.filesystem("memory")
-    status, token = decode_status(fs.cat_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}"), 6, (0, 1, 2, 3))
+    snapshot = decode_status(fs.cat_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}"), 6, (0, 1, 2, 3))
+    status, token = snapshot.status, snapshot.token
     lie = np.full(6, 7.0)  # not what the chunks hold
     good = encode_column(lie, token)
     head = b"radarsim column snapshot 1 "
@@ -1549,7 +1560,7 @@ def test_verify_names_the_frames_whose_column_snapshot_disagrees_with_their_chun
     store, _ = _small_output(f"{remote}/out.zarr", 6)
     assert store.verify()[1] == {}
     fs = fsspec.filesystem("memory")
-    token = decode_status(fs.cat_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}"), 6, (0, 1, 2, 3))[1]
+    token = decode_status(fs.cat_file(f"{remote}/out.zarr/{STATUS_SNAPSHOT}"), 6, (0, 1, 2, 3)).token
     vec = np.asarray(store.array("vec")[:])
     vec[4, 1] = 99
     fs.pipe_file(f"{remote}/out.zarr/column_snapshot.vec", encode_column(vec, token))
@@ -1577,7 +1588,7 @@ def test_a_run_with_nothing_to_do_keeps_the_status_snapshot_and_the_columns_read
     def token(stage: str) -> str | None:
         path = f"{remote}/fake/{stage}.zarr/{STATUS_SNAPSHOT}"
         parsed = decode_status(fs.cat_file(path) if fs.exists(path) else None, len(IDS), (0, 1, 2, 3))
-        return None if parsed is None else parsed[1]
+        return None if parsed is None else parsed.token
 
     calibrate = pipe.env.store("calibrate")
     values = np.asarray(calibrate.array("value")[:])
@@ -1598,3 +1609,92 @@ def test_a_run_with_nothing_to_do_keeps_the_status_snapshot_and_the_columns_read
     assert token("calibrate") not in (None, before["calibrate"])
     np.testing.assert_array_equal(calibrate.array("value")[:], values)  # read again from the chunks
     assert fs.cat_file(f"{remote}/fake/calibrate.zarr/column_snapshot.value") != column
+
+
+def test_a_column_read_before_runs_is_brought_up_to_date_from_the_frames_they_wrote(tmp_path, monkeypatch):
+    """Each run's status snapshot succeeds the one it read its status from and says which frames
+    it wrote: a column read under one of the last LINEAGE_MAX snapshots is brought up to date by
+    reading those frames' chunks (3 frames recomputed: 3 chunks, not every frame's; by a read that
+    wants at least half as many frames), over several runs too, a frame that a run alone made done
+    (retried, no marks before it) included; a column older than that, or read before a snapshot
+    written without a lineage (a frame written outside a run, so the next run read its status
+    from the chunks), is read again from every chunk. verify checks the frames that readers take
+    from such a column."""
+    from dataclasses import replace
+
+    import pipeline.snapshots
+
+    asked: list[tuple[str, str]] = []
+    _counting_filesystem(asked)
+    now: dict[str, float] = {}  # frame id -> the value calibrate writes for it from now on
+
+    def process(inputs, cfg):
+        out = fake_stages.first(inputs, cfg)
+        return {**out, "value": np.float64(now.get(inputs.frame_id, out["value"]))}
+
+    ids = [*IDS[:3], "bad003", *IDS[4:]]
+    stages = [replace(fake_stages.STAGES[0], process=process), *fake_stages.STAGES[1:]]
+    env = RunEnv(cfg=load_config("synthetic", {}, environ={}), cache_root=f"counted://{tmp_path / 'cache'}",
+                 dataset="fake", data_root=str(tmp_path))
+    pipe = Pipeline(stages, env, Executor(1), progress=False, log=lambda m: None, frame_lister=lambda: list(ids))
+    pipe.run("calibrate")  # bad003 fails
+    calibrate = pipe.env.store("calibrate")
+
+    def read() -> int:
+        """How many chunks a whole read of calibrate's value asked for (its done frames' values
+        checked against their chunks)."""
+        asked.clear()
+        got = np.asarray(calibrate.array("value")[:])
+        chunks = sum("/c/" in path for _, path in asked)
+        done = calibrate.status() == DONE
+        np.testing.assert_array_equal(got[done], np.asarray(calibrate._array("value")[:])[done])
+        return chunks
+
+    def recompute(frame: int, value: float) -> None:
+        now[ids[frame]] = value
+        pipe.run("calibrate", frames=[frame], force=True)
+
+    assert read() == len(ids) and read() == 0
+    monkeypatch.setenv("FAKE_STAGE_FIXED", "1")
+    pipe.run("calibrate", retry_failed=True)  # frame 3 done in the run's own snapshot only
+    assert read() == 1 and read() == 0
+    now.update({ids[1]: -1.0, ids[5]: -5.0, ids[6]: -6.0})
+    pipe.run("calibrate", frames=[1, 5, 6], force=True)
+
+    def some(frames: list[int]) -> tuple[list[float], int]:
+        asked.clear()
+        return np.asarray(calibrate.array("value").oindex[frames]).tolist(), sum("/c/" in p for _, p in asked)
+
+    # a read brings the column up to date when that reads at most twice the chunks it wants
+    assert some([0]) == ([0.0], 1)  # 3 frames written since: the frame's own chunk
+    assert some([0, 6]) == ([0.0, -6.0], 3) and some([0]) == ([0.0], 0)
+    assert read() == 0
+    recompute(2, -2.0)
+    recompute(3, -3.0)
+    assert read() == 2 and read() == 0
+    assert np.asarray(calibrate.array("value")[:]).tolist() == [0, -1, -2, -3, 4, -5, -6, 7]
+
+    errors = calibrate.verify()[1]
+    assert errors == {}, errors
+    recompute(4, -4.0)  # the column holds frame 4's old value until a read brings it up to date
+    fs = fsspec.filesystem("file")
+    column = tmp_path / "cache" / "fake" / "calibrate.zarr" / "column_snapshot.value"
+    data = fs.cat_file(str(column))
+    values, token = pipeline.snapshots.decode_column(data, np.float64, (len(ids),))
+    values[5] = 99.0  # a value readers would take (frame 5 was not written since)
+    fs.pipe_file(str(column), pipeline.snapshots.encode_column(values, token))
+    errors = calibrate.verify()[1]
+    assert list(errors) == [5] and "holds -5.0 where the output's column snapshot" in str(errors[5]), errors
+    fs.pipe_file(str(column), data)
+    assert read() == 1
+
+    calibrate.write_frame(0, {"value": np.float64(0), "points": np.zeros((0, 3), np.float32)},
+                          stages[0].outputs(env.cfg))  # outside a run: the next one reads the chunks' status
+    recompute(7, -7.0)
+    assert read() == len(ids) and read() == 0
+    monkeypatch.setattr(pipeline.snapshots, "LINEAGE_MAX", 3)  # a forced run writes two: marked, and at its end
+    recompute(1, 11.0)
+    assert read() == 1
+    recompute(2, 12.0)
+    recompute(3, 13.0)
+    assert read() == len(ids)  # read under the fourth snapshot before the present one

@@ -13,7 +13,9 @@ per frame each way and the ratios of the old sequence's time to the new ways'.
 A second line: the output's status read whole (``FrameStore.status``) from its snapshot, against
 its N_FRAMES chunks read as until 2026-12-07 (a request each), best of REPEATS; a third the scalar
 array read whole from its column snapshot (pipeline.snapshots; kept by the read before, timed
-apart) against its chunks. The same values both ways or exit status 1.
+apart) against its chunks; a fourth the same after each of REPEATS runs that wrote RUN_FRAMES
+frames (untimed), the column brought up to date from those frames' chunks, against its chunks.
+The same values both ways or exit status 1.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from pipeline.cache import FrameStore  # noqa: E402
 from pipeline.stage import ArraySpec  # noqa: E402
 
-N_FRAMES, FRAMES_TIMED, REPEATS, LATENCY_S = 200, 40, 3, 0.02
+N_FRAMES, FRAMES_TIMED, REPEATS, LATENCY_S, RUN_FRAMES = 200, 40, 3, 0.02, 5
 SPECS = (ArraySpec("points", (64, 3), "float32", "m", fill=np.nan, ragged=True), ArraySpec("value", (), "float64", "-"))
 PROTOCOL = "latencymem"
 
@@ -101,13 +103,16 @@ def reads(store: FrameStore, frames: range, read) -> tuple[float, int, list]:
     return time.perf_counter() - t0, LatencyFileSystem.requests, values
 
 
-def whole_reads(ways: dict[str, Callable[[], np.ndarray]], what: str) -> tuple[dict[str, float], dict[str, int]]:
+def whole_reads(ways: dict[str, Callable[[], np.ndarray]], what: str,
+                before: Callable[[int], None] | None = None) -> tuple[dict[str, float], dict[str, int]]:
     """Best seconds of REPEATS and requests of each of two ``ways`` of reading ``what`` whole, the
     snapshot's ('snapshot') and the chunks' ('chunks', as until 2026-12-07); exits with status 1
-    where the two differ."""
+    where the two differ. ``before(repeat)``, untimed, before each repeat's reads."""
     best = {way: np.inf for way in ways}
     requests = {}
-    for _ in range(REPEATS):
+    for rep in range(REPEATS):
+        if before is not None:
+            before(rep)
         got = {}
         for way, read in ways.items():
             LatencyFileSystem.requests = 0
@@ -163,6 +168,22 @@ def main() -> None:
         first = (time.perf_counter() - t0, LatencyFileSystem.requests)
         column = whole_reads({"snapshot": lambda: np.asarray(store.array("value")[:]),
                               "chunks": lambda: np.asarray(store._array("value")[:])}, "a scalar array")
+
+        def a_run(rep: int) -> None:
+            """What a run of the stage's frames leaves: RUN_FRAMES frames written again, and a
+            status snapshot that succeeds the one it read (the column was read under that one);
+            untimed, without latency."""
+            LatencyFileSystem.latency = 0.0
+            status, snapshot = store.status_and_snapshot()
+            frames = np.arange(RUN_FRAMES) * (N_FRAMES // RUN_FRAMES) + rep
+            for i in frames:
+                store.write_frame(int(i), {"points": np.zeros((1, 3), np.float32), "value": np.float64(-rep)}, SPECS)
+            store.save_status_snapshot(status, after=snapshot, changed=np.isin(np.arange(N_FRAMES), frames))
+            LatencyFileSystem.latency = LATENCY_S
+
+        later = whole_reads({"snapshot": lambda: np.asarray(store.array("value")[:]),
+                             "chunks": lambda: np.asarray(store._array("value")[:])}, "a scalar array after a run",
+                            before=a_run)
     finally:
         LatencyFileSystem.latency = 0.0
         LatencyFileSystem().rm(f"/{root}", recursive=True)
@@ -177,6 +198,8 @@ def main() -> None:
     print(whole_line(f"the status of {N_FRAMES} frames", *status))
     print(whole_line(f"a scalar array of {N_FRAMES} frames", *column,
                      f"; the read before, which keeps it, {1e3 * first[0]:.0f} ms, {first[1]} requests"))
+    print(whole_line(f"after a run that wrote {RUN_FRAMES} of its frames, the same array", *later,
+                     ", bringing it up to date from the frames the run wrote"))
 
 if __name__ == "__main__":
     main()
