@@ -18,10 +18,8 @@ from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import maximum_bipartite_matching, min_weight_full_bipartite_matching
 from scipy.spatial import cKDTree
-from scipy.stats import wasserstein_distance
 
 from pipeline.frame import check_shape
 from pipeline.geometry import cartesian_to_spherical, project_to_image, radial_velocity, wrap_doppler
@@ -133,6 +131,8 @@ def _min_cost_matching(real_idx: np.ndarray, syn_idx: np.ndarray, weight: np.nda
         cost[real_idx, syn_idx] = weight
         is_edge = np.zeros((n_real, n_syn), bool)
         is_edge[real_idx, syn_idx] = True
+        from scipy.optimize import linear_sum_assignment  # here: importing scipy.optimize takes 0.4 s
+
         r, s = linear_sum_assignment(cost)
         keep = is_edge[r, s]
         return r[keep].astype(np.int64), s[keep].astype(np.int64)
@@ -278,6 +278,8 @@ def distribution_distances(syn_sph: np.ndarray, real_sph: np.ndarray, doppler_sp
     Keys are :data:`SPHERICAL_COLUMNS` (units of the column: m, rad, rad, m/s, RSS units); NaN for
     a column when either set is empty or the column has no finite value.
     """
+    from scipy.stats import wasserstein_distance  # here: importing scipy.stats takes 0.5 s
+
     syn = check_shape("syn_sph", np.asarray(syn_sph, dtype=np.float64), (None, 5))
     real = check_shape("real_sph", np.asarray(real_sph, dtype=np.float64), (None, 5))
     out: dict[str, float] = {}

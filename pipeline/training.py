@@ -363,14 +363,6 @@ def unit_interval(key: str, value: float, include_one: bool = True) -> float:
     return x
 
 
-def check_training(cfg) -> None:
-    """ConfigError for training settings no net could train with (the train stage's check, run
-    before any output is touched; the same checks also guard the training functions)."""
-    # epochs, intervals (cutmix, jitter, ema_decay, ...) and the text choices (select_on, lr_schedule,
-    # prior_mix) are held to pipeline.config.LIMITS and CHOICES where set
-    select_device(cfg.train.device)
-
-
 def make_ema(model: nn.Module, decay: float) -> AveragedModel | None:
     """Exponential moving average of ``model``'s parameters and buffers (BatchNorm statistics
     included) with ``decay`` per update; None when decay is 0 (ConfigError outside [0, 1))."""

@@ -352,9 +352,8 @@ def _headline(s: dict) -> str:
 
 
 def check(cfg: Config) -> None:
-    """ConfigError for train.nets or training settings the stage cannot run with."""
-    from pipeline.training import check_training
-
+    """ConfigError for train.nets or training settings the stage cannot run with (epochs,
+    intervals and text choices are held to pipeline.config.LIMITS and CHOICES where set)."""
     unknown = named_nets(cfg) - set(NETS)
     if unknown:
         raise ConfigError(f"train.nets: unknown net(s) {sorted(unknown)} (use {', '.join(NETS)})")
@@ -363,7 +362,10 @@ def check(cfg: Config) -> None:
                           f"train here")
     if cfg.train.nets_from:
         check_profile(cfg.train.nets_from, "train.nets_from")
-    check_training(cfg)
+    if cfg.train.device not in ("auto", "cpu"):  # only these need no check (nor torch, 1-3 s, imported for it)
+        from pipeline.inference import select_device
+
+        select_device(cfg.train.device)
 
 
 HEADER_READ_BYTES = 1 << 16

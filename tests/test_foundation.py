@@ -1246,12 +1246,19 @@ def test_the_stages_and_the_cli_load_without_torch():
     against 1.1 s on the demo's cache) while stages.train imported torch through pipeline.checkpoint
     at module level; a stage imports torch when it runs a net. A net's training fingerprint, which
     status compares with a checkpoint's (an unfinished train, the ablations' runs), is torch-free
-    too (until 2026-12-07 it imported torch through pipeline.training)."""
+    too (until 2026-12-07 it imported torch through pipeline.training), and so are the stages'
+    checks of the configuration with the devices 'auto' and 'cpu', which every `pipeline run`
+    makes (until 2026-12-08 train's imported torch). Nor do these import scipy.stats and
+    scipy.optimize (about 1 s together; until 2026-12-08 pipeline.metrics imported them)."""
     import subprocess
     import sys
 
-    code = ("import sys; from stages import all_stages; all_stages(); import pipeline.cli; "
+    code = ("import sys; from stages import all_stages; stages = all_stages(); import pipeline.cli; "
             "from pipeline.config import load_config; from pipeline.continuation import default_fingerprint; "
             "[default_fingerprint(load_config('synthetic', {}, environ={}), n) for n in ('disnet', 'rssnet')]; "
-            "import stages.ablations; assert 'torch' not in sys.modules, 'torch imported'")
+            "checks = [s.check for s in stages if getattr(s, 'check', None)]; assert len(checks) >= 3, checks; "
+            "[c(load_config('synthetic', {'train.device': d, 'synth.device': d}, environ={})) for c in checks "
+            "for d in ('auto', 'cpu')]; "
+            "import stages.ablations; assert 'torch' not in sys.modules, 'torch imported'; "
+            "assert not {'scipy.stats', 'scipy.optimize'} & set(sys.modules), 'scipy.stats or scipy.optimize imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])

@@ -1274,7 +1274,7 @@ def test_prior_mix_is_the_val_minimum_of_a_numpy_mixture(tmp_path):
     np.testing.assert_array_equal(Inf.disnet_predict(old, data.images[data.val_idx], data.speeds[data.val_idx])[0],
                                   maps)
     with pytest.raises(ConfigError, match="disnet.prior_mix"):
-        T.check_training(tiny_cfg(**{"disnet.prior_mix": "auto"}))
+        tiny_cfg(**{"disnet.prior_mix": "auto"})
 
 
 def _mixable_disnet(cfg, data: T.DisNetData):
@@ -1293,7 +1293,7 @@ def test_prior_mix_reaches_both_ends_of_its_grid_and_leaves_the_model_as_it_was(
     the config documents) and the lowest L_KL is taken. prior_mix_kl measures the unmixed map
     whatever share the model holds and in whatever mode, and gives the share back afterwards. No
     prior, no val frames: w = 0 without a val L_KL; an unknown setting is refused here too (a
-    caller that skips check_training)."""
+    caller that skips the configuration's checks)."""
     cfg = tiny_cfg()
     data = make_disnet_data(n=16)
     model = _mixable_disnet(cfg, data)
@@ -1465,3 +1465,17 @@ def test_continuation_under_a_patience_follows_the_selection_loss():
     assert continuation_problem(meta, 5, patience=3) is None and continuation_problem(meta, 5) is None
     assert continuation_problem(meta, 5, patience=2, select_on="kl") is None  # best 4 at epoch 5 either way
     assert continuation_problem(meta, 5, patience=1, select_on="kl") is not None  # stops at 3, best 2
+
+
+def test_the_train_stage_refuses_a_device_it_cannot_use():
+    """The train stage's check, run before any output is touched: a device that is no device, or
+    CUDA on a machine without it (only then is torch imported for the check)."""
+    from stages.train import check
+
+    for device in ("auto", "cpu"):
+        check(load_config("synthetic", {"train.device": device}, environ={}))
+    with pytest.raises(ConfigError, match="train.device must be 'auto', 'cpu' or 'cuda', got 'tpu'"):
+        check(load_config("synthetic", {"train.device": "tpu"}, environ={}))
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="train.device = 'cuda' but CUDA is not available"):
+            check(load_config("synthetic", {"train.device": "cuda"}, environ={}))
