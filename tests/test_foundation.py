@@ -226,6 +226,7 @@ NOT_IN_FINGERPRINTS = {
     "run.staging_dir": "where a remote cache's output is staged and copied on this machine",
     "run.progress_every_s": "how often a log is told how far the work is",
     "synth.device": "where the nets run (pipeline.config: no fingerprint holds it)",
+    "train.device": "where the nets train, checked before a run (pipeline.config.TRAINING_KEYS: not a net's)",
     "train.nets_from": "in the train stage's extra fingerprint, which every stage after it inherits",
     "radar.name": "words of a message", "radar.rss_unit": "words of a message or a figure's label"}
 """Keys a stage's module may read that need not change its fingerprint (and why)."""
