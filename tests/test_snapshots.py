@@ -36,7 +36,7 @@ def test_a_snapshot_names_every_frame_written_since_each_of_its_ancestors(frames
         chain.append(decoded)
         writes.append(set(np.flatnonzero(changed).tolist()))
     last = chain[-1]
-    assert len(last.ancestors) == min(len(runs), LINEAGE_MAX) and len(set(t for s in chain for t in [s.token])) == len(chain)
+    assert len(last.ancestors) == min(len(runs), LINEAGE_MAX) and len({s.token for s in chain}) == len(chain)
     for k, earlier in enumerate(chain):
         since = last.written_since(earlier.token)
         back = len(chain) - 1 - k  # snapshots between: 0 for the last itself
