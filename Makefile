@@ -46,8 +46,12 @@ LARGE_SETTINGS := --set disnet.speed_map=true --set train.count_grad_scale=0 --s
 demo-large: setup  ## the demo on a 2400-frame world, 12 epochs (about 70 minutes on 2 cores): the fidelity figures
 	$(MAKE) demo CACHE=cache-large ARGS="--set dataset.world_frames=2400 --set train.epochs=12 $(LARGE_SETTINGS) $(ARGS)"
 
-test: setup  ## the test suite (< 10 minutes on 2 cores)
-	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider tests
+# the suite in TEST_WORKERS processes (pytest-xdist), each test file's tests in one of them (its
+# module fixtures made once); TEST_WORKERS=1: in this process
+TEST_WORKERS ?= 2
+
+test: setup  ## the test suite (about 5 minutes on 2 cores)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider $(if $(filter-out 1,$(TEST_WORKERS)),-n $(TEST_WORKERS) --dist loadfile) tests
 
 bench: setup  ## speed benchmarks: one line per benchmark ending in the measured ratio
 	@for f in tests/benchmarks/bench_*.py; do OMP_NUM_THREADS=1 $(BIN)/python $$f || exit 1; done
