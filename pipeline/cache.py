@@ -584,7 +584,9 @@ class FrameStore:
             _, column, stale = self._column_snapshot(arr)
             values = self._scan(every_chunk, name, done, errors, progress, block_bytes, "is done", column is not None)
             if column is not None:  # readers take the column's values but for the frames written since
-                self._check_column_snapshot(arr, column, values, done & ~np.isin(np.arange(len(done)), stale), errors)
+                taken = done.copy()
+                taken[stale] = False
+                self._check_column_snapshot(arr, column, values, taken, errors)
         return status, dict(sorted(errors.items()))
 
     def _column_snapshot(self, arr: zarr.Array) -> tuple[StatusSnapshot | None, np.ndarray | None,
@@ -623,14 +625,13 @@ class FrameStore:
         if local_path(self.url) is not None:
             return
         arr = self._array("status")
-        snapshot = self._status_snapshot_there(arr)
-        if snapshot is None:
+        there = self._status_snapshot_there(arr)
+        if there is None:
             return
-        snapshot = snapshot.status
-        for i in np.flatnonzero(snapshot != status):
+        for i in np.flatnonzero(there.status != status):
             errors.setdefault(int(i), self._chunk_error(
                 arr, int(i), f"says the frame is {STATUS_NAMES[int(status[i])]} where the output's status snapshot "
-                             f"({join(self.url, STATUS_SNAPSHOT)}) says {STATUS_NAMES[int(snapshot[i])]}"))
+                             f"({join(self.url, STATUS_SNAPSHOT)}) says {STATUS_NAMES[int(there.status[i])]}"))
 
     def _scan(self, every_chunk: bool, name: str, frames: np.ndarray | None, errors: dict[int, ChunkError],
               progress: Callable[[int], None], block_bytes: int, state: str = "",

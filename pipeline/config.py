@@ -626,7 +626,17 @@ CHOICES: dict[str, tuple[str, ...]] = {
 """The values each text key of this table may take, checked where :data:`LIMITS` are (profile,
 environment, --set), so that a misspelt one is refused by every command, whichever stages it runs.
 The modules that act on a key take its tuple from here. Devices are not listed: 'cuda:1' and the
-like are checked against the machine (pipeline.inference.select_device)."""
+like are checked against the machine (:func:`check_device`)."""
+
+
+def check_device(key: str, device: str) -> None:
+    """ConfigError when ``device``, the value of ``key`` (train.device, synth.device), names no
+    device this machine has; torch (1-3 s to import) only for one other than 'auto' and 'cpu',
+    which need no check (pipeline.inference.select_device)."""
+    if device not in ("auto", "cpu"):
+        from pipeline.inference import select_device
+
+        select_device(device, key)
 
 
 def check_limit(key: str, value: Any) -> None:

@@ -103,7 +103,7 @@ class StatusSnapshot:
         ``changed`` ((F,) bool) were written or marked since it was the output's and nothing else
         was; without a lineage when this one has no token."""
         if self.token is None:
-            return StatusSnapshot(np.asarray(status, np.uint8), new_token())
+            return fresh_status(status)
         ancestors = (self.token, *self.ancestors)[:LINEAGE_MAX]
         age = np.full(len(status), OLDER, np.uint8) if self.age is None else self.age.astype(np.int64) + 1
         age = np.where((age > len(ancestors)) | (age >= OLDER), OLDER, age).astype(np.uint8)

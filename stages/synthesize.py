@@ -39,7 +39,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from pipeline import transfer
-from pipeline.config import Config, named_nets
+from pipeline.config import Config, check_device, named_nets
 from pipeline.errors import PipelineError
 from pipeline.executor import FrameInputs, process_memo, run_memo
 from pipeline.geometry import wrap_doppler
@@ -123,10 +123,7 @@ def check_generation(cfg: Config) -> None:
             hint = RAY_HINT if left_out == ["placenet"] else ""
             raise ConfigError(f"train.nets = '{cfg.train.nets}' leaves out {', '.join(left_out)}, which synthesis "
                               f"with synth.placement = '{s.placement}' needs: add it to train.nets{hint}")
-    if s.device not in ("auto", "cpu"):  # only these need no check (nor torch imported for it)
-        from pipeline.inference import select_device
-
-        select_device(s.device, "synth.device")
+    check_device("synth.device", s.device)
 
 
 def needed_nets(cfg: Config) -> tuple[str, ...]:

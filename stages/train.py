@@ -25,7 +25,8 @@ import numpy as np
 
 from pipeline import transfer
 from pipeline.cache import DONE, RaggedRows
-from pipeline.config import EPOCHS_KEYS, PATIENCE_KEYS, TRAINING_KEYS, Config, check_profile, named_nets
+from pipeline.config import (EPOCHS_KEYS, PATIENCE_KEYS, TRAINING_KEYS, Config, check_device, check_profile,
+                             named_nets)
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.stage import DatasetStage
 
@@ -362,10 +363,7 @@ def check(cfg: Config) -> None:
                           f"train here")
     if cfg.train.nets_from:
         check_profile(cfg.train.nets_from, "train.nets_from")
-    if cfg.train.device not in ("auto", "cpu"):  # only these need no check (nor torch, 1-3 s, imported for it)
-        from pipeline.inference import select_device
-
-        select_device(cfg.train.device)
+    check_device("train.device", cfg.train.device)
 
 
 HEADER_READ_BYTES = 1 << 16
