@@ -129,15 +129,29 @@ def github_anchor(heading: str) -> str:
     return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
 
 
-def test_every_link_the_readme_has_resolves():
-    anchors = {github_anchor(h) for h in re.findall(r"^#+ (.+)$", README, flags=re.M)}
+def link_problems(doc: Path) -> list[str]:
+    """Links of ``doc`` (a Markdown file of the repository) to a file that does not exist, or to a
+    heading (``#anchor``, ``file.md#anchor``) that file does not have; relative to ``doc``'s folder."""
+    text = doc.read_text(encoding="utf-8")
     problems = []
-    for target in re.findall(r"\]\(([^)\s]+)\)", README):
+    for target in re.findall(r"\]\(([^)\s]+)\)", text):
         if target.startswith(("http://", "https://")):
             continue
-        if target.startswith("#"):
-            if target[1:] not in anchors:
-                problems.append(f"{target}: no such heading")
-        elif not (ROOT / target.split("#")[0]).exists():
-            problems.append(f"{target}: no such file")
-    assert not problems, "README links: " + "; ".join(problems)
+        path, _, anchor = target.partition("#")
+        linked = (doc.parent / path).resolve() if path else doc
+        if not linked.exists():
+            problems.append(f"{doc.name}: {target}: no such file")
+        elif anchor and linked.suffix == ".md":
+            headings = re.findall(r"^#+ (.+)$", linked.read_text(encoding="utf-8"), flags=re.M)
+            if anchor not in {github_anchor(h) for h in headings}:
+                problems.append(f"{doc.name}: {target}: no such heading")
+    return problems
+
+
+def test_every_link_of_the_readme_and_docs_resolves():
+    """README.md's links and those of docs/*.md (the measurement record and the README's history),
+    headings included: a moved or renamed section breaks a link a reader follows."""
+    docs = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    assert len(docs) >= 3
+    problems = [problem for doc in docs for problem in link_problems(doc)]
+    assert not problems, "links: " + "; ".join(problems)
