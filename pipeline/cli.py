@@ -23,7 +23,6 @@ from pipeline.errors import ClusterFailed, ConfigError, MetadataError, PipelineE
 from pipeline.run_report import NAME_WIDTH, failed_frames_line
 from pipeline.runner import check_stage_name
 from pipeline.stage import FrameStage
-from pipeline.staleness import options_text
 
 DEFAULT_CACHE = "cache"
 
@@ -798,7 +797,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
     file a dataset stage recorded when it finished (size and SHA-256): the damaged frames and
     files, by stage, with the command that recomputes them (e.g. after copying a cache). Exit code
     2 when anything is damaged."""
-    from pipeline.inspection import verify_cache
+    from pipeline.inspection import verify_cache, verify_lines
     from pipeline.progress import bar
 
     env = _context(dataset, data_root, cache_root, sets, need_root=False)
@@ -824,55 +823,11 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
         for stage_bar in bars.values():
             stage_bar.close()
     click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")
-    again = "".join(f" --set {shlex.quote(s)}" for s in sets)  # the repair runs with this command's settings
-
-    def unless_stale(name: str) -> None:
-        """Say so where the repair command would not find the output current: made with other
-        settings (a --set left out, e.g. train.nets_from), the run would make it, and the stages
-        before it that are stale too, with this command's settings."""
-        try:
-            stale = [n for n in pipe.upstream_closure(name) if not pipe.is_current(n)]
-        except Exception:  # noqa: BLE001 - only words: the data may not be here (a copied cache)
-            return
-        if stale:
-            before = [n for n in stale if n != name]
-            redo = f"recomputes {before[0]} and every stage after it" if before else f"makes {name} anew"
-            sets, settings_only = pipe.forgotten_sets(stale)
-            options = options_text(sets)
-            give = f"add `{options}` to both" if settings_only else \
-                "give verify and the run the --set options the cache was made with" + \
-                (f" (those recorded: `{options}`)" if sets else "")
-            click.echo(f"{'':<{NAME_WIDTH}} (not current with this command's settings, with which that run {redo}: "
-                       f"{give})")
-
-    bad = 0
-    for row in rows:
-        name = row["stage"]
-        if "problem" in row:
-            bad += 1
-            click.echo(f"{name:<{NAME_WIDTH}} cannot be read: {row['problem']}")
-            if "checkpoints" in row:  # a dataset stage: its output is made again as a whole
-                click.echo(f"{'':<{NAME_WIDTH}} make it again: pipeline run {name} --dataset {shlex.quote(dataset)} "
-                           f"--cache {shlex.quote(env.cache_root)}{again} --force")
-                unless_stale(name)
-        elif "checkpoints" in row:
-            read = [f"{row['files']} file(s) intact"] * (row["files"] is not None) + \
-                [f"{row['checkpoints']} checkpoint(s) read"] * bool(row["checkpoints"])
-            click.echo(f"{name:<{NAME_WIDTH}} " + ("; ".join(read) or "finished (its files are not checked: it "
-                                                                     "finished before files were recorded)"))
-        elif row["damaged"]:
-            bad += 1
-            ids = row["frame_ids_damaged"]
-            click.echo(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: {len(ids)} damaged")
-            for message in list(row["damaged"].values())[:5]:
-                click.echo(f"{'':<{NAME_WIDTH}} {message}")
-            if len(ids) > 5:
-                click.echo(f"{'':<{NAME_WIDTH}} ... and {len(ids) - 5} more")
-            click.echo(f"{'':<{NAME_WIDTH}} recompute them: pipeline run {name} --dataset {shlex.quote(dataset)} "
-                       f"--cache {shlex.quote(env.cache_root)}{again} --force --frames {shlex.quote(','.join(ids))}")
-            unless_stale(name)
-        else:
-            click.echo(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: every chunk intact")
+    rerun = f"--dataset {shlex.quote(dataset)} --cache {shlex.quote(env.cache_root)}" + \
+        "".join(f" --set {shlex.quote(s)}" for s in sets)  # the repair runs with this command's settings
+    lines, bad = verify_lines(pipe, rows, rerun)
+    for line in lines:
+        click.echo(line)
     if not rows:
         click.echo("no stage output to verify")
     if bad:

@@ -8,6 +8,7 @@ whose fingerprints say what is current, and change no output.
 from __future__ import annotations
 
 import os
+import shlex
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
@@ -17,7 +18,9 @@ from pipeline.cachefs import join
 from pipeline.dataroot import FIRST_STAGE, made_from, other_root_message
 from pipeline.errors import CacheError, ChunkError, MetadataError, PipelineError, cache_error
 from pipeline.lock import reading
+from pipeline.run_report import NAME_WIDTH
 from pipeline.runner import DatasetInputs, Pipeline
+from pipeline.staleness import options_text
 from pipeline.stage import DatasetStage, FrameStage
 
 
@@ -142,6 +145,60 @@ def verify_cache(pipe: Pipeline, names: list[str] | None = None,
         rows.append(row)
     return rows
 
+
+
+def verify_lines(pipe: Pipeline, rows: list[dict[str, Any]], rerun: str) -> tuple[list[str], int]:
+    """The lines `pipeline verify` prints for :func:`verify_cache`'s ``rows`` (a line per stage,
+    the damaged frames or files, the command that recomputes them), and how many stage outputs are
+    damaged. ``rerun``: the options the repair command takes (--dataset, --cache and the verify
+    command's own --set options, with which the repair runs)."""
+    lines, bad, pad = [], 0, " " * NAME_WIDTH
+    for row in rows:
+        name = row["stage"]
+        if "problem" in row:
+            bad += 1
+            lines.append(f"{name:<{NAME_WIDTH}} cannot be read: {row['problem']}")
+            if "checkpoints" in row:  # a dataset stage: its output is made again as a whole
+                lines.append(f"{pad} make it again: pipeline run {name} {rerun} --force")
+                lines += _not_current(pipe, name)
+        elif "checkpoints" in row:
+            read = [f"{row['files']} file(s) intact"] * (row["files"] is not None) + \
+                [f"{row['checkpoints']} checkpoint(s) read"] * bool(row["checkpoints"])
+            lines.append(f"{name:<{NAME_WIDTH}} " + ("; ".join(read) or "finished (its files are not checked: it "
+                                                                      "finished before files were recorded)"))
+        elif row["damaged"]:
+            bad += 1
+            ids = row["frame_ids_damaged"]
+            lines.append(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: {len(ids)} damaged")
+            lines += [f"{pad} {message}" for message in list(row["damaged"].values())[:5]]
+            if len(ids) > 5:
+                lines.append(f"{pad} ... and {len(ids) - 5} more")
+            lines.append(f"{pad} recompute them: pipeline run {name} {rerun} --force --frames "
+                         f"{shlex.quote(','.join(ids))}")
+            lines += _not_current(pipe, name)
+        else:
+            lines.append(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: every chunk intact")
+    return lines, bad
+
+
+def _not_current(pipe: Pipeline, name: str) -> list[str]:
+    """The line saying that the repair command would not find stage ``name`` current (made with
+    other settings, e.g. a --set left out such as train.nets_from): the run would make it, and the
+    stages before it that are stale too, anew; none where it is current."""
+    try:
+        stale = [n for n in pipe.upstream_closure(name) if not pipe.is_current(n)]
+    except Exception:  # noqa: BLE001 - only words: the data may not be here (a copied cache)
+        return []
+    if not stale:
+        return []
+    before = [n for n in stale if n != name]
+    redo = f"recomputes {before[0]} and every stage after it" if before else f"makes {name} anew"
+    sets, settings_only = pipe.forgotten_sets(stale)
+    options = options_text(sets)
+    give = f"add `{options}` to both" if settings_only else \
+        "give verify and the run the --set options the cache was made with" + \
+        (f" (those recorded: `{options}`)" if sets else "")
+    return [f"{'':<{NAME_WIDTH}} (not current with this command's settings, with which that run {redo}: {give})"]
 
 def _checkpoints_read(folder) -> tuple[int, list[str]]:
     """(checkpoints read, the problem of each that cannot be) under a dataset stage's folder; on a
