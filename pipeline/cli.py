@@ -277,7 +277,7 @@ def run(stage, dataset, data_root, cache_root, sets, workers, scheduler, frames_
     closure = pipe.upstream_closure(stage)
     pipe.check_config(stage)
     if dry_run:
-        _dry_run(pipe, stage, closure, force, frames_spec)
+        _dry_run(pipe, stage, closure, force, frames_spec, retry_failed)
         return
     pipe.executor.check_cluster(env.cache_root)  # before the world is generated or any output touched
     _ensure_world(env, pipe.progress)
@@ -310,10 +310,12 @@ def _note_failed(reports, dataset: str, cache_root: str) -> str:
     return status_cmd
 
 
-def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None) -> None:
+def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None,
+             retry_failed: bool = False) -> None:
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
-    --frames would do; exit 2 when an output it would read is damaged (as the run would stop), and
-    --frames refused as the run refuses it."""
+    --frames would do, else what the run would compute (or that it has nothing to do); exit 2 when
+    an output it would read is damaged (as the run would stop), and --frames refused as the run
+    refuses it."""
     from pipeline.inspection import cache_status
 
     makes_world = _world_to_make(pipe.env) and _is_cache_world(pipe.env)
@@ -336,8 +338,34 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
     if frames_spec:
         click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames{unchecked}"
                    f"{_whole_dataset_note(pipe, closure)}")
+    if not (force or frames_spec):
+        click.echo(_run_plan([rows[name] for name in closure], retry_failed))
     rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
     _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
+
+
+def _run_plan(rows: list[dict], retry_failed: bool) -> str:
+    """--dry-run's last line, from the stages' status rows (pipeline.inspection.cache_status): the
+    stages a run would compute, a frame stage that is current with the number of its frames to do
+    (pending, and failed with --retry-failed), or that it has nothing to do."""
+    todo, failed = [], []
+    for row in rows:
+        if row.get("damaged"):
+            continue  # the dry run exits naming it
+        if row.get("current") is None:
+            todo.append(f"{row['stage']} (whether it is current is unknown)")
+        elif not row["current"]:
+            todo.append(row["stage"])
+        elif "done" in row:
+            n = row["pending"] + row["failed"] * retry_failed
+            if row["failed"] and not retry_failed:
+                failed.append(f"{row['stage']} {row['failed']:,}")
+            if n:
+                todo.append(f"{row['stage']} ({n:,} frame(s))")
+    if todo:
+        return f"a run would compute: {', '.join(todo)}"
+    left = f"; failed frames stay failed ({', '.join(failed)}; --retry-failed runs them again)" if failed else ""
+    return f"nothing to do: every stage is current and finished{left}"
 
 
 def _check_frames(pipe, frames_spec: str | None, makes_world: bool) -> str:

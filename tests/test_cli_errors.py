@@ -46,6 +46,27 @@ def test_dry_run_refuses_the_frames_the_run_refuses(tmp_path, fake_cli, spec, wo
     assert good.exit_code == 0 and "--frames 0:2: per-frame work would be limited to those frames\n" in good.stdout
 
 
+
+def test_dry_run_ends_with_what_a_run_would_compute(tmp_path, monkeypatch):
+    """--dry-run's last line: the stages a run would compute (a current frame stage with its frames
+    to do: pending, and failed ones with --retry-failed), or that there is nothing to do, failed
+    frames left as they are without --retry-failed; it computes nothing."""
+    cli = fake_stages.fake_cli(monkeypatch, lambda: [*IDS[:3], "bad003", *IDS[4:]])
+
+    def last_line(*args: str) -> str:
+        result = cli(tmp_path, "run", "heatmaps", "--dry-run", *args)
+        assert result.exit_code == 0, result.output
+        return result.stdout.splitlines()[-1]
+
+    assert last_line() == "a run would compute: calibrate, heatmaps"
+    assert not (tmp_path / "cache" / "synthetic" / "calibrate.zarr").exists()
+    assert cli(tmp_path, "run", "heatmaps", "--workers", "1").exit_code == 0  # bad003 fails in calibrate
+    assert last_line() == ("nothing to do: every stage is current and finished; failed frames stay failed "
+                           "(calibrate 1, heatmaps 1; --retry-failed runs them again)")  # bad003, blocked in heatmaps
+    assert last_line("--retry-failed") == "a run would compute: calibrate (1 frame(s)), heatmaps (1 frame(s))"
+    assert last_line("--set", "heatmap.sigma_px=50,50") == "a run would compute: heatmaps"
+    assert cli(tmp_path, "run", "heatmaps", "--dry-run", "--force").stdout.splitlines()[-1].startswith("--force: ")
+
 def test_force_frames_on_an_output_of_other_settings_is_refused_by_the_run_and_the_dry_run(tmp_path, fake_cli):
     """A repair command (`--force --frames ID`) run without the --set the cache was made with: the
     run and --dry-run refuse it alike (exit 2, one line), and every finished frame stays."""
