@@ -85,13 +85,28 @@ def _frames_here(pipe: Pipeline, shown: int = 3) -> str:
         return f"lists {len(here)} frame(s)"
     if cached == here:
         return (f"lists the same {len(here)} frame(s), but {FIRST_STAGE}'s settings or code differ from those "
-                f"of the cache's output (so `pipeline relocate` cannot keep it)")
+                f"of the cache's output, so `pipeline relocate` cannot keep it{_first_stage_difference(pipe)}")
     listed = set(here)
     absent = [f for f in cached if f not in listed]
     more = f" and {len(absent) - shown} more" if len(absent) > shown else ""
     lacking = f" (not listed here: {', '.join(absent[:shown])}{more})" if absent else ""
     return f"lists {len(here)} frame(s), {len(cached) - len(absent)} of them among the cache's {len(cached)}{lacking}"
 
+
+
+def _first_stage_difference(pipe: Pipeline) -> str:
+    """': made with split.seed=0 (this command: 7), and `--set split.seed=0` gives this command the
+    cache's settings' where the first stage's output was made with other settings at its own data
+    root (:func:`made_from`); '' where that is not what differs, or it cannot be told."""
+    old = made_from(pipe)
+    try:
+        why = pipe.at(old).why_stale(FIRST_STAGE) if old is not None else None
+    except PipelineError:  # a damaged record: the run that reads it says so
+        return ""
+    if why is None or not why.reasons:
+        return ""
+    sets, _ = sets_to_restore([why])
+    return f": {why.text}" + (f", and `{options_text(sets)}` gives this command the cache's settings" if sets else "")
 
 def relocate_cache(pipe: Pipeline, check_frames: int = 3, wait_s: float = 0.0) -> dict[str, Any]:
     """Make the outputs made from the data at its old place (:func:`moved_from`) current for this

@@ -71,7 +71,9 @@ class ChunkError(PipelineError):
         self.problem = problem
         self.remedy = remedy
         frame_id = f" ({frame})" if frame is not None and frame != str(index) else ""
-        super().__init__(f"{array}, frame {index}{frame_id}: chunk {chunk} {problem}; {remedy}")
+        self.finding = f"{array}, frame {index}{frame_id}: chunk {chunk} {problem}"
+        """The message without its remedy (where the caller names the command itself, as verify does)."""
+        super().__init__(f"{self.finding}; {remedy}")
 
     def __reduce__(self):  # picklable (raised on dask workers)
         return type(self), (self.array, self.index, self.frame, self.chunk, self.problem, self.remedy)

@@ -109,9 +109,10 @@ def verify_cache(pipe: Pipeline, names: list[str] | None = None,
     """Read every chunk of the frame stage outputs (and every checkpoint and recorded file of
     the dataset stage folders: DirStore.check_files) of ``names`` (default: every stage with an
     output), holding them against rewriting meanwhile. Per stage: ``frames`` (frame ids by
-    index), ``checked`` (done frames read), ``damaged`` ({frame index: message}),
-    ``frame_ids_damaged``, ``problem`` (the output cannot be read at all, or a dataset stage's
-    file is damaged), ``checkpoints`` (read), ``files`` (checked; None: none recorded).
+    index), ``checked`` (done frames read), ``damaged`` ({frame index: message}), ``findings``
+    (the same without the command that recomputes each frame: :func:`verify_lines` names one for
+    all), ``frame_ids_damaged``, ``problem`` (the output cannot be read at all, or a dataset
+    stage's file is damaged), ``checkpoints`` (read), ``files`` (checked; None: none recorded).
     ``progress(stage, n, total)``."""
     rows = []
     for name in names or pipe.order:
@@ -128,6 +129,7 @@ def verify_cache(pipe: Pipeline, names: list[str] | None = None,
                     rows.append({**row, "problem": str(exc)})
                     continue
                 row.update(checked=int((status == DONE).sum()), damaged={i: str(e) for i, e in errors.items()},
+                           findings={i: getattr(e, "finding", str(e)) for i, e in errors.items()},
                            frame_ids_damaged=[ids[i] for i in errors])
             else:
                 folder = pipe.env.dir(name)
@@ -170,7 +172,7 @@ def verify_lines(pipe: Pipeline, rows: list[dict[str, Any]], rerun: str) -> tupl
             bad += 1
             ids = row["frame_ids_damaged"]
             lines.append(f"{name:<{NAME_WIDTH}} {row['checked']} finished frame(s) read: {len(ids)} damaged")
-            lines += [f"{pad} {message}" for message in list(row["damaged"].values())[:5]]
+            lines += [f"{pad} {message}" for message in list(row["findings"].values())[:5]]
             if len(ids) > 5:
                 lines.append(f"{pad} ... and {len(ids) - 5} more")
             lines.append(f"{pad} recompute them: pipeline run {name} {rerun} --force --frames "

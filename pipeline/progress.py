@@ -48,8 +48,12 @@ def bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str
         return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, leave=False, file=stream)
     if not _writes_lines(enabled, every_s, stream):
         return tqdm(iterable, total=total, disable=True)
+    # miniters=1: every update checks the interval itself. With tqdm's dynamic miniters (above 1)
+    # its monitor thread redraws a bar that has not printed for maxinterval, and over an iterable
+    # that redraw shows the count of the last line (the loop syncs its count only when it prints):
+    # a log got a line with a stale count and time left, and the loop's own line a second later
     return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, file=_Lines(stream), leave=False,
-                mininterval=every_s, maxinterval=max(every_s, 10.0), delay=every_s, bar_format=LINE_FORMAT,
+                mininterval=every_s, maxinterval=every_s, miniters=1, delay=every_s, bar_format=LINE_FORMAT,
                 ascii=True, dynamic_ncols=False)
 
 

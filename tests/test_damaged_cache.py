@@ -672,6 +672,9 @@ def test_cli_verify_prints_the_repair_command_and_exits_2(tmp_path, fake_cli):
     assert "heatmaps        8 finished frame(s) read: 1 damaged" in out.stdout
     command = re.search(r"recompute them: pipeline (run heatmaps .*)$", out.stdout, re.M).group(1)
     assert command == f"run heatmaps --dataset synthetic --cache {tmp_path / 'cache'} --force --frames f002"
+    # the damaged chunk's line names what is wrong; the repair command is verify's one (with its --set
+    # options; until 2026-12-08 the chunk's line named its own, without them)
+    assert out.stdout.count("pipeline run") == 1 and "frame 2 (f002): chunk " in out.stdout
     assert fake_cli(tmp_path, *command.split()[:2], *command.split()[6:], "--workers", "1").exit_code == 0
     assert fake_cli(tmp_path, "verify").exit_code == 0
     bad = fake_cli(tmp_path, "verify", "--stage", "heatmap")

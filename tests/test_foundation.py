@@ -749,7 +749,10 @@ def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced
     log.unlink()
     other = tmp_path / "other"
     cases = [(IDS[:5] + ["x001"], {}, f"the data root {other} lists 6 frame(s), 5 of them among the cache's {len(IDS)}"),
-             (IDS, {"split.seed": "7"}, f"lists the same {len(IDS)} frame(s), but calibrate's settings or code differ")]
+             (IDS, {"split.seed": "7"}, f"lists the same {len(IDS)} frame(s), but calibrate's settings or code differ "
+                                        f"from those of the cache's output, so `pipeline relocate` cannot keep it: made "
+                                        f"with split.seed=0 (this command: 7), and `--set split.seed=0` gives this "
+                                        f"command the cache's settings")]
     for ids, overrides, frames in cases:
         for target in ("train", "heatmaps"):
             with pytest.raises(PipelineError, match=re.escape(frames)) as exc:

@@ -67,6 +67,26 @@ def test_a_log_gets_a_line_per_interval_with_the_count_and_what_is_left(clock):
     assert lines[1].startswith("synthesize: 52/100 (52%), 02:15 elapsed")
 
 
+
+def test_tqdm_s_monitor_never_redraws_a_log_s_bar_with_a_stale_count(clock):
+    """tqdm's monitor thread redraws a bar whose miniters is above 1 once maxinterval has passed
+    since its last line (tqdm 4.x, TMonitor.run: `miniters > 1 and now - last_print_t >=
+    maxinterval` -> refresh); over an iterable the count shown is the one the loop last synced, at
+    its last line. A training log (2026-12-08) got 'rssnet epoch 8/8: 73/252 (29%), 02:02 elapsed'
+    and, a second later, '133/252 (53%), 02:03 elapsed'. A log's bar keeps miniters at 1: the
+    monitor leaves it alone, and the loop writes at most a line an interval, with its count."""
+    log = io.StringIO()
+    b = bar(range(300), total=300, desc="rssnet epoch 8/8", unit="batch", every_s=60.0, stream=log)
+    for i in b:
+        clock.now += 1.0
+        if b.miniters > 1 and clock.now - b.last_print_t >= b.maxinterval:  # the monitor's rule
+            b.miniters = 1
+            b.refresh(nolock=True)
+    b.close()
+    lines = log.getvalue().splitlines()
+    counts = [int(re.match(r"rssnet epoch 8/8: (\d+)/300", line).group(1)) for line in lines]
+    assert counts == [60, 120, 180, 240, 300], lines  # a line a minute, each with the count of its moment
+
 def test_a_postfix_waits_for_the_interval_and_rides_on_the_next_line(clock):
     """Training sets the batch loss as a postfix every 10 batches; until 2026-12-07 that redrew the
     bar at once, so a log got three lines an epoch, each saying '0/21 (0%)' (tqdm's count is not

@@ -48,7 +48,8 @@ def main() -> None:
     brute_ms, brute = best_ms(lambda: local_range_images_brute(lidar, points, args.r_l), 2)
     same = bool(np.array_equal(fast, brute))
     print(f"range images {args.points} pts, {args.lidar}-pt cloud, r_l {args.r_l:g} m: kd-tree {fast_ms:.1f} ms "
-          f"(build {build_ms:.1f} + query/render {query_ms:.1f}), brute {brute_ms:.0f} ms, speed-up {brute_ms / fast_ms:.0f}x, identical {same}")
+          f"(build {build_ms:.1f} + query/render {query_ms:.1f}), brute {brute_ms:.0f} ms, identical {same}, "
+          f"speed-up {brute_ms / fast_ms:.0f}x")
 
 
 if __name__ == "__main__":
