@@ -6,11 +6,13 @@ from __future__ import annotations
 import difflib
 import functools
 import json
+import logging
 import os
 import re
 import shlex
 import sys
 import textwrap
+import warnings
 from collections import Counter
 from pathlib import Path
 
@@ -50,12 +52,25 @@ def _handle_errors(fn):
             sys.exit(2)
         except StageInterrupted as exc:
             click.echo(exc.advice(), err=True)
+            _quiet_cut_off_io()
             sys.exit(130)
         except KeyboardInterrupt:
             click.echo("interrupted", err=True)
+            _quiet_cut_off_io()
             sys.exit(130)
 
     return wrapper
+
+
+def _quiet_cut_off_io() -> None:
+    """After a Ctrl-C: zarr's reads and writes that it cut off are tasks of zarr's event loop, which
+    Python destroys at exit, each with asyncio's 'Task was destroyed but it is pending!', a
+    'coroutine ... was never awaited' warning or an 'Exception ignored in: <coroutine ...>' traceback
+    ('Event loop is closed'): up to about 190 lines after `interrupted` in a verify. What was
+    written is settled by the cache's own rules (a frame's status last); they are noise."""
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL)
+    warnings.filterwarnings("ignore", message="coroutine .* was never awaited", category=RuntimeWarning)
+    sys.unraisablehook = lambda unraisable: None  # exceptions in those coroutines' finalisers
 
 
 def dataset_options(fn):
@@ -150,8 +165,8 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
             world = join(cache_root, dataset, "world")
             hint = f" (the synthetic world moved with the cache: --data-root {world})" if os.path.isdir(world) else ""
             raise ConfigError(f"dataset '{dataset}': the cache was made from the data at {data_root}, which is not "
-                              f"there any more; if it moved, `pipeline relocate --dataset {dataset} --data-root "
-                              f"NEW_PLACE`{hint}")
+                              f"there any more; if it moved, `pipeline relocate --dataset {shlex.quote(dataset)} "
+                              f"--cache {shlex.quote(cache_root)} --data-root NEW_PLACE`{hint}")
     if not data_root:
         data_root = default_data_root(cfg, cache_root, dataset)
     if not data_root and need_root and cfg.dataset.reader == "synthetic":  # a remote cache: no world in it
@@ -324,6 +339,8 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
         ds = pipe.env.cfg.dataset
         click.echo(f"the synthetic world would be generated first ({ds.world_frames} frames, seed {ds.world_seed}) "
                    f"into {pipe.env.data_root}")
+    if not makes_world:
+        pipe.check_data_root((stage,), force)  # data at another place: refused as the run refuses it
     if force and frames_spec and not makes_world:
         pipe.check_forced_frames((stage,))  # refused as the run refuses it
     rows = {r["stage"]: r for r in cache_status(pipe, reasons=0)}
@@ -339,15 +356,28 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
         click.echo(f"--frames {frames_spec}: per-frame work would be limited to those frames{unchecked}"
                    f"{_whole_dataset_note(pipe, closure)}")
     if not (force or frames_spec):
-        click.echo(_run_plan([rows[name] for name in closure], retry_failed))
+        click.echo(_run_plan([rows[name] for name in closure], retry_failed, None if makes_world else _unlisted(pipe)))
     rebuilt = {stage} if force and not frames_spec else set()  # a forced rebuild replaces a damaged output
     _exit_if_damaged([rows[name] for name in closure if name not in rebuilt])
 
 
-def _run_plan(rows: list[dict], retry_failed: bool) -> str:
+def _unlisted(pipe) -> str | None:
+    """Why the dataset's frames cannot be listed (the run stops there: e.g. a data root one folder
+    above the dataset's), or None."""
+    try:
+        pipe.frame_ids()
+    except PipelineError as exc:
+        return str(exc).splitlines()[0]
+    return None
+
+
+def _run_plan(rows: list[dict], retry_failed: bool, unlisted: str | None = None) -> str:
     """--dry-run's last line, from the stages' status rows (pipeline.inspection.cache_status): the
     stages a run would compute, a frame stage that is current with the number of its frames to do
-    (pending, and failed with --retry-failed), or that it has nothing to do."""
+    (pending, and failed with --retry-failed), or that it has nothing to do; that it would stop
+    where the dataset's frames cannot be listed (``unlisted``: why)."""
+    if unlisted:
+        return f"a run would stop before computing anything: {unlisted}"
     todo, failed = [], []
     for row in rows:
         if row.get("damaged"):
@@ -478,8 +508,8 @@ def status(dataset, data_root, cache_root, sets, reasons, as_json):
         notes = Counter(row["note"] for row in rows if row.get("note"))
         for row in rows:
             _print_status_row(row, notes)
-            for i, why in list(row.get("reasons", {}).items())[:reasons]:
-                click.echo(f"{'':<{NAME_WIDTH}} frame {i}: {why}")
+            for i, why in list(row.get("reasons", {}).items())[:reasons]:  # 'stage S, frame ID: ...' names it
+                click.echo(f"{'':<{NAME_WIDTH}} {why if why.startswith('stage ') else f'frame {i}: {why}'}")
         if ablations:
             from stages.ablations import ablation_line
 

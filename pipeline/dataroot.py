@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shlex
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -61,11 +62,12 @@ def moved_from(pipe: Pipeline) -> str | None:
 def other_root_message(pipe: Pipeline, old: str) -> str:
     """Why a run at this data root, not the cache's ``old`` one (:func:`made_from`), stops, and the ways on."""
     new, dataset = absolute_root(pipe.env.data_root), pipe.env.dataset
+    where = f"--dataset {shlex.quote(dataset)} --cache {shlex.quote(pipe.env.cache_root)}"  # pasted anywhere: the same cache
     start = f"dataset '{dataset}': its cache was made from the data at {old}; the data root {new} "
-    force = f"`pipeline run {FIRST_STAGE} --force --data-root {new}` recomputes everything from it"
+    force = f"`pipeline run {FIRST_STAGE} {where} --force --data-root {shlex.quote(new)}` recomputes everything from it"
     if moved_from(pipe) == old:
         return (f"{start}lists the same frames, and would make every stage recompute, training included. The "
-                f"same data moved: `pipeline relocate --dataset {dataset} --data-root {new}` checks some of its "
+                f"same data moved: `pipeline relocate {where} --data-root {shlex.quote(new)}` checks some of its "
                 f"frames and keeps every output. Other data: {force} (or use another --cache)")
     return (f"{start}{_frames_here(pipe)}. Running on it would recompute every stage, training included, "
             f"and replace what the cache holds. To do so: {force}; to keep this cache, use another --cache for "

@@ -19,6 +19,7 @@ import errno
 import fcntl
 import json
 import os
+import shlex
 import socket
 import time
 from contextlib import contextmanager
@@ -92,13 +93,21 @@ def _try_create_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str) -
     return True
 
 
-def _refuse(what: str, info: dict | None) -> LockError:
+def _refuse(what: str, info: dict | None, url: str) -> LockError:
     info = info or {}
     age = time.time() - float(info.get("started", time.time()))
     return LockError(
         f"{what} is being written by another run (pid {info.get('pid', '?')} on {info.get('host', '?')}, "
         f"for {age:.0f} s); wait for it to finish (or pass --wait SECONDS). If that run is dead "
-        f"on another machine, remove the lock with `pipeline unlock`.")
+        f"on another machine, remove the lock with {unlock_command(url)}.")
+
+
+def unlock_command(url: str) -> str:
+    """The `pipeline unlock` command that removes the lock file ``url``
+    (CACHE/DATASET/locks/NAME.lock), quoted for the shell."""
+    root, dataset, _, name = url.rstrip("/").rsplit("/", 3)
+    return (f"`pipeline unlock {shlex.quote(name.removesuffix('.lock'))} --dataset {shlex.quote(dataset)} "
+            f"--cache {shlex.quote(root)}`")
 
 
 @contextmanager
@@ -115,10 +124,10 @@ def stage_lock(url: str, what: str, wait_s: float = 0.0) -> Iterator[None]:
     try:
         fs.makedirs(fs._parent(path), exist_ok=True)
         if is_local(fs):
-            fd = _acquire_local(path, payload, what, deadline)
+            fd = _acquire_local(path, payload, what, deadline, url)
         else:
             fd = None
-            _acquire_remote(fs, path, payload, what, deadline)
+            _acquire_remote(fs, path, payload, what, deadline, url)
     except OSError as exc:
         raise cache_error(exc, f"taking the lock {url}") from None
     try:
@@ -215,18 +224,19 @@ def _flock_readers(lock_path: str, mode: int, deadline: float, refusal: str) -> 
             raise
 
 
-def _acquire_local(path: str, payload: str, what: str, deadline: float) -> int:
+def _acquire_local(path: str, payload: str, what: str, deadline: float, url: str) -> int:
     while True:
         fd = _try_flock(path, payload)
         if fd is not None and fd != _RETRY:
             return fd
         if fd is None and time.monotonic() >= deadline:
-            raise _refuse(what, _read(fsspec.filesystem("file"), path))
+            raise _refuse(what, _read(fsspec.filesystem("file"), path), url)
         if fd is None:
             time.sleep(0.2)
 
 
-def _acquire_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str, what: str, deadline: float) -> None:
+def _acquire_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str, what: str, deadline: float,
+                    url: str) -> None:
     while not _try_create_remote(fs, path, payload):
         info = _read(fs, path)
         if _is_stale(info):
@@ -236,7 +246,7 @@ def _acquire_remote(fs: fsspec.AbstractFileSystem, path: str, payload: str, what
                 pass  # another run recovered it first
             continue
         if time.monotonic() >= deadline:
-            raise _refuse(what, info)
+            raise _refuse(what, info, url)
         time.sleep(0.5)
 
 

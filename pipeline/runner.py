@@ -265,9 +265,7 @@ class Pipeline:
         self._done.clear()
         for name in targets:
             self.check_config(name)
-        old = made_from(self)
-        if old and not (force and FIRST_STAGE in targets):  # every output would be recomputed: only when asked
-            raise PipelineError(other_root_message(self, old))
+        self.check_data_root(targets, force)
         if force and frames is not None:
             self.check_forced_frames(targets)
         needed = {name for t in targets for name in self.upstream_closure(t)}
@@ -349,6 +347,13 @@ class Pipeline:
 
     def lock_url(self, name: str) -> str:
         return join(self.env.cache_root, self.env.dataset, "locks", f"{name}.lock")
+
+    def check_data_root(self, targets: tuple[str, ...], force: bool) -> None:
+        """PipelineError where the cache was made from data at another place than this data root
+        (every output would be recomputed) and the run does not force the first stage."""
+        old = made_from(self)
+        if old and not (force and FIRST_STAGE in targets):  # every output would be recomputed: only when asked
+            raise PipelineError(other_root_message(self, old))
 
     def check_config(self, target: str) -> None:
         """ConfigError for settings a stage of ``target``'s run cannot work with, before any output

@@ -50,7 +50,10 @@ def test_dry_run_refuses_the_frames_the_run_refuses(tmp_path, fake_cli, spec, wo
 def test_dry_run_ends_with_what_a_run_would_compute(tmp_path, monkeypatch):
     """--dry-run's last line: the stages a run would compute (a current frame stage with its frames
     to do: pending, and failed ones with --retry-failed), or that there is nothing to do, failed
-    frames left as they are without --retry-failed; it computes nothing."""
+    frames left as they are without --retry-failed, or that the run would stop where the frames
+    cannot be listed; it computes nothing. Data at another place is refused as the run refuses it."""
+    from pipeline.errors import PipelineError
+
     cli = fake_stages.fake_cli(monkeypatch, lambda: [*IDS[:3], "bad003", *IDS[4:]])
 
     def last_line(*args: str) -> str:
@@ -66,6 +69,20 @@ def test_dry_run_ends_with_what_a_run_would_compute(tmp_path, monkeypatch):
     assert last_line("--retry-failed") == "a run would compute: calibrate (1 frame(s)), heatmaps (1 frame(s))"
     assert last_line("--set", "heatmap.sigma_px=50,50") == "a run would compute: heatmaps"
     assert cli(tmp_path, "run", "heatmaps", "--dry-run", "--force").stdout.splitlines()[-1].startswith("--force: ")
+    other = tmp_path / "other"  # the same cache, another data root: the run and the dry run refuse it alike
+    other.mkdir()
+    (other / "cache").symlink_to(tmp_path / "cache")
+    run, dry = cli(other, "run", "heatmaps", "--workers", "1"), cli(other, "run", "heatmaps", "--dry-run")
+    assert run.exit_code == dry.exit_code == 2 and dry.stderr == run.stderr, dry.output
+    assert "its cache was made from the data at" in dry.stderr and "a run would" not in dry.stdout
+
+    def unlisted(self):
+        raise PipelineError(f"{tmp_path}/dataset.json: missing dataset index file")
+
+    monkeypatch.setattr(Pipeline, "frame_ids", unlisted)  # the run stops there: so says the dry run
+    monkeypatch.setattr("pipeline.inspection.cache_status",
+                        lambda pipe, reasons=0: [{"stage": s.name} for s in fake_stages.STAGES])
+    assert last_line() == f"a run would stop before computing anything: {tmp_path}/dataset.json: missing dataset index file"
 
 def test_force_frames_on_an_output_of_other_settings_is_refused_by_the_run_and_the_dry_run(tmp_path, fake_cli):
     """A repair command (`--force --frames ID`) run without the --set the cache was made with: the
@@ -442,3 +459,35 @@ def test_ctrl_c_while_the_cli_loads_ends_with_one_line(tmp_path):
     ran = subprocess.run([sys.executable, "-m", "pipeline", "datasets"], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=120)
     assert ran.returncode == 0 and "astyx" in ran.stdout, ran.stderr
+
+
+def test_ctrl_c_with_io_of_zarr_s_event_loop_cut_off_ends_with_one_line(tmp_path):
+    """A Ctrl-C in `pipeline verify` cut off zarr's concurrent chunk reads, tasks of zarr's event
+    loop, which Python destroyed at exit: up to about 190 lines after 'interrupted' (2026-12-08, an
+    audit: 'Task was destroyed but it is pending!', 'coroutine ... was never awaited', 'Exception
+    ignored in: <coroutine ...>' with 'Event loop is closed'). Each kind is made here, on zarr's own
+    loop, by a command that then takes a Ctrl-C: stderr is the one line."""
+    script = ("import asyncio, click, sys\n"
+              "import zarr.core.sync as zs\n"
+              "from pipeline.cli import _handle_errors\n"
+              "async def pending():\n"
+              "    await asyncio.Event().wait()\n"
+              "async def closes_late():\n"
+              "    try:\n"
+              "        await asyncio.sleep(3600)\n"
+              "    finally:\n"
+              "        asyncio.get_running_loop().call_soon(print)\n"
+              "@click.command()\n"
+              "@_handle_errors\n"
+              "def cmd():\n"
+              "    loop = zs._get_loop()\n"
+              "    for _ in range(5):\n"
+              "        asyncio.run_coroutine_threadsafe(pending(), loop)\n"
+              "        asyncio.run_coroutine_threadsafe(closes_late(), loop)\n"
+              "    never = pending()  # a coroutine never awaited\n"
+              "    raise KeyboardInterrupt\n"
+              "cmd()\n")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert (out.returncode, out.stderr) == (130, "interrupted\n"), out.stderr

@@ -434,8 +434,10 @@ def test_runs_checking_an_up_to_date_stage_do_not_refuse_each_other(tmp_path):
     calibrate_lock, heatmaps_lock = str(locks / "calibrate.lock"), str(locks / "heatmaps.lock")
     with stage_lock(heatmaps_lock, "stage 'heatmaps' of dataset 'fake'"):
         assert held(heatmaps_lock) and not held(calibrate_lock)
-        with pytest.raises(LockError, match="'heatmaps' of dataset 'fake' is being written by another run"):
+        with pytest.raises(LockError, match="'heatmaps' of dataset 'fake' is being written by another run") as exc:
             make_pipeline(tmp_path).run("heatmaps")
+        # the whole command (until 2026-12-08 `pipeline unlock`, which needs the stage, dataset and cache)
+        assert f"`pipeline unlock heatmaps --dataset fake --cache {pipe.env.cache_root}`" in str(exc.value)
         assert make_pipeline(tmp_path).run("calibrate")[0].processed == 0
     with reading([calibrate_lock, heatmaps_lock], "another run checking both"):
         calibrate, heatmaps = make_pipeline(tmp_path).run("heatmaps")
@@ -683,7 +685,9 @@ def test_moved_data_is_refused_then_relocated_keeping_every_output(tmp_path, mon
     monkeypatch.setenv(fake_stages.CALLS_FILE_ENV, str(log))
     make_pipeline(tmp_path).run("train")
     moved = tmp_path / "moved"
-    with pytest.raises(PipelineError, match=f"pipeline relocate --dataset fake --data-root {moved}`"):
+    # the commands it names carry --dataset and --cache: pasted in another folder they act on this cache
+    with pytest.raises(PipelineError, match=f"pipeline relocate --dataset fake --cache {tmp_path / 'cache'} "
+                                            f"--data-root {moved}`"):
         at(moved).run("train")
     assert "pipeline relocate" in {r["stage"]: r for r in cache_status(at(moved))}["calibrate"]["note"]
 
@@ -757,7 +761,8 @@ def test_another_data_root_with_other_frames_or_settings_is_refused_until_forced
         for target in ("train", "heatmaps"):
             with pytest.raises(PipelineError, match=re.escape(frames)) as exc:
                 at(other, ids, overrides).run(target)
-            assert f"`pipeline run calibrate --force --data-root {other}`" in str(exc.value)
+            assert f"`pipeline run calibrate --dataset fake --cache {tmp_path / 'cache'} --force --data-root {other}`" \
+                in str(exc.value)
             assert "to keep this cache, use another --cache" in str(exc.value)
             with pytest.raises(PipelineError):
                 at(other, ids, overrides).run(target, force=True)  # forcing another stage is no answer

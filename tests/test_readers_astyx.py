@@ -98,6 +98,19 @@ def test_fixture_reads_aliased_doppler_and_labels(tmp_path):
     assert rec.lidar_D.shape == (300, 3) and rec.image.shape == (48, 64, 3)
 
 
+
+def test_a_data_root_above_the_dataset_names_the_folder_that_holds_its_index(tmp_path):
+    """The usual mistake, the folder above dataset_astyx_hires2019/: the error names the folder
+    that holds dataset.json (it said only 'missing dataset index file')."""
+    make_astyx_dataset(tmp_path / "dataset_astyx_hires2019", n_frames=1)
+    cfg = load_config("astyx").with_overrides({"camera.full_size": "64,48"})
+    with pytest.raises(ReaderError, match="missing dataset index file; --data-root is the folder that holds it: "
+                                          + str(tmp_path / "dataset_astyx_hires2019")):
+        get_reader(cfg, tmp_path).frame_ids()
+    assert get_reader(cfg, tmp_path / "dataset_astyx_hires2019").frame_ids() == ["000000"]
+    with pytest.raises(ReaderError, match="missing dataset index file$"):
+        get_reader(cfg, tmp_path / "dataset_astyx_hires2019" / "radar_6455").frame_ids()
+
 # -- real files --------------------------------------------------------------------------------
 
 @pytest.mark.realdata

@@ -144,6 +144,11 @@ class _AstyxIndex(Reader):
     def _index(self) -> tuple[dict[str, dict[str, Path]], dict[str, str]]:
         """({frame id: {uid: path}} for present frames, {frame id: problem} for broken entries)."""
         index_file = self.root / self.index_name
+        if not index_file.is_file() and self.root.is_dir():  # the usual mistake: the folder above the dataset's
+            below = sorted(str(f.parent) for f in self.root.glob(f"*/{self.index_name}"))
+            if below:
+                raise ReaderError(index_file, f"missing dataset index file; --data-root is the folder that holds "
+                                              f"it: {' or '.join(below)}")
         data = load_json(index_file, None, "dataset index", _reject_duplicate_keys)
         entries = data.get("data") if isinstance(data, dict) else None
         if not isinstance(entries, dict):
