@@ -307,6 +307,19 @@ def test_train_headline_names_a_chosen_prior_share():
     assert "share" not in _headline({**base, "disnet": {"test": test}})
 
 
+
+def test_train_headline_says_when_the_nets_had_few_training_frames():
+    """On the two View-of-Delft example frames (1 train, 0 val, 1 test) the nets equal the baselines
+    (Dis-Net L_KL 0.2777 against the mean map's 0.2777) and the line said nothing of why."""
+    from stages.train import FEW_TRAIN_FRAMES, _headline
+
+    base = {"baselines_test": {"mean_map_kl": 0.31, "mean_count_L_n": 0.2}, "disnet": {"test": {"kl": 0.29, "n": 0.1}}}
+    few = _headline({**base, "frames": {"train": 1, "val": 0, "test": 1}})
+    assert few.endswith("; only 1 training frame(s) and 0 val: from so few the nets learn little beyond the training "
+                        "means (enough to check the pipeline, not to simulate a radar)"), few
+    for frames in ({"train": FEW_TRAIN_FRAMES, "val": 2, "test": 5}, {}):
+        assert "training frame(s)" not in _headline({**base, "frames": frames})
+
 def test_train_headline_names_the_nets_stopped_early():
     """train.patience: the train stage's message says which nets stopped early, after which epoch
     and with which best; not for nets that ran all their epochs or summaries without the record."""
