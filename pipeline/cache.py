@@ -39,7 +39,7 @@ import zarr
 from zarr.codecs import ZstdCodec
 from zarr.core.sync import sync
 
-from pipeline.cachefs import join, local_path
+from pipeline.cachefs import command_options, join, local_path
 from pipeline.errors import CacheError, ChunkError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
 from pipeline.snapshots import (STATUS_SNAPSHOT, StatusSnapshot, column_eligible, column_key, decode_column,
@@ -552,9 +552,8 @@ class FrameStore:
         frame = str(ids[index]) if 0 <= index < len(ids) else None
         folder = self.url.rstrip("/").rsplit("/", 1)[-1]
         root, dataset, _ = self.url.rstrip("/").rsplit("/", 2)  # <cache root>/<dataset>/<stage>.zarr
-        remedy = (f"recompute the frame with `pipeline run {self.stage} --dataset {shlex.quote(dataset)} --cache "
-                  f"{shlex.quote(root)} --force --frames {shlex.quote(frame) if frame else index}` (the frames made "
-                  f"from it are recomputed too)")
+        remedy = (f"recompute the frame with `pipeline run {self.stage} {command_options(dataset, root)} --force "
+                  f"--frames {shlex.quote(frame) if frame else index}` (the frames made from it are recomputed too)")
         return ChunkError(f"{folder}/{arr.basename}", index, frame, chunk, problem, remedy)
 
     def verify(self, progress: Callable[[int, int], None] | None = None,

@@ -4,8 +4,15 @@ them (the local one, or one on which a file appears whole or not at all)."""
 from __future__ import annotations
 
 import functools
+import shlex
 
 import fsspec
+
+
+def command_options(dataset: str, cache_root: str) -> str:
+    """'--dataset D --cache C', quoted for the shell: what a command named in a message takes, so
+    that pasted in any folder it acts on this dataset's cache."""
+    return f"--dataset {shlex.quote(dataset)} --cache {shlex.quote(cache_root)}"
 
 
 def join(root: str, *parts: str) -> str:

@@ -19,7 +19,7 @@ from pathlib import Path
 import click
 
 from pipeline.cache import frame_store
-from pipeline.cachefs import join
+from pipeline.cachefs import command_options, join
 from pipeline.config import env_overrides, load_config, parse_set_options, profile_names
 from pipeline.errors import ClusterFailed, ConfigError, MetadataError, PipelineError, StageInterrupted, from_dask
 from pipeline.run_report import NAME_WIDTH, failed_frames_line
@@ -165,8 +165,8 @@ def _context(dataset: str, data_root: str, cache_root: str, sets: tuple[str, ...
             world = join(cache_root, dataset, "world")
             hint = f" (the synthetic world moved with the cache: --data-root {world})" if os.path.isdir(world) else ""
             raise ConfigError(f"dataset '{dataset}': the cache was made from the data at {data_root}, which is not "
-                              f"there any more; if it moved, `pipeline relocate --dataset {shlex.quote(dataset)} "
-                              f"--cache {shlex.quote(cache_root)} --data-root NEW_PLACE`{hint}")
+                              f"there any more; if it moved, `pipeline relocate {command_options(dataset, cache_root)} "
+                              f"--data-root NEW_PLACE`{hint}")
     if not data_root:
         data_root = default_data_root(cfg, cache_root, dataset)
     if not data_root and need_root and cfg.dataset.reader == "synthetic":  # a remote cache: no world in it
@@ -326,7 +326,7 @@ def _note_failed(reports, dataset: str, cache_root: str) -> str:
 
 
 def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str | None,
-             retry_failed: bool = False) -> None:
+             retry_failed: bool) -> None:
     """--dry-run: each stage of ``closure`` current or not, frames done and to do, what --force and
     --frames would do, else what the run would compute (or that it has nothing to do); exit 2 when
     an output it would read is damaged (as the run would stop), and --frames refused as the run
@@ -339,10 +339,10 @@ def _dry_run(pipe, stage: str, closure: list[str], force: bool, frames_spec: str
         ds = pipe.env.cfg.dataset
         click.echo(f"the synthetic world would be generated first ({ds.world_frames} frames, seed {ds.world_seed}) "
                    f"into {pipe.env.data_root}")
-    if not makes_world:
-        pipe.check_data_root((stage,), force)  # data at another place: refused as the run refuses it
-    if force and frames_spec and not makes_world:
-        pipe.check_forced_frames((stage,))  # refused as the run refuses it
+    if not makes_world:  # refused as the run refuses them: data at another place, --force --frames
+        pipe.check_data_root((stage,), force)
+        if force and frames_spec:
+            pipe.check_forced_frames((stage,))
     rows = {r["stage"]: r for r in cache_status(pipe, reasons=0)}
     for name in closure:
         _print_status_row(rows[name])
@@ -881,7 +881,7 @@ def verify(dataset, data_root, cache_root, sets, stages, wait_s):
         for stage_bar in bars.values():
             stage_bar.close()
     click.echo(f"dataset {dataset}  cache {join(cache_root, dataset)}")
-    rerun = f"--dataset {shlex.quote(dataset)} --cache {shlex.quote(env.cache_root)}" + \
+    rerun = command_options(dataset, env.cache_root) + \
         "".join(f" --set {shlex.quote(s)}" for s in sets)  # the repair runs with this command's settings
     lines, bad = verify_lines(pipe, rows, rerun)
     for line in lines:

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.cache import DONE
+from pipeline.cachefs import command_options
 from pipeline.errors import MetadataError, PipelineError
 from pipeline.executor import FrameInputs
 from pipeline.lock import rewriting, stage_lock
@@ -62,19 +63,19 @@ def moved_from(pipe: Pipeline) -> str | None:
 def other_root_message(pipe: Pipeline, old: str) -> str:
     """Why a run at this data root, not the cache's ``old`` one (:func:`made_from`), stops, and the ways on."""
     new, dataset = absolute_root(pipe.env.data_root), pipe.env.dataset
-    where = f"--dataset {shlex.quote(dataset)} --cache {shlex.quote(pipe.env.cache_root)}"  # pasted anywhere: the same cache
+    where = command_options(dataset, pipe.env.cache_root)
     start = f"dataset '{dataset}': its cache was made from the data at {old}; the data root {new} "
     force = f"`pipeline run {FIRST_STAGE} {where} --force --data-root {shlex.quote(new)}` recomputes everything from it"
     if moved_from(pipe) == old:
         return (f"{start}lists the same frames, and would make every stage recompute, training included. The "
                 f"same data moved: `pipeline relocate {where} --data-root {shlex.quote(new)}` checks some of its "
                 f"frames and keeps every output. Other data: {force} (or use another --cache)")
-    return (f"{start}{_frames_here(pipe)}. Running on it would recompute every stage, training included, "
+    return (f"{start}{_frames_here(pipe, old)}. Running on it would recompute every stage, training included, "
             f"and replace what the cache holds. To do so: {force}; to keep this cache, use another --cache for "
             f"the new data; to run on the cache's own data, omit --data-root")
 
 
-def _frames_here(pipe: Pipeline, shown: int = 3) -> str:
+def _frames_here(pipe: Pipeline, old: str, shown: int = 3) -> str:
     """How the frames at this data root compare with the cache's: 'lists 1 frame(s), 1 of them
     among the cache's 2 (not listed here: 01047)', or that they are the same but the first
     stage's settings or code differ."""
@@ -87,7 +88,7 @@ def _frames_here(pipe: Pipeline, shown: int = 3) -> str:
         return f"lists {len(here)} frame(s)"
     if cached == here:
         return (f"lists the same {len(here)} frame(s), but {FIRST_STAGE}'s settings or code differ from those "
-                f"of the cache's output, so `pipeline relocate` cannot keep it{_first_stage_difference(pipe)}")
+                f"of the cache's output, so `pipeline relocate` cannot keep it{_first_stage_difference(pipe, old)}")
     listed = set(here)
     absent = [f for f in cached if f not in listed]
     more = f" and {len(absent) - shown} more" if len(absent) > shown else ""
@@ -95,20 +96,19 @@ def _frames_here(pipe: Pipeline, shown: int = 3) -> str:
     return f"lists {len(here)} frame(s), {len(cached) - len(absent)} of them among the cache's {len(cached)}{lacking}"
 
 
-
-def _first_stage_difference(pipe: Pipeline) -> str:
+def _first_stage_difference(pipe: Pipeline, old: str) -> str:
     """': made with split.seed=0 (this command: 7), and `--set split.seed=0` gives this command the
     cache's settings' where the first stage's output was made with other settings at its own data
-    root (:func:`made_from`); '' where that is not what differs, or it cannot be told."""
-    old = made_from(pipe)
+    root ``old`` (:func:`made_from`); '' where that is not what differs, or it cannot be told."""
     try:
-        why = pipe.at(old).why_stale(FIRST_STAGE) if old is not None else None
+        why = pipe.at(old).why_stale(FIRST_STAGE)
     except PipelineError:  # a damaged record: the run that reads it says so
         return ""
     if why is None or not why.reasons:
         return ""
     sets, _ = sets_to_restore([why])
     return f": {why.text}" + (f", and `{options_text(sets)}` gives this command the cache's settings" if sets else "")
+
 
 def relocate_cache(pipe: Pipeline, check_frames: int = 3, wait_s: float = 0.0) -> dict[str, Any]:
     """Make the outputs made from the data at its old place (:func:`moved_from`) current for this
@@ -119,7 +119,7 @@ def relocate_cache(pipe: Pipeline, check_frames: int = 3, wait_s: float = 0.0) -
     old = moved_from(pipe)
     if old is None and (made := made_from(pipe)) is not None:
         raise PipelineError(f"dataset '{pipe.env.dataset}': cannot relocate the cache, made from the data at "
-                            f"{made}, to {absolute_root(pipe.env.data_root)}: it {_frames_here(pipe)}; "
+                            f"{made}, to {absolute_root(pipe.env.data_root)}: it {_frames_here(pipe, made)}; "
                             f"nothing was changed")
     if old is None:
         raise PipelineError(f"dataset '{pipe.env.dataset}': nothing to relocate (no output made from data at "

@@ -13,7 +13,6 @@ import hashlib
 import json
 import os
 import re
-import shlex
 import shutil
 import time
 import uuid
@@ -24,7 +23,7 @@ from typing import Any
 
 import fsspec
 
-from pipeline.cachefs import is_local, join, writes_whole_objects
+from pipeline.cachefs import command_options, is_local, join, writes_whole_objects
 from pipeline.errors import CacheError, MetadataError, cache_error, one_line
 from pipeline.fileio import sync_filesystem
 
@@ -88,7 +87,7 @@ class DirStore:
         """MetadataError for a damaged ``_stage.json`` (:meth:`meta`), with the two ways out."""
         parts = self.url.rstrip("/").rsplit("/", 2)  # <cache root>/<dataset>/<stage>
         stage = parts[-1]
-        where = f" --dataset {shlex.quote(parts[1])} --cache {shlex.quote(parts[0])}" if len(parts) == 3 else ""
+        where = f" {command_options(parts[1], parts[0])}" if len(parts) == 3 else ""
         return MetadataError(
             f"{join(self.url, '_stage.json')}: the record of stage output {stage} {problem}, so whether it finished, "
             f"and with which settings, is unknown (the file is written whole, so it is damaged). Restore the file "

@@ -148,7 +148,6 @@ def verify_cache(pipe: Pipeline, names: list[str] | None = None,
     return rows
 
 
-
 def verify_lines(pipe: Pipeline, rows: list[dict[str, Any]], rerun: str) -> tuple[list[str], int]:
     """The lines `pipeline verify` prints for :func:`verify_cache`'s ``rows`` (a line per stage,
     the damaged frames or files, the command that recomputes them), and how many stage outputs are
@@ -201,6 +200,7 @@ def _not_current(pipe: Pipeline, name: str) -> list[str]:
         "give verify and the run the --set options the cache was made with" + \
         (f" (those recorded: `{options}`)" if sets else "")
     return [f"{'':<{NAME_WIDTH}} (not current with this command's settings, with which that run {redo}: {give})"]
+
 
 def _checkpoints_read(folder) -> tuple[int, list[str]]:
     """(checkpoints read, the problem of each that cannot be) under a dataset stage's folder; on a

@@ -27,7 +27,7 @@ from typing import Iterator
 
 import fsspec
 
-from pipeline.cachefs import is_local
+from pipeline.cachefs import command_options, is_local
 from pipeline.errors import LockError, cache_error
 
 _RETRY = -1
@@ -106,8 +106,7 @@ def unlock_command(url: str) -> str:
     """The `pipeline unlock` command that removes the lock file ``url``
     (CACHE/DATASET/locks/NAME.lock), quoted for the shell."""
     root, dataset, _, name = url.rstrip("/").rsplit("/", 3)
-    return (f"`pipeline unlock {shlex.quote(name.removesuffix('.lock'))} --dataset {shlex.quote(dataset)} "
-            f"--cache {shlex.quote(root)}`")
+    return f"`pipeline unlock {shlex.quote(name.removesuffix('.lock'))} {command_options(dataset, root)}`"
 
 
 @contextmanager

@@ -18,7 +18,6 @@ at the source radar's typical range (:func:`source_camera`, :func:`prior_in_targ
 from __future__ import annotations
 
 import json
-import shlex
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -26,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.cache import frame_store
+from pipeline.cachefs import command_options
 from pipeline.config import Config, check_profile, load_config, own_radar
 from pipeline.dirstore import DirStore, dir_store
 from pipeline.errors import ConfigError, MetadataError, PipelineError
@@ -86,8 +86,7 @@ def trained_settings(cache_root: str, dataset: str) -> dict[str, Any]:
     meta = train.meta()
     if meta is None:
         raise PipelineError(f"train.nets_from = '{dataset}': no finished train stage at {train.url}; run "
-                            f"`pipeline run train --dataset {dataset} --data-root ... --cache {shlex.quote(cache_root)}` "
-                            f"first")
+                            f"`pipeline run train {command_options(dataset, cache_root)} --data-root ...` first")
     recorded = meta.get("summary", {}).get("settings")
     if recorded:
         return {key: recorded[key] for key in RADAR_SETTINGS if key in recorded}
@@ -167,8 +166,7 @@ def with_nets_from(cfg: Config, cache_root: str, explicit: Iterable[str] = (), r
             raise ConfigError(f"train.nets_from = '{cfg.train.nets_from}': no finished train stage at "
                               f"{source_train(cache_root, source).url}, and this dataset's outputs were made with "
                               f"its radar settings, which the profile's would replace: run `pipeline run train "
-                              f"--dataset {source} --data-root ... --cache {shlex.quote(cache_root)}` first (nothing "
-                              f"was run)")
+                              f"{command_options(source, cache_root)} --data-root ...` first (nothing was run)")
         return cfg  # nothing trained there yet: the train stage says so when it runs
     trained = trained_settings(cache_root, source)
     clash = [m for m in mismatches(cfg, trained) if m.split("=", 1)[0] in set(explicit)]

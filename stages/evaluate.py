@@ -29,7 +29,6 @@ Every method is evaluated on the same frames: those of eval.split that evaluate-
 
 from __future__ import annotations
 
-import shlex
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ import numpy as np
 
 from pipeline.baselines import mean_count
 from pipeline.cache import DONE, FAILED
+from pipeline.cachefs import command_options
 from pipeline.config import Config
 from pipeline.errors import CacheError, PipelineError, first_sentence
 from pipeline.executor import FrameInputs, process_memo, run_memo
@@ -140,8 +140,8 @@ def read_mean_map(inputs, cfg: Config) -> np.ndarray:
         problem = (f"is damaged: it holds a {mean_map.dtype} array of shape {mean_map.shape}, "
                    "not a finite 2-D map")
     env = getattr(inputs, "env", inputs)
-    raise CacheError(f"{name} {problem}; write it again with `pipeline run train --dataset "
-                     f"{shlex.quote(env.dataset)} --cache {shlex.quote(env.cache_root)} --force` "
+    raise CacheError(f"{name} {problem}; write it again with `pipeline run train "
+                     f"{command_options(env.dataset, env.cache_root)} --force` "
                      "(which trains the nets again), or restore the file from a copy of the cache")
 
 

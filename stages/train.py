@@ -330,10 +330,10 @@ def _train_placenet(inputs, cfg: Config, table, root: Path) -> dict:
     return out
 
 
-
 FEW_TRAIN_FRAMES = 20
 """Fewer training frames than this: the train stage's line says the nets learn little from them
 (the two View-of-Delft example frames split 1 / 0 / 1 trained nets equal to the baselines)."""
+
 
 def _headline(s: dict) -> str:
     b = s["baselines_test"]
